@@ -1,0 +1,78 @@
+"""``pcc``: the offline command-line tool.
+
+Each sub-command lives in its own module exposing ``add_arguments(parser)`` and
+``run(args) -> int``. The table below is the registry: adding a command is one line.
+Modules are imported only when their command is parsed or run, so ``pcc --help`` stays
+fast and works without torch, open3d or ROS being importable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from pcc_ros import __version__
+from pcc_ros.errors import PccError
+
+# name -> (module, one-line help). Keep sorted by workflow order.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "synth": ("pcc_ros.data.synthetic.command", "generate a SynthCars LiDAR dataset (KITTI tracking layout)"),
+    "convert": ("pcc_ros.bags.convert_command", "convert KITTI / nuScenes / SynthCars to a ROS 2 bag"),
+    "info": ("pcc_ros.bags.info_command", "summarise a ROS 2 bag"),
+    "extract": ("pcc_ros.data.extract_command", "extract canonical car instances from bags or datasets"),
+    "train": ("pcc_ros.train", "train a completion backend self-supervised"),
+    "eval": ("pcc_ros.evaluate", "evaluate completion backends"),
+    "replay": ("pcc_ros.bags.replay", "run the per-frame pipeline over a bag"),
+    "demo": ("pcc_ros.demo", "end-to-end demo on SynthCars and real KITTI frames"),
+    "bench": ("pcc_ros.bench", "run a benchmark and print a table"),
+}
+
+
+def _available_commands() -> dict[str, tuple[str, str]]:
+    """Commands whose module exists in this installation (features land one by one)."""
+    found = {}
+    for name, (module, text) in COMMANDS.items():
+        if importlib.util.find_spec(module) is not None:
+            found[name] = (module, text)
+    return found
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="pcc",
+        description="pcc_ros offline tools: datasets, bags, training, evaluation, benchmarks.",
+    )
+    parser.add_argument("--version", action="version", version=f"pcc_ros {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module_name, text) in _available_commands().items():
+        module = importlib.import_module(module_name)
+        command = sub.add_parser(name, help=text, description=(module.__doc__ or text).strip().splitlines()[0])
+        module.add_arguments(command)
+        command.set_defaults(_module=module)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args._module.run(args) or 0)
+    except PccError as exc:
+        logging.getLogger("pcc").error("%s", exc)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

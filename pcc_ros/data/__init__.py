@@ -1,0 +1,1 @@
+"""Dataset readers and writers (KITTI, nuScenes, SynthCars) and instance datasets."""

@@ -1,0 +1,1 @@
+"""Vectorised geometry: boxes, cropping, the canonical car frame, partitions."""

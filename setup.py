@@ -1,0 +1,53 @@
+"""ament_python / pip packaging for pcc_ros.
+
+The same file serves colcon (``setup.py install --prefix ...``, scripts under
+``lib/pcc_ros`` thanks to setup.cfg, data under ``share/pcc_ros``) and a plain
+``pip install .`` into a virtualenv without ROS.
+"""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "pcc_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
+    package_data={PACKAGE: ["weights/*.safetensors", "weights/*.json", "config/*.yaml"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
+        (f"share/{PACKAGE}/weights", glob(f"{PACKAGE}/weights/*.safetensors") + glob(f"{PACKAGE}/weights/*.json")),
+    ],
+    # Runtime libraries. Versions are pinned for reproducible venvs in requirements.txt;
+    # here they stay loose so colcon/rosdep installs are not over-constrained.
+    install_requires=[
+        "numpy>=1.24",
+        "torch==2.13.0",
+        "rosbags>=0.10",
+        "mcap>=1.1",
+        "mcap-ros2-support>=0.5",
+        'open3d-cpu>=0.18; platform_machine == "x86_64"',
+        'open3d>=0.18; platform_machine != "x86_64"',
+        "safetensors>=0.4",
+        "tqdm>=4.60",
+        "matplotlib>=3.6",
+        "scipy>=1.10",
+        "pyyaml>=6",
+    ],
+    zip_safe=True,
+    maintainer="pcc_ros maintainers",
+    maintainer_email="maintainers@pcc-ros.dev",
+    description="LiDAR vehicle point cloud completion and detection filtering for ROS 2",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "pcc = pcc_ros.cli:main",
+        ],
+    },
+)

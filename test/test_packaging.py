@@ -1,0 +1,108 @@
+"""The ROS 2 / pip packaging itself: package.xml, setup.cfg, entry points, installed layout."""
+
+from __future__ import annotations
+
+import configparser
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+from pcc_ros.cli import COMMANDS, build_parser
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_package_xml_format_and_dependencies():
+    root = ET.parse(REPO / "package.xml").getroot()
+    assert root.tag == "package" and root.get("format") == "3"
+    assert root.findtext("name") == "pcc_ros"
+    assert root.find("export/build_type").text == "ament_python"
+    exec_deps = {e.text for e in root.findall("exec_depend")}
+    for dep in ("rclpy", "std_msgs", "sensor_msgs", "geometry_msgs", "visualization_msgs",
+                "vision_msgs", "tf2_ros", "python3-numpy"):
+        assert dep in exec_deps, dep
+    assert "python3-pytest" in {e.text for e in root.findall("test_depend")}
+
+
+def test_setup_cfg_puts_scripts_under_lib_pcc_ros():
+    cfg = configparser.ConfigParser()
+    cfg.read(REPO / "setup.cfg")
+    assert cfg["develop"]["script_dir"] == "$base/lib/pcc_ros"
+    assert cfg["install"]["install_scripts"] == "$base/lib/pcc_ros"
+
+
+def test_resource_marker_and_config_exist():
+    assert (REPO / "resource" / "pcc_ros").is_file()
+    assert list((REPO / "config").glob("*.yaml"))
+    assert (REPO / "bags" / "README.md").is_file()
+
+
+def test_console_entry_points_resolve():
+    import importlib
+    import re
+
+    text = (REPO / "setup.py").read_text()
+    for module, func in re.findall(r"= ([\w.]+):(\w+)", text):
+        assert callable(getattr(importlib.import_module(module), func))
+
+
+def test_cli_registry_modules_expose_the_command_protocol():
+    import importlib
+    import importlib.util
+
+    parser = build_parser()  # imports every available command module
+    assert parser.prog == "pcc"
+    for name, (module_name, _) in COMMANDS.items():
+        if importlib.util.find_spec(module_name) is not None:
+            module = importlib.import_module(module_name)
+            assert hasattr(module, "add_arguments") and hasattr(module, "run"), name
+
+
+def test_pcc_help_runs_as_a_program():
+    out = subprocess.run([sys.executable, "-m", "pcc_ros.cli", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "usage: pcc" in out.stdout
+
+
+def test_import_pcc_ros_needs_no_ros():
+    code = "import sys, pcc_ros, pcc_ros.cli; assert 'rclpy' not in sys.modules; print('ok')"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.stdout.strip() == "ok", out.stderr
+
+
+def test_rclpy_is_imported_only_in_nodes():
+    offenders = []
+    for path in (REPO / "pcc_ros").rglob("*.py"):
+        if "nodes" in path.relative_to(REPO / "pcc_ros").parts:
+            continue
+        for line in path.read_text().splitlines():
+            if line.strip().startswith(("import rclpy", "from rclpy")):
+                offenders.append(str(path))
+    assert not offenders
+
+
+@pytest.mark.slow
+def test_colcon_style_install_layout(tmp_path):
+    """What colcon runs for an ament_python package places scripts and data correctly."""
+    prefix = tmp_path / "install"
+    build = tmp_path / "build"
+    cmd = [
+        sys.executable, "setup.py", "-q", "egg_info", "--egg-base", str(tmp_path),
+        "build", "--build-base", str(build),
+        "install", "--prefix", str(prefix), "--single-version-externally-managed",
+        "--record", str(tmp_path / "record.txt"),
+    ]
+    out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert (prefix / "lib" / "pcc_ros" / "pcc").is_file()
+    share = prefix / "share" / "pcc_ros"
+    assert (share / "package.xml").is_file()
+    assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "pcc_ros").is_file()
+    for cfg in (REPO / "config").glob("*.yaml"):
+        assert (share / "config" / cfg.name).is_file()
+    for launch in (REPO / "launch").glob("*.launch.py"):
+        assert (share / "launch" / launch.name).is_file()
+    for weights in (REPO / "pcc_ros" / "weights").glob("*.safetensors"):
+        assert (share / "weights" / weights.name).is_file()
