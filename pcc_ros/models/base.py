@@ -1,0 +1,480 @@
+"""The completion interface every backend implements, and the registry that names them.
+
+A backend is one module in ``pcc_ros/models/`` that defines a :class:`Completer`
+subclass decorated with ``@register("name")``. Nothing else needs editing: the registry
+imports ``pcc_ros.models.<name>`` on first use of ``name`` and scans the package for
+:func:`available` (the PoinTr pattern, without its central import list). Callers only ever
+see :func:`create` / :func:`load_completer` and :meth:`Completer.complete`.
+
+Contract of :meth:`Completer.complete` (why it is shaped like this):
+
+* input: a batch of *canonical* partial clouds (see ``geometry/canonical.py``), a list of
+  ``(N_i, 3)`` arrays of varying size, because real crops never have equal point counts and
+  each backend resamples in its own way;
+* output: one canonical ``(M_i, 3)`` float32 completion per input, in input order;
+* optional scene context (one :class:`SceneContext` or ``None`` per instance) carries the
+  neighbouring instances of the same frame, which TraPCC's scene graph needs; backends
+  that do not use it ignore it;
+* learned backends (:class:`TorchCompleter`) run in chunks of ``batch_size`` under
+  ``torch.inference_mode`` on the selected device, in eval mode, and are deterministic:
+  any random resampling is seeded per cloud, so a cloud's completion does not depend on
+  what else is in the batch.
+"""
+
+from __future__ import annotations
+
+import abc
+import hashlib
+import importlib
+import logging
+import pkgutil
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+
+from pcc_ros.boxes import Boxes
+from pcc_ros.errors import CheckpointError, ConfigError, DataError
+
+if TYPE_CHECKING:  # torch is imported lazily so baselines and metrics stay torch-free
+    import torch
+
+log = logging.getLogger(__name__)
+
+#: Modules of ``pcc_ros.models`` that are infrastructure, never backends.
+_NOT_BACKENDS = frozenset({"base", "checkpoint", "baselines", "layers"})
+
+_REGISTRY: dict[str, type[Completer]] = {}
+
+
+# --------------------------------------------------------------------------- registry
+
+
+def register(name: str) -> Callable[[type[Completer]], type[Completer]]:
+    """Class decorator: make a :class:`Completer` subclass selectable as ``name``."""
+    if not name or not name.replace("_", "").isalnum() or name != name.lower():
+        raise ValueError(f"backend name {name!r} must be lower-case alphanumeric/underscore")
+
+    def decorate(cls: type[Completer]) -> type[Completer]:
+        if not (isinstance(cls, type) and issubclass(cls, Completer)):
+            raise TypeError(f"@register({name!r}) needs a Completer subclass, got {cls!r}")
+        previous = _REGISTRY.get(name)
+        if previous is not None and previous.__qualname__ != cls.__qualname__:
+            raise ValueError(f"backend {name!r} already registered by {previous.__module__}.{previous.__qualname__}")
+        cls.name = name
+        _REGISTRY[name] = cls
+        return cls
+
+    return decorate
+
+
+def _import_backend_module(module: str) -> None:
+    try:
+        importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name != module:  # the module exists but one of its imports is missing: a real error
+            raise
+
+
+def get_backend(name: str) -> type[Completer]:
+    """The class registered as ``name``; imports ``pcc_ros.models.<name>`` on demand."""
+    if name not in _REGISTRY:
+        _import_backend_module("pcc_ros.models.baselines")
+        if name not in _REGISTRY and name.replace("_", "").isalnum():
+            _import_backend_module(f"pcc_ros.models.{name}")
+    if name not in _REGISTRY:
+        raise ConfigError(f"unknown completion backend {name!r}; available: {', '.join(available())}")
+    return _REGISTRY[name]
+
+
+def available() -> list[str]:
+    """Names of every backend in the package (imports each backend module once).
+
+    A backend module that fails to import is logged and left out, so one broken backend
+    never hides the others.
+    """
+    import pcc_ros.models as package
+
+    _import_backend_module("pcc_ros.models.baselines")
+    for info in pkgutil.iter_modules(package.__path__):
+        if info.name in _NOT_BACKENDS or info.name.startswith("_"):
+            continue
+        try:
+            _import_backend_module(f"pcc_ros.models.{info.name}")
+        except Exception as exc:  # report and keep the others usable
+            log.warning("completion backend module pcc_ros.models.%s failed to import: %s", info.name, exc)
+    return sorted(_REGISTRY)
+
+
+def create(name: str, **config: Any) -> Completer:
+    """A fresh backend ``name`` built from ``config`` (untrained weights for learned ones)."""
+    return get_backend(name)(**config)
+
+
+def default_checkpoint(name: str) -> Path | None:
+    """The shipped default checkpoint ``<name>.safetensors`` of a backend, or ``None``.
+
+    Looked up in the package's ``weights/`` directory (package data of a pip/editable
+    install) and then in ``<prefix>/share/pcc_ros/weights`` (a colcon install).
+    """
+    import os
+    import sys
+
+    candidates = [Path(__file__).resolve().parents[1] / "weights"]
+    prefixes = [sys.prefix, sys.base_prefix, *os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)]
+    candidates += [Path(p) / "share" / "pcc_ros" / "weights" for p in dict.fromkeys(prefixes) if p]
+    candidates = [folder / f"{name}.safetensors" for folder in candidates]
+    for path in candidates:
+        if path.is_file():
+            return path
+    return None
+
+
+def load_completer(
+    name: str, checkpoint: str | Path | None = None, device: str = "auto", **overrides: Any
+) -> Completer:
+    """A ready-to-run backend: learned ones with weights loaded, in eval mode.
+
+    Args:
+        name: registered backend name.
+        checkpoint: ``.safetensors`` path (its ``.json`` beside it); ``None`` uses the
+            shipped default for learned backends.
+        device: ``auto`` | ``cpu`` | ``cuda`` | ``cuda:N``.
+        overrides: run-time options that do not change the weights (``batch_size``, ...).
+
+    Raises:
+        CheckpointError: no checkpoint found, or the file is corrupt / mismatched.
+        ConfigError: unknown backend, unavailable device, checkpoint given to a baseline.
+    """
+    cls = get_backend(name)
+    if not cls.learned:
+        if checkpoint is not None:
+            raise ConfigError(f"backend {name!r} has no weights; do not pass a checkpoint")
+        return cls(device=device, **overrides)
+    if checkpoint is None:
+        checkpoint = default_checkpoint(name)
+        if checkpoint is None:
+            raise CheckpointError(
+                f"no default checkpoint shipped for backend {name!r} (pcc_ros/weights/{name}.safetensors); "
+                f"train one with `pcc train {name}` and pass it as the checkpoint"
+            )
+    return cls.from_checkpoint(checkpoint, device=device, **overrides)
+
+
+# --------------------------------------------------------------------------- devices
+
+
+def select_device(device: str = "auto") -> torch.device:
+    """``auto`` -> cuda when available else cpu; an explicit ``cuda`` must be available."""
+    import torch
+
+    text = str(device).strip().lower()
+    if text == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        chosen = torch.device(text)
+    except (RuntimeError, ValueError) as exc:
+        raise ConfigError(f"invalid device {device!r}; use auto, cpu, cuda or cuda:N") from exc
+    if chosen.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device {device!r} requested but CUDA is not available (use device=auto or cpu)")
+        if chosen.index is not None and chosen.index >= torch.cuda.device_count():
+            raise ConfigError(f"device {device!r}: only {torch.cuda.device_count()} CUDA device(s)")
+    elif chosen.type != "cpu":
+        raise ConfigError(f"unsupported device {device!r}; use auto, cpu, cuda or cuda:N")
+    return chosen
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+@dataclass
+class SceneContext:
+    """The frame around one instance, for backends that look at neighbours (TraPCC).
+
+    TraPCC's scene graph links an instance to its ``k = 3`` nearest neighbouring vehicles
+    within a radius: neighbours seen from the same LiDAR view share its self-occlusion
+    pattern, and a neighbour between it and the sensor explains an external occlusion.
+    So the context holds the neighbours' points in *their own* canonical frames (shape
+    cues) and every box in the sensor frame (where each neighbour is relative to this
+    instance and to the sensor).
+
+    Attributes:
+        box: this instance's sensor-frame box (one row).
+        neighbour_boxes: sensor-frame boxes of the other instances of the frame.
+        neighbour_points: canonical ``(N_j, 3)`` clouds of those instances, same order.
+        neighbour_sensor_points: optional sensor-frame clouds of the neighbours.
+        sensor_origin: sensor position in the sensor frame (the origin unless re-based).
+    """
+
+    box: Boxes
+    neighbour_boxes: Boxes
+    neighbour_points: list[np.ndarray] = field(default_factory=list)
+    neighbour_sensor_points: list[np.ndarray] | None = None
+    sensor_origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        if len(self.box) != 1:
+            raise DataError(f"SceneContext.box must hold exactly one box, got {len(self.box)}")
+        if len(self.neighbour_points) != len(self.neighbour_boxes):
+            raise DataError(
+                f"SceneContext: {len(self.neighbour_points)} neighbour clouds for {len(self.neighbour_boxes)} boxes"
+            )
+        if self.neighbour_sensor_points is not None and len(self.neighbour_sensor_points) != len(self.neighbour_boxes):
+            raise DataError("SceneContext: neighbour_sensor_points and neighbour_boxes disagree in length")
+        self.sensor_origin = np.asarray(self.sensor_origin, dtype=np.float64).reshape(3)
+
+    @classmethod
+    def from_frame(
+        cls,
+        boxes: Boxes,
+        canonical: Sequence[np.ndarray],
+        sensor_points: Sequence[np.ndarray] | None = None,
+    ) -> list[SceneContext]:
+        """One context per instance of a frame: every other instance is a neighbour."""
+        n = len(boxes)
+        if len(canonical) != n:
+            raise DataError(f"SceneContext.from_frame: {len(canonical)} clouds for {n} boxes")
+        contexts = []
+        for i in range(n):  # loop over boxes of one frame: a handful
+            others = [j for j in range(n) if j != i]
+            contexts.append(
+                cls(
+                    box=boxes[np.array([i])],
+                    neighbour_boxes=boxes[np.array(others, dtype=int)],
+                    neighbour_points=[canonical[j] for j in others],
+                    neighbour_sensor_points=None if sensor_points is None else [sensor_points[j] for j in others],
+                )
+            )
+        return contexts
+
+    def nearest(self, k: int = 3, radius: float = float("inf")) -> SceneContext:
+        """The ``k`` nearest neighbours (box-centre distance) within ``radius`` metres."""
+        d = np.linalg.norm(self.neighbour_boxes.center - self.box.center[0], axis=1)
+        order = np.argsort(d, kind="stable")
+        keep = order[d[order] <= radius][:k]
+        return SceneContext(
+            box=self.box,
+            neighbour_boxes=self.neighbour_boxes[keep],
+            neighbour_points=[self.neighbour_points[j] for j in keep],
+            neighbour_sensor_points=None
+            if self.neighbour_sensor_points is None
+            else [self.neighbour_sensor_points[j] for j in keep],
+            sensor_origin=self.sensor_origin,
+        )
+
+    def neighbour_centres_canonical(self) -> np.ndarray:
+        """``(K, 3)`` neighbour box centres in this instance's canonical frame."""
+        from pcc_ros.geometry.canonical import to_canonical
+
+        return to_canonical(
+            self.neighbour_boxes.center, self.box.center[0], float(self.box.yaw[0]), float(self.box.size[0, 0])
+        ).astype(np.float32)
+
+
+def as_cloud_list(partials: Sequence[np.ndarray] | np.ndarray, what: str = "partial cloud") -> list[np.ndarray]:
+    """Validate a batch into a list of C-contiguous float32 ``(N_i, 3)`` arrays.
+
+    Accepts a list of arrays or one ``(B, N, 3)`` array. Extra columns (intensity) are
+    dropped. Raises :class:`DataError` naming the offending index on a wrong shape,
+    an empty cloud or non-finite coordinates.
+    """
+    if isinstance(partials, np.ndarray):
+        if partials.ndim == 2:
+            raise DataError(f"{what}s: got one (N, 3) array; pass a list of clouds or a (B, N, 3) batch")
+        if partials.ndim != 3:
+            raise DataError(f"{what}s: expected a (B, N, 3) array, got shape {partials.shape}")
+        partials = list(partials)
+    clouds = []
+    for i, cloud in enumerate(partials):
+        array = np.asarray(cloud)
+        if array.ndim != 2 or array.shape[1] < 3:
+            raise DataError(f"{what} {i}: expected shape (N, 3), got {array.shape}")
+        if len(array) == 0:
+            raise DataError(f"{what} {i} is empty")
+        array = np.ascontiguousarray(array[:, :3], dtype=np.float32)
+        if not np.isfinite(array).all():
+            raise DataError(f"{what} {i} has non-finite coordinates")
+        clouds.append(array)
+    return clouds
+
+
+def cloud_seed(cloud: np.ndarray, seed: int = 0) -> int:
+    """A seed derived from a cloud's bytes: deterministic per cloud, independent of batching."""
+    digest = hashlib.blake2b(np.ascontiguousarray(cloud, dtype=np.float32).tobytes(), digest_size=8).digest()
+    return (int.from_bytes(digest, "little") ^ (seed * 0x9E3779B97F4A7C15)) & 0xFFFF_FFFF_FFFF_FFFF
+
+
+def resample_cloud(cloud: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """Exactly ``n`` points of ``cloud``: a random subset, or all points plus random repeats.
+
+    Seeded from the cloud's own content (:func:`cloud_seed`), so repeated calls, and the
+    same cloud in different batches, give identical results.
+    """
+    rng = np.random.default_rng(cloud_seed(cloud, seed))
+    m = len(cloud)
+    if m >= n:
+        index = rng.choice(m, n, replace=False)
+    else:
+        index = np.concatenate([rng.permutation(m), rng.integers(0, m, n - m)])
+    return cloud[index]
+
+
+# --------------------------------------------------------------------------- completers
+
+
+class Completer(abc.ABC):
+    """A completion backend: canonical partial clouds in, canonical completions out.
+
+    Subclasses implement :meth:`_complete`; :meth:`complete` validates inputs, aligns the
+    scene contexts and checks what the backend returned, so every backend is held to the
+    same contract.
+    """
+
+    name: ClassVar[str] = ""
+    #: Has trainable weights (loaded from a checkpoint).
+    learned: ClassVar[bool] = False
+    #: Reads :class:`SceneContext` (others ignore it, and callers may skip building it).
+    uses_context: ClassVar[bool] = False
+
+    def __init__(self, device: str = "auto", **config: Any) -> None:
+        self.device_request = device
+        self.config: dict[str, Any] = dict(config)
+
+    def complete(
+        self,
+        partials: Sequence[np.ndarray] | np.ndarray,
+        context: Sequence[SceneContext | None] | SceneContext | None = None,
+    ) -> list[np.ndarray]:
+        """Complete a batch of canonical partial clouds; returns one float32 cloud each."""
+        clouds = as_cloud_list(partials)
+        if context is None:
+            contexts: list[SceneContext | None] = [None] * len(clouds)
+        elif isinstance(context, SceneContext):
+            if len(clouds) != 1:
+                raise DataError("one SceneContext given for a batch; pass one context per cloud")
+            contexts = [context]
+        else:
+            contexts = list(context)
+            if len(contexts) != len(clouds):
+                raise DataError(f"{len(contexts)} scene contexts for {len(clouds)} clouds")
+        if not clouds:
+            return []
+        outputs = self._complete(clouds, contexts)
+        if len(outputs) != len(clouds):
+            raise RuntimeError(f"backend {self.name!r} returned {len(outputs)} clouds for {len(clouds)} inputs")
+        result = []
+        for i, out in enumerate(outputs):
+            array = np.asarray(out, dtype=np.float32)
+            if array.ndim != 2 or array.shape[1] != 3:
+                raise RuntimeError(f"backend {self.name!r} returned shape {array.shape} for cloud {i}")
+            result.append(np.ascontiguousarray(array))
+        return result
+
+    @abc.abstractmethod
+    def _complete(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
+        """Backend work on validated float32 clouds (never empty, all finite)."""
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, config={self.config!r})"
+
+
+class TorchCompleter(Completer):
+    """Base of learned backends: device, batching, eval mode, checkpoint I/O.
+
+    A subclass provides:
+
+    * ``default_config()`` -> the hyper-parameters (JSON-able) with their defaults; only
+      these keys are accepted by the constructor and stored in checkpoints;
+    * ``build_model()`` -> the ``torch.nn.Module`` for ``self.config``;
+    * ``forward_batch(clouds, contexts)`` -> completions of one chunk (at most
+      ``batch_size`` clouds), called under ``torch.inference_mode`` with the model in eval
+      mode; use :func:`resample_cloud` (content-seeded) if the network needs fixed sizes.
+
+    Run-time options that do not change the weights (``batch_size``) are not
+    hyper-parameters and are not saved.
+    """
+
+    learned: ClassVar[bool] = True
+
+    def __init__(self, device: str = "auto", batch_size: int = 32, **config: Any) -> None:
+        defaults = self.default_config()
+        unknown = sorted(set(config) - set(defaults))
+        if unknown:
+            raise ConfigError(f"backend {self.name!r}: unknown option(s) {unknown}; known: {sorted(defaults)}")
+        if int(batch_size) < 1:
+            raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
+        super().__init__(device=device, **{**defaults, **config})
+        self.batch_size = int(batch_size)
+        self.device = select_device(device)
+        self.model = self.build_model().to(self.device)
+        self.model.eval()
+        #: What the weights were trained on, their metrics ... (from a loaded checkpoint).
+        self.checkpoint_config: dict[str, Any] | None = None
+
+    @classmethod
+    @abc.abstractmethod
+    def default_config(cls) -> dict[str, Any]:
+        """Hyper-parameters and their defaults (JSON-able values)."""
+
+    @abc.abstractmethod
+    def build_model(self) -> torch.nn.Module:
+        """The network for ``self.config``."""
+
+    @abc.abstractmethod
+    def forward_batch(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
+        """Complete one chunk (under inference mode, model in eval mode)."""
+
+    def _complete(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
+        import torch
+
+        if self.model.training:
+            self.model.eval()
+        outputs: list[np.ndarray] = []
+        with torch.inference_mode():
+            for start in range(0, len(clouds), self.batch_size):
+                stop = start + self.batch_size
+                outputs.extend(self.forward_batch(clouds[start:stop], contexts[start:stop]))
+        return outputs
+
+    # ---- checkpoints
+
+    def save(
+        self,
+        path: str | Path,
+        *,
+        training: dict[str, Any] | None = None,
+        metrics: dict[str, Any] | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> Path:
+        """Write ``path`` (.safetensors) and its ``.json`` config; returns the weights path."""
+        from pcc_ros.models.checkpoint import make_config, save_checkpoint
+
+        config = make_config(self.name, self.config, training=training, metrics=metrics, extra=extra)
+        return save_checkpoint(path, self.model.state_dict(), config)
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, device: str = "auto", **overrides: Any) -> TorchCompleter:
+        """Build the backend from a checkpoint's config and load its validated weights."""
+        from pcc_ros.models.checkpoint import load_checkpoint, validate_state
+
+        state, config = load_checkpoint(path)
+        if config["backend"] != cls.name:
+            raise CheckpointError(f"{path}: checkpoint is for backend {config['backend']!r}, not {cls.name!r}")
+        hyper = dict(config.get("hyper_parameters", {}))
+        unknown = sorted(set(hyper) - set(cls.default_config()))
+        if unknown:
+            raise CheckpointError(f"{path}: config has hyper-parameters {unknown} unknown to backend {cls.name!r}")
+        try:
+            completer = cls(device=device, **hyper, **overrides)
+        except ConfigError:
+            raise
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise CheckpointError(f"{path}: cannot build backend {cls.name!r} from its config: {exc}") from exc
+        validate_state(completer.model, state, source=str(path))
+        completer.model.load_state_dict(state, strict=True)
+        completer.model.eval()
+        completer.checkpoint_config = config
+        return completer

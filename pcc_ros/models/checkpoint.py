@@ -1,0 +1,236 @@
+"""Checkpoints: safetensors weights + a JSON config beside them. Nothing is unpickled.
+
+A checkpoint is two files with one stem: ``NAME.safetensors`` (tensors only, so loading
+cannot execute code) and ``NAME.json``::
+
+    {
+      "format": "pcc_ros.checkpoint/1",
+      "backend": "pointpncnet",
+      "hyper_parameters": {...},          # exactly what the backend's constructor takes
+      "points": {"input": 2048, ...},     # point counts (also in hyper_parameters when used)
+      "training": {...},                  # data summary: dataset, split, instances, epochs, seed
+      "metrics": {...},                   # validation figures, units named in the keys
+      "tensors": {"name": [shape], ...},  # the manifest loading checks the file against
+      "sha256": "...", "size_bytes": N,  # of the .safetensors file: catches truncation, flipped bytes
+      "git_revision": "...", "pcc_ros_version": "...", "created": "..."
+    }
+
+Why the manifest and the hash: safetensors parses its header strictly, so a truncated
+file is refused, but a corrupted tensor *payload* would load silently as garbage weights.
+The SHA-256 catches that, and the manifest lets a mismatch (wrong backend version, edited
+config) be reported tensor by tensor instead of as a bare torch ``load_state_dict`` error.
+
+Every failure raises :class:`~pcc_ros.errors.CheckpointError` naming the file.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import subprocess
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pcc_ros.errors import CheckpointError
+
+if TYPE_CHECKING:
+    import torch
+
+FORMAT = "pcc_ros.checkpoint/1"
+_REQUIRED_KEYS = ("format", "backend", "hyper_parameters", "tensors", "sha256")
+
+
+def checkpoint_paths(path: str | Path) -> tuple[Path, Path]:
+    """``(weights, config)`` for ``NAME``, ``NAME.safetensors`` or ``NAME.json``."""
+    path = Path(path)
+    if path.suffix in (".safetensors", ".json"):
+        stem = path.with_suffix("")
+    else:
+        stem = path
+    return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
+
+
+def git_revision(start: str | Path | None = None) -> str:
+    """The repository's HEAD commit (``+dirty`` if modified), or ``"unknown"`` outside git."""
+    cwd = Path(start) if start else Path(__file__).resolve().parent
+    try:
+        rev = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=5, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=cwd, capture_output=True, text=True, timeout=5, check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return rev + ("+dirty" if dirty else "")
+
+
+def make_config(
+    backend: str,
+    hyper_parameters: Mapping[str, Any],
+    *,
+    training: Mapping[str, Any] | None = None,
+    metrics: Mapping[str, Any] | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """A checkpoint config (without the tensor manifest, which :func:`save_checkpoint` adds).
+
+    Point counts are pulled out of the hyper-parameters (keys containing ``points``) into
+    ``"points"`` so a person reading the JSON sees them at a glance.
+    """
+    from pcc_ros import __version__
+
+    hyper = json.loads(json.dumps(dict(hyper_parameters)))  # JSON-able, detached copy
+    config: dict[str, Any] = {
+        "format": FORMAT,
+        "backend": backend,
+        "hyper_parameters": hyper,
+        "points": {k: v for k, v in hyper.items() if "points" in k},
+        "training": dict(training or {}),
+        "metrics": dict(metrics or {}),
+        "git_revision": git_revision(),
+        "pcc_ros_version": __version__,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+    if extra:
+        config.update(extra)
+    return config
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def save_checkpoint(path: str | Path, model_state: Mapping[str, torch.Tensor], config: Mapping[str, Any]) -> Path:
+    """Write weights and config atomically (temp files + rename); returns the weights path.
+
+    ``config`` needs at least ``backend`` and ``hyper_parameters`` (see :func:`make_config`);
+    ``format``, the tensor manifest and the hash are filled in here.
+    """
+    import torch
+    from safetensors.torch import save_file
+
+    weights_path, config_path = checkpoint_paths(path)
+    if "backend" not in config or "hyper_parameters" not in config:
+        raise ValueError("checkpoint config needs 'backend' and 'hyper_parameters'")
+    tensors = {}
+    for name, value in model_state.items():
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"state entry {name!r} is {type(value).__name__}, not a tensor")
+        tensors[name] = value.detach().to("cpu").contiguous().clone()  # clone: no shared storage
+    full = dict(config)
+    full["format"] = FORMAT
+    full["tensors"] = {name: list(t.shape) for name, t in tensors.items()}
+    full["dtypes"] = {name: str(t.dtype).removeprefix("torch.") for name, t in tensors.items()}
+
+    weights_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp_weights = weights_path.with_name(weights_path.name + f".tmp{os.getpid()}")
+    tmp_config = config_path.with_name(config_path.name + f".tmp{os.getpid()}")
+    try:
+        save_file(tensors, str(tmp_weights), metadata={"format": FORMAT, "backend": str(config["backend"])})
+        full["sha256"] = _sha256(tmp_weights)
+        full["size_bytes"] = tmp_weights.stat().st_size
+        tmp_config.write_text(json.dumps(full, indent=2, sort_keys=False) + "\n")
+        os.replace(tmp_weights, weights_path)
+        os.replace(tmp_config, config_path)
+    finally:
+        for tmp in (tmp_weights, tmp_config):
+            tmp.unlink(missing_ok=True)
+    return weights_path
+
+
+def load_config(path: str | Path) -> dict[str, Any]:
+    """The validated JSON config of a checkpoint (no tensors are read)."""
+    _, config_path = checkpoint_paths(path)
+    if not config_path.is_file():
+        raise CheckpointError(f"{config_path}: checkpoint config not found")
+    try:
+        config = json.loads(config_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CheckpointError(f"{config_path}: not a valid JSON checkpoint config ({exc})") from exc
+    if not isinstance(config, dict):
+        raise CheckpointError(f"{config_path}: checkpoint config must be a JSON object")
+    missing = [k for k in _REQUIRED_KEYS if k not in config]
+    if missing:
+        raise CheckpointError(f"{config_path}: checkpoint config lacks {missing}")
+    if config["format"] != FORMAT:
+        raise CheckpointError(f"{config_path}: unsupported checkpoint format {config['format']!r} (expected {FORMAT})")
+    if not isinstance(config["tensors"], dict) or not isinstance(config["hyper_parameters"], dict):
+        raise CheckpointError(f"{config_path}: 'tensors' and 'hyper_parameters' must be JSON objects")
+    return config
+
+
+def load_checkpoint(path: str | Path, verify_hash: bool = True) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """``(state_dict, config)`` of a checkpoint, fully validated, on the CPU.
+
+    Raises:
+        CheckpointError: a file is missing, the JSON is malformed, the weights are truncated
+            or corrupt (header parse failure or SHA-256 mismatch), the tensors differ from
+            the config's manifest, or a tensor holds NaN/inf.
+    """
+    import torch
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    weights_path, config_path = checkpoint_paths(path)
+    if not weights_path.is_file():
+        raise CheckpointError(f"{weights_path}: checkpoint weights not found")
+    config = load_config(path)
+    size = weights_path.stat().st_size
+    recorded = config.get("size_bytes")
+    if isinstance(recorded, int) and size != recorded:
+        raise CheckpointError(
+            f"{weights_path}: weights file is {size} bytes but {config_path.name} records {recorded} "
+            f"({'truncated' if size < recorded else 'trailing data'}; re-copy or re-train the checkpoint)"
+        )
+    if verify_hash:
+        actual = _sha256(weights_path)
+        if actual != config["sha256"]:
+            raise CheckpointError(
+                f"{weights_path}: weights are corrupt or were replaced (sha256 {actual[:12]}… differs from "
+                f"{str(config['sha256'])[:12]}… recorded in {config_path.name})"
+            )
+    try:
+        state = load_file(str(weights_path), device="cpu")
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"{weights_path}: cannot read safetensors weights (truncated or corrupt): {exc}") from exc
+    expected = {name: tuple(shape) for name, shape in config["tensors"].items()}
+    actual_shapes = {name: tuple(t.shape) for name, t in state.items()}
+    problems = _compare_shapes(expected, actual_shapes, "config", "file")
+    if problems:
+        raise CheckpointError(f"{weights_path}: weights do not match {config_path.name}: {problems}")
+    for name, tensor in state.items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(f"{weights_path}: tensor {name!r} holds NaN or inf values")
+    return state, config
+
+
+def _compare_shapes(expected: Mapping[str, tuple], actual: Mapping[str, tuple], a: str, b: str, limit: int = 5) -> str:
+    missing = sorted(set(expected) - set(actual))
+    unexpected = sorted(set(actual) - set(expected))
+    wrong = sorted(n for n in set(expected) & set(actual) if tuple(expected[n]) != tuple(actual[n]))
+    parts = []
+    if missing:
+        parts.append(f"missing in {b}: {missing[:limit]}" + (" …" if len(missing) > limit else ""))
+    if unexpected:
+        parts.append(f"not in {a}: {unexpected[:limit]}" + (" …" if len(unexpected) > limit else ""))
+    for n in wrong[:limit]:
+        parts.append(f"{n}: {a} {list(expected[n])} vs {b} {list(actual[n])}")
+    return "; ".join(parts)
+
+
+def validate_state(model: torch.nn.Module, state: Mapping[str, torch.Tensor], source: str = "checkpoint") -> None:
+    """Raise :class:`CheckpointError` unless ``state`` has exactly the model's names and shapes."""
+    expected = {name: tuple(t.shape) for name, t in model.state_dict().items()}
+    actual = {name: tuple(t.shape) for name, t in state.items()}
+    problems = _compare_shapes(expected, actual, "model", "checkpoint")
+    if problems:
+        raise CheckpointError(f"{source}: weights do not fit the model built from its config: {problems}")
