@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import logging
 import sys
 
@@ -34,8 +35,11 @@ def _available_commands() -> dict[str, tuple[str, str]]:
     """Commands whose module exists in this installation (features land one by one)."""
     found = {}
     for name, (module, text) in COMMANDS.items():
-        if importlib.util.find_spec(module) is not None:
-            found[name] = (module, text)
+        try:
+            if importlib.util.find_spec(module) is not None:
+                found[name] = (module, text)
+        except ModuleNotFoundError:  # a parent package that has not landed
+            continue
     return found
 
 

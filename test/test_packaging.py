@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pcc_ros.cli import COMMANDS, build_parser
+from pcc_ros.cli import COMMANDS, _available_commands, build_parser
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -51,14 +51,13 @@ def test_console_entry_points_resolve():
 
 def test_cli_registry_modules_expose_the_command_protocol():
     import importlib
-    import importlib.util
 
     parser = build_parser()  # imports every available command module
     assert parser.prog == "pcc"
-    for name, (module_name, _) in COMMANDS.items():
-        if importlib.util.find_spec(module_name) is not None:
-            module = importlib.import_module(module_name)
-            assert hasattr(module, "add_arguments") and hasattr(module, "run"), name
+    for name, (module_name, _) in _available_commands().items():
+        module = importlib.import_module(module_name)
+        assert hasattr(module, "add_arguments") and hasattr(module, "run"), name
+    assert set(_available_commands()) <= set(COMMANDS)
 
 
 def test_pcc_help_runs_as_a_program():
