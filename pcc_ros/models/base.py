@@ -110,7 +110,11 @@ def available() -> list[str]:
 
 def create(name: str, **config: Any) -> Completer:
     """A fresh backend ``name`` built from ``config`` (untrained weights for learned ones)."""
-    return get_backend(name)(**config)
+    cls = get_backend(name)
+    try:
+        return cls(**config)
+    except TypeError as exc:  # an option the constructor does not take
+        raise ConfigError(f"backend {name!r}: bad options {sorted(config)}: {exc}") from exc
 
 
 def default_checkpoint(name: str) -> Path | None:
@@ -152,7 +156,7 @@ def load_completer(
     if not cls.learned:
         if checkpoint is not None:
             raise ConfigError(f"backend {name!r} has no weights; do not pass a checkpoint")
-        return cls(device=device, **overrides)
+        return create(name, device=device, **overrides)
     if checkpoint is None:
         checkpoint = default_checkpoint(name)
         if checkpoint is None:

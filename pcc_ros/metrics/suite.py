@@ -1,0 +1,88 @@
+"""All completion metrics of one instance at once, in canonical units and in metres.
+
+The evaluation computes every metric in the canonical car frame (the frame the backends
+work in) and converts to metres with the instance's box length. Because the canonical
+transform is rotation + translation + isotropic scale by ``1 / length``, a distance in
+metres is exactly ``length`` x the canonical distance, and a squared distance
+``length**2`` x. :data:`METRICS` records each metric's power of length, so the conversion
+and the unit labels in tables cannot disagree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pcc_ros.metrics.chamfer import PairDistances, chamfer_from_distances
+from pcc_ros.metrics.emd import DEFAULT_MAX_POINTS, emd
+from pcc_ros.metrics.fscore import fscore_from_distances, side_length
+from pcc_ros.metrics.gtfree import fidelity, side_view_cd
+
+
+@dataclass(frozen=True)
+class MetricInfo:
+    """How a metric scales with length (0: dimensionless) and whether lower is better."""
+
+    power: int
+    lower_is_better: bool
+    description: str
+
+
+METRICS: dict[str, MetricInfo] = {
+    "cd_l1": MetricInfo(1, True, "Chamfer L1: (precision + coverage) / 2, non-squared (PCN, PointPnCNet)"),
+    "cd_l2": MetricInfo(2, True, "Chamfer L2: mean squared NN distance summed over both directions (PoinTr)"),
+    "precision": MetricInfo(1, True, "mean distance prediction -> reference"),
+    "coverage": MetricInfo(1, True, "mean distance reference -> prediction"),
+    "fscore": MetricInfo(0, False, "F-score@1% (threshold 1% of the prediction's longest bbox side)"),
+    "fscore_fixed": MetricInfo(0, False, "F-score at a fixed threshold in metres"),
+    "emd": MetricInfo(1, True, "earth mover's distance, exact on <= 1024-point subsamples"),
+    "fidelity": MetricInfo(2, True, "TraPCC L-I / MCD: mean squared distance input -> prediction"),
+    "side_cd": MetricInfo(2, True, "TraPCC L-S: squared Chamfer of the side-view (x-z) projections"),
+}
+
+
+def unit_label(metric: str, metres: bool) -> str:
+    """``m``, ``m^2``, ``canon``, ``canon^2`` or ``-`` for a dimensionless metric."""
+    power = METRICS[metric].power
+    if power == 0:
+        return "-"
+    base = "m" if metres else "canon"
+    return base if power == 1 else f"{base}^{power}"
+
+
+def to_metres(metric: str, value: float | np.ndarray, length: float | np.ndarray) -> float | np.ndarray:
+    """Convert a canonical-unit value of ``metric`` to metres (``length`` = box length, m)."""
+    return value * np.asarray(length, dtype=np.float64) ** METRICS[metric].power
+
+
+def instance_metrics(
+    pred: np.ndarray,
+    reference: np.ndarray,
+    partial: np.ndarray | None = None,
+    *,
+    length: float = 1.0,
+    fixed_threshold_m: float = 0.05,
+    with_emd: bool = True,
+    emd_points: int = DEFAULT_MAX_POINTS,
+    seed: int = 0,
+) -> dict[str, float]:
+    """Every metric of one canonical (prediction, reference) pair, canonical units.
+
+    ``reference`` is the ground-truth shape (SynthCars) or, without one, the multi-frame
+    aggregated cloud of the track. ``partial`` (the network input) enables ``fidelity``;
+    ``side_cd`` is always computed against ``reference``. ``length`` (metres) converts the
+    fixed F-score threshold to canonical units.
+    """
+    if length <= 0 or not np.isfinite(length):
+        raise ValueError(f"box length must be positive, got {length}")
+    d = PairDistances.compute(pred, reference)
+    out = chamfer_from_distances(d)
+    out["fscore"] = fscore_from_distances(d, 0.01 * side_length(pred))["fscore"]
+    out["fscore_fixed"] = fscore_from_distances(d, fixed_threshold_m / length)["fscore"]
+    if with_emd:
+        out["emd"] = emd(pred, reference, max_points=emd_points, seed=seed)
+    if partial is not None:
+        out["fidelity"] = fidelity(partial, pred)
+    out["side_cd"] = side_view_cd(pred, reference)
+    return out
