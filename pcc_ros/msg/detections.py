@@ -1,0 +1,349 @@
+"""3D boxes <-> ``vision_msgs/Detection3DArray`` and ``visualization_msgs/MarkerArray``.
+
+The package's box is :class:`~pcc_ros.boxes.Boxes` (centre, size = length / width / height,
+yaw about +z). vision_msgs 4.x stores a full 6-DoF pose plus a list of class hypotheses;
+the conversion keeps:
+
+* centre = ``bbox.center.position``; size = ``bbox.size`` (x = length along the heading,
+  y = width, z = height); yaw = heading of the box's x axis after rotating by the
+  normalised ``bbox.center.orientation`` (roll / pitch, rare for road vehicles, are
+  dropped);
+* label / score = the hypothesis with the highest score (``""`` / ``1.0`` when a detection
+  has no hypotheses: Boxes' convention for an unscored box);
+* ``Detection3D.id`` = ``Boxes.track_id``.
+
+Reading is strict: a NaN / inf pose, a zero-length or non-finite quaternion, a size that is
+not finite and positive, or a non-finite score raises :class:`MessageError` naming the
+detection (``skip_invalid=True`` instead drops those boxes and logs a warning with the
+count). Writing validates the boxes the same way.
+
+:func:`marker_array_from_boxes` draws boxes for RViz: a ``DELETEALL`` first (stale boxes of
+the previous frame disappear), one ``LINE_LIST`` per box (12 edges plus a cross on the
+front face to show the heading) coloured by status, and a ``TEXT_VIEW_FACING`` label with
+class and score above each box.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+
+from pcc_ros.boxes import Boxes
+from pcc_ros.errors import MessageError
+from pcc_ros.msg.stamps import make_header
+from pcc_ros.msg.typestore import ClassResolver, new_message
+
+log = logging.getLogger(__name__)
+
+# visualization_msgs/Marker constants (identical in rclpy and rosbags classes).
+ARROW, CUBE, LINE_LIST, TEXT_VIEW_FACING = 0, 1, 5, 9
+ADD, DELETE, DELETEALL = 0, 2, 3
+
+#: RGBA per status for :func:`marker_array_from_boxes`; unknown statuses are white.
+STATUS_COLORS: dict[str | None, tuple[float, float, float, float]] = {
+    None: (0.0, 0.8, 1.0, 1.0),  # no status given: cyan
+    "kept": (0.1, 0.9, 0.2, 1.0),  # green
+    "rejected": (1.0, 0.15, 0.1, 1.0),  # red
+    "completed": (0.2, 0.4, 1.0, 1.0),  # blue
+    "skipped": (0.6, 0.6, 0.6, 1.0),  # grey: too few points, wrong class ...
+}
+_OTHER_COLOR = (1.0, 1.0, 1.0, 1.0)
+
+# Corner signs (length, width, height) and the line segments drawn per box.
+_CORNER_SIGNS = np.array(
+    [[1, 1, -1], [1, -1, -1], [-1, -1, -1], [-1, 1, -1], [1, 1, 1], [1, -1, 1], [-1, -1, 1], [-1, 1, 1]],
+    dtype=np.float64,
+)
+_EDGES = np.array(
+    [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7], [0, 5], [1, 4]]
+)  # bottom ring, top ring, verticals, then an X across the front face (corners 0, 1, 4, 5)
+
+
+def yaw_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Yaw of ``(N, 4)`` unit quaternions ``(x, y, z, w)``: heading of the rotated x axis."""
+    x, y, z, w = q.T
+    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def _invalid_reasons(center: np.ndarray, size: np.ndarray, quat: np.ndarray | None, score: np.ndarray) -> list[str]:
+    """Per box, ``""`` if valid, else what is wrong (vectorised checks, strings only for bad rows)."""
+    bad_center = ~np.isfinite(center).all(axis=1)
+    bad_size = ~(np.isfinite(size).all(axis=1) & (size > 0).all(axis=1))
+    bad_score = ~np.isfinite(score)
+    if quat is not None:
+        norm = np.linalg.norm(quat, axis=1)
+        bad_quat = ~np.isfinite(quat).all(axis=1) | ~(norm > 1e-9)
+    else:
+        bad_quat = np.zeros(len(center), dtype=bool)
+    reasons = [""] * len(center)
+    for i in np.flatnonzero(bad_center | bad_size | bad_score | bad_quat):
+        parts = []
+        if bad_center[i]:
+            parts.append(f"non-finite position {center[i].tolist()}")
+        if bad_quat[i]:
+            parts.append(f"invalid orientation quaternion {quat[i].tolist()}")
+        if bad_size[i]:
+            parts.append(f"size {size[i].tolist()} is not finite and positive")
+        if bad_score[i]:
+            parts.append(f"non-finite score {score[i]}")
+        reasons[i] = ", ".join(parts)
+    return reasons
+
+
+def _keep_valid(reasons: list[str], what: str, skip_invalid: bool) -> np.ndarray:
+    bad = [i for i, r in enumerate(reasons) if r]
+    if bad and not skip_invalid:
+        more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
+        raise MessageError(f"{what} {bad[0]}: {reasons[bad[0]]}{more}")
+    if bad:
+        log.warning("skipped %d invalid %s(s), first: %s %d: %s", len(bad), what, what, bad[0], reasons[bad[0]])
+    keep = np.ones(len(reasons), dtype=bool)
+    keep[bad] = False
+    return keep
+
+
+def _best_hypothesis(results) -> tuple[str, float]:
+    best_label, best_score = "", None
+    for result in results:  # a handful of hypotheses per detection
+        score = float(result.hypothesis.score)
+        if best_score is None or score > best_score or (np.isnan(score) and not np.isnan(best_score)):
+            best_label, best_score = str(result.hypothesis.class_id), score
+    return best_label, 1.0 if best_score is None else best_score
+
+
+def boxes_from_detection_array(msg, skip_invalid: bool = False) -> Boxes:
+    """:class:`Boxes` from a ``vision_msgs/Detection3DArray`` (see the module docstring)."""
+    try:
+        detections = list(msg.detections)
+    except (AttributeError, TypeError):
+        raise MessageError("object is not a Detection3DArray (no 'detections')") from None
+    if not detections:
+        return Boxes.empty()
+    center, quat, size, label, score, track = [], [], [], [], [], []
+    for i, det in enumerate(detections):
+        try:
+            pose, dims = det.bbox.center, det.bbox.size
+            center.append((pose.position.x, pose.position.y, pose.position.z))
+            o = pose.orientation
+            quat.append((o.x, o.y, o.z, o.w))
+            size.append((dims.x, dims.y, dims.z))
+            best = _best_hypothesis(det.results)
+            label.append(best[0])
+            score.append(best[1])
+            track.append(str(det.id))
+        except (AttributeError, TypeError, ValueError) as exc:
+            raise MessageError(f"detection {i} is not a vision_msgs/Detection3D ({exc})") from None
+    center_a = np.asarray(center, dtype=np.float64)
+    quat_a = np.asarray(quat, dtype=np.float64)
+    size_a = np.asarray(size, dtype=np.float64)
+    score_a = np.asarray(score, dtype=np.float64)
+    keep = _keep_valid(_invalid_reasons(center_a, size_a, quat_a, score_a), "detection", skip_invalid)
+    quat_a = quat_a[keep] / np.linalg.norm(quat_a[keep], axis=1, keepdims=True)
+    return Boxes(
+        center_a[keep],
+        size_a[keep],
+        yaw_from_quaternion(quat_a),
+        np.asarray(label, dtype=object)[keep],
+        score_a[keep],
+        np.asarray(track, dtype=object)[keep],
+    )
+
+
+def _check_boxes(boxes: Boxes) -> None:
+    _keep_valid(_invalid_reasons(boxes.center, boxes.size, None, boxes.score), "box", skip_invalid=False)
+    if not np.isfinite(boxes.yaw).all():
+        raise MessageError(f"box {int(np.flatnonzero(~np.isfinite(boxes.yaw))[0])}: non-finite yaw")
+
+
+def _pose(classes, center, yaw):
+    return new_message(
+        "geometry_msgs/msg/Pose",
+        classes,
+        position=new_message(
+            "geometry_msgs/msg/Point", classes, x=float(center[0]), y=float(center[1]), z=float(center[2])
+        ),
+        orientation=new_message(
+            "geometry_msgs/msg/Quaternion", classes, x=0.0, y=0.0, z=float(np.sin(yaw / 2)), w=float(np.cos(yaw / 2))
+        ),
+    )
+
+
+def _vector3(classes, v):
+    return new_message("geometry_msgs/msg/Vector3", classes, x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def detection_array_from_boxes(boxes: Boxes, frame_id: str, stamp_ns: int, classes: ClassResolver | None = None):
+    """A ``vision_msgs/msg/Detection3DArray``: one detection per box, one hypothesis
+    (label, score) whose pose equals the box pose, ``id`` = track id."""
+    _check_boxes(boxes)
+    header = make_header(frame_id, stamp_ns, classes)
+    detections = []
+    for i in range(len(boxes)):
+        hypothesis = new_message(
+            "vision_msgs/msg/ObjectHypothesisWithPose",
+            classes,
+            hypothesis=new_message(
+                "vision_msgs/msg/ObjectHypothesis", classes, class_id=str(boxes.label[i]), score=float(boxes.score[i])
+            ),
+            pose=new_message(
+                "geometry_msgs/msg/PoseWithCovariance",
+                classes,
+                pose=_pose(classes, boxes.center[i], boxes.yaw[i]),
+                covariance=np.zeros(36, dtype=np.float64),
+            ),
+        )
+        detections.append(
+            new_message(
+                "vision_msgs/msg/Detection3D",
+                classes,
+                header=make_header(frame_id, stamp_ns, classes),
+                results=[hypothesis],
+                bbox=new_message(
+                    "vision_msgs/msg/BoundingBox3D",
+                    classes,
+                    center=_pose(classes, boxes.center[i], boxes.yaw[i]),
+                    size=_vector3(classes, boxes.size[i]),
+                ),
+                id=str(boxes.track_id[i]),
+            )
+        )
+    return new_message("vision_msgs/msg/Detection3DArray", classes, header=header, detections=detections)
+
+
+def boxes_from_marker_array(msg, skip_invalid: bool = False) -> Boxes:
+    """:class:`Boxes` from the ``CUBE`` markers (action ADD) of a ``visualization_msgs/MarkerArray``.
+
+    Older detector wrappers publish boxes this way. Size = ``scale``, label = ``text`` if set,
+    else ``ns``; track id = ``str(id)``; score = 1.0 (markers carry none). Other marker types
+    (lines, text, DELETE / DELETEALL) are not boxes and are ignored. All cubes must share one
+    ``header.frame_id``: Boxes carry no frame, so mixing frames would silently misplace boxes.
+    """
+    try:
+        markers = list(msg.markers)
+        cubes = [m for m in markers if int(m.type) == CUBE and int(m.action) == ADD]
+    except (AttributeError, TypeError, ValueError):
+        raise MessageError("object is not a MarkerArray of visualization_msgs/Marker") from None
+    if not cubes:
+        return Boxes.empty()
+    center, quat, size, label, track, frames = [], [], [], [], [], set()
+    for i, m in enumerate(cubes):
+        try:
+            p, o, s = m.pose.position, m.pose.orientation, m.scale
+            center.append((p.x, p.y, p.z))
+            quat.append((o.x, o.y, o.z, o.w))
+            size.append((s.x, s.y, s.z))
+            label.append(str(m.text) or str(m.ns))
+            track.append(str(int(m.id)))
+            frames.add(str(m.header.frame_id))
+        except (AttributeError, TypeError, ValueError) as exc:
+            raise MessageError(f"cube marker {i} is malformed ({exc})") from None
+    if len(frames) > 1:
+        raise MessageError(f"CUBE markers are in different frames {sorted(frames)}")
+    center_a = np.asarray(center, dtype=np.float64)
+    quat_a = np.asarray(quat, dtype=np.float64)
+    size_a = np.asarray(size, dtype=np.float64)
+    score_a = np.ones(len(cubes))
+    keep = _keep_valid(_invalid_reasons(center_a, size_a, quat_a, score_a), "cube marker", skip_invalid)
+    quat_a = quat_a[keep] / np.linalg.norm(quat_a[keep], axis=1, keepdims=True)
+    return Boxes(
+        center_a[keep],
+        size_a[keep],
+        yaw_from_quaternion(quat_a),
+        np.asarray(label, dtype=object)[keep],
+        score_a[keep],
+        np.asarray(track, dtype=object)[keep],
+    )
+
+
+def box_edges(boxes: Boxes) -> np.ndarray:
+    """``(N, 2 * len(_EDGES), 3)`` line-segment end points (12 edges + front cross) per box."""
+    half = boxes.size[:, None, :] * 0.5 * _CORNER_SIGNS[None]  # (N, 8, 3) in the box frame
+    c, s = np.cos(boxes.yaw)[:, None], np.sin(boxes.yaw)[:, None]
+    corners = (
+        np.stack([c * half[..., 0] - s * half[..., 1], s * half[..., 0] + c * half[..., 1], half[..., 2]], axis=-1)
+        + boxes.center[:, None, :]
+    )
+    return corners[:, _EDGES.reshape(-1)]
+
+
+def _color(classes, rgba):
+    return new_message("std_msgs/msg/ColorRGBA", classes, r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
+
+
+def marker_array_from_boxes(
+    boxes: Boxes,
+    frame_id: str,
+    stamp_ns: int,
+    status: Sequence[str] | np.ndarray | None = None,
+    ns: str = "boxes",
+    classes: ClassResolver | None = None,
+    cubes: bool = False,
+    line_width: float = 0.08,
+    text_height: float = 0.6,
+):
+    """A ``visualization_msgs/msg/MarkerArray`` drawing ``boxes`` for RViz.
+
+    Markers, in order: ``DELETEALL`` (namespace ``ns``); per box ``i`` a ``LINE_LIST``
+    (``ns``, id ``i``) coloured by ``status[i]`` (:data:`STATUS_COLORS`), a
+    ``TEXT_VIEW_FACING`` (``ns + "_text"``, id ``i``) reading ``"<label> <score>"`` above the
+    box and, with ``cubes=True``, a translucent ``CUBE`` (``ns + "_cubes"``, id ``i``, text =
+    label) that :func:`boxes_from_marker_array` can read back.
+    """
+    _check_boxes(boxes)
+    n = len(boxes)
+    if status is not None and len(status) != n:
+        raise MessageError(f"status has {len(status)} entries for {n} boxes")
+    header = make_header(frame_id, stamp_ns, classes)
+
+    def marker(**fields):
+        return new_message("visualization_msgs/msg/Marker", classes, header=header, **fields)
+
+    markers = [marker(ns=ns, id=0, action=DELETEALL)]
+    segments = box_edges(boxes)
+    for i in range(n):
+        rgba = STATUS_COLORS.get(None if status is None else str(status[i]), _OTHER_COLOR)
+        identity = _pose(classes, (0.0, 0.0, 0.0), 0.0)
+        markers.append(
+            marker(
+                ns=ns,
+                id=i,
+                type=LINE_LIST,
+                action=ADD,
+                pose=identity,
+                scale=_vector3(classes, (line_width, 0.0, 0.0)),
+                color=_color(classes, rgba),
+                points=[
+                    new_message("geometry_msgs/msg/Point", classes, x=float(p[0]), y=float(p[1]), z=float(p[2]))
+                    for p in segments[i]
+                ],
+            )
+        )
+        top = boxes.center[i] + (0.0, 0.0, boxes.size[i, 2] / 2 + text_height)
+        markers.append(
+            marker(
+                ns=f"{ns}_text",
+                id=i,
+                type=TEXT_VIEW_FACING,
+                action=ADD,
+                pose=_pose(classes, top, 0.0),
+                scale=_vector3(classes, (0.0, 0.0, text_height)),
+                color=_color(classes, rgba),
+                text=f"{boxes.label[i]} {boxes.score[i]:.2f}",
+            )
+        )
+        if cubes:
+            markers.append(
+                marker(
+                    ns=f"{ns}_cubes",
+                    id=i,
+                    type=CUBE,
+                    action=ADD,
+                    pose=_pose(classes, boxes.center[i], boxes.yaw[i]),
+                    scale=_vector3(classes, boxes.size[i]),
+                    color=_color(classes, (*rgba[:3], 0.25)),
+                    text=str(boxes.label[i]),
+                )
+            )
+    return new_message("visualization_msgs/msg/MarkerArray", classes, markers=markers)

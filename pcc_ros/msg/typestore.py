@@ -1,0 +1,181 @@
+"""The rosbags type store every message in pcc_ros is built from, and a class-neutral constructor.
+
+rosbags ships the ROS 2 Jazzy message set but not ``vision_msgs``; this module registers
+the vision_msgs 4.x definitions (the release shipped with Humble, Iron and Jazzy) so that
+Detection3DArray can be serialised, written to and read from bags, and hashed (RIHS01)
+without a ROS install.
+
+Message classes come in two flavours that share attribute names:
+
+* rosbags dataclasses (tests, bags, the DDS runtime): every field is a required keyword,
+  ``uint8[]`` and numeric arrays are ``numpy`` arrays;
+* rclpy's generated classes (production): every field has a default, ``uint8[]`` is an
+  ``array.array('B')``.
+
+Every builder in :mod:`pcc_ros.msg` takes ``classes: Callable[[str], type] | None`` (a type
+name such as ``"sensor_msgs/msg/PointCloud2"`` -> class; ``None`` = rosbags) and goes
+through :func:`new_message`, which fills the fields a rosbags dataclass requires but the
+caller did not give, and :func:`byte_array`, which hands each flavour the ``uint8[]``
+container it expects.
+"""
+
+from __future__ import annotations
+
+import array
+import dataclasses
+from collections.abc import Callable
+from functools import lru_cache
+
+import numpy as np
+from rosbags.typesys import Stores, get_types_from_msg
+from rosbags.typesys import get_typestore as _rosbags_typestore
+from rosbags.typesys.store import Typestore
+
+from pcc_ros.errors import MessageError
+
+ClassResolver = Callable[[str], type]
+
+#: vision_msgs 4.x definitions (ros-perception/vision_msgs, ros2 branch). The comments
+#: do not influence serialisation or the RIHS01 hash; field names and types do.
+VISION_MSGS: dict[str, str] = {
+    "vision_msgs/msg/ObjectHypothesis": """
+# The unique ID of the object class.
+string class_id
+# The probability or confidence value of the detected object.
+float64 score
+""",
+    "vision_msgs/msg/ObjectHypothesisWithPose": """
+# The object hypothesis (ID and score).
+vision_msgs/ObjectHypothesis hypothesis
+# The 6D pose of the object hypothesis.
+geometry_msgs/PoseWithCovariance pose
+""",
+    "vision_msgs/msg/BoundingBox3D": """
+# The 3D position and orientation of the bounding box center
+geometry_msgs/Pose center
+# The total size of the bounding box, in meters, surrounding the object's center pose.
+geometry_msgs/Vector3 size
+""",
+    "vision_msgs/msg/Detection3D": """
+std_msgs/Header header
+# Class probabilities.
+ObjectHypothesisWithPose[] results
+# 3D bounding box surrounding the object.
+BoundingBox3D bbox
+# ID used for consistency across multiple detection messages. May be empty.
+string id
+""",
+    "vision_msgs/msg/Detection3DArray": """
+std_msgs/Header header
+# A list of the detected proposals.
+Detection3D[] detections
+""",
+}
+
+
+@lru_cache(maxsize=1)
+def get_typestore() -> Typestore:
+    """The ROS 2 Jazzy rosbags type store with vision_msgs 4.x registered (built once)."""
+    store = _rosbags_typestore(Stores.ROS2_JAZZY)
+    types: dict = {}
+    for name, text in VISION_MSGS.items():
+        types.update(get_types_from_msg(text, name))
+    store.register(types)
+    return store
+
+
+def rosbags_classes(name: str) -> type:
+    """The rosbags message class for a type name such as ``"sensor_msgs/msg/PointCloud2"``."""
+    try:
+        return get_typestore().types[name]
+    except KeyError:
+        raise MessageError(f"unknown message type {name!r} (not in the Jazzy + vision_msgs type store)") from None
+
+
+def type_hash(name: str) -> str:
+    """The RIHS01 type hash of ``name`` (``"RIHS01_<sha256 hex>"``), as ROS 2 Jazzy computes it."""
+    if name not in get_typestore().types:
+        raise MessageError(f"unknown message type {name!r}")
+    return get_typestore().hash_rihs01(name)
+
+
+def resolve(classes: ClassResolver | None) -> ClassResolver:
+    """``classes`` or, when ``None``, :func:`rosbags_classes`."""
+    return rosbags_classes if classes is None else classes
+
+
+def is_rosbags_class(cls: type) -> bool:
+    """True for rosbags' generated dataclasses (all fields required, numpy arrays)."""
+    return dataclasses.is_dataclass(cls) and isinstance(getattr(cls, "__msgtype__", None), str)
+
+
+_NUMPY_BASE = {
+    "bool": np.bool_,
+    "byte": np.uint8,
+    "char": np.uint8,
+    "int8": np.int8,
+    "uint8": np.uint8,
+    "int16": np.int16,
+    "uint16": np.uint16,
+    "int32": np.int32,
+    "uint32": np.uint32,
+    "int64": np.int64,
+    "uint64": np.uint64,
+    "float32": np.float32,
+    "float64": np.float64,
+}
+
+
+def _default_value(desc: tuple, classes: ClassResolver):
+    """Zero value of one rosbags field description (BASE / NAME / ARRAY / SEQUENCE)."""
+    kind, rest = desc
+    kind = int(kind)
+    if kind == 1:  # BASE
+        base = rest[0]
+        if base == "string":
+            return ""
+        if base == "bool":
+            return False
+        return 0.0 if base.startswith("float") else 0
+    if kind == 2:  # NAME: a nested message
+        return new_message(rest, classes)
+    inner, length = rest
+    if int(inner[0]) == 1 and inner[1][0] in _NUMPY_BASE:  # numeric array / sequence -> numpy
+        return np.zeros(length if kind == 3 else 0, dtype=_NUMPY_BASE[inner[1][0]])
+    if kind == 3:  # ARRAY of strings or messages
+        return [_default_value(inner, classes) for _ in range(length)]
+    return []  # SEQUENCE
+
+
+def new_message(typename: str, classes: ClassResolver | None = None, **fields):
+    """Construct ``typename`` with keyword ``fields`` using the resolved class.
+
+    rosbags dataclasses have no defaults, so missing fields are filled with zero values
+    (recursively, from the type store's definition); rclpy classes supply their own.
+    """
+    resolver = resolve(classes)
+    cls = resolver(typename)
+    if is_rosbags_class(cls):
+        store = get_typestore()
+        defs = store.fielddefs.get(cls.__msgtype__)
+        if defs is None:
+            raise MessageError(f"message class {cls.__msgtype__!r} is not in the type store")
+        # Dataclass field names are the definition's names after rosbags' keyword escaping.
+        for dc_field, (_, desc) in zip(dataclasses.fields(cls), defs[1]):
+            if dc_field.name not in fields:
+                fields[dc_field.name] = _default_value(desc, resolver)
+    return cls(**fields)
+
+
+def byte_array(cls_or_msg, data: np.ndarray):
+    """``data`` (uint8 numpy) as the container a ``uint8[]`` field of this flavour expects.
+
+    rosbags: the numpy array itself. rclpy: ``array.array('B')``, the only type its
+    setter takes without checking every element in Python.
+    """
+    cls = cls_or_msg if isinstance(cls_or_msg, type) else type(cls_or_msg)
+    if is_rosbags_class(cls):
+        return data
+    out = array.array("B")
+    out.frombytes(memoryview(np.ascontiguousarray(data, dtype=np.uint8)))
+    return out
