@@ -1,0 +1,118 @@
+"""Convert KITTI tracking / object, nuScenes or SynthCars to a ROS 2 bag (MCAP + zstd or sqlite3).
+
+Examples::
+
+    pcc convert kitti-tracking data/kitti_tracking --sequence 0000 \\
+        --detections data/kitti_tracking/detections/pointrcnn --out bags/kitti_0000
+    pcc convert kitti-object data/kitti_object --out bags/kitti_object --storage sqlite3
+    pcc convert nuscenes data/nuscenes --version v1.0-mini --scene scene-0061 --out bags/scene-0061
+    pcc convert synth data/synthcars --sequence 0003 --out bags/synth_0003
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from pcc_ros.errors import DataError
+
+log = logging.getLogger("pcc.convert")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="source", metavar="SOURCE", required=True)
+    helps = {
+        "kitti-tracking": "KITTI tracking layout (velodyne/SSSS, label_02, calib, oxts)",
+        "kitti-object": "KITTI object layout (velodyne, label_2, calib)",
+        "nuscenes": "nuScenes v1.0 tables (LIDAR_TOP key frames)",
+        "synth": "SynthCars output (KITTI tracking layout; its detections by default)",
+    }
+    for name, text in helps.items():
+        p = sub.add_parser(name, help=text, description=text)
+        p.add_argument("src", type=Path, help="dataset root")
+        p.add_argument("--out", type=Path, required=True, help="output bag directory")
+        p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (mcap)")
+        p.add_argument("--no-compress", action="store_true", help="write without zstd")
+        p.add_argument("--zstd-level", type=int, default=None, help="MCAP chunk zstd level (default 3)")
+        p.add_argument("--force", action="store_true", help="replace an existing bag")
+        p.add_argument("--first", type=int, default=0, help="first frame (KITTI)")
+        p.add_argument("--frames", type=int, default=None, help="number of frames (default: all)")
+        if name != "nuscenes":
+            p.add_argument("--detections", type=Path, help="detector results (KITTI object format + score)")
+        if name in ("kitti-tracking", "synth"):
+            p.add_argument("--sequence", help="sequence (required when the dataset has several)")
+        if name == "nuscenes":
+            p.add_argument("--version", default="v1.0-mini", help="table version (v1.0-mini)")
+            p.add_argument("--scene", help="scene name or token (default: every scene, by time)")
+
+
+def _stop(args: argparse.Namespace) -> int | None:
+    return None if args.frames is None else args.first + args.frames
+
+
+def _tracking(args: argparse.Namespace, synth: bool):
+    from pcc_ros.data.kitti import KittiTracking
+
+    reader = KittiTracking(args.src)
+    sequences = reader.sequences()
+    sequence = args.sequence
+    if sequence is None:
+        if len(sequences) != 1:
+            raise DataError(f"{args.src}: choose --sequence among {', '.join(sequences)} (one sequence per bag)")
+        sequence = sequences[0]
+    detections = args.detections
+    if synth and detections is None and (args.src / "detections" / "synthetic").is_dir():
+        detections = args.src / "detections" / "synthetic"
+    total = len(reader.scan_paths(sequence)[args.first : _stop(args)])
+    frames = reader.frames(sequence, detections, start=args.first, stop=_stop(args))
+    return frames, total, f"{args.source} {args.src} sequence {sequence}"
+
+
+def _object(args: argparse.Namespace):
+    from pcc_ros.data.kitti import KittiObject
+
+    reader = KittiObject(args.src)
+    total = len(sorted((reader.root / "velodyne").glob("*.bin"))[args.first : _stop(args)])
+    return reader.frames(args.detections, start=args.first, stop=_stop(args)), total, f"kitti-object {args.src}"
+
+
+def _nuscenes(args: argparse.Namespace):
+    from pcc_ros.data.nuscenes import NuScenes
+
+    reader = NuScenes(args.src, args.version)
+    if args.scene is None:  # every scene, in time order, so the bag's stamps increase
+        first_stamp = {s["token"]: reader.samples[s["first_sample_token"]]["timestamp"] for s in reader.tables["scene"]}
+        scenes = sorted(reader.tables["scene"], key=lambda s: first_stamp[s["token"]])
+        names = [s["name"] for s in scenes]
+    else:
+        names = [args.scene]
+    total = None
+    frames = (f for name in names for f in reader.frames(name))
+    return frames, total, f"nuscenes {args.src} {args.version} {args.scene or 'all scenes'}"
+
+
+def run(args: argparse.Namespace) -> int:
+    from pcc_ros.bags.convert import write_bag
+
+    if args.out.exists() and not args.force:
+        raise DataError(f"{args.out} exists; pass --force to replace it")
+    if args.source in ("kitti-tracking", "synth"):
+        frames, total, source = _tracking(args, synth=args.source == "synth")
+    elif args.source == "kitti-object":
+        frames, total, source = _object(args)
+    else:
+        frames, total, source = _nuscenes(args)
+    summary = write_bag(
+        frames,
+        args.out,
+        storage=args.storage,
+        compress=not args.no_compress,
+        zstd_level=args.zstd_level,
+        force=args.force,
+        total=total,
+        source=source,
+    )
+    topics = ", ".join(f"{t} {n}" for t, n in summary.messages.items())
+    log.info("wrote %s: %d frames, %.1f MB (%s)", summary.path, summary.frames, summary.bytes / 1e6, topics)
+    return 0

@@ -1,0 +1,138 @@
+"""Summarise a ROS 2 bag: topics, types, counts, duration, frame ids, points per scan.
+
+Reads every message of the PointCloud2, Detection3DArray and TFMessage topics (for frame
+ids, point and box counts and the TF tree), so it takes about as long as reading the bag.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.rosbag2 import ReaderError
+
+from pcc_ros.errors import DataError
+from pcc_ros.msg.typestore import get_typestore
+
+_INSPECTED = {
+    "sensor_msgs/msg/PointCloud2",
+    "vision_msgs/msg/Detection3DArray",
+    "tf2_msgs/msg/TFMessage",
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bag", type=Path, help="rosbag2 directory, .mcap or .db3")
+    parser.add_argument("--json", type=Path, help="also write the summary as JSON")
+
+
+def summarize(bag: str | Path) -> dict:
+    """The summary as a JSON-able dict (what ``pcc info`` prints)."""
+    path = Path(bag)
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore())
+        reader.open()
+    except (AnyReaderError, ReaderError, FileNotFoundError, OSError) as exc:
+        raise DataError(f"{path}: cannot open bag ({exc})") from exc
+    try:
+        storage = reader.readers[0].storage
+        meta = storage.metadata
+        topics: dict[str, dict] = {}
+        for c in reader.connections:
+            entry = topics.setdefault(c.topic, {"type": c.msgtype, "count": 0, "frame_ids": set()})
+            entry["count"] += c.msgcount
+        sizes: dict[str, list[int]] = defaultdict(list)
+        tf_edges: set[tuple[str, str, str]] = set()
+        inspected = [c for c in reader.connections if c.msgtype in _INSPECTED]
+        for connection, _, raw in reader.messages(connections=inspected):
+            msg = reader.deserialize(raw, connection.msgtype)
+            entry = topics[connection.topic]
+            if connection.msgtype == "tf2_msgs/msg/TFMessage":
+                for t in msg.transforms:
+                    tf_edges.add((connection.topic, t.header.frame_id, t.child_frame_id))
+                    entry["frame_ids"].add(t.header.frame_id)
+                continue
+            entry["frame_ids"].add(msg.header.frame_id)
+            if connection.msgtype == "sensor_msgs/msg/PointCloud2":
+                sizes[connection.topic].append(int(msg.width) * int(msg.height))
+            else:
+                sizes[connection.topic].append(len(msg.detections))
+        for topic, values in sizes.items():
+            v = np.asarray(values)
+            key = "points_per_scan" if topics[topic]["type"].endswith("PointCloud2") else "boxes_per_message"
+            topics[topic][key] = {"min": int(v.min()), "mean": float(v.mean()), "max": int(v.max())}
+        for entry in topics.values():
+            entry["frame_ids"] = sorted(entry["frame_ids"])
+        count = sum(t["count"] for t in topics.values())
+        return {
+            "path": str(path),
+            "storage": path.suffix.lstrip(".") if path.is_file() else _storage_id(path),
+            "compression": _compression(path, meta),
+            "messages": count,
+            "start_ns": int(reader.start_time) if count else None,
+            "duration_s": (reader.end_time - reader.start_time) / 1e9 if count else 0.0,
+            "size_mb": sum(p.stat().st_size for p in ([path] if path.is_file() else path.iterdir())) / 1e6,
+            "topics": topics,
+            "tf": [{"topic": t, "parent": p, "child": c} for t, p, c in sorted(tf_edges)],
+            "custom_data": dict(meta.custom or {}),
+        }
+    except AnyReaderError as exc:
+        raise DataError(f"{path}: undecodable message ({exc})") from exc
+    finally:
+        reader.close()
+
+
+def _compression(path: Path, meta) -> str:
+    """rosbag2 file / message compression from the metadata, else the MCAP chunk compression."""
+    if meta.compression_mode:
+        return f"{meta.compression_mode} {meta.compression_format}"
+    files = [path] if path.suffix == ".mcap" else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    if not files:
+        return "none"
+    from mcap.reader import make_reader
+
+    with files[0].open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    kinds = {c.compression for c in summary.chunk_indexes} if summary else set()
+    return "chunk " + ("/".join(sorted(k or "none" for k in kinds)) or "none")
+
+
+def _storage_id(path: Path) -> str:
+    return "mcap" if any(path.glob("*.mcap")) else "sqlite3" if any(path.glob("*.db3")) else "unknown"
+
+
+def format_summary(s: dict) -> str:
+    lines = [
+        f"bag:         {s['path']}",
+        f"storage:     {s['storage']} ({s['compression']}), {s['size_mb']:.1f} MB",
+        f"messages:    {s['messages']}",
+        f"duration:    {s['duration_s']:.3f} s" + (f" from {s['start_ns'] / 1e9:.3f}" if s["start_ns"] else ""),
+        "topics:",
+    ]
+    width = max((len(t) for t in s["topics"]), default=0)
+    for name, t in sorted(s["topics"].items()):
+        extra = ""
+        if "points_per_scan" in t:
+            p = t["points_per_scan"]
+            extra = f"  points/scan {p['min']}..{p['max']} (mean {p['mean']:.0f})"
+        elif "boxes_per_message" in t:
+            b = t["boxes_per_message"]
+            extra = f"  boxes/msg {b['min']}..{b['max']} (mean {b['mean']:.1f})"
+        frames = ",".join(t["frame_ids"]) or "-"
+        lines.append(f"  {name.ljust(width)}  {t['type']}  {t['count']} msgs  frame {frames}{extra}")
+    if s["tf"]:
+        lines.append("tf:")
+        lines.extend(f"  {e['topic']}: {e['parent']} -> {e['child']}" for e in s["tf"])
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    summary = summarize(args.bag)
+    print(format_summary(summary))
+    if args.json:
+        args.json.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    return 0

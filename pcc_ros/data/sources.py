@@ -1,0 +1,75 @@
+"""One entry point from a path to frames: a bag, a KITTI tracking / object directory or nuScenes.
+
+``pcc extract`` and the other offline tools accept any of these without caring which,
+so the choice of input format never leaks past this module.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+from pcc_ros.errors import DataError
+from pcc_ros.frame import Frame
+
+BAG_SUFFIXES = (".mcap", ".db3")
+
+
+def is_bag(path: Path) -> bool:
+    """A rosbag2 directory (``metadata.yaml``) or a bare ``.mcap`` / ``.db3`` file."""
+    return (path.is_dir() and (path / "metadata.yaml").exists()) or (path.is_file() and path.suffix in BAG_SUFFIXES)
+
+
+def kind_of(path: str | Path) -> str:
+    """``"bag"``, ``"kitti-tracking"``, ``"kitti-object"`` or ``"nuscenes"``; DataError otherwise."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such file or directory")
+    if is_bag(path):
+        return "bag"
+    for split in (path / "training", path):
+        velodyne = split / "velodyne"
+        if velodyne.is_dir():
+            if any(p.is_dir() for p in velodyne.iterdir()):
+                return "kitti-tracking"
+            return "kitti-object"
+    if path.is_dir() and any((v / "scene.json").exists() for v in path.glob("v1.0-*")):
+        return "nuscenes"
+    raise DataError(f"{path}: not a bag, KITTI tracking / object directory or nuScenes root")
+
+
+def open_frames(
+    path: str | Path,
+    sequence: str | None = None,
+    detections_dir: str | Path | None = None,
+    version: str | None = None,
+) -> Iterator[Frame]:
+    """Frames from a bag, KITTI tracking (``sequence`` or every sequence), KITTI object or nuScenes.
+
+    ``detections_dir`` adds detector results to KITTI frames (bags carry their own);
+    ``version`` picks the nuScenes table version (default: the only ``v1.0-*`` present).
+    """
+    path = Path(path)
+    kind = kind_of(path)
+    if kind == "bag":
+        from pcc_ros.bags.read import read_frames
+
+        return read_frames(path)
+    if kind == "kitti-tracking":
+        from pcc_ros.data.kitti import KittiTracking
+
+        reader = KittiTracking(path)
+        sequences = [sequence] if sequence else reader.sequences()
+        return (f for s in sequences for f in reader.frames(s, detections_dir))
+    if kind == "kitti-object":
+        from pcc_ros.data.kitti import KittiObject
+
+        return KittiObject(path).frames(detections_dir)
+    from pcc_ros.data.nuscenes import NuScenes
+
+    if version is None:
+        versions = sorted(v.name for v in path.glob("v1.0-*") if (v / "scene.json").exists())
+        if len(versions) != 1:
+            raise DataError(f"{path}: several nuScenes versions {versions}; choose one")
+        version = versions[0]
+    return NuScenes(path, version).frames(sequence)
