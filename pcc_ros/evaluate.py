@@ -1,0 +1,414 @@
+"""Evaluate completion backends on the same instances of an instance cache (``pcc eval``).
+
+Every backend (baselines included) completes exactly the same canonical partial clouds;
+each completion is scored against a reference:
+
+* ``ground_truth``: the SynthCars complete shape of the instance, when the cache has one
+  for every selected instance;
+* ``aggregated``: otherwise (real data), the multi-frame aggregate of the instance's track
+  (all frames of the track registered in the canonical frame), the PointPnCNet KITTI
+  protocol; TraPCC's ground-truth-free fidelity (L-I) and side-view CD (L-S) are the
+  figures to read first then.
+
+Metrics are computed in the canonical frame and converted to metres in the sensor frame
+with each instance's box length (see ``pcc_ros/metrics/suite.py``); both are in the JSON,
+and every printed table names its unit. Breakdowns: sensor distance bands (0-20, 20-40,
+40+ m) and input point-count bands. The run is deterministic for a given ``--seed``.
+
+Example::
+
+    pcc eval --data cache/ --split test --backends input,densify,mirror,pointpncnet \\
+        --checkpoint pointpncnet=runs/pnc.safetensors --json eval.json --plot eval.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pcc_ros.errors import ConfigError, DataError
+
+log = logging.getLogger("pcc.eval")
+
+DISTANCE_BANDS: tuple[tuple[str, float, float], ...] = (
+    ("0-20m", 0.0, 20.0),
+    ("20-40m", 20.0, 40.0),
+    ("40m+", 40.0, np.inf),
+)
+POINT_BANDS: tuple[tuple[str, float, float], ...] = (
+    ("<50pts", 0, 50),
+    ("50-200pts", 50, 200),
+    ("200-1000pts", 200, 1000),
+    ("1000+pts", 1000, np.inf),
+)
+#: Metrics reported, in table order.
+REPORTED = ("cd_l1", "cd_l2", "precision", "coverage", "fscore", "fscore_fixed", "emd", "fidelity", "side_cd")
+
+
+@dataclass
+class EvalInstance:
+    """One instance as the evaluation sees it (canonical clouds, box length in metres)."""
+
+    key: str
+    partial: np.ndarray
+    reference: np.ndarray
+    length: float
+    distance: float
+    has_ground_truth: bool
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_points(self) -> int:
+        return len(self.partial)
+
+
+# --------------------------------------------------------------------------- selection
+
+
+def select_indices(n: int, max_instances: int | None, seed: int) -> np.ndarray:
+    """Sorted seeded subset of ``range(n)`` (all when ``max_instances`` is None or >= n)."""
+    if max_instances is None or max_instances >= n:
+        return np.arange(n)
+    if max_instances < 1:
+        raise ConfigError(f"--max-instances must be >= 1, got {max_instances}")
+    return np.sort(np.random.default_rng(seed).choice(n, max_instances, replace=False))
+
+
+def load_instances(path: Path, split: str, max_instances: int | None, seed: int) -> tuple[list[EvalInstance], str]:
+    """Instances of ``split`` from the cache at ``path`` and the reference mode.
+
+    The only place that knows the instance cache (``pcc_ros.data.instances``).
+    """
+    from pcc_ros.data.instances import InstanceCache
+
+    cache = InstanceCache.load(path)
+    return instances_from_cache(cache, split, max_instances, seed)
+
+
+def instances_from_cache(
+    cache: Any, split: str, max_instances: int | None, seed: int
+) -> tuple[list[EvalInstance], str]:
+    """See :func:`load_instances`; separated so it can be fed an already loaded cache."""
+    raise NotImplementedError  # replaced below once the instance cache API is known
+
+
+# --------------------------------------------------------------------------- scoring
+
+
+def score_backend(
+    completer: Any,
+    instances: Sequence[EvalInstance],
+    *,
+    seed: int,
+    chunk: int = 64,
+    fixed_threshold_m: float = 0.05,
+    emd_points: int = 1024,
+    with_emd: bool = True,
+    progress: bool = True,
+) -> tuple[list[np.ndarray], list[dict[str, float]], float]:
+    """Complete all instances with one backend and score each (canonical units).
+
+    Returns the completions, one metric dict per instance, and the completion wall time.
+    The EMD subsample seed depends on the instance index only, so every backend is
+    compared against the same subsample of each reference.
+    """
+    from tqdm import tqdm
+
+    from pcc_ros.metrics import instance_metrics
+
+    name = getattr(completer, "name", type(completer).__name__)
+    completions: list[np.ndarray] = []
+    seconds = 0.0
+    with tqdm(total=len(instances), desc=f"complete {name}", unit="inst", disable=not progress, leave=False) as bar:
+        for start in range(0, len(instances), chunk):
+            part = instances[start : start + chunk]
+            t0 = time.perf_counter()
+            completions.extend(completer.complete([inst.partial for inst in part]))
+            seconds += time.perf_counter() - t0
+            bar.update(len(part))
+    rows = []
+    for i, (inst, out) in enumerate(
+        tqdm(list(zip(instances, completions)), desc=f"score {name}", unit="inst", disable=not progress, leave=False)
+    ):
+        rows.append(
+            instance_metrics(
+                out,
+                inst.reference,
+                inst.partial,
+                length=inst.length,
+                fixed_threshold_m=fixed_threshold_m,
+                with_emd=with_emd,
+                emd_points=emd_points,
+                seed=seed + i,
+            )
+        )
+    return completions, rows, seconds
+
+
+def _mean_table(
+    rows: Sequence[dict[str, float]], mask: np.ndarray, keys: Sequence[str]
+) -> dict[str, float | int | None]:
+    """Means over the masked rows; ``None`` (JSON null) for an empty band."""
+    chosen = [r for r, m in zip(rows, mask) if m]
+    out: dict[str, float | int | None] = {"count": len(chosen)}
+    for key in keys:
+        values = [r[key] for r in chosen if key in r]
+        out[key] = float(np.mean(values)) if values else None
+    return out
+
+
+def summarise(instances: Sequence[EvalInstance], rows: Sequence[dict[str, float]]) -> dict[str, Any]:
+    """Overall means and breakdowns, in metres (sensor frame) and canonical units."""
+    from pcc_ros.metrics import to_metres
+
+    keys = [k for k in REPORTED if rows and k in rows[0]]
+    lengths = np.array([inst.length for inst in instances])
+    metres = [{k: float(to_metres(k, r[k], length)) for k in keys} for r, length in zip(rows, lengths)]
+    distance = np.array([inst.distance for inst in instances])
+    points = np.array([inst.num_points for inst in instances])
+    everything = np.ones(len(instances), dtype=bool)
+    return {
+        "overall": _mean_table(metres, everything, keys),
+        "overall_canonical": _mean_table(rows, everything, keys),
+        "by_distance": {
+            label: _mean_table(metres, (distance >= lo) & (distance < hi), keys) for label, lo, hi in DISTANCE_BANDS
+        },
+        "by_points": {
+            label: _mean_table(metres, (points >= lo) & (points < hi), keys) for label, lo, hi in POINT_BANDS
+        },
+    }
+
+
+# --------------------------------------------------------------------------- output
+
+
+def _cell(value: Any) -> str:
+    """4 significant digits (squared metres of good completions are ~1e-4), '-' for empty bands."""
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def print_tables(results: dict[str, Any], reference: str) -> None:
+    """One table per metric: backends x (overall, distance bands, point bands), in metres."""
+    from pcc_ros.bench.common import print_table
+    from pcc_ros.metrics import METRICS, unit_label
+
+    backends = results["backends"]
+    if not backends:
+        return
+    first = next(iter(backends.values()))
+    keys = [k for k in REPORTED if k in first["overall"]]
+    columns = ["backend", "overall"] + [b[0] for b in DISTANCE_BANDS] + [b[0] for b in POINT_BANDS]
+    for key in keys:
+        rows = []
+        for name, res in backends.items():
+            row: dict[str, Any] = {"backend": name, "overall": res["overall"][key]}
+            row.update({band: res["by_distance"][band][key] for band, _, _ in DISTANCE_BANDS})
+            row.update({band: res["by_points"][band][key] for band, _, _ in POINT_BANDS})
+            rows.append({k: _cell(v) for k, v in row.items()})
+        better = "lower" if METRICS[key].lower_is_better else "higher"
+        unit = unit_label(key, metres=True)
+        unit_text = "dimensionless" if unit == "-" else f"{unit}, sensor frame"
+        print_table(f"{key} [{unit_text}; {better} is better; reference: {reference}]", rows, columns)
+    counts = {"backend": "instances", "overall": first["overall"]["count"]}
+    counts.update({band: first["by_distance"][band]["count"] for band, _, _ in DISTANCE_BANDS})
+    counts.update({band: first["by_points"][band]["count"] for band, _, _ in POINT_BANDS})
+    print_table("instances per band", [counts], columns)
+    canon_rows = [
+        {"backend": name, **{f"{k} [{unit_label(k, metres=False)}]": _cell(res["overall_canonical"][k]) for k in keys}}
+        for name, res in backends.items()
+    ]
+    print_table("overall in canonical units (box length = 1)", canon_rows)
+
+
+def plot_examples(
+    path: Path,
+    instances: Sequence[EvalInstance],
+    completions: dict[str, list[np.ndarray]],
+    reference: str,
+    count: int = 4,
+    max_draw: int = 2048,
+) -> list[int]:
+    """A PNG grid: one row per example instance, columns input / each backend / reference.
+
+    Examples are spread over the distance range (sorted by distance, evenly spaced picks)
+    so near and far cars both appear. Clouds are drawn in 3D in the canonical frame from
+    the same viewpoint; returns the chosen instance indices.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    order = np.argsort([inst.distance for inst in instances], kind="stable")
+    count = min(count, len(instances))
+    picks = [int(order[i]) for i in np.linspace(0, len(order) - 1, count).round().astype(int)]
+    names = [n for n in completions if n != "input"]  # the partial column already shows it
+    columns = ["partial input", *names, "ground truth" if reference == "ground_truth" else "aggregated reference"]
+    fig = plt.figure(figsize=(2.6 * len(columns), 2.4 * count))
+    rng = np.random.default_rng(0)
+    for row, idx in enumerate(picks):
+        inst = instances[idx]
+        clouds = [inst.partial, *(completions[n][idx] for n in names), inst.reference]
+        for col, (title, cloud) in enumerate(zip(columns, clouds)):
+            ax = fig.add_subplot(count, len(columns), row * len(columns) + col + 1, projection="3d")
+            if len(cloud) > max_draw:
+                cloud = cloud[rng.choice(len(cloud), max_draw, replace=False)]
+            colour = "tab:red" if col == 0 else ("tab:green" if col == len(columns) - 1 else "tab:blue")
+            ax.scatter(cloud[:, 0], cloud[:, 1], cloud[:, 2], s=1.0, c=colour, depthshade=False, linewidths=0)
+            ax.set_xlim(-0.6, 0.6)
+            ax.set_ylim(-0.6, 0.6)
+            ax.set_zlim(-0.6, 0.6)
+            ax.set_box_aspect((1, 1, 1))
+            ax.view_init(elev=40, azim=-50)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_zticks([])
+            if row == 0:
+                ax.set_title(title, fontsize=9)
+            if col == 0:
+                ax.text2D(
+                    0.0, 0.0, f"{inst.key}\n{inst.distance:.0f} m, {inst.num_points} pts", transform=ax.transAxes,
+                    fontsize=7,
+                )
+    fig.suptitle("canonical frame (x forward, y left, z up; box length = 1)", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return picks
+
+
+# --------------------------------------------------------------------------- command
+
+
+def parse_checkpoints(items: Sequence[str]) -> dict[str, Path]:
+    """``NAME=PATH`` pairs into a mapping."""
+    out = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise ConfigError(f"--checkpoint expects NAME=PATH, got {item!r}")
+        out[name.strip()] = Path(path)
+    return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", type=Path, required=True, help="instance cache written by `pcc extract`")
+    parser.add_argument("--split", default="test", help="split to evaluate (default: test)")
+    parser.add_argument(
+        "--backends", default="input,densify,mirror", help="comma-separated backends (default: the baselines)"
+    )
+    parser.add_argument(
+        "--checkpoint", action="append", default=[], metavar="NAME=PATH",
+        help="checkpoint of a learned backend (repeatable); default: the shipped one",
+    )
+    parser.add_argument("--device", default="auto", help="auto | cpu | cuda[:N] for learned backends")
+    parser.add_argument("--batch-size", type=int, default=32, help="completion batch size of learned backends")
+    parser.add_argument("--json", type=Path, help="write the results here")
+    parser.add_argument("--plot", type=Path, help="PNG grid of examples (input / completions / reference)")
+    parser.add_argument("--max-instances", type=int, help="evaluate a seeded random subset of this size")
+    parser.add_argument("--seed", type=int, default=0, help="subset and EMD subsample seed (default 0)")
+    parser.add_argument("--fixed-threshold", type=float, default=0.05, help="fixed F-score threshold, metres")
+    parser.add_argument("--emd-points", type=int, default=1024, help="EMD subsample size (exact assignment)")
+    parser.add_argument("--no-emd", action="store_true", help="skip EMD (the slowest metric)")
+    parser.add_argument("--examples", type=int, default=4, help="rows in the example grid")
+
+
+def evaluate(
+    instances: Sequence[EvalInstance],
+    reference: str,
+    backends: Sequence[str],
+    checkpoints: dict[str, Path] | None = None,
+    *,
+    device: str = "auto",
+    batch_size: int = 32,
+    seed: int = 0,
+    fixed_threshold_m: float = 0.05,
+    emd_points: int = 1024,
+    with_emd: bool = True,
+    progress: bool = True,
+) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
+    """Score every backend on ``instances``; returns the results dict and the completions."""
+    from pcc_ros.metrics import METRICS, unit_label
+    from pcc_ros.models import get_backend, load_completer
+
+    checkpoints = dict(checkpoints or {})
+    unused = sorted(set(checkpoints) - set(backends))
+    if unused:
+        raise ConfigError(f"--checkpoint given for backend(s) not evaluated: {unused}")
+    results: dict[str, Any] = {
+        "reference": reference,
+        "instances": len(instances),
+        "seed": seed,
+        "fixed_threshold_m": fixed_threshold_m,
+        "emd_points": emd_points if with_emd else None,
+        "units": {
+            "overall": {k: unit_label(k, metres=True) for k in REPORTED},
+            "overall_canonical": {k: unit_label(k, metres=False) for k in REPORTED},
+            "note": "metres are sensor-frame distances; canonical units are fractions of the box length",
+        },
+        "definitions": {k: METRICS[k].description for k in REPORTED},
+        "backends": {},
+    }
+    all_completions: dict[str, list[np.ndarray]] = {}
+    for name in backends:
+        cls = get_backend(name)
+        options = {"batch_size": batch_size} if cls.learned else {}
+        completer = load_completer(name, checkpoints.get(name), device=device, **options)
+        completions, rows, seconds = score_backend(
+            completer, instances, seed=seed, fixed_threshold_m=fixed_threshold_m,
+            emd_points=emd_points, with_emd=with_emd, progress=progress,
+        )
+        summary = summarise(instances, rows)
+        summary["completion_ms_per_instance"] = 1e3 * seconds / max(len(instances), 1)
+        summary["output_points_mean"] = float(np.mean([len(c) for c in completions]))
+        if cls.learned:
+            ck = getattr(completer, "checkpoint_config", None) or {}
+            summary["checkpoint"] = str(checkpoints.get(name, "default"))
+            summary["checkpoint_git_revision"] = ck.get("git_revision")
+        results["backends"][name] = summary
+        all_completions[name] = completions
+    return results, all_completions
+
+
+def run(args: argparse.Namespace) -> int:
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    if not backends:
+        raise ConfigError("--backends is empty")
+    if len(set(backends)) != len(backends):
+        raise ConfigError(f"--backends lists a backend twice: {args.backends}")
+    checkpoints = parse_checkpoints(args.checkpoint)
+    if not args.data.exists():
+        raise DataError(f"{args.data}: instance cache not found (write one with `pcc extract`)")
+    instances, reference = load_instances(args.data, args.split, args.max_instances, args.seed)
+    if not instances:
+        raise DataError(f"{args.data}: no usable instances in split {args.split!r}")
+    log.info("evaluating %d instance(s) of split %r against %s references", len(instances), args.split, reference)
+    results, completions = evaluate(
+        instances, reference, backends, checkpoints,
+        device=args.device, batch_size=args.batch_size, seed=args.seed,
+        fixed_threshold_m=args.fixed_threshold, emd_points=args.emd_points, with_emd=not args.no_emd,
+    )
+    results.update({"data": str(args.data), "split": args.split})
+    print_tables(results, reference)
+    if args.plot:
+        picks = plot_examples(args.plot, instances, completions, reference, count=args.examples)
+        results["plot"] = {"path": str(args.plot), "instances": [instances[i].key for i in picks]}
+        log.info("wrote %s", args.plot)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
+        log.info("wrote %s", args.json)
+    return 0
