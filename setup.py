@@ -48,6 +48,8 @@ setup(
     entry_points={
         "console_scripts": [
             "pcc = pcc_ros.cli:main",
+            "completion_node = pcc_ros.nodes.completion_node:main",
+            "detection_filter_node = pcc_ros.nodes.detection_filter_node:main",
         ],
     },
 )

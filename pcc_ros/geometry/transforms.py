@@ -1,0 +1,45 @@
+"""Rigid transforms of boxes between frames (e.g. detections stamped in ``base_link``
+while the scan is in the LiDAR frame, resolved through tf2 by the nodes)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pcc_ros.boxes import Boxes
+
+
+def quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """3x3 rotation of a (normalised) quaternion given as x, y, z, w (ROS order)."""
+    q = np.array([x, y, z, w], dtype=np.float64)
+    q /= np.linalg.norm(q)
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def transform_matrix(
+    translation: tuple[float, float, float], quaternion: tuple[float, float, float, float]
+) -> np.ndarray:
+    """4x4 homogeneous transform from a translation and an x, y, z, w quaternion."""
+    out = np.eye(4)
+    out[:3, :3] = quaternion_matrix(*quaternion)
+    out[:3, 3] = translation
+    return out
+
+
+def transform_boxes(boxes: Boxes, matrix: np.ndarray) -> Boxes:
+    """Boxes expressed in a new frame: ``matrix`` maps points of the old frame into the new.
+
+    Centres are transformed exactly; the heading is the rotated box x axis projected on
+    the new frame's x-y plane (boxes stay upright, as every LiDAR detector assumes).
+    """
+    matrix = np.asarray(matrix, dtype=np.float64)
+    center = boxes.center @ matrix[:3, :3].T + matrix[:3, 3]
+    heading = np.stack([np.cos(boxes.yaw), np.sin(boxes.yaw), np.zeros(len(boxes))], axis=1) @ matrix[:3, :3].T
+    yaw = np.arctan2(heading[:, 1], heading[:, 0])
+    return Boxes(center, boxes.size.copy(), yaw, boxes.label.copy(), boxes.score.copy(), boxes.track_id.copy())

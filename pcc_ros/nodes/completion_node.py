@@ -1,0 +1,24 @@
+"""``ros2 run pcc_ros completion_node``: complete every detected car and republish the completed clouds.
+
+Topics: in ``points`` (PointCloud2, sensor-data QoS) and ``detections``
+(vision_msgs/Detection3DArray); out ``completed`` (PointCloud2 x, y, z, instance) and
+``completed_markers`` (MarkerArray), plus ``/diagnostics``.
+Parameters: see :func:`pcc_ros.nodes.params.parameter_table` and ``config/completion.yaml``.
+"""
+
+from __future__ import annotations
+
+import sys
+
+NODE_NAME = "completion_node"
+MODE = "completion"
+
+
+def main(args: list[str] | None = None) -> int:
+    from pcc_ros.nodes.ros_node import run  # rclpy only from here on
+
+    return run(NODE_NAME, MODE, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

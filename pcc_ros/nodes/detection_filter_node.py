@@ -1,0 +1,24 @@
+"""``ros2 run pcc_ros detection_filter_node``: drop detections whose shape does not match a vehicle (TraPCC).
+
+Topics: in ``points`` (PointCloud2, sensor-data QoS) and ``detections``
+(vision_msgs/Detection3DArray); out ``detections_filtered`` / ``detections_rejected``
+(Detection3DArray) and ``filter_markers`` (MarkerArray), plus ``/diagnostics``.
+Parameters: see :func:`pcc_ros.nodes.params.parameter_table` and ``config/detection_filter.yaml``.
+"""
+
+from __future__ import annotations
+
+import sys
+
+NODE_NAME = "detection_filter_node"
+MODE = "filter"
+
+
+def main(args: list[str] | None = None) -> int:
+    from pcc_ros.nodes.ros_node import run  # rclpy only from here on
+
+    return run(NODE_NAME, MODE, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

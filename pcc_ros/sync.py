@@ -1,0 +1,121 @@
+"""Pair scans with detections by stamp, with bounded queues where the newest frame wins.
+
+Detector wrappers often restamp their output, so a cloud and its detections rarely
+carry identical stamps: they are paired when their stamps differ by at most ``slop``.
+Queues are bounded; when processing falls behind, the oldest unmatched messages are
+dropped and counted, never silently. Pure Python so the nodes, the DDS runtime and the
+tests share one implementation (message_filters' ApproximateTimeSynchronizer does the
+same under rclpy, but is not available without ROS).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
+U = TypeVar("U")
+
+
+@dataclass
+class SyncStats:
+    """Counters a node publishes as diagnostics."""
+
+    paired: int = 0
+    dropped_clouds: int = 0
+    dropped_detections: int = 0
+    dropped_pairs: int = 0  # pairs overwritten before a worker took them (newest wins)
+
+
+@dataclass
+class StampPairer(Generic[T, U]):
+    """Match items of two streams whose stamps (ns) are within ``slop_ns``.
+
+    ``add_left`` / ``add_right`` return the matched ``(left, right)`` pair, or ``None``.
+    Each queue holds at most ``queue_size`` unmatched items; older ones are dropped
+    once a newer pair matches (they can no longer be paired in order) or the queue is full.
+    """
+
+    slop_ns: int
+    queue_size: int = 5
+    stats: SyncStats = field(default_factory=SyncStats)
+
+    def __post_init__(self) -> None:
+        self._left: deque[tuple[int, T]] = deque()
+        self._right: deque[tuple[int, U]] = deque()
+        self._lock = threading.Lock()
+
+    def add_left(self, stamp_ns: int, item: T) -> tuple[T, U] | None:
+        with self._lock:
+            return self._add(self._left, self._right, stamp_ns, item, left=True)
+
+    def add_right(self, stamp_ns: int, item: U) -> tuple[T, U] | None:
+        with self._lock:
+            return self._add(self._right, self._left, stamp_ns, item, left=False)
+
+    def _add(self, own: deque, other: deque, stamp_ns: int, item, left: bool):
+        best = None
+        for k, (stamp, _) in enumerate(other):
+            gap = abs(stamp - stamp_ns)
+            if gap <= self.slop_ns and (best is None or gap < best[0]):
+                best = (gap, k)
+        if best is None:
+            own.append((stamp_ns, item))
+            while len(own) > self.queue_size:
+                own.popleft()
+                self._count_drop(left)
+            return None
+        _, k = best
+        _, other_item = other[k]
+        # Everything older than the match in the other queue can never pair in order.
+        for _ in range(k):
+            other.popleft()
+            self._count_drop(not left)
+        other.popleft()
+        while own and own[0][0] <= stamp_ns:
+            own.popleft()
+            self._count_drop(left)
+        self.stats.paired += 1
+        return (item, other_item) if left else (other_item, item)
+
+    def _count_drop(self, left: bool) -> None:
+        if left:
+            self.stats.dropped_clouds += 1
+        else:
+            self.stats.dropped_detections += 1
+
+
+class LatestSlot(Generic[T]):
+    """A one-element hand-off between a subscriber callback and a worker: newest wins.
+
+    ``put`` replaces a pending item (counting it as dropped), ``take`` blocks until an
+    item is there or ``timeout`` passes. This bounds latency: a slow backend processes
+    the most recent frame rather than a growing backlog.
+    """
+
+    def __init__(self, stats: SyncStats | None = None) -> None:
+        self.stats = stats or SyncStats()
+        self._item: T | None = None
+        self._cond = threading.Condition()
+        self._closed = False
+
+    def put(self, item: T) -> None:
+        with self._cond:
+            if self._item is not None:
+                self.stats.dropped_pairs += 1
+            self._item = item
+            self._cond.notify()
+
+    def take(self, timeout: float | None = None) -> T | None:
+        with self._cond:
+            if self._item is None and not self._closed:
+                self._cond.wait(timeout)
+            item, self._item = self._item, None
+            return item
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
