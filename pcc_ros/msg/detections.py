@@ -113,14 +113,14 @@ def _best_hypothesis(results) -> tuple[str, float]:
     return best_label, 1.0 if best_score is None else best_score
 
 
-def boxes_from_detection_array(msg, skip_invalid: bool = False) -> Boxes:
-    """:class:`Boxes` from a ``vision_msgs/Detection3DArray`` (see the module docstring)."""
+def _detection_arrays(msg) -> tuple[np.ndarray, ...] | None:
+    """(center, quaternion, size, label, score, track id) arrays of a Detection3DArray, or None if empty."""
     try:
         detections = list(msg.detections)
     except (AttributeError, TypeError):
         raise MessageError("object is not a Detection3DArray (no 'detections')") from None
     if not detections:
-        return Boxes.empty()
+        return None
     center, quat, size, label, score, track = [], [], [], [], [], []
     for i, det in enumerate(detections):
         try:
@@ -135,19 +135,41 @@ def boxes_from_detection_array(msg, skip_invalid: bool = False) -> Boxes:
             track.append(str(det.id))
         except (AttributeError, TypeError, ValueError) as exc:
             raise MessageError(f"detection {i} is not a vision_msgs/Detection3D ({exc})") from None
-    center_a = np.asarray(center, dtype=np.float64)
-    quat_a = np.asarray(quat, dtype=np.float64)
-    size_a = np.asarray(size, dtype=np.float64)
-    score_a = np.asarray(score, dtype=np.float64)
+    return (
+        np.asarray(center, dtype=np.float64),
+        np.asarray(quat, dtype=np.float64),
+        np.asarray(size, dtype=np.float64),
+        np.asarray(label, dtype=object),
+        np.asarray(score, dtype=np.float64),
+        np.asarray(track, dtype=object),
+    )
+
+
+def valid_detection_mask(msg) -> np.ndarray:
+    """Which entries of ``msg.detections`` :func:`boxes_from_detection_array` keeps with
+    ``skip_invalid=True`` — so a caller can republish the original messages of the valid boxes."""
+    arrays = _detection_arrays(msg)
+    if arrays is None:
+        return np.zeros(0, dtype=bool)
+    center, quat, size, _, score, _ = arrays
+    return np.array([not r for r in _invalid_reasons(center, size, quat, score)], dtype=bool)
+
+
+def boxes_from_detection_array(msg, skip_invalid: bool = False) -> Boxes:
+    """:class:`Boxes` from a ``vision_msgs/Detection3DArray`` (see the module docstring)."""
+    arrays = _detection_arrays(msg)
+    if arrays is None:
+        return Boxes.empty()
+    center_a, quat_a, size_a, label_a, score_a, track_a = arrays
     keep = _keep_valid(_invalid_reasons(center_a, size_a, quat_a, score_a), "detection", skip_invalid)
     quat_a = quat_a[keep] / np.linalg.norm(quat_a[keep], axis=1, keepdims=True)
     return Boxes(
         center_a[keep],
         size_a[keep],
         yaw_from_quaternion(quat_a),
-        np.asarray(label, dtype=object)[keep],
+        label_a[keep],
         score_a[keep],
-        np.asarray(track, dtype=object)[keep],
+        track_a[keep],
     )
 
 

@@ -1,0 +1,125 @@
+"""The per-frame pipeline on synthetic frames, through rosbags message classes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pcc_ros.boxes import Boxes
+from pcc_ros.errors import ConfigError, MessageError
+from pcc_ros.models.base import load_completer
+from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
+from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
+from pcc_ros.pipeline import RAW_POINT_INSTANCE, Pipeline, PipelineConfig, build_outputs, read_parameters
+
+REPO_CONFIG = __import__("pathlib").Path(__file__).resolve().parents[1] / "config"
+
+
+def box_surface_points(rng, center, size, yaw, n=400):
+    """Points on the visible (sensor-facing) half of a box's surface, in the scan frame."""
+    half = np.asarray(size) / 2
+    local = rng.uniform(-1, 1, (n, 3)) * half
+    axis = rng.integers(0, 2, n)
+    local[np.arange(n), axis] = -half[axis]  # rear and right faces
+    local[: n // 4, 2] = half[2]  # roof
+    c, s = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    return local @ rot.T + center
+
+
+def make_frame(seed: int = 0):
+    rng = np.random.default_rng(seed)
+    boxes = Boxes(
+        center=[[10.0, 3.0, -0.9], [20.0, -4.0, -0.9], [15.0, 8.0, -0.9], [30.0, 0.0, -0.9]],
+        size=[[4.0, 1.7, 1.5], [4.2, 1.8, 1.5], [4.0, 1.7, 1.5], [0.6, 0.6, 1.7]],
+        yaw=[0.3, -0.5, 0.0, 0.0],
+        label=["Car", "Car", "Car", "Pedestrian"],
+        score=[0.9, 0.4, 0.3, 0.8],
+        track_id=["1", "2", "3", "4"],
+    )
+    cars = [box_surface_points(rng, boxes.center[i], boxes.size[i], boxes.yaw[i]) for i in range(2)]
+    ground = np.c_[rng.uniform(0, 40, (3000, 2)) - [0, 20], np.full(3000, -1.73)]
+    points = np.concatenate([*cars, ground]).astype(np.float32)  # box 2 is empty space
+    return points, boxes
+
+
+@pytest.fixture(scope="module")
+def pipeline():
+    return Pipeline(PipelineConfig(backend="mirror", min_points=10), completer=load_completer("mirror"))
+
+
+def test_completions_lie_around_their_boxes(pipeline):
+    points, boxes = make_frame()
+    result = pipeline.process(points, boxes, stamp_ns=5, frame_id="velodyne")
+    assert result.completed_index.tolist() == [0, 1]
+    for i in (0, 1):
+        mine = result.completed_points[result.completed_instance == i]
+        assert len(mine) > 0
+        local = mine - boxes.center[i]
+        assert np.all(np.abs(local[:, 2]) < boxes.size[i, 2])
+        assert np.linalg.norm(local[:, :2], axis=1).max() < np.linalg.norm(boxes.size[i, :2]) / 2 + 0.3
+    assert set(result.timings_ms) >= {"crop_ms", "complete_ms", "filter_ms"}
+
+
+def test_statuses_other_class_and_empty_box(pipeline):
+    points, boxes = make_frame()
+    result = pipeline.process(points, boxes)
+    # Empty-space detection with a low score (0.3) is rejected; the pedestrian passes untouched.
+    assert result.status.tolist()[2:] == ["rejected", "kept"]
+    assert result.mismatch[2] == 1.0 and np.isnan(result.mismatch[3])
+    assert result.skipped == {"other class": 1}
+    assert len(result.kept) + len(result.rejected) == len(boxes)
+
+
+def test_include_input_points_and_instance_cap():
+    points, boxes = make_frame()
+    cfg = PipelineConfig(backend="input", min_points=10, max_instances=1, include_input_points=True)
+    result = Pipeline(cfg, completer=load_completer("input")).process(points, boxes)
+    assert (result.completed_instance == RAW_POINT_INSTANCE).sum() == len(points)
+    assert result.completed_index.tolist() == [0]  # highest score only
+    assert result.skipped["over max_instances"] == 2
+
+
+def test_messages_round_trip_and_outputs(pipeline):
+    points, boxes = make_frame()
+    cloud = create_cloud(points, ["x", "y", "z"], "velodyne", 123, None)
+    dets = detection_array_from_boxes(boxes, "velodyne", 123)
+    result, originals = pipeline.process_messages(cloud, dets)
+    outputs = build_outputs(result, originals)
+    completed = outputs["completed"]
+    assert [f.name for f in completed.fields] == ["x", "y", "z", "instance"]
+    assert read_xyz(completed).shape == (len(result.completed_points), 3)
+    kept = boxes_from_detection_array(outputs["detections_filtered"])
+    rejected = boxes_from_detection_array(outputs["detections_rejected"])
+    assert len(kept) + len(rejected) == len(boxes)
+    assert list(rejected.track_id) == ["3"]
+    assert outputs["detections_filtered"].detections[0] is originals[0]  # originals republished untouched
+
+
+def test_nan_box_is_skipped_and_counted(pipeline):
+    points, boxes = make_frame()
+    dets = detection_array_from_boxes(boxes, "velodyne", 1)
+    dets.detections[1].bbox.center.position.x = float("nan")
+    result, originals = pipeline.process_messages(create_cloud(points, ["x", "y", "z"], "velodyne", 1), dets)
+    assert len(result.detections) == 3 and len(originals) == 3
+    assert result.skipped["invalid detection"] == 1
+
+
+def test_malformed_cloud_raises_message_error(pipeline):
+    points, boxes = make_frame()
+    cloud = create_cloud(points, ["x", "y", "z"], "velodyne", 1)
+    cloud.point_step = 8  # fields now run past the point
+    with pytest.raises(MessageError):
+        pipeline.process_messages(cloud, detection_array_from_boxes(boxes, "velodyne", 1))
+
+
+@pytest.mark.parametrize("name", ["completion", "detection_filter"])
+def test_shipped_yaml_configs_parse(name):
+    values = read_parameters(REPO_CONFIG / f"{name}.yaml")
+    config = PipelineConfig.from_dict(values)
+    assert config.backend and config.classes
+
+
+def test_unknown_parameter_is_reported():
+    with pytest.raises(ConfigError, match="min_pionts"):
+        PipelineConfig.from_dict({"min_pionts": 3})
