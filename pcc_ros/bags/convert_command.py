@@ -87,7 +87,8 @@ def _nuscenes(args: argparse.Namespace):
         names = [s["name"] for s in scenes]
     else:
         names = [args.scene]
-    total = None
+    by_name = {s["name"]: s for s in reader.tables["scene"]}
+    total = sum(int(by_name[n].get("nbr_samples", 0)) for n in names) if all(n in by_name for n in names) else None
     frames = (f for name in names for f in reader.frames(name))
     return frames, total, f"nuscenes {args.src} {args.version} {args.scene or 'all scenes'}"
 

@@ -1,0 +1,198 @@
+"""Conversion to rosbag2 (MCAP and sqlite3) and reading back: real KITTI / nuScenes samples."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_kitti import OXTS, _copy_tracking
+from test_nuscenes import build_tables
+
+from pcc_ros.bags.convert import write_bag
+from pcc_ros.bags.info_command import summarize
+from pcc_ros.bags.read import read_frames
+from pcc_ros.cli import main
+from pcc_ros.data.kitti import KittiObject, KittiTracking
+from pcc_ros.data.nuscenes import NuScenes
+from pcc_ros.data.sources import kind_of, open_frames
+from pcc_ros.errors import DataError
+from pcc_ros.frame import Frame
+
+STORAGES = ("mcap", "sqlite3")
+
+
+def assert_same_frames(original: list[Frame], back: list[Frame]) -> None:
+    assert len(back) == len(original)
+    for a, b in zip(original, back):
+        assert (b.stamp_ns, b.frame_id, b.sequence, b.index) == (a.stamp_ns, a.frame_id, a.sequence, a.index)
+        assert b.fields == a.fields
+        assert np.array_equal(b.points, a.points)
+        for mine, theirs in ((a.ground_truth, b.ground_truth), (a.detections, b.detections)):
+            if mine is None:
+                assert theirs is None
+            else:  # boxes without 3D extent (DontCare) are not written
+                assert theirs.equals(mine[mine.valid_mask()], atol=1e-9)
+        if a.pose is None:
+            assert b.pose is None
+        else:
+            assert np.allclose(b.pose, a.pose, atol=1e-9)
+            assert np.allclose(b.extras["sensor_to_base"], a.extras["sensor_to_base"], atol=1e-9)
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+def test_kitti_tracking_cli_round_trip(shared_data, tmp_path, storage):
+    src = shared_data / "kitti_tracking"
+    out = tmp_path / "bag"
+    rc = main(["convert", "kitti-tracking", str(src), "--sequence", "0000", "--frames", "3",
+               "--detections", str(src / "detections/pointrcnn"), "--out", str(out), "--storage", storage])
+    assert rc == 0
+    original = list(KittiTracking(src).frames("0000", src / "detections/pointrcnn", stop=3))
+    back = list(read_frames(out))
+    assert_same_frames(original, back)
+    assert "DontCare" in original[0].ground_truth.label.tolist()  # read, but not a 3D box in the bag
+    summary = summarize(out)
+    assert summary["storage"] == storage
+    assert summary["compression"] == ("chunk zstd" if storage == "mcap" else "message zstd")
+    assert {t: v["count"] for t, v in summary["topics"].items()} == {"/points": 3, "/ground_truth": 3,
+                                                                     "/detections": 3}
+    assert summary["topics"]["/points"]["frame_ids"] == ["velodyne"]
+    assert summary["topics"]["/points"]["points_per_scan"]["min"] > 100_000
+    assert summary["duration_s"] == pytest.approx(0.2, abs=1e-6)
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+def test_kitti_object_round_trip(shared_data, tmp_path, storage):
+    src = shared_data / "kitti_object"
+    original = list(KittiObject(src).frames(stop=2))
+    write_bag(original, tmp_path / "bag", storage=storage, progress=False)
+    back = list(read_frames(tmp_path / "bag"))
+    assert_same_frames(original, back)
+    assert all(f.detections is None for f in back)
+    assert "/detections" not in summarize(tmp_path / "bag")["topics"]
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+def test_nuscenes_round_trip_with_tf(shared_data, tmp_path, storage):
+    build_tables(shared_data, tmp_path / "nuscenes")
+    out = tmp_path / "bag"
+    assert main(["convert", "nuscenes", str(tmp_path / "nuscenes"), "--out", str(out), "--storage", storage]) == 0
+    original = list(NuScenes(tmp_path / "nuscenes").frames())
+    back = list(read_frames(out))
+    assert_same_frames(original, back)
+    assert back[0].fields == ("x", "y", "z", "intensity", "ring")
+    summary = summarize(out)
+    assert {(e["topic"], e["parent"], e["child"]) for e in summary["tf"]} == {
+        ("/tf", "odom", "base_link"), ("/tf_static", "base_link", "LIDAR_TOP")}
+    assert summary["topics"]["/tf_static"]["count"] == 1 and summary["topics"]["/tf"]["count"] == 2
+
+
+def test_kitti_oxts_poses_round_trip(shared_data, tmp_path):
+    root = _copy_tracking(shared_data, tmp_path / "kitti")
+    (root / "training/oxts").mkdir()
+    (root / "training/oxts/0000.txt").write_text("\n".join(OXTS) + "\n")
+    original = list(KittiTracking(root).frames("0000"))
+    write_bag(original, tmp_path / "bag", progress=False)
+    back = list(read_frames(tmp_path / "bag"))
+    assert back[1].pose is not None and not np.allclose(back[1].pose, back[0].pose)
+    assert_same_frames(original, back)
+
+
+def test_bare_storage_file_and_sources(shared_data, tmp_path):
+    src = shared_data / "kitti_object"
+    original = list(KittiObject(src).frames(stop=1))
+    write_bag(original, tmp_path / "bag", progress=False)
+    mcap = tmp_path / "bag" / "bag.mcap"
+    assert kind_of(tmp_path / "bag") == "bag" and kind_of(mcap) == "bag"
+    assert kind_of(src) == "kitti-object" and kind_of(shared_data / "kitti_tracking") == "kitti-tracking"
+    assert np.array_equal(next(open_frames(mcap)).points, original[0].points)
+    assert next(open_frames(shared_data / "kitti_tracking", sequence="0000")).index == 0
+    with pytest.raises(DataError, match="not a bag"):
+        kind_of(shared_data / "nuscenes_sample")
+
+
+def test_refuses_overwrite_and_force_replaces(shared_data, tmp_path, caplog):
+    src = shared_data / "kitti_object"
+    out = tmp_path / "bag"
+    args = ["convert", "kitti-object", str(src), "--frames", "1", "--out", str(out)]
+    assert main(args) == 0
+    before = (out / "metadata.yaml").read_text()
+    assert main(args) == 1 and "exists; pass --force" in caplog.text
+    assert (out / "metadata.yaml").read_text() == before
+    assert main([*args[:4], "2", *args[5:], "--force"]) == 0
+    assert len(list(read_frames(out))) == 2
+
+
+def test_failure_leaves_no_partial_bag(shared_data, tmp_path):
+    frames = list(KittiObject(shared_data / "kitti_object").frames(stop=2))
+
+    def broken():
+        yield frames[0]
+        raise DataError("scan 000001.bin: truncated")
+
+    out = tmp_path / "bag"
+    with pytest.raises(DataError, match="truncated"):
+        write_bag(broken(), out, progress=False)
+    assert list(tmp_path.iterdir()) == []
+    # a failure while replacing keeps the old bag intact
+    write_bag(frames[:1], out, progress=False)
+    with pytest.raises(DataError, match="truncated"):
+        write_bag(broken(), out, force=True, progress=False)
+    assert [p.name for p in tmp_path.iterdir()] == ["bag"]
+    assert len(list(read_frames(out))) == 1
+
+
+def test_bad_frames_rejected(shared_data, tmp_path):
+    frame = next(KittiObject(shared_data / "kitti_object").frames(stop=1))
+    with pytest.raises(DataError, match="increasing stamps"):
+        write_bag([frame, frame], tmp_path / "bag", progress=False)
+    with pytest.raises(DataError, match="no frames"):
+        write_bag([], tmp_path / "bag", progress=False)
+    with pytest.raises(DataError, match="unknown storage"):
+        write_bag([frame], tmp_path / "bag", storage="rosbag1", progress=False)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(DataError, match="cannot open bag"):
+        list(read_frames(tmp_path / "missing"))
+    (tmp_path / "junk.mcap").write_bytes(b"not an mcap file at all")
+    with pytest.raises(DataError, match="cannot open bag"):
+        list(read_frames(tmp_path / "junk.mcap"))
+
+
+def test_tracking_needs_sequence_choice(shared_data, tmp_path, caplog):
+    src = tmp_path / "two"
+    for seq in ("0000", "0001"):
+        (src / "training/velodyne" / seq).mkdir(parents=True)
+    assert main(["convert", "kitti-tracking", str(src), "--out", str(tmp_path / "bag")]) == 1
+    assert "choose --sequence among 0000, 0001" in caplog.text
+
+
+def test_synth_layout_uses_its_detections(shared_data, tmp_path):
+    """``pcc convert synth`` reads ``DIR/detections/synthetic/SSSS`` without --detections."""
+    root = _copy_tracking(shared_data, tmp_path / "synth")
+    dets = root / "detections/synthetic/0000"
+    dets.mkdir(parents=True)
+    for i in range(2):
+        shutil.copy(shared_data / f"kitti_tracking/detections/pointrcnn/0000/{i:06d}.txt", dets)
+    assert main(["convert", "synth", str(root), "--out", str(tmp_path / "bag")]) == 0
+    back = list(read_frames(tmp_path / "bag"))
+    assert [len(f.detections) for f in back] == [3, 3]
+
+
+def test_synthcars_output_converts(tmp_path):
+    synthetic = pytest.importorskip("pcc_ros.data.synthetic")
+    if not hasattr(synthetic, "generate"):
+        pytest.skip("SynthCars generator not available yet")
+    synthetic.generate(tmp_path / "synth", sequences=1, frames=2, seed=0)
+    seq = KittiTracking(tmp_path / "synth").sequences()[0]
+    assert main(["convert", "synth", str(tmp_path / "synth"), "--sequence", seq, "--out", str(tmp_path / "bag")]) == 0
+    original = list(KittiTracking(tmp_path / "synth").frames(seq, tmp_path / "synth/detections/synthetic"))
+    assert_same_frames(original, list(read_frames(tmp_path / "bag")))
+
+
+def test_progress_and_source_metadata(shared_data, tmp_path):
+    frames = list(KittiObject(shared_data / "kitti_object").frames(stop=1))
+    summary = write_bag(frames, tmp_path / "bag", progress=False, source="unit test")
+    assert summary.frames == 1 and summary.messages == {"/points": 1, "/ground_truth": 1}
+    assert summarize(tmp_path / "bag")["custom_data"]["pcc_ros.source"] == "unit test"
+    assert Path(summary.path) == tmp_path / "bag"
