@@ -53,8 +53,9 @@ def rclpy_classes(name: str) -> type:
 class PipelineNode(Node):
     """Completion (``mode="completion"``) or detection filtering (``mode="filter"``)."""
 
-    def __init__(self, node_name: str, mode: str) -> None:
-        super().__init__(node_name)
+    def __init__(self, node_name: str, mode: str, **node_options) -> None:
+        """``node_options`` go to ``rclpy.node.Node`` (e.g. ``parameter_overrides`` in tests)."""
+        super().__init__(node_name, **node_options)
         self.mode = mode
         for spec in parameter_table():
             self.declare_parameter(

@@ -1,0 +1,78 @@
+"""Node shells: importable and introspectable without ROS; a live rclpy test where ROS exists."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pcc_ros.nodes.params import parameter_table
+from pcc_ros.pipeline import read_parameters
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("module", ["completion_node", "detection_filter_node"])
+def test_node_modules_import_without_rclpy(module):
+    mod = importlib.import_module(f"pcc_ros.nodes.{module}")
+    assert callable(mod.main) and mod.NODE_NAME == module
+    if importlib.util.find_spec("rclpy") is None:
+        assert "rclpy" not in sys.modules
+
+
+def test_parameter_table_covers_the_yaml_files_with_types_and_descriptions():
+    table = {spec.name: spec for spec in parameter_table()}
+    for name in ("completion", "detection_filter"):
+        for key, value in read_parameters(REPO / "config" / f"{name}.yaml").items():
+            spec = table[key]
+            assert spec.description
+            expected = {bool: "bool", int: "integer", float: "double", str: "string", list: "string_array"}[type(value)]
+            assert spec.type_name == expected, key
+    assert table["classes"].type_name == "string_array"
+    assert table["match_threshold"].default == 0.3 and table["detection_threshold"].default == 0.5
+
+
+rclpy = None
+if importlib.util.find_spec("rclpy") is not None:  # pragma: no cover - only on a ROS machine
+    rclpy = importlib.import_module("rclpy")
+
+
+@pytest.mark.ros
+@pytest.mark.skipif(rclpy is None, reason="rclpy (a ROS 2 install) is not available")
+def test_completion_node_publishes_completed_cloud():  # pragma: no cover - only on a ROS machine
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+    from vision_msgs.msg import Detection3DArray
+
+    from pcc_ros.boxes import Boxes
+    from pcc_ros.msg.detections import detection_array_from_boxes
+    from pcc_ros.msg.pointcloud2 import create_cloud
+    from pcc_ros.nodes.ros_node import PipelineNode, rclpy_classes
+
+    rclpy.init()
+    try:
+        node = PipelineNode(
+            "completion_node", "completion", parameter_overrides=[Parameter("backend", value="mirror")]
+        )
+        probe = rclpy.create_node("probe")
+        got = []
+        probe.create_subscription(PointCloud2, "completed", got.append, 10)
+        pub_cloud = probe.create_publisher(PointCloud2, "points", 10)
+        pub_det = probe.create_publisher(Detection3DArray, "detections", 10)
+        rng = np.random.default_rng(0)
+        pts = (rng.normal(size=(500, 3)) * [1.5, 0.7, 0.5] + [10, 0, -0.8]).astype(np.float32)
+        boxes = Boxes([[10, 0, -0.8]], [[4, 1.7, 1.5]], [0.0], ["Car"], [0.9], ["1"])
+        stamp = 1_000_000_000
+        deadline = time.time() + 10
+        while not got and time.time() < deadline:
+            pub_cloud.publish(create_cloud(pts, ["x", "y", "z"], "velodyne", stamp, rclpy_classes))
+            pub_det.publish(detection_array_from_boxes(boxes, "velodyne", stamp, rclpy_classes))
+            for n in (node, probe):
+                rclpy.spin_once(n, timeout_sec=0.1)
+        assert got and got[0].header.frame_id == "velodyne"
+    finally:
+        rclpy.try_shutdown()
