@@ -24,10 +24,11 @@ Example::
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -235,25 +236,26 @@ def print_tables(results: dict[str, Any], reference: str) -> None:
 def plot_examples(
     path: Path,
     instances: Sequence[EvalInstance],
-    completions: dict[str, list[np.ndarray]],
+    completions: dict[str, Any],
     reference: str,
-    count: int = 4,
+    picks: Sequence[int],
     max_draw: int = 2048,
-) -> list[int]:
+) -> None:
     """A PNG grid: one row per example instance, columns input / each backend / reference.
 
-    Examples are spread over the distance range (sorted by distance, evenly spaced picks)
-    so near and far cars both appear. Clouds are drawn in 3D in the canonical frame from
-    the same viewpoint; returns the chosen instance indices.
+    ``picks`` are instance indices (:func:`example_indices` spreads them over the distance
+    range so near and far cars both appear); ``completions[name][i]`` is backend ``name``'s
+    completion of instance ``i`` (a list or a dict). Clouds are drawn in 3D in the
+    canonical frame from the same viewpoint.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    order = np.argsort([inst.distance for inst in instances], kind="stable")
-    count = min(count, len(instances))
-    picks = [int(order[i]) for i in np.linspace(0, len(order) - 1, count).round().astype(int)]
+    count = len(picks)
+    if count == 0:
+        raise ValueError("plot_examples: no instances to draw")
     names = [n for n in completions if n != "input"]  # the partial column already shows it
     columns = ["partial input", *names, "ground truth" if reference == "ground_truth" else "aggregated reference"]
     fig = plt.figure(figsize=(2.6 * len(columns), 2.4 * count))
@@ -287,7 +289,6 @@ def plot_examples(
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    return picks
 
 
 # --------------------------------------------------------------------------- command
@@ -324,6 +325,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--emd-points", type=int, default=1024, help="EMD subsample size (exact assignment)")
     parser.add_argument("--no-emd", action="store_true", help="skip EMD (the slowest metric)")
     parser.add_argument("--examples", type=int, default=4, help="rows in the example grid")
+    parser.add_argument(
+        "--no-resume", action="store_true",
+        help="recompute every backend even if --json already holds results for the same instances and settings",
+    )
+
+
+def fingerprint(instances: Sequence[EvalInstance], settings: dict[str, Any]) -> str:
+    """Hash of what a result depends on (instances, their point counts, settings).
+
+    A re-run whose fingerprint matches the JSON already on disk reuses the backends finished
+    there instead of recomputing them (resume after an interruption).
+    """
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
+    for inst in instances:
+        digest.update(f"{inst.key}:{inst.num_points}:{len(inst.reference)}:{inst.length:.6f};".encode())
+    return digest.hexdigest()[:16]
+
+
+def _checkpoint_stamp(path: Path | None) -> str | None:
+    if path is None:
+        return None
+    weights = Path(path).with_suffix(".safetensors") if Path(path).suffix != ".safetensors" else Path(path)
+    try:
+        stat = weights.stat()
+    except OSError:
+        return str(path)
+    return f"{path}:{stat.st_size}:{int(stat.st_mtime)}"
 
 
 def evaluate(
@@ -339,8 +367,18 @@ def evaluate(
     emd_points: int = 1024,
     with_emd: bool = True,
     progress: bool = True,
-) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
-    """Score every backend on ``instances``; returns the results dict and the completions."""
+    previous: dict[str, Any] | None = None,
+    keep: Sequence[int] = (),
+    on_backend_done: Callable[[dict[str, Any]], None] | None = None,
+) -> tuple[dict[str, Any], dict[str, dict[int, np.ndarray]]]:
+    """Score every backend on ``instances``.
+
+    Returns the results dict and, per backend, the completions of the instance indices in
+    ``keep`` (for the example grid; all are scored, few are kept in memory). ``previous``:
+    an earlier results dict; backends finished there under the same fingerprint are reused,
+    only their ``keep`` completions are recomputed. ``on_backend_done(results)`` is called
+    after each backend (the command writes the JSON there, so an interrupted run resumes).
+    """
     from pcc_ros.metrics import METRICS, unit_label
     from pcc_ros.models import get_backend, load_completer
 
@@ -348,12 +386,16 @@ def evaluate(
     unused = sorted(set(checkpoints) - set(backends))
     if unused:
         raise ConfigError(f"--checkpoint given for backend(s) not evaluated: {unused}")
-    results: dict[str, Any] = {
+    settings = {
         "reference": reference,
-        "instances": len(instances),
         "seed": seed,
         "fixed_threshold_m": fixed_threshold_m,
         "emd_points": emd_points if with_emd else None,
+    }
+    results: dict[str, Any] = {
+        **settings,
+        "instances": len(instances),
+        "fingerprint": fingerprint(instances, settings),
         "units": {
             "overall": {k: unit_label(k, metres=True) for k in REPORTED},
             "overall_canonical": {k: unit_label(k, metres=False) for k in REPORTED},
@@ -362,25 +404,67 @@ def evaluate(
         "definitions": {k: METRICS[k].description for k in REPORTED},
         "backends": {},
     }
-    all_completions: dict[str, list[np.ndarray]] = {}
+    reusable = {}
+    if previous and previous.get("fingerprint") == results["fingerprint"]:
+        reusable = previous.get("backends", {})
+    kept: dict[str, dict[int, np.ndarray]] = {}
     for name in backends:
         cls = get_backend(name)
         options = {"batch_size": batch_size} if cls.learned else {}
         completer = load_completer(name, checkpoints.get(name), device=device, **options)
-        completions, rows, seconds = score_backend(
-            completer, instances, seed=seed, fixed_threshold_m=fixed_threshold_m,
-            emd_points=emd_points, with_emd=with_emd, progress=progress,
-        )
-        summary = summarise(instances, rows)
-        summary["completion_ms_per_instance"] = 1e3 * seconds / max(len(instances), 1)
-        summary["output_points_mean"] = float(np.mean([len(c) for c in completions]))
-        if cls.learned:
-            ck = getattr(completer, "checkpoint_config", None) or {}
-            summary["checkpoint"] = str(checkpoints.get(name, "default"))
-            summary["checkpoint_git_revision"] = ck.get("git_revision")
-        results["backends"][name] = summary
-        all_completions[name] = completions
-    return results, all_completions
+        stamp = _checkpoint_stamp(checkpoints.get(name)) if cls.learned else None
+        old = reusable.get(name)
+        if old is not None and old.get("checkpoint_stamp") == stamp:
+            log.info("%s: reusing the results already in the JSON (same instances and settings)", name)
+            results["backends"][name] = old
+            picks = list(keep)
+            outs = completer.complete([instances[i].partial for i in picks]) if picks else []
+            kept[name] = dict(zip(picks, outs))
+        else:
+            completions, rows, seconds = score_backend(
+                completer, instances, seed=seed, fixed_threshold_m=fixed_threshold_m,
+                emd_points=emd_points, with_emd=with_emd, progress=progress,
+            )
+            summary = summarise(instances, rows)
+            summary["completion_ms_per_instance"] = 1e3 * seconds / max(len(instances), 1)
+            summary["output_points_mean"] = float(np.mean([len(c) for c in completions]))
+            summary["checkpoint_stamp"] = stamp
+            if cls.learned:
+                ck = getattr(completer, "checkpoint_config", None) or {}
+                summary["checkpoint"] = str(checkpoints.get(name, "default"))
+                summary["checkpoint_git_revision"] = ck.get("git_revision")
+            results["backends"][name] = summary
+            kept[name] = {i: completions[i] for i in keep}
+        if on_backend_done is not None:
+            on_backend_done(results)
+    return results, kept
+
+
+def example_indices(instances: Sequence[EvalInstance], count: int) -> list[int]:
+    """Instances for the example grid: evenly spread over the distance range."""
+    if not instances or count < 1:
+        return []
+    order = np.argsort([inst.distance for inst in instances], kind="stable")
+    count = min(count, len(instances))
+    return [int(order[i]) for i in np.linspace(0, len(order) - 1, count).round().astype(int)]
+
+
+def _write_json(path: Path, results: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
+    tmp.replace(path)
+
+
+def _previous_results(path: Path | None) -> dict[str, Any] | None:
+    if path is None or not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        log.warning("%s exists but is not valid JSON; recomputing everything", path)
+        return None
+    return data if isinstance(data, dict) else None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -396,19 +480,26 @@ def run(args: argparse.Namespace) -> int:
     if not instances:
         raise DataError(f"{args.data}: no usable instances in split {args.split!r}")
     log.info("evaluating %d instance(s) of split %r against %s references", len(instances), args.split, reference)
-    results, completions = evaluate(
+    picks = example_indices(instances, args.examples) if args.plot else []
+    header = {"data": str(args.data), "split": args.split}
+
+    def save(partial: dict[str, Any]) -> None:
+        if args.json:
+            _write_json(args.json, {**header, **partial})
+
+    results, kept = evaluate(
         instances, reference, backends, checkpoints,
         device=args.device, batch_size=args.batch_size, seed=args.seed,
         fixed_threshold_m=args.fixed_threshold, emd_points=args.emd_points, with_emd=not args.no_emd,
+        previous=None if args.no_resume else _previous_results(args.json), keep=picks, on_backend_done=save,
     )
-    results.update({"data": str(args.data), "split": args.split})
+    results = {**header, **results}
     print_tables(results, reference)
     if args.plot:
-        picks = plot_examples(args.plot, instances, completions, reference, count=args.examples)
+        plot_examples(args.plot, instances, kept, reference, picks)
         results["plot"] = {"path": str(args.plot), "instances": [instances[i].key for i in picks]}
         log.info("wrote %s", args.plot)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
+        _write_json(args.json, results)
         log.info("wrote %s", args.json)
     return 0

@@ -12,6 +12,7 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.evaluate import (
     EvalInstance,
     evaluate,
+    example_indices,
     parse_checkpoints,
     plot_examples,
     print_tables,
@@ -45,7 +46,8 @@ def make_instances(count=6, seed=0):
 def test_evaluate_ranks_baselines_and_converts_units(tmp_path, capsys):
     instances = make_instances()
     results, completions = evaluate(
-        instances, "ground_truth", ["input", "densify", "mirror"], device="cpu", emd_points=128, progress=False
+        instances, "ground_truth", ["input", "densify", "mirror"], device="cpu", emd_points=128, progress=False,
+        keep=range(len(instances)),
     )
     b = results["backends"]
     assert set(b) == {"input", "densify", "mirror"}
@@ -59,7 +61,7 @@ def test_evaluate_ranks_baselines_and_converts_units(tmp_path, capsys):
     lengths = np.array([inst.length for inst in instances])
     from pcc_ros.metrics import chamfer
 
-    per = [chamfer(c, inst.reference) for c, inst in zip(completions["mirror"], instances)]
+    per = [chamfer(completions["mirror"][i], inst.reference) for i, inst in enumerate(instances)]
     assert b["mirror"]["overall"]["cd_l1"] == pytest.approx(np.mean([r["cd_l1"] for r in per] * lengths))
     assert b["mirror"]["overall"]["cd_l2"] == pytest.approx(np.mean([r["cd_l2"] for r in per] * lengths**2))
     assert b["mirror"]["overall_canonical"]["cd_l1"] == pytest.approx(np.mean([r["cd_l1"] for r in per]))
@@ -75,8 +77,27 @@ def test_evaluate_ranks_baselines_and_converts_units(tmp_path, capsys):
     assert "cd_l1 [m, sensor frame; lower is better; reference: ground_truth]" in text
     assert "overall in canonical units" in text
 
-    picks = plot_examples(tmp_path / "grid.png", instances, completions, "ground_truth", count=3)
-    assert len(picks) == 3 and (tmp_path / "grid.png").stat().st_size > 10_000
+    picks = example_indices(instances, 3)
+    assert picks == [0, 2, 5]  # spread over the distance range
+    plot_examples(tmp_path / "grid.png", instances, completions, "ground_truth", picks)
+    assert (tmp_path / "grid.png").stat().st_size > 10_000
+
+
+def test_resume_reuses_finished_backends():
+    instances = make_instances(2)
+    calls = []
+    first, _ = evaluate(instances, "ground_truth", ["input", "densify"], emd_points=64, progress=False,
+                        on_backend_done=lambda r: calls.append(list(r["backends"])))
+    assert calls == [["input"], ["input", "densify"]]
+    # Tamper with a stored figure: a resumed run must reuse it, not recompute it.
+    first["backends"]["densify"]["overall"]["cd_l1"] = 123.0
+    again, kept = evaluate(instances, "ground_truth", ["input", "densify", "mirror"], emd_points=64,
+                           progress=False, previous=first, keep=[1])
+    assert again["backends"]["densify"]["overall"]["cd_l1"] == 123.0
+    assert set(kept["densify"]) == {1} and len(kept["mirror"][1]) == 2 * instances[1].num_points
+    # Different settings -> different fingerprint -> recomputed.
+    other, _ = evaluate(instances, "ground_truth", ["densify"], emd_points=32, progress=False, previous=first)
+    assert other["backends"]["densify"]["overall"]["cd_l1"] != 123.0
 
 
 def test_evaluate_is_reproducible():
