@@ -196,3 +196,29 @@ def test_progress_and_source_metadata(shared_data, tmp_path):
     assert summary.frames == 1 and summary.messages == {"/points": 1, "/ground_truth": 1}
     assert summarize(tmp_path / "bag")["custom_data"]["pcc_ros.source"] == "unit test"
     assert Path(summary.path) == tmp_path / "bag"
+
+
+def test_mcap_decodes_with_independent_reader(shared_data, tmp_path):
+    """The MCAP bag carries its schemas: mcap-ros2-support (the decoder Foxglove's own
+    implementation mirrors) decodes every topic, vision_msgs included, from the file alone."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    build_tables(shared_data, tmp_path / "nuscenes")
+    original = list(NuScenes(tmp_path / "nuscenes").frames())
+    write_bag(original, tmp_path / "bag", progress=False)
+    seen: dict[str, int] = {}
+    with (tmp_path / "bag" / "bag.mcap").open("rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        for schema, channel, _, msg in reader.iter_decoded_messages():
+            assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            if channel.topic == "/points":
+                assert msg.width == 34688 and [f.name for f in msg.fields] == ["x", "y", "z", "intensity", "ring"]
+            elif channel.topic == "/ground_truth":
+                assert len(msg.detections) == len(original[0].ground_truth)
+                assert msg.detections[0].id == original[0].ground_truth.track_id[0]
+            elif channel.topic == "/tf_static":
+                assert msg.transforms[0].child_frame_id == "LIDAR_TOP"
+    assert seen == {"/points": 2, "/ground_truth": 2, "/tf_static": 1, "/tf": 2}

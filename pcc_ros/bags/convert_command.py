@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from itertools import islice
 from pathlib import Path
 
 from pcc_ros.errors import DataError
@@ -36,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--no-compress", action="store_true", help="write without zstd")
         p.add_argument("--zstd-level", type=int, default=None, help="MCAP chunk zstd level (default 3)")
         p.add_argument("--force", action="store_true", help="replace an existing bag")
-        p.add_argument("--first", type=int, default=0, help="first frame (KITTI)")
+        p.add_argument("--first", type=int, default=0, help="index of the first frame to convert")
         p.add_argument("--frames", type=int, default=None, help="number of frames (default: all)")
         if name != "nuscenes":
             p.add_argument("--detections", type=Path, help="detector results (KITTI object format + score)")
@@ -89,7 +90,9 @@ def _nuscenes(args: argparse.Namespace):
         names = [args.scene]
     by_name = {s["name"]: s for s in reader.tables["scene"]}
     total = sum(int(by_name[n].get("nbr_samples", 0)) for n in names) if all(n in by_name for n in names) else None
-    frames = (f for name in names for f in reader.frames(name))
+    frames = islice((f for name in names for f in reader.frames(name)), args.first, _stop(args))
+    if total is not None:
+        total = max(0, min(total, _stop(args) or total) - args.first)
     return frames, total, f"nuscenes {args.src} {args.version} {args.scene or 'all scenes'}"
 
 
