@@ -222,3 +222,38 @@ def test_mcap_decodes_with_independent_reader(shared_data, tmp_path):
             elif channel.topic == "/tf_static":
                 assert msg.transforms[0].child_frame_id == "LIDAR_TOP"
     assert seen == {"/points": 2, "/ground_truth": 2, "/tf_static": 1, "/tf": 2}
+
+
+def test_recorded_bag_late_detections_and_orphans(tmp_path, caplog):
+    """A bag as ``ros2 bag record`` writes it: detections arrive later in bag time than their
+    scan; they still join it by header stamp, and boxes whose scan never came are counted."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from pcc_ros.boxes import Boxes
+    from pcc_ros.msg.detections import detection_array_from_boxes
+    from pcc_ros.msg.pointcloud2 import create_cloud
+    from pcc_ros.msg.typestore import get_typestore
+
+    store = get_typestore()
+    rng = np.random.default_rng(3)
+    boxes = Boxes(rng.uniform(-5, 5, (2, 3)), [[4.0, 2.0, 1.5]] * 2, [0.1, -0.2], track_id=["7", "9"])
+    clouds = [rng.normal(size=(50, 4)).astype(np.float32) for _ in range(3)]
+    stamps = [1_000_000_000 + k * 100_000_000 for k in range(3)]
+    with Writer(tmp_path / "rec", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        pc = writer.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+        det = writer.add_connection("/detections", "vision_msgs/msg/Detection3DArray", typestore=store)
+        for k, stamp in enumerate(stamps):
+            msg = create_cloud(clouds[k], ("x", "y", "z", "intensity"), "lidar", stamp)
+            writer.write(pc, stamp + 5_000_000, store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+            if k != 1:  # detector latency: 150 ms after the scan, i.e. after the next scan arrived
+                msg = detection_array_from_boxes(boxes[: k + 1], "lidar", stamp)
+                writer.write(det, stamp + 150_000_000, store.serialize_cdr(msg, "vision_msgs/msg/Detection3DArray"))
+        orphan = detection_array_from_boxes(boxes, "lidar", 5_000_000_000)
+        writer.write(det, 5_000_000_000, store.serialize_cdr(orphan, "vision_msgs/msg/Detection3DArray"))
+    frames = list(read_frames(tmp_path / "rec"))
+    assert [f.stamp_ns for f in frames] == stamps
+    assert [f.index for f in frames] == [0, 1, 2] and frames[0].sequence == ""
+    assert [None if f.detections is None else len(f.detections) for f in frames] == [1, None, 2]
+    assert frames[2].detections.equals(boxes[:2])
+    assert all(np.array_equal(f.points, c) for f, c in zip(frames, clouds))
+    assert "1 stamps had boxes or transforms but no /points scan" in caplog.text
