@@ -1,0 +1,287 @@
+"""Instance extraction, the cache format, training views and pseudo-ground-truth pools."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pcc_ros.boxes import Boxes
+from pcc_ros.data.instances import (
+    EvalShapes,
+    ExtractConfig,
+    InstanceCache,
+    aggregate_track,
+    evenness,
+    extract_instances,
+    multiview_groups,
+    partial_gt_pool,
+    sample_views,
+    whole_gt_pool,
+)
+from pcc_ros.errors import DataError
+from pcc_ros.frame import Frame
+from pcc_ros.geometry.canonical import from_canonical, to_canonical
+
+CAR = np.array([4.0, 1.8, 1.5])
+
+
+def car_surface(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Canonical surface samples of an ellipsoidal car body (length 0.95 in canonical units)."""
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d * (CAR / CAR[0] / 2.0 * 0.95)
+
+
+def visible(surface: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Surface points facing the sensor (outward normal toward it): self-occlusion."""
+    normal = surface / (CAR / CAR[0] / 2.0 * 0.95) ** 2
+    return np.einsum("ij,ij->i", normal, origin - surface) > 0
+
+
+def make_track_frames(n_frames=24, noise=0.005, seed=0, sequence="0000", track="7", with_pose=False):
+    """A car driving past the sensor (moving + turning), seen from changing angles."""
+    rng = np.random.default_rng(seed)
+    surface = car_surface(20000, rng)
+    frames = []
+    for f in range(n_frames):
+        center = np.array([-15.0 + 1.3 * f, 6.0, -0.9])
+        yaw = 0.02 * f
+        origin_c = to_canonical(np.zeros((1, 3)), center, yaw, CAR[0])[0]
+        pts_c = surface[visible(surface, origin_c)]
+        pts_c = pts_c[rng.random(len(pts_c)) < 0.15]
+        pts_c = pts_c + rng.normal(0, noise, pts_c.shape)
+        car = from_canonical(pts_c, center, yaw, CAR[0])
+        ground = np.c_[rng.uniform(-30, 30, (3000, 2)), np.full(3000, -1.65)]
+        pts = np.c_[np.r_[car, ground], rng.uniform(0, 1, len(car) + len(ground))].astype(np.float32)
+        boxes = Boxes([center, [30.0, -30.0, 0.0], [np.nan, 0, 0]], [CAR, CAR, CAR], [yaw, 0.0, 0.0],
+                      label=["Car", "Car", "Car"], track_id=[track, "99", "98"])
+        pose = None
+        if with_pose:
+            pose = np.eye(4)
+            pose[0, 3] = 2.0 * f
+        frames.append(Frame(stamp_ns=f * 100_000_000, frame_id="velodyne", points=pts, ground_truth=boxes,
+                            sequence=sequence, index=f, pose=pose))
+    return frames, surface
+
+
+def nn_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    return cKDTree(b).query(a)[0]
+
+
+@pytest.fixture
+def track_cache(tmp_path):
+    frames, surface = make_track_frames()
+    cache = extract_instances(frames, tmp_path / "cache", ExtractConfig(ground_margin=0.1), progress=False)
+    return cache, surface, frames
+
+
+def test_extraction_records(track_cache):
+    cache, _, frames = track_cache
+    # One car per frame: the far box has no points (min_points), the NaN box is counted.
+    assert len(cache) == len(frames)
+    assert cache.index["skipped"] == {"invalid_box": len(frames), "too_few_points": len(frames)}
+    i = 5
+    pts = cache.points(i)
+    assert pts.dtype == np.float32 and pts.shape[1] == 3 and len(pts) == cache.meta["num_points"][i]
+    assert np.abs(pts).max() < 0.6  # canonical: scaled by 1 / length
+    frame = frames[i]
+    box = frame.ground_truth[0]
+    np.testing.assert_allclose(cache.meta["box_center"][i], box.center[0])
+    np.testing.assert_allclose(cache.meta["distance"][i], np.linalg.norm(box.center[0]), rtol=1e-6)
+    np.testing.assert_allclose(cache.meta["origin"][i], to_canonical(np.zeros((1, 3)), box.center[0], box.yaw[0],
+                                                                      4.0)[0], atol=1e-5)
+    # Points map back into the scan exactly (ground returns under the car were dropped).
+    back = from_canonical(pts, box.center[0], box.yaw[0], 4.0)
+    assert nn_dist(back, frame.xyz.astype(np.float64)).max() < 1e-4
+    assert (back[:, 2] >= box.center[0, 2] - 0.75 + 0.1 - 1e-5).all()
+    assert set(cache.meta["track"]) == {"7"} and set(cache.meta["sequence"]) == {"0000"}
+    assert len(set(cache.meta["split"])) == 1  # split by track: one track, one split
+    assert not cache.meta["has_shape"].any()
+    assert np.isnan(cache.meta["pose"]).all()
+
+
+def test_cache_is_idempotent_resumable_and_guarded(tmp_path):
+    frames, _ = make_track_frames(n_frames=10)
+    out = tmp_path / "c"
+    cfg = ExtractConfig(shard_points=1500)  # several shards
+    full = extract_instances(frames, out, cfg, progress=False)
+    assert len(full.index["shards"]) > 1
+    stamp = (out / "index.json").stat().st_mtime_ns
+    again = extract_instances(frames, out, cfg, progress=False)  # nothing to do
+    assert (out / "index.json").stat().st_mtime_ns == stamp and len(again) == len(full)
+
+    # An interrupted run resumes after the frames it had stored.
+    out2 = tmp_path / "c2"
+
+    def interrupted():
+        for k, f in enumerate(frames):
+            if k == 7:
+                raise KeyboardInterrupt
+            yield f
+
+    with pytest.raises(KeyboardInterrupt):
+        extract_instances(interrupted(), out2, cfg, progress=False)
+    partial = json.loads((out2 / "index.json").read_text())
+    assert not partial["complete"] and 0 < partial["frames_done"] < 7
+    with pytest.raises(DataError, match="did not finish"):
+        InstanceCache.load(out2)
+    resumed = extract_instances(frames, out2, cfg, progress=False)
+    assert len(resumed) == len(full)
+    for i in range(len(full)):
+        np.testing.assert_array_equal(resumed.points(i), full.points(i))
+    np.testing.assert_array_equal(resumed.meta["frame"], full.meta["frame"])
+
+    # Other options: refused without --force, rebuilt with it.
+    other = ExtractConfig(min_points=50, shard_points=1500)
+    with pytest.raises(DataError, match="--force"):
+        extract_instances(frames, out, other, progress=False)
+    rebuilt = extract_instances(frames, out, other, force=True, progress=False)
+    assert (rebuilt.meta["num_points"] >= 50).all()
+    # A foreign non-empty directory is never overwritten.
+    (tmp_path / "foreign").mkdir()
+    (tmp_path / "foreign" / "x.txt").write_text("mine")
+    with pytest.raises(DataError, match="not an instance cache"):
+        extract_instances(frames, tmp_path / "foreign", cfg, progress=False)
+
+
+def test_corrupt_cache_is_reported(track_cache):
+    cache, _, _ = track_cache
+    offsets = cache.root / "shards" / "00000.offsets.npy"
+    np.save(offsets, np.array([0, 5], dtype=np.int64))
+    with pytest.raises(DataError, match="inconsistent"):
+        InstanceCache.load(cache.root)
+    (cache.root / "shards" / "00000.points.npy").write_bytes(b"garbage")
+    with pytest.raises(DataError, match="unreadable"):
+        InstanceCache.load(cache.root)
+    with pytest.raises(DataError, match=r"index\.json"):
+        InstanceCache.load(cache.root / "nowhere")
+
+
+def test_aggregation_of_consistent_track_lands_on_true_surface(track_cache):
+    cache, surface, _ = track_cache
+    (obs,) = cache.tracks().values()
+    merged = aggregate_track(cache, obs, mode="box")
+    assert len(merged) == cache.meta["num_points"].sum()
+    noise = 0.005
+    d = nn_dist(merged.astype(np.float64), surface)
+    assert np.median(d) < 2 * noise and np.percentile(d, 95) < 4 * noise
+    # Several views together cover far more of the car than the best single view.
+    cover = lambda cloud: (nn_dist(surface, cloud.astype(np.float64)) < 0.03).mean()  # noqa: E731
+    best_single = max(cover(cache.points(i)) for i in obs)
+    assert cover(merged) > best_single + 0.15
+
+
+def test_pose_aggregation_of_parked_car(tmp_path):
+    # A parked car, the sensor drives by: with poses, clouds register through odom.
+    rng = np.random.default_rng(3)
+    surface = car_surface(20000, rng)
+    car_odom = np.array([10.0, 5.0, -0.9])
+    frames = []
+    for f in range(8):
+        pose = np.eye(4)
+        pose[0, 3] = 1.5 * f  # ego moves along x
+        center = car_odom - pose[:3, 3]
+        origin_c = to_canonical(np.zeros((1, 3)), center, 0.3, 4.0)[0]
+        pts_c = surface[visible(surface, origin_c)][::5]
+        car = from_canonical(pts_c, center, 0.3, 4.0).astype(np.float32)
+        boxes = Boxes([center + rng.normal(0, 0.05, 3)], [CAR], [0.3 + rng.normal(0, 0.02)], track_id=["1"])
+        frames.append(Frame(f, "velodyne", np.c_[car, np.zeros(len(car))].astype(np.float32), ground_truth=boxes,
+                            sequence="0001", index=f, pose=pose))
+    cache = extract_instances(frames, tmp_path / "p", ExtractConfig(ground_margin=0.0, margin=0.2), progress=False)
+    (obs,) = cache.tracks().values()
+    assert np.isfinite(cache.meta["pose"]).all()
+    by_pose = aggregate_track(cache, obs, mode="auto")  # static -> poses
+    by_box = aggregate_track(cache, obs, mode="box")
+    ref = int(np.argmax(cache.meta["num_points"][obs]))
+    i = obs[ref]
+    truth = to_canonical(from_canonical(surface, car_odom - frames[i].pose[:3, 3], 0.3, 4.0),
+                         cache.meta["box_center"][i], cache.meta["box_yaw"][i], 4.0)
+    assert np.median(nn_dist(by_pose.astype(np.float64), truth)) < np.median(nn_dist(by_box.astype(np.float64), truth))
+
+
+def test_multiview_groups_and_sampling(tmp_path):
+    frames, _ = make_track_frames(n_frames=43)
+    cache = extract_instances(frames, tmp_path / "m", progress=False)
+    groups = multiview_groups(cache, group_size=20, min_views=4)
+    assert [len(g) for g in groups] == [20, 23]  # a 3-observation tail joins the previous run
+    for g in groups:
+        assert (np.diff(cache.meta["frame"][g]) == 1).all()  # sequential observations
+    rng = np.random.default_rng(0)
+    views = sample_views(groups[0], 4, rng)
+    assert len(np.unique(views)) == 4 and set(views) <= set(groups[0])
+    with pytest.raises(DataError):
+        sample_views(groups[0][:3], 4, rng)
+
+
+def test_evenness_and_pools(tmp_path):
+    rng = np.random.default_rng(1)
+    whole = car_surface(5000, rng)
+    one_side = whole[whole[:, 1] < 0]
+    assert min(evenness(whole).values()) > 0.6
+    ev = evenness(one_side)
+    assert ev["top"] == 0.0 and ev["front"] == 0.0 and ev["side"] > 0.6
+
+    frames, _ = make_track_frames(n_frames=24)  # a drive-by: sees front, side and back
+    seen_one_side, _ = make_track_frames(n_frames=3, sequence="0002", track="3")
+    cache = extract_instances(frames + seen_one_side, tmp_path / "g", progress=False)
+    whole_pool = whole_gt_pool(cache, split=None, min_points=1024, threshold=0.3)
+    assert [e.key for e in whole_pool] == ["0000/7"]
+    assert len(whole_pool[0].points) >= 1024
+    parts = partial_gt_pool(cache, split=None, min_points=200, threshold=0.3)
+    assert {(e.key, e.part) for e in parts} >= {("0000/7", "front"), ("0000/7", "back")}
+    front = next(e for e in parts if e.part == "front" and e.key == "0000/7")
+    assert (front.points[:, 0] >= 0).all()
+
+
+def test_synthcars_shapes_are_eval_only(tmp_path):
+    root = tmp_path / "synth"
+    (root / "shapes" / "0000").mkdir(parents=True)
+    shape = car_surface(16384, np.random.default_rng(0)).astype(np.float32)
+    np.save(root / "shapes" / "0000" / "7.npy", shape)
+    (root / "meta.json").write_text(json.dumps({"splits": {"train": ["0001"], "test": ["0000"]}}))
+    frames, _ = make_track_frames(n_frames=4)
+    cache = extract_instances(frames, tmp_path / "s", source=None, synthcars=root, progress=False)
+    assert cache.meta["has_shape"].all()
+    assert set(cache.meta["split"]) == {"test"}  # the SynthCars test sequence
+    assert not hasattr(cache, "shape") and "shape" not in cache.meta
+    shapes = EvalShapes.load(cache.root)
+    np.testing.assert_array_equal(shapes.for_instance(cache, 0), shape)
+    assert shapes.get("0000", "99") is None
+
+
+def test_splits_are_deterministic_by_track(tmp_path):
+    frames = []
+    for t in range(40):
+        f, _ = make_track_frames(n_frames=2, sequence=f"{t % 3:04d}", track=str(t), seed=t)
+        frames += f
+    a = extract_instances(frames, tmp_path / "a", progress=False)
+    b = extract_instances(frames, tmp_path / "b", progress=False)
+    np.testing.assert_array_equal(a.meta["split"], b.meta["split"])
+    for obs in a.tracks().values():
+        assert len(set(a.meta["split"][obs])) == 1
+    assert set(a.meta["split"]) == {"train", "val", "test"}
+    assert len(a.indices("train")) > len(a.indices("test")) > 0
+    info = a.info()
+    assert info["tracks"] == 40 and info["observations_per_track"]["min"] == 2
+    assert sum(len(g) for g in a.frame_groups()) == len(a)
+
+
+def test_real_kitti_tracking_produces_car_tracks(shared_data, tmp_path):
+    from pcc_ros.data.sources import open_frames
+
+    src = shared_data / "kitti_tracking"
+    cache = extract_instances(open_frames(src), tmp_path / "k", source=src, progress=False)
+    tracks = cache.tracks()
+    assert len(tracks) >= 2
+    assert all(len(obs) >= 10 for obs in tracks.values())  # several observations each
+    assert set(cache.meta["label"]) <= {"Car", "Van"}
+    assert (cache.meta["num_points"] >= 10).all()
+    for i in range(len(cache)):
+        assert np.abs(cache.points(i)).max() <= 0.75  # inside the box, canonical units
+    (tracks_obs,) = [v for v in tracks.values() if len(v) == max(len(x) for x in tracks.values())]
+    merged = aggregate_track(cache, tracks_obs)
+    assert len(merged) > 3 * np.median(cache.meta["num_points"][tracks_obs])
