@@ -145,6 +145,17 @@ def _pedestrian(rng: np.random.Generator) -> M.Mesh:
     return M.concatenate(parts)
 
 
+def _tiles(x0: float, x1: float, y0: float, y1: float, height: float, material: int, tile: float = 40.0) -> M.Mesh:
+    """A slab ``[x0, x1] x [y0, y1] x [0, height]`` as adjacent closed boxes of at most ``tile`` metres."""
+    nx, ny = max(1, int(np.ceil((x1 - x0) / tile))), max(1, int(np.ceil((y1 - y0) / tile)))
+    xs, ys = np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1)
+    return M.concatenate([
+        M.box([xs[i + 1] - xs[i], ys[j + 1] - ys[j], height],
+              [(xs[i] + xs[i + 1]) / 2, (ys[j] + ys[j + 1]) / 2, height / 2], material)
+        for i in range(nx) for j in range(ny)
+    ])
+
+
 def _centred(mesh: M.Mesh) -> tuple[M.Mesh, np.ndarray, np.ndarray]:
     """Mesh shifted to its box centre; returns (mesh, size, offset applied)."""
     lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
@@ -189,8 +200,9 @@ def build_street(frames: int, params: SceneParams, rng: np.random.Generator) -> 
 
     objects: list[SceneObject] = []
     track = 0
-    # Ground: one large quad slab (closed, top at z = 0).
-    objects.append(_place(KIND_GROUND, "ground", M.box([length + 400, 600, 1.0], [0, 0, 0.5], M.ASPHALT),
+    # Ground: a slab (top at z = 0) in tiles, so no triangle is a long sliver (float32 accuracy).
+    reach = p.cull_range + 10.0
+    objects.append(_place(KIND_GROUND, "ground", _tiles(x_lo - reach, x_hi + reach, -reach, reach, 1.0, M.ASPHALT),
                           (x_lo + x_hi) / 2, 0.0, -1.0, 0.0))
 
     for side in (-1.0, 1.0):
@@ -198,7 +210,7 @@ def build_street(frames: int, params: SceneParams, rng: np.random.Generator) -> 
         depth = 5.4 if perpendicular else 2.3
         kerb = road + depth
         walk = float(rng.uniform(2.5, 4.5))
-        objects.append(_place(KIND_STRUCTURE, "sidewalk", M.box([length, walk, 0.14], [0, 0, 0.07], M.CONCRETE),
+        objects.append(_place(KIND_STRUCTURE, "sidewalk", _tiles(x_lo, x_hi, 0.0, walk, 0.14, M.CONCRETE, 10.0),
                               (x_lo + x_hi) / 2, side * (kerb + walk / 2), 0.0, 0.0))
         # Parked vehicles.
         x = x_lo + float(rng.uniform(0, 5))
