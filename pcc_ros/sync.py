@@ -55,6 +55,11 @@ class StampPairer(Generic[T, U]):
         with self._lock:
             return self._add(self._right, self._left, stamp_ns, item, left=False)
 
+    def pending(self) -> tuple[int, int]:
+        """Unmatched (left, right) items still queued."""
+        with self._lock:
+            return len(self._left), len(self._right)
+
     def _add(self, own: deque, other: deque, stamp_ns: int, item, left: bool):
         best = None
         for k, (stamp, _) in enumerate(other):

@@ -32,7 +32,8 @@ import logging
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -130,7 +131,7 @@ class _FrameRuns:
         return json.dumps(self.runs, separators=(",", ":"))
 
 
-class _BagWriter:
+class BagWriter:
     """One open rosbag2 writer plus the lazily added connections."""
 
     def __init__(self, writer: Writer) -> None:
@@ -140,12 +141,16 @@ class _BagWriter:
         self.counts: dict[str, int] = {}
 
     def write(self, topic: str, msgtype: str, msg, stamp_ns: int, qos: Qos | None = None) -> None:
+        self.write_raw(topic, msgtype, self.store.serialize_cdr(msg, msgtype), stamp_ns, qos)
+
+    def write_raw(self, topic: str, msgtype: str, raw: bytes, stamp_ns: int, qos: Qos | None = None) -> None:
+        """Write an already CDR-serialised message (copying records between bags)."""
         if topic not in self.connections:
             self.connections[topic] = self.writer.add_connection(
                 topic, msgtype, typestore=self.store, offered_qos_profiles=[qos] if qos else []
             )
             self.counts[topic] = 0
-        self.writer.write(self.connections[topic], stamp_ns, self.store.serialize_cdr(msg, msgtype))
+        self.writer.write(self.connections[topic], stamp_ns, raw)
         self.counts[topic] += 1
 
 
@@ -155,7 +160,7 @@ def _boxes_3d(boxes: Boxes) -> tuple[Boxes, int]:
     return (boxes, 0) if valid.all() else (boxes[valid], int(np.count_nonzero(~valid)))
 
 
-def write_frames(bag: _BagWriter, frames: Iterable[Frame], runs: _FrameRuns, summary: BagSummary) -> None:
+def write_frames(bag: BagWriter, frames: Iterable[Frame], runs: _FrameRuns, summary: BagSummary) -> None:
     """Write every frame's messages (see the module docstring) and fill ``summary``."""
     last_stamp: int | None = None
     static: tuple[str, bytes] | None = None
@@ -195,6 +200,50 @@ def write_frames(bag: _BagWriter, frames: Iterable[Frame], runs: _FrameRuns, sum
         summary.frames += 1
 
 
+@contextmanager
+def atomic_bag(
+    out: str | Path,
+    storage: str = "mcap",
+    compress: bool = True,
+    zstd_level: int | None = None,
+    force: bool = False,
+) -> Iterator[BagWriter]:
+    """Open a rosbag2 writer whose bag appears at ``out`` only if the block completes.
+
+    The bag is written in a temporary directory next to ``out`` and renamed into place
+    at the end; any exception (or Ctrl-C) removes it, leaving an existing ``out`` intact.
+
+    Raises :class:`DataError` for an unknown storage, or if ``out`` exists without ``force``.
+    """
+    out = Path(out)
+    if storage not in STORAGES:
+        raise DataError(f"unknown storage {storage!r} (use {' or '.join(STORAGES)})")
+    if out.exists() and not force:
+        raise DataError(f"{out} exists; pass --force to replace it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    tmp_bag = tmp_dir / out.name
+    writer = Writer(tmp_bag, version=9, storage_plugin=STORAGES[storage])
+    if compress:
+        mode = CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE
+        writer.set_compression(mode, CompressionFormat.ZSTD)
+    try:
+        writer.open()
+        if compress and storage == "mcap" and zstd_level is not None:
+            _set_mcap_zstd_level(writer, zstd_level)
+        yield BagWriter(writer)
+        writer.close()
+        if out.exists():  # force: replace only now that the new bag is complete
+            shutil.rmtree(out) if out.is_dir() else out.unlink()
+        os.replace(tmp_bag, out)
+    except BaseException:
+        if writer.storage is not None:
+            writer.abort()
+        raise
+    finally:
+        shutil.rmtree(tmp_dir, ignore_errors=True)
+
+
 def write_bag(
     frames: Iterable[Frame],
     out: str | Path,
@@ -220,41 +269,16 @@ def write_bag(
     partial bag is removed in every failure case.
     """
     out = Path(out)
-    if storage not in STORAGES:
-        raise DataError(f"unknown storage {storage!r} (use {' or '.join(STORAGES)})")
-    if out.exists() and not force:
-        raise DataError(f"{out} exists; pass --force to replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    tmp_bag = tmp_dir / out.name
     summary = BagSummary(path=out)
-    writer = Writer(tmp_bag, version=9, storage_plugin=STORAGES[storage])
-    if compress:
-        mode = CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE
-        writer.set_compression(mode, CompressionFormat.ZSTD)
-    try:
-        writer.open()
-        if compress and storage == "mcap" and zstd_level is not None:
-            _set_mcap_zstd_level(writer, zstd_level)
-        bag = _BagWriter(writer)
+    with atomic_bag(out, storage, compress, zstd_level, force) as bag:
         runs = _FrameRuns()
         stream = tqdm(frames, total=total, unit="frame", desc=f"writing {out.name}", disable=not progress)
         write_frames(bag, stream, runs, summary)
         if summary.frames == 0:
             raise DataError("no frames to write")
-        writer.set_custom_data(FRAMES_KEY, runs.dumps())
+        bag.writer.set_custom_data(FRAMES_KEY, runs.dumps())
         if source:
-            writer.set_custom_data(SOURCE_KEY, source)
-        writer.close()
-        if out.exists():  # force: replace only now that the new bag is complete
-            shutil.rmtree(out) if out.is_dir() else out.unlink()
-        os.replace(tmp_bag, out)
-    except BaseException:
-        if writer.storage is not None:
-            writer.abort()
-        raise
-    finally:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
+            bag.writer.set_custom_data(SOURCE_KEY, source)
     summary.messages = dict(bag.counts)
     summary.bytes = sum(p.stat().st_size for p in out.iterdir())
     if summary.skipped_boxes:
