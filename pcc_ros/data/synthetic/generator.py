@@ -112,8 +112,7 @@ def simulate_frame(
     """Cast one revolution, label the visible objects and run the simulated detector."""
     detector, labels = detector or DetectorParams(), labels or LabelParams()
     origin, yaw = sensor_pose(street, frame, sensor)
-    world, owner = street.world_at(frame, near=origin[:2])
-    scan = cast(sensor, world, owner, origin, yaw, rng)
+    scan = cast(sensor, street.layers_at(frame, near=origin[:2]), None, origin, yaw, rng)
     counts = np.bincount(scan.owner, minlength=len(street.objects))
     kinds = np.array([o.kind for o in street.objects])
     centers = street.centers_at(frame)

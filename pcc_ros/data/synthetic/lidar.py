@@ -101,35 +101,65 @@ def build_scene(mesh: Mesh) -> o3d.t.geometry.RaycastingScene:
     return scene
 
 
+class Layer:
+    """A triangle soup, the owning object of each triangle, and its ray-casting scene.
+
+    The world is cast as a few layers (the static street, built once per sequence, and
+    the moving objects of the frame): building the BVH costs about twice as much as
+    casting a revolution, so the static part must not be rebuilt every frame. The
+    nearest hit over the layers is the first hit in the union.
+    """
+
+    def __init__(self, mesh: Mesh, owner: np.ndarray) -> None:
+        self.mesh, self.owner = mesh, owner
+        self._scene: o3d.t.geometry.RaycastingScene | None = None
+
+    @property
+    def scene(self) -> o3d.t.geometry.RaycastingScene:
+        if self._scene is None:
+            self._scene = build_scene(self.mesh)
+        return self._scene
+
+
 def cast(
     sensor: Sensor,
-    world: Mesh,
-    owner: np.ndarray,
+    world: Mesh | list[Layer],
+    owner: np.ndarray | None,
     origin: np.ndarray,
     yaw: float,
     rng: np.random.Generator,
 ) -> Scan:
     """Cast every ray of one revolution from ``origin`` (world) with heading ``yaw``.
 
-    ``world`` is the frame's whole scene in world coordinates, ``owner`` the object index
-    of each of its triangles. The returned points are in the sensor frame (x along the
-    heading, z up) so they can be written as a KITTI velodyne scan directly.
+    ``world`` is the frame's whole scene in world coordinates with ``owner`` the object
+    index of each triangle, or a list of :class:`Layer` (``owner`` then None). The returned
+    points are in the sensor frame (x along the heading, z up), as a KITTI scan stores them.
     """
+    layers = [Layer(world, owner)] if isinstance(world, Mesh) else [w for w in world if len(w.mesh.triangles)]
     c, s = np.cos(yaw), np.sin(yaw)
     local = sensor.directions
     world_dir = np.stack([c * local[:, 0] - s * local[:, 1], s * local[:, 0] + c * local[:, 1], local[:, 2]], 1)
     rays = np.empty((len(local), 6), dtype=np.float32)
     rays[:, :3] = origin
     rays[:, 3:] = world_dir
-    hit = build_scene(world).cast_rays(o3d.core.Tensor(rays))
-    t = hit["t_hit"].numpy().astype(np.float64)
-    prim = hit["primitive_ids"].numpy()
+    rays_t = o3d.core.Tensor(rays)
+    hits = [layer.scene.cast_rays(rays_t) for layer in layers]
+    t_all = np.stack([h["t_hit"].numpy() for h in hits])
+    which = np.argmin(t_all, axis=0) if len(hits) > 1 else np.zeros(len(rays), np.int64)
+    t = np.take_along_axis(t_all, which[None], 0)[0].astype(np.float64)
     ok = np.isfinite(t) & (t <= sensor.max_range) & (t >= sensor.min_range)
     ray = np.flatnonzero(ok)
-    t, prim = t[ok], prim[ok].astype(np.int64)
-    normal = hit["primitive_normals"].numpy()[ok].astype(np.float64)
+    t, which = t[ok], which[ok]
+    normal = np.empty((len(ray), 3))
+    material = np.empty(len(ray), np.int8)
+    obj = np.empty(len(ray), np.int32)
+    for k, (layer, hit) in enumerate(zip(layers, hits)):  # a couple of layers
+        sel = which == k
+        prim = hit["primitive_ids"].numpy()[ray[sel]].astype(np.int64)
+        normal[sel] = hit["primitive_normals"].numpy()[ray[sel]]
+        material[sel] = layer.mesh.material[prim]
+        obj[sel] = layer.owner[prim]
     cos_inc = np.abs(np.einsum("ij,ij->i", normal, world_dir[ray]))
-    material = world.material[prim]
     albedo = _ALBEDO[material]
     # Weak returns (dark, grazing, far) are lost more often, as on real scanners.
     strength = albedo * (0.25 + 0.75 * cos_inc)
@@ -139,8 +169,8 @@ def cast(
     keep = rng.random(len(t)) >= p_drop
     noisy = t + rng.normal(0.0, sensor.range_noise, len(t)) if sensor.range_noise > 0 else t.copy()
     intensity = np.clip(strength * np.exp(-t / 200.0) + rng.normal(0.0, 0.02, len(t)), 0.0, 0.99)
-    ray, t, noisy, prim, intensity = ray[keep], t[keep], noisy[keep], prim[keep], intensity[keep]
+    ray, t, noisy, obj, intensity = ray[keep], t[keep], noisy[keep], obj[keep], intensity[keep]
     points = np.empty((len(ray), 4), dtype=np.float32)
     points[:, :3] = local[ray] * noisy[:, None]
     points[:, 3] = intensity
-    return Scan(points, owner[prim].astype(np.int32), ray, t)
+    return Scan(points, obj, ray, t)

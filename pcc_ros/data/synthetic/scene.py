@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from pcc_ros.data.synthetic import mesh as M
+from pcc_ros.data.synthetic.lidar import Layer
 from pcc_ros.data.synthetic.vehicles import VehicleModel, random_vehicle
 
 KIND_GROUND, KIND_STRUCTURE, KIND_VEHICLE, KIND_PEDESTRIAN, KIND_CLUTTER = range(5)
@@ -71,6 +72,7 @@ class Street:
     ego_yaw: np.ndarray  # (F,)
     params: SceneParams
     _static: tuple[M.Mesh, np.ndarray] | None = None
+    _static_layer: Layer | None = None
 
     @property
     def frames(self) -> int:
@@ -93,6 +95,28 @@ class Street:
                     owner.append(np.full(len(o.mesh.triangles), i, np.int32))
             self._static = (M.concatenate(parts), np.concatenate(owner))
         return self._static
+
+    def static_layer(self) -> Layer:
+        """Everything that does not move, as one ray-casting layer built once per sequence."""
+        if self._static_layer is None:
+            self._static_layer = Layer(*self._static_world())
+        return self._static_layer
+
+    def dynamic_layer(self, frame: int, near: np.ndarray | None = None) -> Layer:
+        """The moving objects (within ``cull_range`` of ``near``) at a frame."""
+        centers = self.centers_at(frame)
+        parts, owners = [], []
+        for i, o in enumerate(self.objects):  # moving objects only: a few dozen per sequence
+            if o.moving and (near is None or np.hypot(*(centers[i, :2] - near)) < self.params.cull_range):
+                parts.append(o.mesh.transformed(M.rotation_z(o.yaw), centers[i]))
+                owners.append(np.full(len(o.mesh.triangles), i, np.int32))
+        if not parts:
+            return Layer(M.concatenate([]), np.zeros(0, np.int32))
+        return Layer(M.concatenate(parts), np.concatenate(owners))
+
+    def layers_at(self, frame: int, near: np.ndarray | None = None) -> list[Layer]:
+        """Ray-casting layers of a frame: the cached static street and the moving objects."""
+        return [self.static_layer(), self.dynamic_layer(frame, near)]
 
     def world_at(self, frame: int, near: np.ndarray | None = None) -> tuple[M.Mesh, np.ndarray]:
         """The frame's triangle soup in world coordinates and the owning object per triangle.
