@@ -406,3 +406,61 @@ def test_create_cloud_errors():
         create_cloud(np.zeros(3, dtype=[("x", "f4"), ("n", [("a", "f4")])]), None, "f", 0)
     with pytest.raises(MessageError, match=r"\(N,\) or \(H, W\)"):
         create_cloud(np.zeros((2, 2, 2), dtype=[("x", "f4")]), None, "f", 0)
+
+
+@pytest.mark.parametrize("extra", [(), ("intensity",)])
+def test_nonfinite_compaction_across_chunks(extra):
+    """Large clouds are compacted chunk by chunk: an all-NaN chunk, an all-finite chunk after
+    a gap (an overlapping move), a partial chunk and a partial tail."""
+    from pcc_ros.msg.pointcloud2 import _COMPACT_ROWS
+
+    n = 3 * _COMPACT_ROWS + 77
+    pts = np.random.default_rng(5).normal(size=(n, 4)).astype(np.float32)
+    pts[:_COMPACT_ROWS, 0] = np.nan  # chunk 0: nothing kept
+    pts[2 * _COMPACT_ROWS :: 3, 1] = np.inf  # chunk 2 and tail: partial
+    pts[-1, 2] = -np.inf
+    msg = create_cloud(pts, ["x", "y", "z", "intensity"], "f", 0)
+    got = read_xyz(msg, extra)
+    want = pts[np.isfinite(pts[:, :3]).all(axis=1)][:, : 3 + len(extra)]
+    assert got.flags.c_contiguous
+    np.testing.assert_array_equal(got, want)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.fixed_dictionaries(
+        {},
+        optional={
+            "height": st.integers(0, 5),
+            "width": st.integers(0, 12),
+            "point_step": st.integers(0, 40),
+            "row_step": st.integers(0, 300),
+            "is_bigendian": st.booleans(),
+            "data_len": st.integers(0, 400),
+            "field": st.tuples(
+                st.integers(0, 3),
+                st.sampled_from(["x", "y", "z", "i", ""]),
+                st.integers(0, 40),
+                st.integers(0, 10),
+                st.integers(0, 4),
+            ),
+        },
+    )
+)
+def test_malformed_clouds_raise_message_error_only(mutation):
+    """Any mutation of a valid cloud either decodes or raises MessageError - nothing else."""
+    _, msg = xyzi_cloud(6)
+    changes = {k: v for k, v in mutation.items() if k not in ("data_len", "field")}
+    if "data_len" in mutation:
+        changes["data"] = np.zeros(mutation["data_len"], np.uint8)
+    if "field" in mutation:
+        index, name, offset, datatype, count = mutation["field"]
+        fields = list(msg.fields)
+        fields[index] = _field(name, offset, datatype, count)
+        changes["fields"] = fields
+    broken = dataclasses.replace(msg, **changes)
+    for decode in (structured_view, read_xyz, lambda m: read_xyz(m, ["i"], skip_nonfinite=False)):
+        try:
+            decode(broken)
+        except MessageError:
+            pass

@@ -228,14 +228,40 @@ def _gather_float32(cloud: _Cloud, keys: list[FieldKey]) -> np.ndarray:
     return rows.reshape(cloud.height, cloud.width, words).take(columns, axis=2).reshape(n, len(columns))
 
 
+_QUARTER = np.full(3, 0.25, dtype=np.float32)
+_COMPACT_ROWS = 32768  # rows per in-place compaction step: the chunk stays in L2
+
+
 def _drop_nonfinite(points: np.ndarray) -> np.ndarray:
-    """Rows whose first three columns are finite. A whole-array check first (cheap), the
-    per-row mask only when something is non-finite; ``compress`` beats boolean indexing."""
-    finite = np.isfinite(points[:, :3])
-    if finite.all():
+    """Rows of the freshly gathered ``points`` whose first three columns are finite.
+
+    The row test for ``(N, 3)`` is one BLAS mat-vec: ``0.25 x + 0.25 y + 0.25 z`` is
+    non-finite iff a coordinate is NaN / inf (0.25 keeps sums of finite float32 values from
+    overflowing; no weight is zero, so no BLAS zero-skipping can hide a NaN).
+    ``isfinite(...).all(axis=1)`` over the 3-wide axis is ~20x slower. Kept rows are then
+    compacted in place, chunk by chunk (a loop over ~4 chunks, not over points): a second
+    full-size array would cost a fresh allocation and its page faults on every message.
+    """
+    if points.shape[1] == 3:
+        with np.errstate(invalid="ignore"):  # inf - inf inside the sum is expected, not an error
+            keep = np.isfinite(points @ _QUARTER)
+    else:
+        finite = np.isfinite(points[:, :3])
+        keep = finite[:, 0] & finite[:, 1] & finite[:, 2]
+    if keep.all():
         return points
-    keep = finite[:, 0] & finite[:, 1] & finite[:, 2]
-    return np.compress(keep, points, axis=0)
+    kept = 0
+    for start in range(0, len(points), _COMPACT_ROWS):
+        stop = start + _COMPACT_ROWS
+        chunk_keep = keep[start:stop]
+        count = int(np.count_nonzero(chunk_keep))
+        if count == len(chunk_keep):
+            if kept != start:
+                points[kept : kept + count] = points[start:stop]  # overlapping move, numpy buffers it
+        elif count:
+            points[kept : kept + count] = np.compress(chunk_keep, points[start:stop], axis=0)
+        kept += count
+    return points[:kept]
 
 
 def _datatype_of(dtype: np.dtype, name: str) -> int:
