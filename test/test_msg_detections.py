@@ -20,6 +20,7 @@ from pcc_ros.msg.detections import (
     boxes_from_marker_array,
     detection_array_from_boxes,
     marker_array_from_boxes,
+    valid_detection_mask,
 )
 from pcc_ros.msg.stamps import stamp_to_ns
 from pcc_ros.msg.typestore import get_typestore, new_message
@@ -107,6 +108,7 @@ def test_best_hypothesis_and_track_id():
 
 def test_empty_arrays():
     assert len(boxes_from_detection_array(array_of())) == 0
+    assert valid_detection_mask(array_of()).shape == (0,)
     assert len(boxes_from_marker_array(new_message(MARKERS))) == 0
     msg = marker_array_from_boxes(Boxes.empty(), "f", 0)
     assert [m.action for m in msg.markers] == [DELETEALL]
@@ -131,6 +133,7 @@ def test_invalid_detections_raise_and_can_be_skipped(kwargs, pattern):
         boxes_from_detection_array(msg)
     kept = boxes_from_detection_array(msg, skip_invalid=True)
     assert len(kept) == 1
+    assert valid_detection_mask(msg).tolist() == [True, False]  # which originals the kept boxes came from
 
 
 def test_malformed_objects():
