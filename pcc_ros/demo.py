@@ -229,7 +229,7 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
         ax.plot(c[:, 0], c[:, 1], color=color, ls=ls, lw=1.6, label=None if key in used else name)
         used.add(key)
         if np.isfinite(result.mismatch[i]):
-            ax.text(c[0, 0], c[0, 1], f"{result.mismatch[i]:.2f}", fontsize=7, color=color)
+            ax.text(c[0, 0], c[0, 1], f"{result.mismatch[i]:.2f}", fontsize=7, color=color, clip_on=True)
     ax.plot([0], [0], marker=">", color="k", ms=10)
     ax.set_aspect("equal")
     ax.set_xlim(-50, 50)

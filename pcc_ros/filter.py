@@ -60,48 +60,90 @@ def map_scores(scores: np.ndarray, mapping: str) -> np.ndarray:
     raise ConfigError(f"unknown score_mapping {mapping!r}")
 
 
-def _silhouette_cells(points: np.ndarray, view: tuple[int, int], cells: int, extent: float) -> np.ndarray:
-    """Flat indices of the grid cells a canonical cloud occupies in one 2D view."""
-    uv = points[:, list(view)]
-    ij = np.floor((uv + extent) / (2 * extent) * cells).astype(np.int64)
-    ij = np.clip(ij, 0, cells - 1)
-    return np.unique(ij[:, 0] * cells + ij[:, 1])
+def _stack(clouds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """All clouds in one array, with the instance index of each point."""
+    sizes = np.array([len(c) for c in clouds], dtype=np.int64)
+    points = np.concatenate(clouds).astype(np.float64) if sizes.sum() else np.zeros((0, 3))
+    return points, np.repeat(np.arange(len(clouds)), sizes)
 
 
-def _dilate(occupied: np.ndarray, cells: int) -> np.ndarray:
-    grid = np.zeros((cells + 2, cells + 2), dtype=bool)
-    grid[1:-1, 1:-1].flat[occupied] = True
-    out = np.zeros((cells, cells), dtype=bool)
-    for di in (0, 1, 2):
-        for dj in (0, 1, 2):
-            out |= grid[di : di + cells, dj : dj + cells]
-    return out.ravel()
+def _silhouettes(points: np.ndarray, owner: np.ndarray, n: int, view: tuple[int, int], config: FilterConfig):
+    """``(n, cells, cells)`` occupancy of every instance's cloud in one 2D view."""
+    cells, extent = config.grid_cells, config.grid_extent
+    ij = np.clip(np.floor((points[:, list(view)] + extent) / (2 * extent) * cells).astype(np.int64), 0, cells - 1)
+    flat = (owner * cells + ij[:, 0]) * cells + ij[:, 1]
+    grid = np.zeros(n * cells * cells, dtype=bool)
+    grid[flat] = True
+    return grid.reshape(n, cells, cells)
 
 
-def contour_difference(partial: np.ndarray, completion: np.ndarray, config: FilterConfig) -> float:
-    """Mean over the three views of the share of the crop's silhouette the completion misses."""
-    misses = []
+def _dilate(grid: np.ndarray) -> np.ndarray:
+    """3x3 dilation of a batch of ``(n, cells, cells)`` occupancy grids."""
+    cells = grid.shape[1]
+    padded = np.pad(grid, ((0, 0), (1, 1), (1, 1)))
+    out = np.zeros_like(grid)
+    for di in range(3):
+        for dj in range(3):
+            out |= padded[:, di : di + cells, dj : dj + cells]
+    return out
+
+
+def contour_differences(partials: list[np.ndarray], completions: list[np.ndarray], config: FilterConfig) -> np.ndarray:
+    """Per instance, the mean over the side / front / top views of the share of the crop's
+    occupied silhouette cells that the (dilated) completion silhouette misses. One pass for all."""
+    n = len(partials)
+    p_points, p_owner = _stack(partials)
+    c_points, c_owner = _stack(completions)
+    misses = np.zeros(n)
     for view in _VIEWS:
-        mine = _silhouette_cells(partial, view, config.grid_cells, config.grid_extent)
-        theirs = _dilate(_silhouette_cells(completion, view, config.grid_cells, config.grid_extent), config.grid_cells)
-        misses.append(float(np.mean(~theirs[mine])) if len(mine) else 0.0)
-    return float(np.mean(misses))
+        theirs = _silhouettes(c_points, c_owner, n, view, config)
+        covered = _dilate(theirs).reshape(-1)
+        mine = _silhouettes(p_points, p_owner, n, view, config)
+        occupied = np.flatnonzero(mine.reshape(-1))  # each occupied cell once
+        owner = occupied // (config.grid_cells**2)
+        missed = np.bincount(owner, weights=~covered[occupied], minlength=n)
+        total = np.bincount(owner, minlength=n)
+        misses += np.divide(missed, total, out=np.zeros(n), where=total > 0)
+    return misses / len(_VIEWS)
+
+
+def mcd(partials: list[np.ndarray], completions: list[np.ndarray], spacing: float = 100.0) -> np.ndarray:
+    """Per instance, the mean distance from each crop point to its nearest completed point.
+
+    All instances share one KD-tree: instance ``k`` is shifted by ``k * spacing`` along x,
+    far beyond any canonical extent, so no nearest neighbour crosses instances.
+    """
+    n = len(partials)
+    p_points, p_owner = _stack(partials)
+    c_points, c_owner = _stack(completions)
+    p_points[:, 0] += p_owner * spacing
+    c_points[:, 0] += c_owner * spacing
+    distances, _ = cKDTree(c_points, balanced_tree=False, compact_nodes=False).query(p_points, k=1)
+    counts = np.bincount(p_owner, minlength=n)
+    return np.bincount(p_owner, weights=distances, minlength=n) / np.maximum(counts, 1)
 
 
 def mismatch_terms(partial: np.ndarray, completion: np.ndarray, config: FilterConfig) -> tuple[float, float]:
-    """(MCD, contour difference) of one canonical crop and its canonical completion."""
+    """(MCD, contour difference) of one canonical crop and its canonical completion (diagnostics)."""
     if len(partial) == 0 or len(completion) == 0:
         return float("inf"), 1.0
-    distances, _ = cKDTree(completion).query(partial, k=1)
-    return float(np.mean(distances)), contour_difference(partial, completion, config)
+    return float(mcd([partial], [completion])[0]), float(contour_differences([partial], [completion], config)[0])
 
 
 def mismatch_scores(
     partials: list[np.ndarray], completions: list[np.ndarray], config: FilterConfig
 ) -> np.ndarray:
-    """Mismatch score in [0, 1] for each (crop, completion) pair, both canonical."""
-    terms = np.array([mismatch_terms(p, c, config) for p, c in zip(partials, completions)]).reshape(-1, 2)
-    return 1.0 - np.exp(-(terms[:, 0] / config.mcd_scale + terms[:, 1] / config.contour_scale))
+    """Mismatch score in [0, 1] for each (crop, completion) pair, both canonical (batched)."""
+    if not partials:
+        return np.zeros(0)
+    scores = np.ones(len(partials))  # nothing to compare: maximal mismatch
+    ok = np.array([len(p) > 0 and len(c) > 0 for p, c in zip(partials, completions)])
+    if ok.any():
+        p = [c for c, k in zip(partials, ok) if k]
+        q = [c for c, k in zip(completions, ok) if k]
+        terms = mcd(p, q) / config.mcd_scale + contour_differences(p, q, config) / config.contour_scale
+        scores[ok] = 1.0 - np.exp(-terms)
+    return scores
 
 
 def reject_mask(mismatch: np.ndarray, detection_scores: np.ndarray, config: FilterConfig) -> np.ndarray:
