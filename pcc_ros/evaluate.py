@@ -83,22 +83,95 @@ def select_indices(n: int, max_instances: int | None, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, max_instances, replace=False))
 
 
-def load_instances(path: Path, split: str, max_instances: int | None, seed: int) -> tuple[list[EvalInstance], str]:
-    """Instances of ``split`` from the cache at ``path`` and the reference mode.
+def load_instances(
+    path: Path,
+    split: str,
+    max_instances: int | None,
+    seed: int,
+    reference: str = "auto",
+    min_track_frames: int = 2,
+) -> tuple[list[EvalInstance], str]:
+    """Instances of ``split`` from the cache at ``path`` and the reference mode used.
 
-    The only place that knows the instance cache (``pcc_ros.data.instances``).
+    The only place that opens the instance cache (``pcc_ros.data.instances``).
     """
     from pcc_ros.data.instances import InstanceCache
 
     cache = InstanceCache.load(path)
-    return instances_from_cache(cache, split, max_instances, seed)
+    return instances_from_cache(cache, split, max_instances, seed, reference, min_track_frames)
 
 
 def instances_from_cache(
-    cache: Any, split: str, max_instances: int | None, seed: int
+    cache: Any,
+    split: str,
+    max_instances: int | None,
+    seed: int,
+    reference: str = "auto",
+    min_track_frames: int = 2,
 ) -> tuple[list[EvalInstance], str]:
-    """See :func:`load_instances`; separated so it can be fed an already loaded cache."""
-    raise NotImplementedError  # replaced below once the instance cache API is known
+    """Evaluation instances of an opened :class:`~pcc_ros.data.instances.InstanceCache`.
+
+    ``reference``: ``ground_truth`` uses the SynthCars shapes (``EvalShapes``, the only
+    route to them) and keeps the instances that have one; ``aggregated`` uses the
+    multi-frame aggregate of the instance's track, every observation of the track (this one
+    included) concatenated in the common canonical frame of its boxes (``aggregate_track``
+    mode ``box``: no ego poses needed, moving cars included), keeping instances whose track
+    has at least ``min_track_frames`` observations; ``auto`` = ``ground_truth`` when any
+    instance of the split has a shape, else ``aggregated``. Skipped instances are logged
+    with a count. ``max_instances`` then draws a seeded subset.
+    """
+    from pcc_ros.data.instances import EvalShapes, aggregate_track
+
+    if reference not in ("auto", "ground_truth", "aggregated"):
+        raise ConfigError(f"--reference must be auto, ground_truth or aggregated, got {reference!r}")
+    indices = cache.indices(split)
+    meta = cache.meta
+    if reference == "auto":
+        reference = "ground_truth" if bool(np.any(meta["has_shape"][indices])) else "aggregated"
+    keys = cache.track_keys()
+    instances: list[EvalInstance] = []
+    skipped = 0
+    if reference == "ground_truth":
+        shapes = EvalShapes.load(cache.root)
+        usable = indices[meta["has_shape"][indices]]
+        skipped += len(indices) - len(usable)
+        usable = usable[select_indices(len(usable), max_instances, seed)]
+        for i in usable:  # loop over instances: loading one shape each
+            shape = shapes.for_instance(cache, int(i))
+            if shape is None:
+                skipped += 1
+                continue
+            instances.append(_eval_instance(cache, keys, int(i), np.asarray(shape, dtype=np.float32), True))
+    else:
+        tracks = cache.tracks(cache.indices(None))  # all observations of each track, any split
+        usable = np.array(
+            [i for i in indices if "/#" not in keys[i] and len(tracks.get(keys[i], ())) >= min_track_frames],
+            dtype=np.int64,
+        )
+        skipped += len(indices) - len(usable)
+        usable = usable[select_indices(len(usable), max_instances, seed)]
+        aggregated: dict[str, np.ndarray] = {}
+        for i in usable:
+            key = str(keys[i])
+            if key not in aggregated:  # one aggregate per track, shared by its observations
+                aggregated[key] = aggregate_track(cache, tracks[key], mode="box")
+            instances.append(_eval_instance(cache, keys, int(i), aggregated[key], False))
+    if skipped:
+        log.info("skipped %d instance(s) of split %r without a %s reference", skipped, split, reference)
+    return instances, reference
+
+
+def _eval_instance(cache: Any, keys: np.ndarray, i: int, reference: np.ndarray, has_gt: bool) -> EvalInstance:
+    meta = cache.meta
+    return EvalInstance(
+        key=f"{keys[i]}@{int(meta['frame'][i])}",
+        partial=np.ascontiguousarray(cache.points(i), dtype=np.float32),
+        reference=reference,
+        length=float(meta["box_size"][i, 0]),
+        distance=float(meta["distance"][i]),
+        has_ground_truth=has_gt,
+        meta={"index": i, "sequence": str(meta["sequence"][i]), "frame": int(meta["frame"][i])},
+    )
 
 
 # --------------------------------------------------------------------------- scoring
@@ -319,6 +392,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=32, help="completion batch size of learned backends")
     parser.add_argument("--json", type=Path, help="write the results here")
     parser.add_argument("--plot", type=Path, help="PNG grid of examples (input / completions / reference)")
+    parser.add_argument(
+        "--reference", choices=("auto", "ground_truth", "aggregated"), default="auto",
+        help="what completions are scored against (auto: SynthCars shapes when the cache has them)",
+    )
+    parser.add_argument(
+        "--min-track-frames", type=int, default=2,
+        help="aggregated reference: observations a track needs (default 2)",
+    )
     parser.add_argument("--max-instances", type=int, help="evaluate a seeded random subset of this size")
     parser.add_argument("--seed", type=int, default=0, help="subset and EMD subsample seed (default 0)")
     parser.add_argument("--fixed-threshold", type=float, default=0.05, help="fixed F-score threshold, metres")
@@ -476,7 +557,9 @@ def run(args: argparse.Namespace) -> int:
     checkpoints = parse_checkpoints(args.checkpoint)
     if not args.data.exists():
         raise DataError(f"{args.data}: instance cache not found (write one with `pcc extract`)")
-    instances, reference = load_instances(args.data, args.split, args.max_instances, args.seed)
+    instances, reference = load_instances(
+        args.data, args.split, args.max_instances, args.seed, args.reference, args.min_track_frames
+    )
     if not instances:
         raise DataError(f"{args.data}: no usable instances in split {args.split!r}")
     log.info("evaluating %d instance(s) of split %r against %s references", len(instances), args.split, reference)
