@@ -38,6 +38,7 @@ setup(
         "matplotlib>=3.6",
         "scipy>=1.10",
         "pyyaml>=6",
+        "cyclonedds>=11,<12",
     ],
     zip_safe=True,
     maintainer="pcc_ros maintainers",
