@@ -1,0 +1,473 @@
+"""PointPnCNet: self-supervised point cloud completion by inpainting (Partition-and-Completion).
+
+The network (paper Sec. 3.2, appendix 7.1) has two streams over one canonical partial cloud:
+
+* global: a PCN encoder over all points -> embedding ``e_g``;
+* local: the cloud split into the eight canonical octants (with a small overlap, so points
+  near a plane belong to both sides), each octant with enough points encoded by a narrow
+  PCN encoder (same weights for every octant), an attention MLP weighting the octant
+  embeddings (absent octants masked out), aggregated to ``P_l``.
+
+They are fused by a channel-wise max ``P = max(e_g, P_l)``. A global folding decoder turns
+``P`` into the whole car; a local folding decoder turns ``[P ; one-hot(octant)]`` into the
+points of each octant. The completion is the union of both outputs.
+
+Training (see :class:`PointPnCNetRecipe`) never sees a complete shape: whole octants are
+removed from the input at random (synthetic occlusion) and the output is compared, with the
+asymmetric weighted Chamfer distance (beta = 0.25 on prediction -> target), to the ORIGINAL
+partial cloud and to the other views of the same track (multi-view consistency); the local
+loss covers only octants present in the original view (>= 4 points). Because the network
+cannot tell synthetic from natural occlusion, it learns to fill in both.
+
+Two sizes from one config (``size``): ``paper`` (the published widths and point counts:
+4096 global + 8 x 512 local = 8192 points, up to 3096 input points) and ``default``, a
+narrower model with 2048 output points that meets the CPU speed target. Inference encodes
+the real points of each car (packed batch, segment max-pool; no resampling of 150 points
+up to 3096 duplicates), capped at ``max_input_points`` by a content-seeded random subset.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from pcc_ros.errors import ConfigError
+from pcc_ros.models.base import SceneContext, TorchCompleter, register, resample_cloud
+from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, masked_mean, weighted_chamfer
+
+log = logging.getLogger(__name__)
+
+NUM_REGIONS = 8
+
+#: The two sizes. ``paper``: PCN widths (encoder 3-128-256 / 512-1024, decoder FC 1024-1024,
+#: folding 512-512), local streams at 1/8 of the hidden width, 4096 + 8 x 512 points.
+#: ``default``: the CPU size; the folding MLP over the 1029-wide features is what dominates
+#: at paper size, so it is 64 wide here and produces 1024 + 8 x 128 points.
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {
+        "encoder_widths1": [128, 256],
+        "encoder_widths2": [512, 1024],
+        "local_encoder_widths1": [16, 32],
+        "local_encoder_widths2": [64, 1024],
+        "attention_hidden": 128,
+        "decoder_fc_widths": [1024, 1024],
+        "global_coarse_points": 1024,
+        "global_grid_size": 2,
+        "fold_widths": [512, 512],
+        "local_decoder_fc_widths": [128, 128],
+        "local_coarse_points": 128,
+        "local_grid_size": 2,
+        "local_fold_widths": [64, 64],
+        "grid_scale": 0.05,
+        "local_grid_scale": 0.025,
+        "region_overlap": 0.005,
+        "min_region_points": 4,
+        "max_input_points": 3096,
+    },
+    "default": {
+        "encoder_widths1": [64, 128],
+        "encoder_widths2": [128, 256],
+        "local_encoder_widths1": [16, 32],
+        "local_encoder_widths2": [32, 256],
+        "attention_hidden": 64,
+        "decoder_fc_widths": [256, 256],
+        "global_coarse_points": 256,
+        "global_grid_size": 2,
+        "fold_widths": [64, 64],
+        "local_decoder_fc_widths": [64, 64],
+        "local_coarse_points": 32,
+        "local_grid_size": 2,
+        "local_fold_widths": [32, 32],
+        "grid_scale": 0.05,
+        "local_grid_scale": 0.025,
+        "region_overlap": 0.005,
+        "min_region_points": 4,
+        "max_input_points": 1024,
+    },
+}
+
+
+def region_masks(points: np.ndarray, overlap: float) -> np.ndarray:
+    """``(N, 8)`` octant membership of canonical points (the shared partition definition)."""
+    from pcc_ros.geometry.partitions import octant_masks
+
+    return np.asarray(octant_masks(points, overlap), dtype=bool)
+
+
+# --------------------------------------------------------------------------- network
+
+
+class PointPnCNetNet(nn.Module):
+    """The two-stream encoder / two-stream decoder network on packed batches."""
+
+    def __init__(self, cfg: dict[str, Any]) -> None:
+        super().__init__()
+        self.min_region_points = int(cfg["min_region_points"])
+        self.global_encoder = PCNEncoder(cfg["encoder_widths1"], cfg["encoder_widths2"])
+        embed = self.global_encoder.out_dim
+        self.local_encoder = PCNEncoder(cfg["local_encoder_widths1"], cfg["local_encoder_widths2"])
+        if self.local_encoder.out_dim != embed:
+            raise ConfigError(
+                f"local_encoder_widths2 must end with the global embedding width {embed} "
+                f"(they are fused by a channel-wise max), got {self.local_encoder.out_dim}"
+            )
+        self.attention = SharedMLP(embed, [int(cfg["attention_hidden"]), 1])
+        self.global_decoder = FoldingDecoder(
+            embed,
+            cfg["decoder_fc_widths"],
+            int(cfg["global_coarse_points"]),
+            int(cfg["global_grid_size"]),
+            cfg["fold_widths"],
+            float(cfg["grid_scale"]),
+        )
+        self.local_decoder = FoldingDecoder(
+            embed + NUM_REGIONS,
+            cfg["local_decoder_fc_widths"],
+            int(cfg["local_coarse_points"]),
+            int(cfg["local_grid_size"]),
+            cfg["local_fold_widths"],
+            float(cfg["local_grid_scale"]),
+        )
+        self.register_buffer("one_hot", torch.eye(NUM_REGIONS), persistent=False)
+        self.embed_dim = embed
+
+    @property
+    def num_global_points(self) -> int:
+        return self.global_decoder.num_points
+
+    @property
+    def num_local_points(self) -> int:
+        """Points per octant."""
+        return self.local_decoder.num_points
+
+    def forward(
+        self, points: torch.Tensor, segment: torch.Tensor, regions: torch.Tensor, batch_size: int
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Complete a packed batch.
+
+        Args:
+            points: ``(P, 3)`` canonical points of all instances, concatenated.
+            segment: ``(P,)`` instance index of each point, sorted, in ``[0, batch_size)``.
+            regions: ``(P, 8)`` bool octant membership (a point may be in two octants).
+            batch_size: number of instances ``B``.
+
+        Returns:
+            ``global (B, Mg, 3)``, ``local (B, 8, Ml, 3)`` and ``present (B, 8)`` (octants
+            with at least ``min_region_points`` input points, the ones the local stream used).
+        """
+        b = batch_size
+        e_g = self.global_encoder(points, segment, b)
+        point_idx, region_idx = regions.nonzero(as_tuple=True)
+        local_segment = segment[point_idx] * NUM_REGIONS + region_idx
+        order = torch.argsort(local_segment, stable=True)  # segment_max needs sorted segments
+        point_idx, local_segment = point_idx[order], local_segment[order]
+        e_l = self.local_encoder(points[point_idx], local_segment, b * NUM_REGIONS).view(b, NUM_REGIONS, -1)
+        counts = torch.bincount(local_segment, minlength=b * NUM_REGIONS).view(b, NUM_REGIONS)
+        present = counts >= self.min_region_points
+        logits = self.attention(e_l).squeeze(-1).masked_fill(~present, -1e9)
+        weights = torch.softmax(logits, dim=1) * present
+        p_l = (weights[..., None] * e_l).sum(1)
+        any_present = present.any(1, keepdim=True)
+        fused = torch.where(any_present, torch.maximum(e_g, p_l), e_g)
+
+        _, y_global = self.global_decoder(fused)
+        code = torch.cat(
+            [fused[:, None, :].expand(b, NUM_REGIONS, self.embed_dim), self.one_hot[None].expand(b, -1, -1)], dim=2
+        ).reshape(b * NUM_REGIONS, -1)
+        _, y_local = self.local_decoder(code)
+        return y_global, y_local.view(b, NUM_REGIONS, -1, 3), present
+
+
+@dataclass
+class Packed:
+    """A packed batch of clouds (see ``layers`` module doc)."""
+
+    points: torch.Tensor  # (P, 3) float32
+    segment: torch.Tensor  # (P,) int64
+    regions: torch.Tensor  # (P, 8) bool
+    batch_size: int
+
+    def to(self, device: torch.device) -> Packed:
+        return Packed(
+            self.points.to(device, non_blocking=True),
+            self.segment.to(device, non_blocking=True),
+            self.regions.to(device, non_blocking=True),
+            self.batch_size,
+        )
+
+
+def pack(clouds: Sequence[np.ndarray], overlap: float, regions: Sequence[np.ndarray] | None = None) -> Packed:
+    """Concatenate clouds into a :class:`Packed` batch (octant masks computed if not given)."""
+    lengths = np.fromiter((len(c) for c in clouds), dtype=np.int64, count=len(clouds))
+    points = np.concatenate(clouds, axis=0).astype(np.float32, copy=False) if len(clouds) else np.zeros((0, 3))
+    masks = region_masks(points, overlap) if regions is None else np.concatenate(regions, axis=0)
+    return Packed(
+        torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32)),
+        torch.from_numpy(np.repeat(np.arange(len(clouds), dtype=np.int64), lengths)),
+        torch.from_numpy(np.ascontiguousarray(masks, dtype=bool)),
+        len(clouds),
+    )
+
+
+# --------------------------------------------------------------------------- completer
+
+
+@register("pointpncnet")
+class PointPnCNet(TorchCompleter):
+    """PointPnCNet completer: canonical partial clouds in, ``Mg + 8 Ml`` canonical points out.
+
+    ``size`` picks a preset (``default`` or ``paper``); any other key overrides the preset.
+    """
+
+    def __init__(self, device: str = "auto", batch_size: int = 32, size: str = "default", **config: Any) -> None:
+        if size not in PRESETS:
+            raise ConfigError(f"pointpncnet: unknown size {size!r}; choose from {sorted(PRESETS)}")
+        super().__init__(device=device, batch_size=batch_size, size=size, **{**PRESETS[size], **config})
+
+    @classmethod
+    def default_config(cls) -> dict[str, Any]:
+        return {"size": "default", **PRESETS["default"]}
+
+    def build_model(self) -> PointPnCNetNet:
+        cap = int(self.config["max_input_points"])
+        if cap < 1:
+            raise ConfigError(f"pointpncnet: max_input_points must be >= 1, got {cap}")
+        return PointPnCNetNet(self.config)
+
+    @property
+    def num_output_points(self) -> int:
+        return self.model.num_global_points + NUM_REGIONS * self.model.num_local_points
+
+    def prepare(self, clouds: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Cap each cloud at ``max_input_points`` (content-seeded subset); smaller ones stay as they are."""
+        cap = int(self.config["max_input_points"])
+        return [c if len(c) <= cap else resample_cloud(c, cap) for c in clouds]
+
+    def forward_batch(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
+        packed = pack(self.prepare(clouds), float(self.config["region_overlap"])).to(self.device)
+        y_global, y_local, _ = self.model(packed.points, packed.segment, packed.regions, packed.batch_size)
+        out = torch.cat([y_global, y_local.flatten(1, 2)], dim=1).float().cpu().numpy()
+        return list(out)
+
+
+# --------------------------------------------------------------------------- training
+
+
+def remove_regions(
+    cloud: np.ndarray, regions: np.ndarray, drop_prob: float, min_points: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Synthetic occlusion: drop each present octant with ``drop_prob`` (all its points).
+
+    At least one present octant is always kept, so the input never becomes empty.
+    Returns the remaining points and their octant masks.
+    """
+    present = regions.sum(0) >= min_points
+    drop = present & (rng.random(NUM_REGIONS) < drop_prob)
+    if present.any() and not (present & ~drop).any():
+        drop[rng.choice(np.flatnonzero(present))] = False
+    if not drop.any():
+        return cloud, regions
+    keep = ~regions[:, drop].any(1)
+    if not keep.any():  # every point lay in a dropped octant's overlap band: keep the input
+        return cloud, regions
+    return cloud[keep], regions[keep]
+
+
+@dataclass
+class TrainOptions:
+    """Training hyper-parameters of PointPnCNet (stored in the checkpoint's ``training``)."""
+
+    drop_prob: float = 0.2
+    beta: float = 0.25
+    loss_points: int = 256
+    local_loss_points: int = 64
+    views: int = 4
+    local_weight: float = 1.0
+    #: cap on training input points (``None``: the model's ``max_input_points``); a lower cap
+    #: trades a little density for speed on a CPU, the max-pooled encoder does not care much.
+    input_points: int | None = None
+
+
+def region_subsets(
+    regions: np.ndarray, per_region: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """A random subset of at most ``per_region`` points of every octant, in one vectorised pass.
+
+    Returns ``(point_index, region_index)`` pairs plus each pair's slot within its octant
+    as ``(pairs (K, 2), slot (K,))``.
+    """
+    point_idx, region_idx = np.nonzero(regions)
+    order = np.lexsort((rng.random(len(point_idx)), region_idx))  # by region, random inside
+    point_idx, region_idx = point_idx[order], region_idx[order]
+    first = np.searchsorted(region_idx, region_idx, side="left")
+    slot = np.arange(len(region_idx)) - first
+    keep = slot < per_region
+    return np.stack([point_idx[keep], region_idx[keep]], axis=1), slot[keep]
+
+
+@dataclass
+class TrainBatch:
+    """One PointPnCNet training batch: synthetically occluded inputs and original views."""
+
+    inputs: Packed
+    target: torch.Tensor  # (B, V, N, 3) original views (subsampled), padded
+    target_mask: torch.Tensor  # (B, V, N) valid target points
+    local_target: torch.Tensor  # (B, V, 8, L, 3) points of each octant of each original view
+    local_mask: torch.Tensor  # (B, V, 8, L)
+    region_present: torch.Tensor  # (B, V, 8) octants present in the original view (>= min points)
+    view_mask: torch.Tensor  # (B, V) which views exist
+
+    def to(self, device: torch.device) -> TrainBatch:
+        tensors = (self.target, self.target_mask, self.local_target, self.local_mask, self.region_present,
+                   self.view_mask)
+        return TrainBatch(self.inputs.to(device), *(t.to(device, non_blocking=True) for t in tensors))
+
+
+def make_train_batch(
+    groups: Sequence[Sequence[np.ndarray]],
+    cfg: dict[str, Any],
+    options: TrainOptions,
+    rng: np.random.Generator,
+) -> TrainBatch:
+    """Assemble a batch from groups of views of one track each (canonical partial clouds).
+
+    For each group one view is the input (capped at ``options.input_points``, then random octant
+    removal); up to ``options.views`` views (the input's own original view first) are the
+    pseudo ground truth, each subsampled to at most ``options.loss_points`` points (and
+    ``options.local_loss_points`` per octant for the local loss). Only observed partial
+    clouds are used: this function never sees a complete shape.
+    """
+    overlap = float(cfg["region_overlap"])
+    min_points = int(cfg["min_region_points"])
+    cap = int(options.input_points or cfg["max_input_points"])
+    inputs, input_regions, targets = [], [], []
+    for views in groups:  # loop over instances of a batch (tens); all per-point work is vectorised
+        k = int(rng.integers(len(views)))
+        others = [v for i, v in enumerate(views) if i != k]
+        order = rng.permutation(len(others))[: max(0, options.views - 1)]
+        targets.append([views[k], *(others[i] for i in order)])
+        cloud = views[k]
+        if len(cloud) > cap:
+            cloud = cloud[rng.choice(len(cloud), cap, replace=False)]
+        cloud, cloud_regions = remove_regions(cloud, region_masks(cloud, overlap), options.drop_prob, min_points, rng)
+        inputs.append(cloud)
+        input_regions.append(cloud_regions)
+
+    b = len(groups)
+    v = max(len(t) for t in targets)
+    n = min(options.loss_points, max(len(x) for t in targets for x in t))
+    per_region = options.local_loss_points
+    target = np.zeros((b, v, n, 3), dtype=np.float32)
+    mask = np.zeros((b, v, n), dtype=bool)
+    local_target = np.zeros((b, v, NUM_REGIONS, per_region, 3), dtype=np.float32)
+    local_mask = np.zeros((b, v, NUM_REGIONS, per_region), dtype=bool)
+    present = np.zeros((b, v, NUM_REGIONS), dtype=bool)
+    view_mask = np.zeros((b, v), dtype=bool)
+    for i, views in enumerate(targets):
+        for j, x in enumerate(views):
+            regions = region_masks(x, overlap)
+            present[i, j] = regions.sum(0) >= min_points
+            pairs, slot = region_subsets(regions, per_region, rng)
+            local_target[i, j, pairs[:, 1], slot] = x[pairs[:, 0]]
+            local_mask[i, j, pairs[:, 1], slot] = True
+            sub = x if len(x) <= n else x[rng.choice(len(x), n, replace=False)]
+            target[i, j, : len(sub)] = sub
+            mask[i, j, : len(sub)] = True
+            view_mask[i, j] = True
+    return TrainBatch(
+        pack(inputs, overlap, input_regions),
+        *(torch.from_numpy(a) for a in (target, mask, local_target, local_mask, present, view_mask)),
+    )
+
+
+def inpainting_loss(
+    net: nn.Module, batch: TrainBatch, beta: float, local_weight: float = 1.0
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Inpainting-global + inpainting-local losses with multi-view consistency.
+
+    Global: ``L_wcd(X_j, Y_g)`` for every view ``j`` of the track. Local: the sum over
+    octants ``i`` present in view ``j`` of ``L_wcd(X_j^i, Y_l^i)``. Both are averaged over
+    views and instances (the paper sums over views; the average keeps the scale independent
+    of how many views a track happens to have).
+    """
+    inp = batch.inputs
+    y_global, y_local, _ = net(inp.points, inp.segment, inp.regions, inp.batch_size)
+    b, v = batch.view_mask.shape
+    g = weighted_chamfer(batch.target, batch.target_mask, y_global[:, None].expand(b, v, -1, 3), beta)
+    global_loss = masked_mean(g, batch.view_mask)
+    pred = y_local[:, None].expand(b, v, -1, -1, 3)
+    per_region = weighted_chamfer(batch.local_target, batch.local_mask, pred, beta)  # (B, V, 8)
+    per_view = (per_region * batch.region_present).sum(-1)
+    local_loss = masked_mean(per_view, batch.view_mask)
+    loss = global_loss + local_weight * local_loss
+    stats = {"loss": float(loss.detach()), "global": float(global_loss.detach()), "local": float(local_loss.detach())}
+    return loss, stats
+
+
+class PointPnCNetRecipe:
+    """What ``pcc train pointpncnet`` needs: model, loss and batch sampler.
+
+    ``pcc_ros.train`` is generic: it asks a backend module for ``training_recipe(...)``
+    and drives any object with this shape.
+    """
+
+    def __init__(self, size: str, inpainting: bool = True, options: TrainOptions | None = None) -> None:
+        self.size = size
+        self.options = options or TrainOptions()
+        if not inpainting:
+            self.options.drop_prob = 0.0
+        self.inpainting = inpainting
+
+    def build_completer(self, device: str) -> PointPnCNet:
+        return PointPnCNet(device=device, size=self.size)
+
+    def describe(self) -> dict[str, Any]:
+        return {"size": self.size, "inpainting": self.inpainting, **self.options.__dict__}
+
+    def training_data(self, cache: Any, split: str, min_points: int = 10) -> list[list[np.ndarray]]:
+        """Groups of canonical partial views from an instance cache (``pcc_ros.data.instances``).
+
+        Tracked observations form the paper's multi-view groups (20 sequential observations
+        of a track); observations without a track are single-view groups. The cache holds
+        no complete shapes, so none can reach training from here.
+        """
+        from pcc_ros.data.instances import multiview_groups
+
+        indices = cache.indices(split, min_points=min_points)
+        groups = multiview_groups(cache, indices, group_size=20, min_views=1)
+        grouped = np.zeros(len(cache), dtype=bool)
+        for g in groups:
+            grouped[g] = True
+        singles = [np.array([i]) for i in indices[~grouped[indices]]]
+        return [[np.array(cache.points(int(i)), dtype=np.float32) for i in g] for g in [*groups, *singles]]
+
+    def batches(
+        self, groups: Sequence[Sequence[np.ndarray]], batch_size: int, cfg: dict[str, Any], rng: np.random.Generator
+    ) -> Iterator[TrainBatch]:
+        """Endless stream of batches: groups drawn without replacement, reshuffled every epoch.
+
+        ``groups`` holds, per track (or per single observation), its canonical partial views.
+        """
+        if not groups:
+            raise ConfigError("no training groups: the training split is empty")
+        while True:
+            order = rng.permutation(len(groups))
+            if len(order) < batch_size:  # tiny data set: sample with replacement
+                order = rng.integers(len(groups), size=batch_size)
+            for start in range(0, len(order) - batch_size + 1, batch_size):
+                chosen = [groups[i] for i in order[start : start + batch_size]]
+                yield make_train_batch(chosen, cfg, self.options, rng)
+
+    def loss(self, net: nn.Module, batch: TrainBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        return inpainting_loss(net, batch, self.options.beta, self.options.local_weight)
+
+
+def training_recipe(size: str = "default", inpainting: bool = True, **options: Any) -> PointPnCNetRecipe:
+    """The training recipe ``pcc train pointpncnet`` uses (see :mod:`pcc_ros.train`)."""
+    return PointPnCNetRecipe(size, inpainting, TrainOptions(**options))

@@ -1,0 +1,425 @@
+"""Train a completion backend self-supervised from partial scans (``pcc train BACKEND``).
+
+The loop is generic. A trainable backend module ``pcc_ros.models.<BACKEND>`` exposes
+``training_recipe(size, **options)`` returning an object with
+
+* ``build_completer(device) -> TorchCompleter`` (the network is its ``.model``),
+* ``training_data(cache, split, min_points)`` -> the backend's own training set, built
+  from an instance cache (partial observations only),
+* ``batches(data, batch_size, config, rng)`` -> endless iterator of batches with ``.to(device)``,
+* ``loss(net, batch) -> (loss tensor, {name: float})``,
+* ``describe() -> dict`` (stored in the checkpoint), and ``default_lr`` (optional).
+
+This module owns everything else: seeds, devices, DistributedDataParallel under
+``torchrun`` (``WORLD_SIZE`` / ``LOCAL_RANK``), the learning-rate schedule, tqdm, periodic
+validation with the evaluation metrics on a held-out split, resumable checkpoints and a
+PNG of the training curves.
+
+Output directory::
+
+    OUT/<backend>.safetensors + .json   the trained weights (common checkpoint format;
+                                        pass to --checkpoint / load_completer)
+    OUT/resume.safetensors + .json      weights + optimizer state + step (for --resume)
+    OUT/log.jsonl                       one line per logging interval / validation
+    OUT/training.png                    loss and validation curves
+
+Ground-truth shapes (SynthCars) are read only by the validation metrics, through the
+evaluation module; training batches come from the instance cache, which holds none.
+
+Example::
+
+    pcc train pointpncnet --data cache/ --out runs/pnc --iterations 4000 --batch-size 32
+    torchrun --nproc-per-node 4 -m pcc_ros.cli train pointpncnet --data cache/ --out runs/pnc --device cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pcc_ros.errors import CheckpointError, ConfigError
+
+log = logging.getLogger("pcc.train")
+
+RESUME_NAME = "resume"
+_OPT_PREFIX = "optimizer."
+_MODEL_PREFIX = "model."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("backend", help="backend to train (e.g. pointpncnet)")
+    parser.add_argument("--data", type=Path, required=True, help="instance cache written by `pcc extract`")
+    parser.add_argument("--out", type=Path, required=True, help="output directory (checkpoints, log, PNG)")
+    parser.add_argument("--config", default="default", help="model size preset: default | paper")
+    parser.add_argument("--iterations", type=int, default=4000, help="optimizer steps in total (default 4000)")
+    parser.add_argument("--batch-size", type=int, default=32, help="instances (groups) per step and process")
+    parser.add_argument("--lr", type=float, default=None, help="learning rate (default: the backend's, 5e-4)")
+    parser.add_argument(
+        "--lr-decay-every", type=int, default=None,
+        help="halve the learning rate every N steps (default: a quarter of --iterations, the paper's ratio)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the initial weights and of batch sampling")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/resume.safetensors")
+    parser.add_argument("--no-inpainting", action="store_true", help="ablation: no synthetic region removal")
+    parser.add_argument(
+        "--option", action="append", default=[], metavar="KEY=VALUE",
+        help="backend training option (JSON value), e.g. --option views=2 (repeatable)",
+    )
+    parser.add_argument("--device", default="auto", help="auto | cpu | cuda[:N] (under torchrun: cuda:LOCAL_RANK)")
+    parser.add_argument("--split", default="train", help="training split of the cache (default train)")
+    parser.add_argument("--val-split", default="val", help="validation split (default val)")
+    parser.add_argument("--val-instances", type=int, default=200, help="validation subset size (default 200)")
+    parser.add_argument("--val-every", type=int, default=500, help="validate every N steps (0: only at the end)")
+    parser.add_argument("--checkpoint-every", type=int, default=250, help="write the resume checkpoint every N steps")
+    parser.add_argument("--min-points", type=int, default=10, help="skip training observations with fewer points")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--no-progress", action="store_true", help="no tqdm bar (log lines only)")
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def parse_options(items: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings to a dict; values parsed as JSON (``2``, ``0.3``, ``true``) else strings."""
+    options: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--option expects KEY=VALUE, got {item!r}")
+        try:
+            options[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key.strip()] = value
+    return options
+
+
+def load_recipe(backend: str, size: str, options: dict[str, Any]) -> Any:
+    """The backend module's training recipe; :class:`ConfigError` if it has none or options are wrong."""
+    from pcc_ros.models.base import get_backend
+
+    cls = get_backend(backend)  # ConfigError for unknown names
+    module = importlib.import_module(cls.__module__)
+    factory = getattr(module, "training_recipe", None)
+    if factory is None:
+        raise ConfigError(f"backend {backend!r} cannot be trained with `pcc train` (no training_recipe)")
+    try:
+        return factory(size=size, **options)
+    except TypeError as exc:
+        raise ConfigError(f"backend {backend!r}: invalid training options {sorted(options)}: {exc}") from exc
+
+
+def learning_rate(base: float, step: int, every: int) -> float:
+    """Step decay: ``base * 0.5 ** (step // every)`` (PointPnCNet: halved every quarter of training)."""
+    return base * 0.5 ** (step // max(1, every))
+
+
+@dataclass
+class Distributed:
+    """Process-group facts; ``world == 1`` outside torchrun."""
+
+    rank: int = 0
+    local_rank: int = 0
+    world: int = 1
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    @classmethod
+    def from_env(cls) -> Distributed:
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        if world <= 1:
+            return cls()
+        return cls(int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0")), world)
+
+
+def _optimizer_tensors(optimizer: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Flatten an optimizer state dict into named tensors + a JSON-able remainder (no pickle)."""
+    import torch
+
+    state = optimizer.state_dict()
+    tensors: dict[str, torch.Tensor] = {}
+    scalars: dict[str, dict[str, Any]] = {}
+    for pid, entry in state["state"].items():
+        for key, value in entry.items():
+            if isinstance(value, torch.Tensor):
+                tensors[f"{_OPT_PREFIX}{pid}.{key}"] = value
+            else:
+                scalars.setdefault(str(pid), {})[key] = value
+    return tensors, {"param_groups": state["param_groups"], "scalars": scalars}
+
+
+def _restore_optimizer(optimizer: Any, tensors: dict[str, Any], meta: dict[str, Any], source: Path) -> None:
+    state: dict[int, dict[str, Any]] = {}
+    for name, value in tensors.items():
+        pid, _, key = name[len(_OPT_PREFIX):].partition(".")
+        state.setdefault(int(pid), {})[key] = value
+    for pid, entry in meta.get("scalars", {}).items():
+        state.setdefault(int(pid), {}).update(entry)
+    try:
+        optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    except (KeyError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"{source}: optimizer state does not fit this model: {exc}") from exc
+
+
+def save_resume(out: Path, backend: str, completer: Any, optimizer: Any, step: int, run: dict[str, Any]) -> Path:
+    """Weights + optimizer state (safetensors) and step + run settings (JSON) for ``--resume``."""
+    from pcc_ros.models.checkpoint import make_config, save_checkpoint
+
+    opt_tensors, opt_meta = _optimizer_tensors(optimizer)
+    tensors = {_MODEL_PREFIX + k: v for k, v in completer.model.state_dict().items()}
+    tensors.update(opt_tensors)
+    config = make_config(backend, completer.config, extra={"resume": {"step": step, "optimizer": opt_meta, **run}})
+    return save_checkpoint(out / f"{RESUME_NAME}.safetensors", tensors, config)
+
+
+def load_resume(out: Path, backend: str, completer: Any, optimizer: Any) -> tuple[int, dict[str, Any]]:
+    """Restore weights and optimizer from ``OUT/resume``; returns ``(step, run settings)``."""
+    from pcc_ros.models.checkpoint import load_checkpoint, validate_state
+
+    path = out / f"{RESUME_NAME}.safetensors"
+    state, config = load_checkpoint(path)
+    if config["backend"] != backend:
+        raise CheckpointError(f"{path}: resume checkpoint is for {config['backend']!r}, not {backend!r}")
+    if config["hyper_parameters"] != completer.config:
+        raise CheckpointError(f"{path}: resume checkpoint was made with another model config (--config / options)")
+    resume = config.get("resume")
+    if not isinstance(resume, dict) or "step" not in resume:
+        raise CheckpointError(f"{path}: not a resume checkpoint (no 'resume' section)")
+    model_state = {k[len(_MODEL_PREFIX):]: v for k, v in state.items() if k.startswith(_MODEL_PREFIX)}
+    validate_state(completer.model, model_state, source=str(path))
+    completer.model.load_state_dict(model_state, strict=True)
+    _restore_optimizer(optimizer, {k: v for k, v in state.items() if k.startswith(_OPT_PREFIX)},
+                       resume["optimizer"], path)
+    return int(resume["step"]), resume
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def validate(completer: Any, instances: list[Any], seed: int) -> dict[str, float]:
+    """Mean evaluation metrics (canonical units, no EMD) of ``completer`` on ``instances``."""
+    from pcc_ros.evaluate import score_backend
+
+    if not instances:
+        return {}
+    was_training = completer.model.training
+    try:
+        _, rows, seconds = score_backend(completer, instances, seed=seed, with_emd=False, progress=False)
+    finally:
+        completer.model.train(was_training)
+    keys = ("cd_l1", "precision", "coverage", "fscore")
+    out = {f"val_{k}": float(np.nanmean([r[k] for r in rows])) for k in keys if k in rows[0]}
+    out["val_instances"] = len(instances)
+    out["val_seconds"] = round(seconds, 3)
+    return out
+
+
+def validation_instances(cache: Any, split: str, count: int, seed: int) -> tuple[list[Any], str]:
+    """A seeded subset of the validation split with its reference (ground truth or aggregate)."""
+    from pcc_ros.evaluate import instances_from_cache
+
+    if count <= 0 or len(cache.indices(split)) == 0:
+        return [], "none"
+    return instances_from_cache(cache, split, count, seed)
+
+
+# --------------------------------------------------------------------------- plotting
+
+
+def plot_log(records: list[dict[str, Any]], path: Path, title: str) -> None:
+    """Training loss (and its parts) and validation Chamfer-L1 against the step, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    train = [r for r in records if "loss" in r]
+    val = [r for r in records if "val_cd_l1" in r]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for key in sorted({k for r in train for k in r if k not in ("step", "lr", "seconds", "instances_per_s")}):
+        axes[0].plot([r["step"] for r in train], [r[key] for r in train], label=key)
+    axes[0].set(xlabel="step", ylabel="loss (canonical units)", title="training loss")
+    axes[0].legend()
+    for key in ("val_cd_l1", "val_precision", "val_coverage"):
+        if val and key in val[0]:
+            axes[1].plot([r["step"] for r in val], [r[key] for r in val], marker="o", label=key[4:])
+    axes[1].set(xlabel="step", ylabel="canonical units", title="validation (held-out split)")
+    if val:
+        axes[1].legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- the loop
+
+
+def train(args: argparse.Namespace) -> dict[str, Any]:
+    """Run training as configured by ``args``; returns the final summary (also in the checkpoint)."""
+    import torch
+    from tqdm import tqdm
+
+    from pcc_ros.data.instances import InstanceCache
+    from pcc_ros.models.base import select_device
+
+    if args.iterations < 1 or args.batch_size < 1:
+        raise ConfigError("--iterations and --batch-size must be >= 1")
+    dist = Distributed.from_env()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    options = parse_options(args.option)
+    if args.no_inpainting:
+        options["inpainting"] = False
+    recipe = load_recipe(args.backend, args.config, options)
+
+    if dist.world > 1:
+        backend = "nccl" if torch.cuda.is_available() and args.device != "cpu" else "gloo"
+        torch.distributed.init_process_group(backend=backend)
+        device = f"cuda:{dist.local_rank}" if backend == "nccl" else "cpu"
+        if backend == "nccl":
+            torch.cuda.set_device(dist.local_rank)
+    else:
+        device = str(select_device(args.device))
+
+    torch.manual_seed(args.seed)  # same initial weights on every rank
+    completer = recipe.build_completer(device)
+    net = completer.model
+    net.train()
+    lr = args.lr if args.lr is not None else float(getattr(recipe, "default_lr", 5e-4))
+    decay_every = args.lr_decay_every or max(1, args.iterations // 4)
+    optimizer = torch.optim.Adam(net.parameters(), lr=lr)
+
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    run_settings = {
+        "backend": args.backend, "config": args.config, "iterations": args.iterations,
+        "batch_size": args.batch_size, "world_size": dist.world, "lr": lr, "lr_decay_every": decay_every,
+        "seed": args.seed, "data": str(args.data), "split": args.split, "recipe": recipe.describe(),
+    }
+    step = 0
+    log_path = out / "log.jsonl"
+    if args.resume:
+        step, previous = load_resume(out, args.backend, completer, optimizer)
+        changed = {k: (previous.get(k), v) for k, v in run_settings.items()
+                   if k not in ("iterations", "data") and previous.get(k) != v}
+        if changed:
+            raise ConfigError(f"--resume with different settings than the saved run: {changed}")
+        log.info("resumed %s at step %d", out / f"{RESUME_NAME}.safetensors", step)
+    elif (out / f"{RESUME_NAME}.json").exists():
+        raise ConfigError(f"{out} already holds a training run; pass --resume to continue or use another --out")
+    elif dist.main:
+        log_path.unlink(missing_ok=True)
+
+    cache = InstanceCache.load(args.data)
+    t0 = time.perf_counter()
+    data = recipe.training_data(cache, args.split, min_points=args.min_points)
+    total_views = sum(len(g) for g in data)
+    log.info("training data: %d groups, %d observations of split %r (%.1f s)",
+             len(data), total_views, args.split, time.perf_counter() - t0)
+    val_instances, reference = ([], "none")
+    if dist.main:
+        val_instances, reference = validation_instances(cache, args.val_split, args.val_instances, args.seed)
+        log.info("validation: %d instances of split %r against %s", len(val_instances), args.val_split, reference)
+
+    train_net: Any = net
+    if dist.world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        train_net = DistributedDataParallel(net, device_ids=[dist.local_rank] if device.startswith("cuda") else None)
+
+    # Batch sampling is a pure function of (seed, rank, start step): a resumed run is reproducible.
+    rng = np.random.default_rng([args.seed, dist.rank, step])
+    batches = recipe.batches(data, args.batch_size, completer.config, rng)
+    records: list[dict[str, Any]] = []
+    if log_path.exists():
+        records = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+
+    def emit(record: dict[str, Any]) -> None:
+        if not dist.main:
+            return
+        records.append(record)
+        with log_path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def checkpoint(final: bool = False) -> None:
+        if not dist.main:
+            return
+        save_resume(out, args.backend, completer, optimizer, step, run_settings)
+        if final:
+            last_val = next((r for r in reversed(records) if "val_cd_l1" in r), {})
+            training = {
+                **run_settings, "steps": step, "groups": len(data), "observations": total_views,
+                "validation_reference": reference, "wall_seconds": round(time.perf_counter() - started, 1),
+                "device": str(device),
+            }
+            completer.save(out / f"{args.backend}.safetensors", training=training,
+                           metrics={k: v for k, v in last_val.items() if k.startswith("val_")})
+        plot_log(records, out / "training.png", f"pcc train {args.backend} ({args.config})")
+
+    started = time.perf_counter()
+    window: dict[str, list[float]] = {}
+    window_start = time.perf_counter()
+    log_every = 50
+    bar = tqdm(total=args.iterations, initial=step, desc=f"train {args.backend}", unit="step",
+               disable=args.no_progress or not dist.main)
+    try:
+        while step < args.iterations:
+            current_lr = learning_rate(lr, step, decay_every)
+            for group in optimizer.param_groups:
+                group["lr"] = current_lr
+            batch = next(batches).to(completer.device)
+            loss, stats = recipe.loss(train_net, batch)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"non-finite training loss at step {step}: {stats}")
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            step += 1
+            for k, v in stats.items():
+                window.setdefault(k, []).append(v)
+            bar.update(1)
+            bar.set_postfix(loss=f"{stats['loss']:.4f}")
+            if step % log_every == 0 or step == args.iterations:
+                seconds = time.perf_counter() - window_start
+                n = len(next(iter(window.values())))
+                emit({"step": step, "lr": current_lr, **{k: float(np.mean(v)) for k, v in window.items()},
+                      "instances_per_s": round(n * args.batch_size * dist.world / max(seconds, 1e-9), 1)})
+                window, window_start = {}, time.perf_counter()
+            if dist.main and args.val_every and step % args.val_every == 0 and step < args.iterations:
+                emit({"step": step, **validate(completer, val_instances, args.seed)})
+                log.info("step %d: %s", step, records[-1])
+            if step % args.checkpoint_every == 0 and step < args.iterations:
+                checkpoint()
+    except KeyboardInterrupt:
+        log.warning("interrupted at step %d: writing the resume checkpoint", step)
+        checkpoint()
+        raise
+    finally:
+        bar.close()
+    if dist.main:
+        emit({"step": step, **validate(completer, val_instances, args.seed)})
+        log.info("final validation: %s", records[-1])
+    checkpoint(final=True)
+    if dist.world > 1:
+        torch.distributed.destroy_process_group()
+    return {"step": step, "out": str(out), "validation": records[-1] if records else {}}
+
+
+def run(args: argparse.Namespace) -> int:
+    with contextlib.suppress(BrokenPipeError):
+        summary = train(args)
+        print(json.dumps(summary, indent=2))
+    return 0

@@ -1,0 +1,260 @@
+"""PointPnCNet: building blocks, the network, the completer and the training pieces."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pcc_ros.errors import CheckpointError, ConfigError
+from pcc_ros.geometry.partitions import octant_masks
+from pcc_ros.models import create, load_completer
+from pcc_ros.models.base import resample_cloud
+from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, segment_max, weighted_chamfer
+from pcc_ros.models.pointpncnet import (
+    NUM_REGIONS,
+    PRESETS,
+    PointPnCNet,
+    TrainOptions,
+    make_train_batch,
+    pack,
+    region_subsets,
+    remove_regions,
+    training_recipe,
+)
+
+
+def car_like(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Points on the surface of a car-sized canonical box (x in [-0.5, 0.5])."""
+    pts = rng.uniform(-1, 1, (n, 3))
+    axis = rng.integers(0, 3, n)
+    pts[np.arange(n), axis] = rng.choice([-1.0, 1.0], n)
+    return (pts * [0.5, 0.2, 0.15]).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def completer() -> PointPnCNet:
+    torch.manual_seed(0)
+    return create("pointpncnet", device="cpu")
+
+
+# --------------------------------------------------------------------------- layers
+
+
+def test_weighted_chamfer_matches_brute_force():
+    rng = np.random.default_rng(1)
+    target = rng.normal(size=(3, 7, 3)).astype(np.float32)
+    mask = np.ones((3, 7), dtype=bool)
+    mask[0, 4:] = False
+    mask[2, :] = False  # an empty target row gives 0
+    pred = rng.normal(size=(3, 5, 3)).astype(np.float32)
+    beta = 0.25
+    got = weighted_chamfer(torch.from_numpy(target), torch.from_numpy(mask), torch.from_numpy(pred), beta).numpy()
+    for i in range(2):
+        x = target[i][mask[i]]
+        d = np.linalg.norm(x[:, None] - pred[i][None], axis=-1)
+        expected = (1 - beta) * d.min(1).mean() + beta * d.min(0).mean()
+        assert got[i] == pytest.approx(expected, rel=1e-4, abs=1e-5)
+    assert got[2] == 0.0
+
+
+def test_weighted_chamfer_gradient_is_that_of_the_min_formulation():
+    rng = np.random.default_rng(2)
+    target = torch.from_numpy(rng.normal(size=(2, 9, 3)).astype(np.float32))
+    mask = torch.ones(2, 9, dtype=torch.bool)
+    mask[1, 5:] = False
+    pred = torch.from_numpy(rng.normal(size=(2, 6, 3)).astype(np.float32)).requires_grad_()
+    weighted_chamfer(target, mask, pred, 0.25).sum().backward()
+    ours = pred.grad.clone()
+    pred.grad = None
+    d = torch.cdist(pred, target)
+    big = d.masked_fill(~mask[:, None, :], 1e9)
+    x2y = (d.min(1).values * mask).sum(1) / mask.sum(1)
+    ref = 0.75 * x2y + 0.25 * big.min(2).values.mean(1)
+    ref.sum().backward()
+    assert torch.allclose(ours, pred.grad, atol=1e-5)
+    assert torch.isfinite(ours).all()
+
+
+def test_segment_max_per_segment_and_empty_segments():
+    feats = torch.tensor([[1.0, -5.0], [3.0, -7.0], [-2.0, -1.0], [0.5, 4.0]])
+    seg = torch.tensor([0, 0, 2, 2])
+    out = segment_max(feats, seg, 4)
+    assert torch.equal(out, torch.tensor([[3.0, -5.0], [0.0, 0.0], [0.5, 4.0], [0.0, 0.0]]))
+
+
+def test_split_layers_equal_the_published_concatenations():
+    """The encoder's and folding decoder's split linear maps are exactly PCN's concatenations."""
+    torch.manual_seed(0)
+    enc = PCNEncoder([8, 16], [32, 12])
+    pts = torch.randn(10, 3)
+    seg = torch.tensor([0] * 4 + [1] * 6)
+    out = enc(pts, seg, 2)
+    # reference: concat(per-point feature, pooled feature) through one Linear with stacked weights
+    w = torch.cat([enc.point_proj.weight, enc.segment_proj.weight], dim=1)
+    ref = []
+    for s in range(2):
+        f = enc.mlp1(pts[seg == s])
+        g = f.max(0).values.expand_as(f)
+        h = torch.relu(torch.cat([f, g], 1) @ w.T + enc.point_proj.bias)
+        ref.append(enc.mlp2(h).max(0).values)
+    assert torch.allclose(out, torch.stack(ref), atol=1e-5)
+
+    dec = FoldingDecoder(12, [16], num_coarse=5, grid_size=2, fold_widths=[10, 10], grid_scale=0.05)
+    code = torch.randn(3, 12)
+    coarse, fine = dec(code)
+    assert coarse.shape == (3, 5, 3) and fine.shape == (3, 20, 3)
+    w = torch.cat([dec.fold_grid.weight, dec.fold_point.weight, dec.fold_code.weight], dim=1)  # (10, 2+3+12)
+    grid = dec.grid[None, None].expand(3, 5, 4, 2)
+    feat = torch.cat([grid, coarse[:, :, None].expand(3, 5, 4, 3), code[:, None, None].expand(3, 5, 4, 12)], -1)
+    ref = coarse[:, :, None] + dec.fold_mlp(torch.relu(feat @ w.T + dec.fold_code.bias))
+    assert torch.allclose(fine, ref.reshape(3, 20, 3), atol=1e-5)
+
+
+# --------------------------------------------------------------------------- network / completer
+
+
+def test_output_sizes_of_both_presets():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    clouds = [car_like(rng, 200), car_like(rng, 37)]
+    small = create("pointpncnet", device="cpu")
+    out = small.complete(clouds)
+    assert [o.shape for o in out] == [(2048, 3), (2048, 3)]
+    paper = create("pointpncnet", device="cpu", size="paper", batch_size=2)
+    out = paper.complete(clouds)
+    assert [o.shape for o in out] == [(8192, 3), (8192, 3)]  # 4096 global + 8 x 512 local
+    assert paper.config["max_input_points"] == 3096
+    assert sum(p.numel() for p in paper.model.parameters()) > 10 * sum(p.numel() for p in small.model.parameters())
+
+
+def test_completion_independent_of_batch_and_of_duplicate_points(completer):
+    rng = np.random.default_rng(3)
+    a, b, c = car_like(rng, 150), car_like(rng, 600), car_like(rng, 40)
+    alone = completer.complete([a])[0]
+    batched = completer.complete([b, a, c])[1]
+    np.testing.assert_allclose(alone, batched, atol=2e-5)
+    # max-pooled encoders: duplicated real points change nothing (what padding by duplicates relies on)
+    duplicated = completer.complete([np.concatenate([a, a[:70]])])[0]
+    np.testing.assert_allclose(alone, duplicated, atol=2e-5)
+    different = completer.complete([b])[0]
+    assert np.abs(different - alone).max() > 1e-4
+
+
+def test_large_clouds_capped_by_a_content_seeded_subset(completer):
+    rng = np.random.default_rng(4)
+    big = car_like(rng, 3000)
+    cap = completer.config["max_input_points"]
+    first = completer.complete([big])[0]
+    np.testing.assert_array_equal(first, completer.complete([big])[0])
+    np.testing.assert_allclose(first, completer.complete([resample_cloud(big, cap)])[0], atol=2e-5)
+
+
+def test_region_presence_needs_min_points(completer):
+    rng = np.random.default_rng(5)
+    cloud = car_like(rng, 400)
+    cloud = cloud[(cloud[:, 0] > 0.05) & (cloud[:, 1] > 0.05)]  # only the front-left quarter: 2 octants
+    extra = np.array([[-0.3, -0.1, -0.1]] * 3, dtype=np.float32)  # 3 points in the rear-right-bottom octant
+    packed = pack([np.concatenate([cloud, extra])], completer.config["region_overlap"])
+    with torch.inference_mode():
+        _, _, present = completer.model(packed.points, packed.segment, packed.regions, 1)
+    counts = octant_masks(np.concatenate([cloud, extra])).sum(0)
+    np.testing.assert_array_equal(present[0].numpy(), counts >= 4)
+    assert present[0].sum() == 2
+
+
+def test_config_errors():
+    with pytest.raises(ConfigError, match="unknown size"):
+        create("pointpncnet", device="cpu", size="huge")
+    with pytest.raises(ConfigError, match="unknown option"):
+        create("pointpncnet", device="cpu", widths=3)
+    with pytest.raises(ConfigError, match="global embedding width"):
+        create("pointpncnet", device="cpu", local_encoder_widths2=[32, 64])
+
+
+def test_checkpoint_round_trip_and_corruption(completer, tmp_path):
+    rng = np.random.default_rng(6)
+    cloud = car_like(rng, 120)
+    path = completer.save(tmp_path / "pnc.safetensors", training={"note": "test"})
+    loaded = load_completer("pointpncnet", path, device="cpu")
+    np.testing.assert_array_equal(loaded.complete([cloud])[0], completer.complete([cloud])[0])
+    assert loaded.config == completer.config
+    data = bytearray(path.read_bytes())
+    data[-10] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError):
+        load_completer("pointpncnet", path, device="cpu")
+
+
+# --------------------------------------------------------------------------- training pieces
+
+
+def test_remove_regions_drops_whole_octants_and_keeps_one():
+    rng = np.random.default_rng(7)
+    cloud = car_like(rng, 2000)
+    regions = octant_masks(cloud, 0.005)
+    kept, kept_regions = remove_regions(cloud, regions, 1.0, 4, rng)  # drop everything possible
+    present_after = kept_regions.sum(0) >= 4
+    assert present_after.sum() >= 1 and len(kept) < len(cloud)
+    # every remaining point lies in no dropped octant: the dropped octants are empty now
+    dropped = (regions.sum(0) >= 4) & ~present_after
+    assert not kept_regions[:, dropped].any()
+    same, _ = remove_regions(cloud, regions, 0.0, 4, rng)
+    assert same is cloud
+    dropped_counts = [len(remove_regions(cloud, regions, 0.2, 4, np.random.default_rng(s))[0]) for s in range(50)]
+    assert min(dropped_counts) < len(cloud) and max(dropped_counts) == len(cloud)
+
+
+def test_region_subsets_cap_each_octant():
+    rng = np.random.default_rng(8)
+    regions = octant_masks(car_like(rng, 500), 0.005)
+    pairs, slot = region_subsets(regions, 10, rng)
+    counts = np.bincount(pairs[:, 1], minlength=NUM_REGIONS)
+    np.testing.assert_array_equal(counts, np.minimum(regions.sum(0), 10))
+    assert regions[pairs[:, 0], pairs[:, 1]].all()
+    assert (slot < 10).all() and len(np.unique(pairs[:, 1] * 100 + slot)) == len(slot)
+
+
+def test_train_batch_uses_only_the_observed_views():
+    rng = np.random.default_rng(9)
+    views = [[car_like(rng, n) for n in (300, 80, 500)], [car_like(rng, 60)]]
+    options = TrainOptions(loss_points=128, local_loss_points=16, views=2)
+    batch = make_train_batch(views, PRESETS["default"], options, rng)
+    assert batch.target.shape == (2, 2, 128, 3) and batch.local_target.shape == (2, 2, 8, 16, 3)
+    np.testing.assert_array_equal(batch.view_mask.numpy(), [[True, True], [True, False]])
+    for i, group in enumerate(views):
+        pool = np.concatenate(group)
+        for t, m in ((batch.target[i], batch.target_mask[i]), (batch.local_target[i], batch.local_mask[i])):
+            pts = t[m].numpy()
+            assert len(pts) > 0
+            assert (np.abs(pts[:, None] - pool[None]).sum(-1).min(1) == 0).all()  # every target point observed
+    # local targets sit in their octant
+    lt, lm = batch.local_target.numpy(), batch.local_mask.numpy()
+    for r in range(NUM_REGIONS):
+        pts = lt[:, :, r][lm[:, :, r]]
+        assert octant_masks(pts, 0.005)[:, r].all()
+    # the input is one (possibly occluded) view of each group, nothing more
+    seg = batch.inputs.segment.numpy()
+    assert set(seg.tolist()) == {0, 1}
+    assert (seg[:-1] <= seg[1:]).all()
+
+
+def test_a_few_steps_reduce_the_loss():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(10)
+    groups = [[car_like(rng, int(n)) for n in rng.integers(40, 300, 3)] for _ in range(8)]
+    recipe = training_recipe("default", loss_points=128, local_loss_points=16)
+    completer = recipe.build_completer("cpu")
+    net = completer.model.train()
+    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
+    batches = recipe.batches(groups, 8, completer.config, rng)
+    losses = []
+    for _ in range(40):
+        loss, stats = recipe.loss(net, next(batches))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(stats["loss"])
+    assert np.mean(losses[-5:]) < 0.6 * np.mean(losses[:5])
+    assert recipe.describe()["drop_prob"] == 0.2
+    assert training_recipe("default", inpainting=False).describe()["drop_prob"] == 0.0
