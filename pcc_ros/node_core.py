@@ -102,7 +102,6 @@ class NodeCore:
         self.slot: LatestSlot = LatestSlot(self.pairer.stats)
         self.frames = 0
         self.failures = 0
-        self.undecodable = 0  # samples the runtime could not decode (counted by the runtime's callbacks)
         self.latency_ms: list[float] = []
         remap = remap or {}
         self.topics = {name: remap.get(name, name) for name in [*INPUTS, *OUTPUTS[mode]]}
@@ -212,7 +211,7 @@ class NodeCore:
         values = {
             "frames": self.frames,
             "failed_frames": self.failures,
-            "undecodable_samples": self.undecodable,
+            "undecodable_samples": getattr(self.runtime, "undecodable", 0),
             "paired": stats.paired,
             "dropped_clouds": stats.dropped_clouds,
             "dropped_detections": stats.dropped_detections,
@@ -225,7 +224,7 @@ class NodeCore:
     def diagnostics_message(self):
         """A ``diagnostic_msgs/DiagnosticArray`` of the runtime's class flavour (level WARN after failures)."""
         classes = self.runtime.classes
-        failed = self.failures or self.undecodable
+        failed = self.failures or getattr(self.runtime, "undecodable", 0)
         status = new_message(
             "diagnostic_msgs/msg/DiagnosticStatus",
             classes,
