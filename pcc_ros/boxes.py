@@ -26,6 +26,17 @@ def _as_object_array(values, n: int, default: str) -> np.ndarray:
     return array
 
 
+def class_mask(labels: np.ndarray, classes: tuple[str, ...] | list[str]) -> np.ndarray:
+    """Labels matching ``classes`` case-insensitively, by full name or last dotted part.
+
+    One rule for every consumer (nodes, extraction, evaluation), so ``car`` matches KITTI's
+    ``Car`` and nuScenes' ``vehicle.car`` everywhere alike.
+    """
+    wanted = {str(c).lower() for c in classes}
+    lowered = [str(v).lower() for v in labels]
+    return np.array([v in wanted or v.rsplit(".", 1)[-1] in wanted for v in lowered], dtype=bool)
+
+
 @dataclass
 class Boxes:
     """``N`` oriented boxes. All arrays have ``N`` rows.

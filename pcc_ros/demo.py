@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
+from pcc_ros.boxes import Boxes, class_mask
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ def truly_vehicle(detections: Boxes, truth: Boxes | None) -> np.ndarray:
 
     if truth is None or len(truth) == 0 or len(detections) == 0:
         return np.zeros(len(detections), dtype=bool)
-    vehicles = truth[np.array([str(lbl).lower() in VEHICLES for lbl in truth.label]) & truth.valid_mask()]
+    vehicles = truth[class_mask(truth.label, VEHICLES) & truth.valid_mask()]
     if len(vehicles) == 0:
         return np.zeros(len(detections), dtype=bool)
     return iou_bev(detections, vehicles).max(axis=1) >= TRUE_IOU
@@ -170,8 +170,9 @@ def run_kitti(args: argparse.Namespace, config) -> dict | None:
     from pcc_ros.bench.common import print_table
     from pcc_ros.data.kitti import KittiTracking
     from pcc_ros.filter import FilterConfig
+    from pcc_ros.paths import shared_data_dir
 
-    root = args.kitti or Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_tracking"
+    root = args.kitti or shared_data_dir() / "kitti_tracking"
     if not (root / "training").is_dir():
         log.info("no KITTI tracking data at %s: real-data part skipped", root)
         return None

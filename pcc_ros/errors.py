@@ -22,5 +22,9 @@ class CheckpointError(PccError):
     """A model checkpoint is missing, corrupt, truncated or does not match its config."""
 
 
+class BackendError(PccError):
+    """A completion backend produced unusable output (wrong shape, no finite point) for some input."""
+
+
 class ConfigError(PccError):
     """A configuration value (YAML file, parameter, CLI flag) is invalid."""

@@ -5,8 +5,8 @@ bush, a pole, a wall, empty space), the completion network — which only knows 
 produces a car that does not explain the raw points. The mismatch between the raw crop
 and its completion is measured by
 
-* MCD: the mean distance from each raw point to its nearest completed point
-  (canonical units, i.e. fractions of the box length), and
+* MCD (TraPCC Eq. 2): the mean squared distance from each raw point to its nearest
+  completed point (canonical units, i.e. fractions of the box length), and
 * 2D contour differences in the side (x-z), front (y-z) and top (x-y) views: the
   fraction of the raw crop's occupied silhouette cells that the completion's (slightly
   dilated) silhouette does not cover, averaged over the three views,
@@ -25,9 +25,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from pcc_ros.errors import ConfigError
+from pcc_ros.metrics.chamfer import nearest_distances_batch
 
 SCORE_MAPPINGS = ("identity", "sigmoid")
 _VIEWS = ((0, 2), (1, 2), (0, 1))  # side (x-z), front (y-z), top (x-y)
@@ -38,7 +38,7 @@ class FilterConfig:
     match_threshold: float = 0.3
     detection_threshold: float = 0.5
     score_mapping: str = "identity"
-    mcd_scale: float = 0.05
+    mcd_scale: float = 0.0025  # canonical units squared: (5 % of the car length)^2
     contour_scale: float = 0.5
     grid_cells: int = 24
     grid_extent: float = 0.75  # canonical half-extent of the silhouette grid
@@ -107,26 +107,19 @@ def contour_differences(partials: list[np.ndarray], completions: list[np.ndarray
     return misses / len(_VIEWS)
 
 
-def mcd(partials: list[np.ndarray], completions: list[np.ndarray], spacing: float = 100.0) -> np.ndarray:
-    """Per instance, the mean distance from each crop point to its nearest completed point.
-
-    All instances share one KD-tree: instance ``k`` is shifted by ``k * spacing`` along x,
-    far beyond any canonical extent, so no nearest neighbour crosses instances.
-    """
-    n = len(partials)
-    p_points, p_owner = _stack(partials)
-    c_points, c_owner = _stack(completions)
-    p_points[:, 0] += p_owner * spacing
-    c_points[:, 0] += c_owner * spacing
-    distances, _ = cKDTree(c_points, balanced_tree=False, compact_nodes=False).query(p_points, k=1)
-    counts = np.bincount(p_owner, minlength=n)
-    return np.bincount(p_owner, weights=distances, minlength=n) / np.maximum(counts, 1)
+def mcd(partials: list[np.ndarray], completions: list[np.ndarray]) -> np.ndarray:
+    """TraPCC's MCD (Eq. 2) per instance: the mean *squared* distance from each crop point to
+    its nearest completed point, canonical units. Pairs with an empty side get ``inf``."""
+    out = np.full(len(partials), np.inf)
+    ok = [k for k, (p, c) in enumerate(zip(partials, completions)) if len(p) and len(c)]
+    if ok:
+        distances = nearest_distances_batch([partials[k] for k in ok], [completions[k] for k in ok])
+        out[ok] = [float(np.mean(d**2)) for d in distances]
+    return out
 
 
 def mismatch_terms(partial: np.ndarray, completion: np.ndarray, config: FilterConfig) -> tuple[float, float]:
     """(MCD, contour difference) of one canonical crop and its canonical completion (diagnostics)."""
-    if len(partial) == 0 or len(completion) == 0:
-        return float("inf"), 1.0
     return float(mcd([partial], [completion])[0]), float(contour_differences([partial], [completion], config)[0])
 
 
@@ -136,14 +129,9 @@ def mismatch_scores(
     """Mismatch score in [0, 1] for each (crop, completion) pair, both canonical (batched)."""
     if not partials:
         return np.zeros(0)
-    scores = np.ones(len(partials))  # nothing to compare: maximal mismatch
-    ok = np.array([len(p) > 0 and len(c) > 0 for p, c in zip(partials, completions)])
-    if ok.any():
-        p = [c for c, k in zip(partials, ok) if k]
-        q = [c for c, k in zip(completions, ok) if k]
-        terms = mcd(p, q) / config.mcd_scale + contour_differences(p, q, config) / config.contour_scale
-        scores[ok] = 1.0 - np.exp(-terms)
-    return scores
+    terms = mcd(partials, completions) / config.mcd_scale  # inf where a side is empty: score 1
+    terms += contour_differences(partials, completions, config) / config.contour_scale
+    return 1.0 - np.exp(-terms)
 
 
 def reject_mask(mismatch: np.ndarray, detection_scores: np.ndarray, config: FilterConfig) -> np.ndarray:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
+from pcc_ros.boxes import Boxes, class_mask
 from pcc_ros.errors import ConfigError
 from pcc_ros.filter import FilterConfig, mismatch_scores, reject_mask
 from pcc_ros.geometry.boxes import crop_canonical
@@ -166,7 +166,6 @@ class Pipeline:
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
             )
         self.completer = completer
-        self._classes = {c.lower() for c in config.classes}
 
     @staticmethod
     def _runtime_options(config: PipelineConfig) -> dict[str, Any]:
@@ -187,14 +186,12 @@ class Pipeline:
         skipped: dict[str, int] = {}
 
         tic = time.perf_counter()
-        wanted = np.array([str(lbl).lower() in self._classes for lbl in detections.label], dtype=bool)
-        status[~wanted] = "kept"  # other classes pass through the filter untouched
+        wanted = class_mask(detections.label, cfg.classes)  # other classes pass the filter untouched
         _count(skipped, "other class", int((~wanted).sum()))
         candidates = np.flatnonzero(wanted)
         if len(candidates) > cfg.max_instances:
             order = np.argsort(-detections.score[candidates], kind="stable")
             dropped = candidates[order[cfg.max_instances :]]
-            status[dropped] = "kept"
             _count(skipped, "over max_instances", len(dropped))
             candidates = np.sort(candidates[order[: cfg.max_instances]])
         _, canonical = crop_canonical(points, detections[candidates], cfg.box_margin, cfg.ground_margin)
@@ -204,7 +201,6 @@ class Pipeline:
 
         enough = counts >= cfg.min_points
         empty = counts == 0
-        status[candidates[~enough]] = "kept"
         _count(skipped, "too few points", int((~enough & ~empty).sum()))
         # A box with no return at all holds no vehicle evidence: maximal mismatch, so the
         # score gate alone decides (a confident detection of an occluded car survives).
@@ -265,15 +261,22 @@ class Pipeline:
         """Decode a PointCloud2 and a Detection3DArray (any message classes) and run the frame.
 
         Invalid detections (NaN pose, non-positive size) are dropped with a warning and
-        counted in ``skipped``; a malformed cloud or array raises
-        :class:`pcc_ros.errors.MessageError` for the caller to log and skip.
+        counted in ``skipped``; a malformed cloud or array, or detections in another frame
+        than the scan, raise :class:`pcc_ros.errors.MessageError` for the caller to log and skip.
         Returns the result and the valid subset of ``detections_msg.detections``, in the
         order of ``result.detections`` (so the outputs republish the original messages).
         """
+        from pcc_ros.errors import MessageError
         from pcc_ros.msg.detections import boxes_from_detection_array, valid_detection_mask
         from pcc_ros.msg.pointcloud2 import read_xyz
         from pcc_ros.msg.stamps import stamp_to_ns
 
+        cloud_frame, boxes_frame = str(cloud_msg.header.frame_id), str(detections_msg.header.frame_id)
+        if boxes_frame and boxes_frame != cloud_frame:
+            raise MessageError(
+                f"detections are in frame '{boxes_frame}' but the scan is in '{cloud_frame}': "
+                "transform them first (the nodes do it with tf2)"
+            )
         tic = time.perf_counter()
         points = read_xyz(cloud_msg)
         valid = valid_detection_mask(detections_msg)

@@ -256,4 +256,4 @@ def test_recorded_bag_late_detections_and_orphans(tmp_path, caplog):
     assert [None if f.detections is None else len(f.detections) for f in frames] == [1, None, 2]
     assert frames[2].detections.equals(boxes[:2])
     assert all(np.array_equal(f.points, c) for f, c in zip(frames, clouds))
-    assert "1 stamps had boxes or transforms but no /points scan" in caplog.text
+    assert "1 stamps had boxes but no /points scan" in caplog.text

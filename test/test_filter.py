@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.filter import FilterConfig, map_scores, mismatch_scores, mismatch_terms, reject_mask
+from pcc_ros.filter import FilterConfig, map_scores, mcd, mismatch_scores, mismatch_terms, reject_mask
 
 
 def car_surface(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
@@ -38,8 +38,16 @@ def test_clutter_does_not_match_a_car_completion():
 
 
 def test_empty_inputs_are_maximal_mismatch():
-    mcd, contour = mismatch_terms(np.zeros((0, 3)), np.ones((5, 3)), FilterConfig())
-    assert mcd == np.inf and contour == 1.0
+    mcd_value, _ = mismatch_terms(np.zeros((0, 3)), np.ones((5, 3)), FilterConfig())
+    assert mcd_value == np.inf
+    scores = mismatch_scores([np.zeros((0, 3)), np.ones((3, 3))], [np.ones((5, 3)), np.zeros((0, 3))], FilterConfig())
+    assert scores.tolist() == [1.0, 1.0]
+
+
+def test_mcd_is_the_mean_squared_nearest_distance_per_instance():
+    partials = [np.array([[0.1, 0, 0], [0.0, 0.2, 0]]), np.array([[0.3, 0, 0]])]
+    completions = [np.zeros((1, 3)), np.zeros((1, 3))]  # both at the origin: no cross-talk
+    np.testing.assert_allclose(mcd(partials, completions), [(0.01 + 0.04) / 2, 0.09])
 
 
 def test_reject_only_when_mismatch_high_and_score_low():

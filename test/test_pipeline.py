@@ -65,7 +65,8 @@ def test_statuses_other_class_and_empty_box(pipeline):
     points, boxes = make_frame()
     result = pipeline.process(points, boxes)
     # Empty-space detection with a low score (0.3) is rejected; the pedestrian passes untouched.
-    assert result.status.tolist()[2:] == ["rejected", "kept"]
+    assert result.status.tolist()[2:] == ["rejected", "skipped"]
+    assert result.keep.tolist() == [True, True, False, True]
     assert result.mismatch[2] == 1.0 and np.isnan(result.mismatch[3])
     assert result.skipped == {"other class": 1}
     assert len(result.kept) + len(result.rejected) == len(boxes)
@@ -103,6 +104,21 @@ def test_nan_box_is_skipped_and_counted(pipeline):
     result, originals = pipeline.process_messages(create_cloud(points, ["x", "y", "z"], "velodyne", 1), dets)
     assert len(result.detections) == 3 and len(originals) == 3
     assert result.skipped["invalid detection"] == 1
+
+
+def test_detections_in_another_frame_are_refused(pipeline):
+    points, boxes = make_frame()
+    cloud = create_cloud(points, ["x", "y", "z"], "velodyne", 1)
+    with pytest.raises(MessageError, match="base_link"):
+        pipeline.process_messages(cloud, detection_array_from_boxes(boxes, "base_link", 1))
+
+
+def test_class_names_match_case_insensitively_and_by_last_dotted_part():
+    points, boxes = make_frame()
+    boxes.label[:] = ["vehicle.car", "CAR", "car", "human.pedestrian.adult"]
+    cfg = PipelineConfig(backend="input", min_points=10)
+    result = Pipeline(cfg, completer=load_completer("input")).process(points, boxes)
+    assert result.skipped.get("other class") == 1 and result.completed_index.tolist() == [0, 1]
 
 
 def test_malformed_cloud_raises_message_error(pipeline):

@@ -220,6 +220,8 @@ def atomic_bag(
         raise DataError(f"unknown storage {storage!r} (use {' or '.join(STORAGES)})")
     if out.exists() and not force:
         raise DataError(f"{out} exists; pass --force to replace it")
+    if out.is_dir() and not (out / "metadata.yaml").is_file() and any(out.iterdir()):
+        raise DataError(f"{out} is a non-empty folder that is not a rosbag2 bag; refusing to replace it")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     tmp_bag = tmp_dir / out.name

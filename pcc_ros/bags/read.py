@@ -167,7 +167,8 @@ def read_frames(
                     break  # later stamps are newer still: keep the output in stamp order
                 del groups[stamp]
                 if group.cloud is None:
-                    orphans += 1
+                    # boxes without their scan are worth a warning; /tf alone (100 Hz) is normal
+                    orphans += group.detections is not None or group.ground_truth is not None
                     continue
                 yield _frame(group, stamp, tf, window_ns, *next(names), path)
 
@@ -194,7 +195,7 @@ def read_frames(
             yield from flush(time_ns - window_ns - 1)
         yield from flush(None)
         if orphans:
-            log.warning("%s: %d stamps had boxes or transforms but no %s scan", path, orphans, points_topic)
+            log.warning("%s: %d stamps had boxes but no %s scan", path, orphans, points_topic)
     finally:
         reader.close()
 

@@ -65,7 +65,9 @@ class BagPairs:
         from pcc_ros.sync import StampPairer, SyncStats
 
         self.bag, self.points_topic, self.detections_topic = Path(bag), points_topic, detections_topic
-        self.pairer: StampPairer = StampPairer(slop_ns=int(slop_s * 1e9), queue_size=1_000_000)
+        # Bags are in time order, so a partner arrives within a few messages; a bounded queue
+        # keeps pairing linear even for a bag whose streams never pair.
+        self.pairer: StampPairer = StampPairer(slop_ns=int(slop_s * 1e9), queue_size=100)
         self.stats: SyncStats = self.pairer.stats
 
     def __iter__(self) -> Iterator[tuple[object, object, int]]:
@@ -207,13 +209,12 @@ def load_config(config: Path | None, with_filter: bool, **overrides):
 
 def shipped_config_dir() -> Path:
     """``config/`` of a source checkout, or ``share/pcc_ros/config`` of an install."""
-    import sys
+    from pcc_ros.paths import resource_dir
 
-    candidates = [Path(__file__).resolve().parents[2] / "config", Path(sys.prefix) / "share" / "pcc_ros" / "config"]
-    for folder in candidates:
-        if folder.is_dir():
-            return folder
-    raise DataError("cannot find the shipped config/ folder; pass --config")
+    folder = resource_dir("config")
+    if folder is None:
+        raise DataError("cannot find the shipped config/ folder; pass --config")
+    return folder
 
 
 def run(args: argparse.Namespace) -> int:

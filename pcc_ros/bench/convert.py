@@ -28,8 +28,9 @@ from pcc_ros.bags.read import read_frames
 from pcc_ros.bench.common import print_table
 from pcc_ros.boxes import Boxes
 from pcc_ros.frame import Frame
+from pcc_ros.paths import shared_data_dir
 
-_DEFAULT_KITTI = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "kitti_tracking"
+_DEFAULT_KITTI = shared_data_dir() / "kitti_tracking"
 # (name, storage, compress, zstd level)
 CONFIGS = [
     ("mcap none", "mcap", False, None),

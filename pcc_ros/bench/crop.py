@@ -23,8 +23,9 @@ from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import crop_canonical
 from pcc_ros.geometry.canonical import to_canonical
+from pcc_ros.paths import shared_data_dir
 
-DEFAULT_SCAN = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "kitti_tracking"
+DEFAULT_SCAN = shared_data_dir() / "kitti_tracking"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -45,9 +45,10 @@ from pcc_ros.bench.common import median_ms, print_table
 from pcc_ros.errors import DataError
 from pcc_ros.msg.pointcloud2 import DATATYPES, create_cloud, read_xyz, structured_view
 from pcc_ros.msg.typestore import get_typestore
+from pcc_ros.paths import shared_data_dir
 
 DEFAULT_SCAN = (
-    Path(__file__).resolve().parents[2].parent / "shared/data/kitti_tracking/training/velodyne/0000/000000.bin"
+    shared_data_dir() / "kitti_tracking/training/velodyne/0000/000000.bin"
 )
 PC2 = "sensor_msgs/msg/PointCloud2"
 TARGETS = {"speedup_vs_reference": 1.5, "decode_vs_strided_copy": 1.5, "structured_view_us": 50.0, "encode_ms": 5.0}

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
+from pcc_ros.boxes import Boxes, class_mask
 from pcc_ros.errors import DataError
 from pcc_ros.frame import Frame
 from pcc_ros.geometry.boxes import crop_canonical, iou_3d
@@ -97,14 +97,6 @@ class ExtractConfig:
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _class_mask(labels: np.ndarray, classes: tuple[str, ...]) -> np.ndarray:
-    """Labels matching ``classes`` case-insensitively, by full name or last dotted part
-    (so ``car`` matches KITTI ``Car`` and nuScenes ``vehicle.car``)."""
-    wanted = {c.lower() for c in classes}
-    return np.array([str(v).lower() in wanted or str(v).lower().rsplit(".", 1)[-1] in wanted for v in labels],
-                    dtype=bool)
 
 
 def _bucket(key: str) -> float:
@@ -219,7 +211,7 @@ def frame_instances(
     boxes = frame.ground_truth if config.boxes == "ground_truth" else frame.detections
     if boxes is None or len(boxes) == 0:
         return [], columns
-    boxes = boxes[_class_mask(boxes.label, config.classes)]
+    boxes = boxes[class_mask(boxes.label, config.classes)]
     valid = boxes.valid_mask()
     if not valid.all():
         skipped["invalid_box"] += int((~valid).sum())

@@ -17,6 +17,7 @@ import numpy as np
 
 from pcc_ros.boxes import Boxes
 from pcc_ros.errors import DataError
+from pcc_ros.geometry.transforms import wrap_angle
 
 # Official object devkit spelling first, tracking devkit spelling second.
 _KEY_ALIASES = {
@@ -183,8 +184,7 @@ def camera_to_lidar_boxes(rows: LabelRows, calib: Calibration) -> Boxes:
     height = rows.hwl[:, 0]
     center[:, 2] += height / 2.0
     size = np.stack([rows.hwl[:, 2], rows.hwl[:, 1], height], axis=1)
-    yaw = -rows.rotation_y - np.pi / 2.0
-    yaw = np.angle(np.exp(1j * yaw))  # wrap to (-pi, pi]
+    yaw = wrap_angle(-rows.rotation_y - np.pi / 2.0)
     track = np.array([str(t) if t >= 0 else "" for t in rows.track_id], dtype=object)
     return Boxes(center, size, yaw, rows.type.copy(), rows.score.copy(), track)
 
@@ -197,8 +197,8 @@ def lidar_to_camera_rows(
     bottom = boxes.center.copy()
     bottom[:, 2] -= boxes.size[:, 2] / 2.0
     location = (np.c_[bottom, np.ones(n)] @ calib.velo_to_rect.T)[:, :3]
-    rotation_y = np.angle(np.exp(1j * (-boxes.yaw - np.pi / 2.0)))
-    alpha = np.angle(np.exp(1j * (rotation_y - np.arctan2(location[:, 0], location[:, 2]))))
+    rotation_y = wrap_angle(-boxes.yaw - np.pi / 2.0)
+    alpha = wrap_angle(rotation_y - np.arctan2(location[:, 0], location[:, 2]))
     track = np.array([int(t) if str(t).lstrip("-").isdigit() else -1 for t in boxes.track_id], dtype=np.int64)
     return LabelRows(
         type=boxes.label.copy(),

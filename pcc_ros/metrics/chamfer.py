@@ -44,6 +44,34 @@ def nearest_distances(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.asarray(distances, dtype=np.float64)
 
 
+def nearest_distances_batch(
+    sources: Sequence[np.ndarray], targets: Sequence[np.ndarray], spacing: float = 1e4
+) -> list[np.ndarray]:
+    """Per pair ``k``, the distance from each point of ``sources[k]`` to its nearest point of
+    ``targets[k]`` — all pairs in one KD-tree build and one query.
+
+    Pair ``k`` is shifted by ``k * spacing`` along x, far beyond the extent of any cloud
+    (checked), so no nearest neighbour can cross pairs. Much faster than a tree per pair
+    for the many small clouds of one LiDAR frame.
+    """
+    if len(sources) != len(targets):
+        raise ValueError(f"{len(sources)} sources for {len(targets)} targets")
+    if not sources:
+        return []
+    src = [_as_cloud(s, f"source {k}") for k, s in enumerate(sources)]
+    tgt = [_as_cloud(t, f"target {k}") for k, t in enumerate(targets)]
+    extent = max(float(np.abs(c).max()) for c in (*src, *tgt))
+    if not np.isfinite(extent) or extent * 4 >= spacing:
+        raise ValueError(f"clouds span {extent}: not finite or too large for spacing {spacing}")
+    src_owner = np.repeat(np.arange(len(src)), [len(s) for s in src])
+    tgt_owner = np.repeat(np.arange(len(tgt)), [len(t) for t in tgt])
+    src_all, tgt_all = np.concatenate(src), np.concatenate(tgt)
+    src_all[:, 0] += src_owner * spacing
+    tgt_all[:, 0] += tgt_owner * spacing
+    distances, _ = cKDTree(tgt_all, balanced_tree=False, compact_nodes=False).query(src_all, k=1)
+    return np.split(np.asarray(distances, dtype=np.float64), np.cumsum([len(s) for s in src])[:-1])
+
+
 @dataclass(frozen=True)
 class PairDistances:
     """Both directions' nearest-neighbour distances of a (prediction, truth) pair.

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from pcc_ros.boxes import Boxes
-from pcc_ros.errors import CheckpointError, ConfigError, DataError
+from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
 
 if TYPE_CHECKING:  # torch is imported lazily so baselines and metrics stay torch-free
     import torch
@@ -123,13 +123,10 @@ def default_checkpoint(name: str) -> Path | None:
     Looked up in the package's ``weights/`` directory (package data of a pip/editable
     install) and then in ``<prefix>/share/pcc_ros/weights`` (a colcon install).
     """
-    import os
-    import sys
+    from pcc_ros.paths import share_dirs
 
-    candidates = [Path(__file__).resolve().parents[1] / "weights"]
-    prefixes = [sys.prefix, sys.base_prefix, *os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)]
-    candidates += [Path(p) / "share" / "pcc_ros" / "weights" for p in dict.fromkeys(prefixes) if p]
-    candidates = [folder / f"{name}.safetensors" for folder in candidates]
+    folders = [Path(__file__).resolve().parents[1] / "weights", *(d / "weights" for d in share_dirs())]
+    candidates = [folder / f"{name}.safetensors" for folder in folders]
     for path in candidates:
         if path.is_file():
             return path
@@ -368,13 +365,22 @@ class Completer(abc.ABC):
             return []
         outputs = self._complete(clouds, contexts)
         if len(outputs) != len(clouds):
-            raise RuntimeError(f"backend {self.name!r} returned {len(outputs)} clouds for {len(clouds)} inputs")
+            raise BackendError(f"backend {self.name!r} returned {len(outputs)} clouds for {len(clouds)} inputs")
         result = []
+        dropped = 0
         for i, out in enumerate(outputs):
             array = np.asarray(out, dtype=np.float32)
             if array.ndim != 2 or array.shape[1] != 3:
-                raise RuntimeError(f"backend {self.name!r} returned shape {array.shape} for cloud {i}")
+                raise BackendError(f"backend {self.name!r} returned shape {array.shape} for cloud {i}")
+            finite = np.isfinite(array).all(axis=1)
+            if not finite.all():  # a diverged network must not poison the metrics or the filter
+                dropped += int((~finite).sum())
+                array = array[finite]
+                if len(array) == 0:
+                    raise BackendError(f"backend {self.name!r} returned no finite point for cloud {i}")
             result.append(np.ascontiguousarray(array))
+        if dropped:
+            log.warning("backend %r: dropped %d non-finite output points", self.name, dropped)
         return result
 
     @abc.abstractmethod

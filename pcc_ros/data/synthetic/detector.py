@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from pcc_ros.boxes import Boxes
+from pcc_ros.geometry.transforms import wrap_angle
 
 
 @dataclass(frozen=True)
@@ -35,10 +36,6 @@ class DetectorParams:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return np.angle(np.exp(1j * a))
 
 
 def detect(
@@ -73,7 +70,7 @@ def detect(
     center = gt.center[hit] + rng.normal(size=(n, 3)) * sigma[:, None] * np.array([1.0, 1.0, 0.5])
     size = gt.size[hit] * np.exp(rng.normal(0, p.size_sigma, (n, 3)))
     yaw = gt.yaw[hit] + rng.normal(0, p.yaw_sigma, n) * (1 + 3.0 / np.sqrt(pts + 1))
-    yaw = _wrap(yaw + np.pi * (rng.random(n) < p.flip_probability))
+    yaw = wrap_angle(yaw + np.pi * (rng.random(n) < p.flip_probability))
     quality = 1 - np.exp(-pts / 80.0)
     score = rng.beta(2 + 6 * quality, 1.5)
     true = Boxes(center, size, yaw, gt.label[hit], score)
@@ -87,7 +84,7 @@ def detect(
     c = clutter.center[fire].copy()
     c[:, :2] += rng.normal(0, 0.3, (k, 2))
     c[:, 2] = ground_z + car[:, 2] / 2 + rng.normal(0, 0.05, k)
-    fp_clutter = Boxes(c, car, _wrap(clutter.yaw[fire] + rng.normal(0, 0.3, k)), ["Car"] * k, rng.beta(2, 3.5, k))
+    fp_clutter = Boxes(c, car, wrap_angle(clutter.yaw[fire] + rng.normal(0, 0.3, k)), ["Car"] * k, rng.beta(2, 3.5, k))
 
     # False positives in empty space: a visible ground point.
     m = min(int(rng.poisson(p.empty_space_rate)), len(ground_points))

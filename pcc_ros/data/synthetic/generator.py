@@ -34,6 +34,7 @@ from pcc_ros.data.synthetic.scene import (
 )
 from pcc_ros.data.synthetic.vehicles import LABELS, canonical_shape
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.geometry.transforms import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +126,7 @@ def simulate_frame(
     labelled &= counts >= labels.min_points
     idx = np.flatnonzero(labelled)
     idx = idx[np.argsort([street.objects[i].track_id for i in idx], kind="stable")]
-    gt = Boxes(local[idx], sizes[idx], np.angle(np.exp(1j * yaws[idx])),
+    gt = Boxes(local[idx], sizes[idx], wrap_angle(yaws[idx]),
                [street.objects[i].label for i in idx], None, [str(street.objects[i].track_id) for i in idx])
     ratio = counts[idx] / np.maximum(expected_points(gt, sensor), 1e-6)
     occluded = np.where(ratio >= 0.4, 0, np.where(ratio >= 0.15, 1, 2))
