@@ -1,0 +1,228 @@
+"""NodeCore on the in-process runtime (no middleware): pairing, processing, publishing, diagnostics, bad input."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import pytest
+
+from pcc_ros.boxes import Boxes
+from pcc_ros.errors import ConfigError
+from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
+from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
+from pcc_ros.msg.typestore import get_typestore
+from pcc_ros.node_core import NodeCore, node_parameters
+from pcc_ros.pipeline import Pipeline, PipelineConfig, build_outputs
+from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, QoS, Transform
+from pcc_ros.runtime.local import LocalGraph, LocalRuntime
+
+CLOUD = "sensor_msgs/msg/PointCloud2"
+DETS = "vision_msgs/msg/Detection3DArray"
+
+
+def _scene(seed: int = 0):
+    """Two cars with LiDAR-like returns on their visible sides, one box with nothing in it."""
+    rng = np.random.default_rng(seed)
+    car1 = rng.uniform([-2, -0.85, -0.7], [2, 0.85, 0.7], size=(400, 3)) + np.array([10, 0, -0.8])
+    car2 = rng.uniform([-2, -0.8, -0.7], [2, 0.8, 0.7], size=(300, 3)) + np.array([6, 5, -0.8])
+    ground = rng.uniform([0, -10, -1.7], [30, 10, -1.6], size=(500, 3))
+    points = np.concatenate([car1, car2, ground]).astype(np.float32)
+    boxes = Boxes(
+        [[10, 0, -0.8], [6, 5, -0.8], [20, -6, -0.8]],
+        [[4.2, 1.8, 1.5], [4.2, 1.7, 1.5], [4.0, 1.7, 1.5]],
+        [0.0, 0.1, 0.0],
+        ["Car", "Car", "Car"],
+        [0.9, 0.8, 0.2],
+        ["a", "b", "c"],
+    )
+    return points, boxes
+
+
+def _messages(stamp_ns: int, seed: int = 0, det_stamp_ns: int | None = None, frame: str = "velodyne"):
+    points, boxes = _scene(seed)
+    cloud = create_cloud(points, ["x", "y", "z"], "velodyne", stamp_ns)
+    dets = detection_array_from_boxes(boxes, frame, stamp_ns if det_stamp_ns is None else det_stamp_ns)
+    return cloud, dets
+
+
+def _wire(msg, msgtype):
+    return bytes(get_typestore().serialize_cdr(msg, msgtype))
+
+
+@pytest.fixture
+def graph():
+    return LocalGraph(simulated=True)
+
+
+def _node(graph, mode, threaded=False, **params):
+    runtime = LocalRuntime(graph, f"{mode}_node")
+    return NodeCore(runtime, f"{mode}_node", mode, {"backend": "mirror", **params}, threaded=threaded)
+
+
+def _tap(graph, topic, msgtype, qos=RELIABLE):
+    got = []
+    LocalRuntime(graph, "probe").create_subscription(topic, msgtype, got.append, qos)
+    return got
+
+
+def test_completion_outputs_equal_the_pipeline_run_directly(graph):
+    core = _node(graph, "completion")
+    completed = _tap(graph, "/completed", CLOUD)
+    markers = _tap(graph, "/completed_markers", "visualization_msgs/msg/MarkerArray")
+    probe = LocalRuntime(graph, "driver")
+    pub_cloud = probe.create_publisher("/points", CLOUD, SENSOR_DATA)
+    pub_dets = probe.create_publisher("/detections", DETS, RELIABLE)
+    cloud, dets = _messages(1_000_000_000)
+    pub_cloud.publish(cloud)
+    assert not completed  # unpaired yet
+    pub_dets.publish(dets)
+    assert len(completed) == 1 and len(markers) == 1
+
+    pipeline = Pipeline(PipelineConfig(backend="mirror"))
+    result, originals = pipeline.process_messages(cloud, dets)
+    expected = build_outputs(result, originals, detections_header=cloud.header)
+    assert _wire(completed[0], CLOUD) == _wire(expected["completed"], CLOUD)
+    out = read_xyz(completed[0], ("instance",))
+    assert len(out) > 700 and set(np.unique(out[:, 3]).astype(int)) == {0, 1}  # the empty box is not completed
+    assert core.frames == 1 and core.failures == 0
+
+
+def test_filter_node_publishes_kept_and_rejected_and_markers(graph):
+    core = _node(graph, "filter", match_threshold=0.3, detection_threshold=0.5)
+    kept = _tap(graph, "/detections_filtered", DETS)
+    rejected = _tap(graph, "/detections_rejected", DETS)
+    markers = _tap(graph, "/filter_markers", "visualization_msgs/msg/MarkerArray")
+    driver = LocalRuntime(graph, "driver")
+    cloud, dets = _messages(2_000_000_000)
+    driver.create_publisher("points", CLOUD, SENSOR_DATA).publish(cloud)
+    driver.create_publisher("detections", DETS, RELIABLE).publish(dets)
+    assert len(kept) == len(rejected) == len(markers) == 1
+    ids_kept = [d.id for d in kept[0].detections]
+    ids_rejected = [d.id for d in rejected[0].detections]
+    # The empty low-score box "c" has maximal mismatch and a score under the threshold.
+    assert "c" in ids_rejected and "a" in ids_kept
+    assert sorted(ids_kept + ids_rejected) == ["a", "b", "c"]
+    assert core.frames == 1
+
+
+def test_pairing_respects_slop_and_counts_drops(graph):
+    core = _node(graph, "completion", sync_slop=0.01, queue_size=2)
+    completed = _tap(graph, "/completed", CLOUD)
+    driver = LocalRuntime(graph, "driver")
+    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
+    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    cloud, dets = _messages(1_000_000_000, det_stamp_ns=1_050_000_000)  # 50 ms apart > 10 ms slop
+    pub_cloud.publish(cloud)
+    pub_dets.publish(dets)
+    assert not completed
+    cloud2, dets2 = _messages(2_000_000_000, det_stamp_ns=2_005_000_000)  # 5 ms: pairs
+    pub_cloud.publish(cloud2)
+    pub_dets.publish(dets2)
+    assert len(completed) == 1
+    stats = core.pairer.stats
+    assert stats.paired == 1 and stats.dropped_clouds == 1 and stats.dropped_detections == 1
+
+
+def test_malformed_cloud_is_logged_skipped_and_the_node_keeps_serving(graph, caplog):
+    core = _node(graph, "completion")
+    completed = _tap(graph, "/completed", CLOUD)
+    driver = LocalRuntime(graph, "driver")
+    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
+    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    bad, dets = _messages(1_000_000_000)
+    bad.width = bad.width + 1000  # claims more points than data holds
+    with caplog.at_level(logging.WARNING, logger="pcc_ros.completion_node"):
+        pub_cloud.publish(bad)
+        pub_dets.publish(dets)
+    assert not completed and core.failures == 1
+    assert any("skipped a frame" in r.message and "PointCloud2" in r.message for r in caplog.records)
+    good, dets = _messages(2_000_000_000)
+    pub_cloud.publish(good)
+    pub_dets.publish(dets)
+    assert len(completed) == 1 and core.frames == 1
+
+
+def test_worker_thread_processes_the_newest_pair(graph):
+    wall = LocalGraph()  # wall clock: the timer and worker are real threads
+    core = _node(wall, "completion", threaded=True)
+    completed = _tap(wall, "/completed", CLOUD)
+    driver = LocalRuntime(wall, "driver")
+    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
+    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    try:
+        for k in range(3):
+            cloud, dets = _messages((k + 1) * 1_000_000_000, seed=k)
+            pub_cloud.publish(cloud)
+            pub_dets.publish(dets)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and core.frames + core.pairer.stats.dropped_pairs < 3:
+            time.sleep(0.02)
+        assert core.frames >= 1
+        assert core.frames + core.pairer.stats.dropped_pairs == 3  # each pair processed or counted as dropped
+        from pcc_ros.msg.stamps import stamp_to_ns
+
+        assert stamp_to_ns(completed[-1].header.stamp) == 3_000_000_000  # the newest always survives
+    finally:
+        core.shutdown()
+        core.runtime.shutdown()
+
+
+def test_diagnostics_follow_the_simulated_clock(graph):
+    _node(graph, "completion")
+    diags = _tap(graph, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+    driver = LocalRuntime(graph, "driver")
+    cloud, dets = _messages(1_000_000_000)
+    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
+    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    graph.advance_to(2_500_000_000)
+    assert len(diags) == 2
+    status = diags[-1].status[0]
+    values = {kv.key: kv.value for kv in status.values}
+    assert values["frames"] == "1" and values["failed_frames"] == "0" and values["paired"] == "1"
+    assert status.name == "pcc_ros: completion_node" and int(status.level) == 0
+    assert diags[-1].header.stamp.sec == 2
+    # The message is a valid DiagnosticArray on the wire.
+    _wire(diags[-1], "diagnostic_msgs/msg/DiagnosticArray")
+
+
+def test_detections_in_another_frame_go_through_the_runtime_transform(graph):
+    core = _node(graph, "filter")
+    kept = _tap(graph, "/detections_filtered", DETS)
+    driver = LocalRuntime(graph, "driver")
+    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
+    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    cloud, _ = _messages(1_000_000_000)
+    _, boxes = _scene()
+    shifted = Boxes(boxes.center - [1.0, 0.0, 0.0], boxes.size, boxes.yaw, boxes.label, boxes.score, boxes.track_id)
+    dets = detection_array_from_boxes(shifted, "base_link", 1_000_000_000)
+    pub_cloud.publish(cloud)
+    pub_dets.publish(dets)
+    assert not kept and core.failures == 1  # no transform known: logged and skipped
+    graph.set_transform("velodyne", "base_link", Transform((1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+    cloud, _ = _messages(2_000_000_000)
+    dets = detection_array_from_boxes(shifted, "base_link", 2_000_000_000)
+    pub_cloud.publish(cloud)
+    pub_dets.publish(dets)
+    assert len(kept) == 1
+    moved = boxes_from_detection_array(kept[0])
+    np.testing.assert_allclose(moved.center[:2], boxes.center[:2], atol=1e-6)
+
+
+def test_qos_rule_best_effort_writer_never_reaches_reliable_reader(graph):
+    got = _tap(graph, "/x", CLOUD, RELIABLE)
+    cloud, _ = _messages(1)
+    LocalRuntime(graph, "w").create_publisher("/x", CLOUD, SENSOR_DATA).publish(cloud)
+    assert not got
+    assert SENSOR_DATA.compatible_with_reader(QoS(reliable=False, depth=1))
+    assert RELIABLE.compatible_with_reader(SENSOR_DATA)
+
+
+def test_parameters_are_checked():
+    with pytest.raises(ConfigError, match="unknown node parameter"):
+        node_parameters({"backendd": "mirror"})
+    with pytest.raises(ConfigError, match="mode"):
+        NodeCore(LocalRuntime(LocalGraph(), "n"), "n", "completer", {"backend": "mirror"})
+    values = node_parameters({"backend": "mirror", "use_sim_time": True})
+    assert values["backend"] == "mirror" and values["sync_slop"] == 0.05
