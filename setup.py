@@ -15,7 +15,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
-    package_data={PACKAGE: ["weights/*.safetensors", "weights/*.json", "config/*.yaml"]},
+    package_data={PACKAGE: ["weights/*.safetensors", "weights/*.json"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -40,7 +40,7 @@ setup(
         "pyyaml>=6",
         "cyclonedds>=11,<12",
     ],
-    zip_safe=True,
+    zip_safe=False,  # weights and configs are found through __file__
     maintainer="pcc_ros maintainers",
     maintainer_email="maintainers@pcc-ros.dev",
     description="LiDAR vehicle point cloud completion and detection filtering for ROS 2",

@@ -72,13 +72,21 @@ def test_import_pcc_ros_needs_no_ros():
 
 
 def test_rclpy_is_imported_only_in_nodes():
+    import ast
+
     offenders = []
     for path in (REPO / "pcc_ros").rglob("*.py"):
         if "nodes" in path.relative_to(REPO / "pcc_ros").parts:
             continue
-        for line in path.read_text().splitlines():
-            if line.strip().startswith(("import rclpy", "from rclpy")):
-                offenders.append(str(path))
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            elif isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "import_module" and node.args:
+                names = [getattr(node.args[0], "value", "")]
+            offenders += [f"{path}:{node.lineno}" for n in names if str(n).split(".")[0] == "rclpy"]
     assert not offenders
 
 

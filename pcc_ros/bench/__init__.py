@@ -4,12 +4,18 @@ A benchmark module exposes ``add_arguments(parser)`` (optional) and
 ``run(args) -> dict``; it prints its own table (ratios against a baseline measured in
 the same process) and returns the JSON-able results, which ``--json FILE`` writes.
 Speed targets are checked here, never by timed unit tests.
+
+Benchmark modules are imported only when their benchmark runs (their one-line help is
+read from the source), so ``pcc --help`` stays fast and one benchmark's heavy imports
+never slow down, or break, the others.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import importlib.util
 import json
 import pkgutil
 from pathlib import Path
@@ -22,21 +28,34 @@ def available() -> list[str]:
     )
 
 
+def _summary(name: str) -> str:
+    spec = importlib.util.find_spec(f"{__name__}.{name}")
+    doc = ast.get_docstring(ast.parse(Path(spec.origin).read_text())) if spec and spec.origin else None
+    return (doc or name).strip().splitlines()[0]
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="bench_name", metavar="NAME", required=True)
     for name in available():
-        module = importlib.import_module(f"{__name__}.{name}")
-        p = sub.add_parser(name, help=(module.__doc__ or name).strip().splitlines()[0])
-        p.add_argument("--json", type=Path, help="write the results to this JSON file")
-        p.add_argument("--seed", type=int, default=0, help="random seed")
-        if hasattr(module, "add_arguments"):
-            module.add_arguments(p)
+        p = sub.add_parser(name, help=_summary(name), add_help=False)
+        p.add_argument("passthrough", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+
+
+def benchmark_parser(name: str, module) -> argparse.ArgumentParser:
+    """The full parser of one benchmark (common options plus the module's own)."""
+    parser = argparse.ArgumentParser(prog=f"pcc bench {name}", description=(module.__doc__ or name).strip())
+    parser.add_argument("--json", type=Path, help="write the results to this JSON file")
+    parser.add_argument("--seed", type=int, default=0, help="random seed")
+    if hasattr(module, "add_arguments"):
+        module.add_arguments(parser)
+    return parser
 
 
 def run(args: argparse.Namespace) -> int:
     module = importlib.import_module(f"{__name__}.{args.bench_name}")
-    results = module.run(args)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2, sort_keys=True) + "\n")
+    bench_args = benchmark_parser(args.bench_name, module).parse_args(args.passthrough)
+    results = module.run(bench_args)
+    if bench_args.json:
+        bench_args.json.parent.mkdir(parents=True, exist_ok=True)
+        bench_args.json.write_text(json.dumps(results, indent=2, sort_keys=True) + "\n")
     return 0

@@ -6,6 +6,13 @@ KITTI tracking devkit layout plus the complete canonical shape of every labelled
 See ``docs/synthcars.md``.
 """
 
-from pcc_ros.data.synthetic.generator import generate, load_shape
-
 __all__ = ["generate", "load_shape"]
+
+
+def __getattr__(name: str):
+    """Import the generator (and open3d) only when it is used, not on ``pcc --help``."""
+    if name in __all__:
+        from pcc_ros.data.synthetic import generator
+
+        return getattr(generator, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
