@@ -424,15 +424,14 @@ def fingerprint(instances: Sequence[EvalInstance], settings: dict[str, Any]) -> 
     return digest.hexdigest()[:16]
 
 
-def _checkpoint_stamp(path: Path | None) -> str | None:
-    if path is None:
-        return None
-    weights = Path(path).with_suffix(".safetensors") if Path(path).suffix != ".safetensors" else Path(path)
-    try:
-        stat = weights.stat()
-    except OSError:
-        return str(path)
-    return f"{path}:{stat.st_size}:{int(stat.st_mtime)}"
+def _checkpoint_stamp(name: str, path: Path | None) -> str | None:
+    """What identifies the weights a learned backend ran with: the weights' sha256 recorded
+    in the checkpoint config (the shipped default's when no path is given)."""
+    from pcc_ros.models.base import default_checkpoint
+    from pcc_ros.models.checkpoint import load_config
+
+    path = path or default_checkpoint(name)
+    return None if path is None else str(load_config(path).get("sha256"))
 
 
 def evaluate(
@@ -493,7 +492,7 @@ def evaluate(
         cls = get_backend(name)
         options = {"batch_size": batch_size} if cls.learned else {}
         completer = load_completer(name, checkpoints.get(name), device=device, **options)
-        stamp = _checkpoint_stamp(checkpoints.get(name)) if cls.learned else None
+        stamp = _checkpoint_stamp(name, checkpoints.get(name)) if cls.learned else None
         old = reusable.get(name)
         if old is not None and old.get("checkpoint_stamp") == stamp:
             log.info("%s: reusing the results already in the JSON (same instances and settings)", name)
