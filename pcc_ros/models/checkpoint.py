@@ -202,7 +202,10 @@ def load_checkpoint(path: str | Path, verify_hash: bool = True) -> tuple[dict[st
         state = load_file(str(weights_path), device="cpu")
     except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
         raise CheckpointError(f"{weights_path}: cannot read safetensors weights (truncated or corrupt): {exc}") from exc
-    expected = {name: tuple(shape) for name, shape in config["tensors"].items()}
+    try:
+        expected = {str(name): tuple(int(d) for d in shape) for name, shape in dict(config["tensors"]).items()}
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{config_path}: malformed tensor manifest ({exc})") from exc
     actual_shapes = {name: tuple(t.shape) for name, t in state.items()}
     problems = _compare_shapes(expected, actual_shapes, "config", "file")
     if problems:

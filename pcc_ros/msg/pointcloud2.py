@@ -56,7 +56,7 @@ FieldKey = tuple[str, int, int, int]  # name, offset, datatype, count
 
 def _field_keys(msg) -> tuple[FieldKey, ...]:
     try:
-        return tuple((f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields)
+        return tuple((str(f.name), int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields)
     except (AttributeError, TypeError, ValueError) as exc:
         raise MessageError(f"PointCloud2 fields are malformed ({exc})") from None
 
