@@ -56,7 +56,11 @@ FieldKey = tuple[str, int, int, int]  # name, offset, datatype, count
 
 def _field_keys(msg) -> tuple[FieldKey, ...]:
     try:
-        return tuple((str(f.name), int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields)
+        keys = tuple((f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields)
+        bad = [k[0] for k in keys if not isinstance(k[0], str)]
+        if bad:
+            raise TypeError(f"field name {bad[0]!r} is not a string")
+        return keys
     except (AttributeError, TypeError, ValueError) as exc:
         raise MessageError(f"PointCloud2 fields are malformed ({exc})") from None
 
