@@ -166,8 +166,11 @@ def _restore_optimizer(optimizer: Any, tensors: dict[str, Any], meta: dict[str, 
         state.setdefault(int(pid), {})[key] = value
     for pid, entry in meta.get("scalars", {}).items():
         state.setdefault(int(pid), {}).update(entry)
+    # JSON turned tuples (Adam's betas) into lists: restore them so the state is identical.
+    groups = [{k: (tuple(v) if isinstance(v, list) and k != "params" else v) for k, v in g.items()}
+              for g in meta["param_groups"]]
     try:
-        optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+        optimizer.load_state_dict({"state": state, "param_groups": groups})
     except (KeyError, ValueError, RuntimeError) as exc:
         raise CheckpointError(f"{source}: optimizer state does not fit this model: {exc}") from exc
 
@@ -250,7 +253,8 @@ def plot_log(records: list[dict[str, Any]], path: Path, title: str) -> None:
     for key in sorted({k for r in train for k in r if k not in ("step", "lr", "seconds", "instances_per_s")}):
         axes[0].plot([r["step"] for r in train], [r[key] for r in train], label=key)
     axes[0].set(xlabel="step", ylabel="loss (canonical units)", title="training loss")
-    axes[0].legend()
+    if train:
+        axes[0].legend()
     for key in ("val_cd_l1", "val_precision", "val_coverage"):
         if val and key in val[0]:
             axes[1].plot([r["step"] for r in val], [r[key] for r in val], marker="o", label=key[4:])

@@ -1,0 +1,137 @@
+"""`pcc train`: the generic loop, resumable checkpoints, validation, errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pcc_ros.boxes import Boxes
+from pcc_ros.cli import main
+from pcc_ros.data.instances import ExtractConfig, extract_instances
+from pcc_ros.errors import ConfigError
+from pcc_ros.frame import Frame
+from pcc_ros.geometry.canonical import from_canonical
+from pcc_ros.models import load_completer
+from pcc_ros.models.checkpoint import load_config
+from pcc_ros.train import _optimizer_tensors, _restore_optimizer, learning_rate, load_recipe, parse_options
+
+
+def car_shape(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
+    pts = rng.uniform(-1, 1, (n, 3))
+    axis = rng.integers(0, 3, n)
+    pts[np.arange(n), axis] = rng.choice([-1, 1], n)
+    return (pts * [0.5, 0.2, 0.15]).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory):
+    """Two SynthCars-like sequences (train / test) of 4 frames with 3 tracked cars each."""
+    root = tmp_path_factory.mktemp("synth")
+    rng = np.random.default_rng(0)
+    (root / "meta.json").write_text(json.dumps({"seed": 0, "splits": {"train": ["0000"], "test": ["0001"]}}))
+    frames = []
+    for seq in ("0000", "0001"):
+        shapes = [car_shape(rng) for _ in range(3)]
+        (root / "shapes" / seq).mkdir(parents=True)
+        for t, shape in enumerate(shapes):
+            np.save(root / "shapes" / seq / f"{t}.npy", shape)
+        for f in range(4):
+            centers = np.array([[2.0 + f, 8.0, -0.9], [-3.0 + f, -12.0, -0.9], [6.0, 20.0 + f, -0.9]])
+            yaws = np.array([0.1, -0.2, 0.3 + 0.1 * f])
+            lengths = np.array([4.2, 4.6, 3.9])
+            points = []
+            for t, shape in enumerate(shapes):
+                sensor = from_canonical(shape, centers[t], yaws[t], lengths[t])
+                seen = ((sensor - centers[t]) @ -centers[t]) > 0
+                points.append(sensor[seen & (rng.random(len(shape)) < 0.3)])
+            pts = np.concatenate(points).astype(np.float32)
+            boxes = Boxes(centers, np.column_stack([lengths, lengths * 0.4, lengths * 0.3]), yaws, ["Car"] * 3,
+                          None, ["0", "1", "2"])
+            frames.append(Frame(stamp_ns=f * 100_000_000, frame_id="velodyne",
+                                points=np.column_stack([pts, np.zeros(len(pts), np.float32)]),
+                                ground_truth=boxes, sequence=seq, index=f))
+    out = tmp_path_factory.mktemp("cache") / "cache"
+    extract_instances(frames, out, ExtractConfig(ground_margin=0.0, val_fraction=0.0), synthcars=root,
+                      progress=False)
+    return out
+
+
+def _argv(cache_dir, out, *extra):
+    return ["train", "pointpncnet", "--data", str(cache_dir), "--out", str(out), "--batch-size", "4",
+            "--val-split", "test", "--val-instances", "6", "--val-every", "2", "--checkpoint-every", "2",
+            "--no-progress", "--device", "cpu", "--option", "loss_points=64", "--option", "local_loss_points=8",
+            *extra]
+
+
+def test_train_validate_checkpoint_and_resume(cache_dir, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(_argv(cache_dir, out, "--iterations", "4")) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["step"] == 4
+    for name in ("pointpncnet.safetensors", "pointpncnet.json", "resume.safetensors", "resume.json",
+                 "log.jsonl", "training.png"):
+        assert (out / name).is_file(), name
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    vals = [r for r in records if "val_cd_l1" in r]
+    assert [r["step"] for r in vals] == [2, 4] and all(r["val_cd_l1"] > 0 for r in vals)
+    assert [r["step"] for r in records if "loss" in r] == [4]
+    config = load_config(out / "pointpncnet.json")
+    assert config["training"]["steps"] == 4 and config["training"]["validation_reference"] == "ground_truth"
+    assert config["training"]["recipe"]["drop_prob"] == 0.2
+    assert config["metrics"]["val_cd_l1"] == vals[-1]["val_cd_l1"]
+    completer = load_completer("pointpncnet", out / "pointpncnet.safetensors", device="cpu")
+    assert completer.complete([np.random.default_rng(0).normal(size=(50, 3)) * 0.2])[0].shape == (2048, 3)
+
+    # a second run into the same directory must be explicit
+    assert main(_argv(cache_dir, out, "--iterations", "4")) == 1
+    # resuming continues the step counter and the log
+    assert main(_argv(cache_dir, out, "--iterations", "6", "--resume")) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 6
+    assert load_config(out / "resume.json")["resume"]["step"] == 6
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records if "val_cd_l1" in r] == [2, 4, 6]
+    # resuming with other settings is refused
+    assert main(_argv(cache_dir, out, "--iterations", "8", "--resume", "--lr", "1e-2")) == 1
+    assert main(_argv(cache_dir, out, "--iterations", "8", "--resume", "--config", "paper")) == 1
+
+
+def test_no_inpainting_ablation_is_recorded(cache_dir, tmp_path):
+    out = tmp_path / "ablation"
+    assert main([*_argv(cache_dir, out, "--iterations", "2", "--no-inpainting"), "--val-instances", "0"]) == 0
+    assert load_config(out / "pointpncnet.json")["training"]["recipe"]["drop_prob"] == 0.0
+
+
+def test_optimizer_state_round_trip():
+    torch.manual_seed(0)
+    net = torch.nn.Linear(4, 3)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    for _ in range(3):
+        opt.zero_grad()
+        net(torch.randn(8, 4)).pow(2).sum().backward()
+        opt.step()
+    tensors, meta = _optimizer_tensors(opt)
+    meta = json.loads(json.dumps(meta))  # it must survive the JSON config
+    fresh = torch.optim.Adam(net.parameters(), lr=1e-3)
+    _restore_optimizer(fresh, tensors, meta, source="test")
+    a, b = opt.state_dict(), fresh.state_dict()
+    assert a["param_groups"] == b["param_groups"]
+    for pid in a["state"]:
+        for key, value in a["state"][pid].items():
+            assert torch.equal(torch.as_tensor(value), torch.as_tensor(b["state"][pid][key]))
+
+
+def test_options_schedule_and_recipe_errors():
+    assert parse_options(["views=2", "beta=0.5", "name=x"]) == {"views": 2, "beta": 0.5, "name": "x"}
+    with pytest.raises(ConfigError):
+        parse_options(["views"])
+    assert learning_rate(5e-4, 0, 100) == 5e-4
+    assert learning_rate(5e-4, 250, 100) == pytest.approx(1.25e-4)
+    with pytest.raises(ConfigError, match="unknown completion backend"):
+        load_recipe("nonexistent", "default", {})
+    with pytest.raises(ConfigError, match="cannot be trained"):
+        load_recipe("mirror", "default", {})
+    with pytest.raises(ConfigError, match="invalid training options"):
+        load_recipe("pointpncnet", "default", {"bogus": 1})
