@@ -183,3 +183,33 @@ def test_malformed_cloud_on_the_wire_is_logged_skipped_and_the_node_keeps_servin
     assert all(p.poll() is None for p in graph["procs"])  # both nodes still running
     log = graph["logs"]["completion"].read_text()
     assert "skipped a frame" in log and "PointCloud2" in log
+
+
+def test_echo_discovers_the_type_and_prints_filtered_detections(graph):
+    from pcc_ros.msg.stamps import ns_to_stamp
+
+    probe = graph["probe"]
+    stamp0 = min(_read_topic(graph["bag"], "/points"))
+    pub_cloud = probe.create_publisher("/points", CLOUD, SENSOR_DATA)
+    pub_dets = probe.create_publisher("/detections", DETS, RELIABLE)
+    echo = subprocess.Popen(
+        ["timeout", "60", *PCC, "echo", "/detections_filtered", "--count", "1", "--timeout", "45"],
+        env=graph["env"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        k = 0
+        while echo.poll() is None and k < 80:  # volatile topics: keep sending until echo has matched
+            cloud, dets = _read_topic(graph["bag"], "/points")[stamp0], _read_topic(graph["bag"], "/detections")[stamp0]
+            stamp = ns_to_stamp((2_100_000_000 + k) * 10**9)
+            cloud.header.stamp, dets.header.stamp = stamp, stamp
+            pub_cloud.publish(cloud)
+            pub_dets.publish(dets)
+            k += 1
+            time.sleep(0.5)
+        out, err = echo.communicate(timeout=20)
+    finally:
+        if echo.poll() is None:
+            os.killpg(echo.pid, signal.SIGKILL)
+            echo.wait(timeout=5)
+    assert echo.returncode == 0, err
+    assert "Detection3DArray" in out and "velodyne" in out and "id=" in out
