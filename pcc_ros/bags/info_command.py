@@ -12,11 +12,10 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.rosbag2 import ReaderError
+from rosbags.highlevel import AnyReaderError
 
+from pcc_ros.bags.read import open_bag
 from pcc_ros.errors import DataError
-from pcc_ros.msg.typestore import get_typestore
 
 _INSPECTED = {
     "sensor_msgs/msg/PointCloud2",
@@ -33,11 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def summarize(bag: str | Path) -> dict:
     """The summary as a JSON-able dict (what ``pcc info`` prints)."""
     path = Path(bag)
-    try:
-        reader = AnyReader([path], default_typestore=get_typestore())
-        reader.open()
-    except (AnyReaderError, ReaderError, FileNotFoundError, OSError) as exc:
-        raise DataError(f"{path}: cannot open bag ({exc})") from exc
+    reader = open_bag(path)
     try:
         storage = reader.readers[0].storage
         meta = storage.metadata

@@ -134,6 +134,18 @@ class _Tf:
         return None
 
 
+def open_bag(path: str | Path) -> AnyReader:
+    """An open rosbag2 reader (directory, ``.mcap`` or ``.db3``) with pcc_ros's type store;
+    :class:`DataError` naming the path when it is not a readable bag. The caller closes it."""
+    path = Path(path)
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore())
+        reader.open()
+    except (AnyReaderError, ReaderError, FileNotFoundError, OSError) as exc:
+        raise DataError(f"{path}: cannot open bag ({exc})") from exc
+    return reader
+
+
 def read_frames(
     bag: str | Path,
     points_topic: str = POINTS_TOPIC,
@@ -143,11 +155,7 @@ def read_frames(
 ) -> Iterator[Frame]:
     """Frames of a rosbag2 directory, ``.mcap`` or ``.db3`` (see the module docstring)."""
     path = Path(bag)
-    try:
-        reader = AnyReader([path], default_typestore=get_typestore())
-        reader.open()
-    except (AnyReaderError, ReaderError, FileNotFoundError, OSError) as exc:
-        raise DataError(f"{path}: cannot open bag ({exc})") from exc
+    reader = open_bag(path)
     try:
         if not any(c.topic == points_topic for c in reader.connections):
             topics = sorted({c.topic for c in reader.connections})

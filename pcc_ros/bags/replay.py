@@ -71,16 +71,12 @@ class BagPairs:
         self.stats: SyncStats = self.pairer.stats
 
     def __iter__(self) -> Iterator[tuple[object, object, int]]:
-        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.highlevel import AnyReaderError
 
+        from pcc_ros.bags.read import open_bag
         from pcc_ros.msg.stamps import stamp_to_ns
-        from pcc_ros.msg.typestore import get_typestore
 
-        try:
-            reader = AnyReader([self.bag], default_typestore=get_typestore())
-            reader.open()
-        except Exception as exc:
-            raise DataError(f"{self.bag}: cannot open bag ({exc})") from exc
+        reader = open_bag(self.bag)
         try:
             topics = {c.topic for c in reader.connections}
             for needed in (self.points_topic, self.detections_topic):
@@ -108,16 +104,17 @@ class BagPairs:
 
 def copy_topics(bag: str | Path, writer, topics: set[str]) -> None:
     """Copy the raw records of ``topics`` from ``bag`` into an open :class:`BagWriter`."""
-    from rosbags.highlevel import AnyReader
-
     from pcc_ros.bags.convert import TF_STATIC_QOS
-    from pcc_ros.msg.typestore import get_typestore
+    from pcc_ros.bags.read import open_bag
 
-    with AnyReader([Path(bag)], default_typestore=get_typestore()) as reader:
+    reader = open_bag(bag)
+    try:
         connections = [c for c in reader.connections if c.topic in topics]
         for connection, time_ns, raw in reader.messages(connections=connections):
             qos = TF_STATIC_QOS if connection.topic == "/tf_static" else None
             writer.write_raw(connection.topic, connection.msgtype, raw, time_ns, qos)
+    finally:
+        reader.close()
 
 
 def replay_bag(

@@ -60,20 +60,28 @@ KNOWN_CLASSES = frozenset(
 _EARTH_RADIUS = 6378137.0  # WGS84 semi-major axis, as in the KITTI devkit
 
 
-def read_velodyne(path: str | Path) -> np.ndarray:
-    """Read a KITTI ``.bin`` scan: ``(N, 4)`` float32 x, y, z, reflectance.
+def read_float32_records(path: str | Path, columns: int) -> np.ndarray:
+    """A headerless scan of ``columns`` float32 per point (KITTI ``.bin``, nuScenes ``.pcd.bin``).
 
-    Raises :class:`DataError` for a missing file or one whose size is not a multiple of
-    16 bytes (a truncated copy would otherwise shift every following point's fields).
+    Raises :class:`DataError` for a missing file or one whose size is not a whole number of
+    points (a truncated copy would otherwise shift every following point's fields).
     """
     path = Path(path)
     try:
         raw = path.read_bytes()
     except OSError as exc:
         raise DataError(f"{path}: cannot read scan ({exc.strerror})") from exc
-    if len(raw) % 16:
-        raise DataError(f"{path}: size {len(raw)} bytes is not a multiple of 16 (4 float32 per point); truncated?")
-    return np.frombuffer(raw, dtype=np.float32).reshape(-1, 4).copy()
+    step = 4 * columns
+    if len(raw) % step:
+        raise DataError(
+            f"{path}: size {len(raw)} bytes is not a multiple of {step} ({columns} float32 per point); truncated?"
+        )
+    return np.frombuffer(raw, dtype=np.float32).reshape(-1, columns).copy()
+
+
+def read_velodyne(path: str | Path) -> np.ndarray:
+    """Read a KITTI ``.bin`` scan: ``(N, 4)`` float32 x, y, z, reflectance."""
+    return read_float32_records(path, 4)
 
 
 def _read_lines(path: Path) -> list[str]:

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from pcc_ros.boxes import Boxes
+from pcc_ros.data.kitti import read_float32_records
 from pcc_ros.errors import DataError
 from pcc_ros.frame import Frame
 
@@ -101,14 +102,7 @@ def transform(record: dict, source: str) -> np.ndarray:
 
 def read_pcd_bin(path: str | Path) -> np.ndarray:
     """nuScenes ``.pcd.bin``: ``(N, 5)`` float32 x, y, z, intensity, ring."""
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read scan ({exc.strerror})") from exc
-    if len(raw) % 20:
-        raise DataError(f"{path}: size {len(raw)} bytes is not a multiple of 20 (5 float32 per point); truncated?")
-    return np.frombuffer(raw, dtype=np.float32).reshape(-1, 5).copy()
+    return read_float32_records(path, 5)
 
 
 class NuScenes:
