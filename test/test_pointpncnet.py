@@ -258,3 +258,23 @@ def test_a_few_steps_reduce_the_loss():
     assert np.mean(losses[-5:]) < 0.6 * np.mean(losses[:5])
     assert recipe.describe()["drop_prob"] == 0.2
     assert training_recipe("default", inpainting=False).describe()["drop_prob"] == 0.0
+
+
+def test_shipped_checkpoint_completes_a_car():
+    """The default weights load, were trained self-supervised, and fill in the hidden side."""
+    from pcc_ros.models import default_checkpoint
+
+    path = default_checkpoint("pointpncnet")
+    assert path is not None and path.stat().st_size < 5 * 2**20
+    pnc = load_completer("pointpncnet", device="cpu")
+    training = pnc.checkpoint_config["training"]
+    assert training["recipe"]["inpainting"] and training["split"] == "train"
+    assert pnc.checkpoint_config["metrics"]["val_cd_l1"] < 0.05
+    rng = np.random.default_rng(11)
+    car = car_like(rng, 4000)
+    seen = car[car[:, 1] > 0.1]  # only the left flank and the roof/bottom beside it
+    out = pnc.complete([seen])[0]
+    assert out.shape == (2048, 3) and np.isfinite(out).all()
+    assert (out[:, 1] < -0.1).mean() > 0.1  # a real share of points on the unseen right side ...
+    assert out[:, 1].min() < -0.15  # ... reaching out to where its flank is (y = -0.2)
+    assert np.abs(out[:, 0]).max() < 0.8 and np.abs(out[:, 1]).max() < 0.5  # within a car-sized box
