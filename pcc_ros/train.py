@@ -317,6 +317,10 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     log_path = out / "log.jsonl"
     if args.resume:
         step, previous = load_resume(out, args.backend, completer, optimizer)
+        if args.lr_decay_every is None and "lr_decay_every" in previous:
+            # a longer --iterations must not move the decay steps of the run being continued
+            decay_every = int(previous["lr_decay_every"])
+            run_settings["lr_decay_every"] = decay_every
         changed = {k: (previous.get(k), v) for k, v in run_settings.items()
                    if k not in ("iterations", "data") and previous.get(k) != v}
         if changed:
@@ -425,5 +429,6 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     with contextlib.suppress(BrokenPipeError):
         summary = train(args)
-        print(json.dumps(summary, indent=2))
+        if Distributed.from_env().main:
+            print(json.dumps(summary, indent=2))
     return 0

@@ -88,14 +88,15 @@ def test_train_validate_checkpoint_and_resume(cache_dir, tmp_path, capsys):
     # a second run into the same directory must be explicit
     assert main(_argv(cache_dir, out, "--iterations", "4")) == 1
     # resuming continues the step counter and the log
-    assert main(_argv(cache_dir, out, "--iterations", "6", "--resume")) == 0
-    assert json.loads(capsys.readouterr().out)["step"] == 6
-    assert load_config(out / "resume.json")["resume"]["step"] == 6
+    assert main(_argv(cache_dir, out, "--iterations", "8", "--resume")) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 8
+    resume = load_config(out / "resume.json")["resume"]
+    assert resume["step"] == 8 and resume["lr_decay_every"] == 1  # kept from the 4-step run, not 8 // 4
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
-    assert [r["step"] for r in records if "val_cd_l1" in r] == [2, 4, 6]
+    assert [r["step"] for r in records if "val_cd_l1" in r] == [2, 4, 6, 8]
     # resuming with other settings is refused
-    assert main(_argv(cache_dir, out, "--iterations", "8", "--resume", "--lr", "1e-2")) == 1
-    assert main(_argv(cache_dir, out, "--iterations", "8", "--resume", "--config", "paper")) == 1
+    assert main(_argv(cache_dir, out, "--iterations", "10", "--resume", "--lr", "1e-2")) == 1
+    assert main(_argv(cache_dir, out, "--iterations", "10", "--resume", "--config", "paper")) == 1
 
 
 def test_no_inpainting_ablation_is_recorded(cache_dir, tmp_path):
@@ -135,3 +136,29 @@ def test_options_schedule_and_recipe_errors():
         load_recipe("mirror", "default", {})
     with pytest.raises(ConfigError, match="invalid training options"):
         load_recipe("pointpncnet", "default", {"bogus": 1})
+
+
+@pytest.mark.slow
+def test_torchrun_two_processes_gloo(cache_dir, tmp_path):
+    """DistributedDataParallel under torchrun (two CPU processes, gloo): rank 0 writes one run."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    torchrun = Path(sys.executable).with_name("torchrun")
+    if not torchrun.exists():
+        torchrun = shutil.which("torchrun")
+    if not torchrun:
+        pytest.skip("torchrun not installed")
+    out = tmp_path / "ddp"
+    argv = _argv(cache_dir, out, "--iterations", "4", "--threads", "1")
+    proc = subprocess.run(
+        [str(torchrun), "--nproc-per-node", "2", "-m", "pcc_ros.cli", *argv],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.count('"step": 4') >= 1  # rank 0's summary only
+    config = load_config(out / "pointpncnet.json")
+    assert config["training"]["world_size"] == 2 and config["training"]["steps"] == 4
+    assert load_config(out / "resume.json")["resume"]["step"] == 4
