@@ -139,3 +139,24 @@ def test_shipped_yaml_configs_parse(name):
 def test_unknown_parameter_is_reported():
     with pytest.raises(ConfigError, match="min_pionts"):
         PipelineConfig.from_dict({"min_pionts": 3})
+
+
+@pytest.mark.slow
+def test_shipped_backend_scores_false_detections_higher_on_synthcars(tmp_path):
+    """With the shipped PointPnCNet, detections on clutter / empty space mismatch more than cars."""
+    from pcc_ros.data.kitti import KittiTracking
+    from pcc_ros.data.synthetic import generate
+    from pcc_ros.demo import truly_vehicle
+
+    generate(tmp_path, sequences=1, frames=3, seed=11, progress=False)
+    pipeline = Pipeline(PipelineConfig(device="cpu", min_points=5, max_instances=64))
+    true_scores, false_scores = [], []
+    frames = KittiTracking(tmp_path / "training").frames("0000", detections_dir=tmp_path / "detections" / "synthetic")
+    for frame in frames:
+        result = pipeline.process(frame.points, frame.detections)
+        judged = np.isfinite(result.mismatch)
+        truth = truly_vehicle(result.detections, frame.ground_truth)
+        true_scores += result.mismatch[judged & truth].tolist()
+        false_scores += result.mismatch[judged & ~truth].tolist()
+    assert len(true_scores) > 10 and len(false_scores) > 2
+    assert np.median(false_scores) > np.median(true_scores) + 0.2
