@@ -14,7 +14,7 @@ from pcc_ros.filter import FilterConfig
 from pcc_ros.pipeline import PipelineConfig
 
 DESCRIPTIONS = {
-    "backend": "completion backend: pointpncnet | trapcc | aml | input | densify | mirror",
+    "backend": "completion backend registered in pcc_ros.models (pointpncnet, input, densify, mirror)",
     "checkpoint": "path of a .safetensors checkpoint; empty = the shipped default of the backend",
     "device": "auto | cpu | cuda | cuda:N",
     "classes": "detection class ids to complete (case-insensitive)",
