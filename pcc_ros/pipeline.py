@@ -88,8 +88,10 @@ class PipelineConfig:
         return out
 
 
-#: Parameters the node shells read themselves (pairing, queues); the pipeline ignores them.
-NODE_ONLY_PARAMETERS = frozenset({"sync_slop", "queue_size", "use_sim_time"})
+#: Parameters the node shells read themselves (pairing, queues), with their defaults; the
+#: pipeline ignores them (and ROS's own ``use_sim_time``).
+NODE_DEFAULTS: dict[str, Any] = {"sync_slop": 0.05, "queue_size": 5}
+NODE_ONLY_PARAMETERS = frozenset({*NODE_DEFAULTS, "use_sim_time"})
 
 
 def read_parameters(path: str | Path, node_name: str | None = None) -> dict[str, Any]:
@@ -267,7 +269,7 @@ class Pipeline:
         order of ``result.detections`` (so the outputs republish the original messages).
         """
         from pcc_ros.errors import MessageError
-        from pcc_ros.msg.detections import boxes_from_detection_array, valid_detection_mask
+        from pcc_ros.msg.detections import decode_detection_array
         from pcc_ros.msg.pointcloud2 import read_xyz
         from pcc_ros.msg.stamps import stamp_to_ns
 
@@ -279,8 +281,7 @@ class Pipeline:
             )
         tic = time.perf_counter()
         points = read_xyz(cloud_msg)
-        valid = valid_detection_mask(detections_msg)
-        boxes = boxes_from_detection_array(detections_msg, skip_invalid=True)
+        boxes, valid = decode_detection_array(detections_msg, skip_invalid=True)
         originals = [d for d, ok in zip(detections_msg.detections, valid) if ok]
         decode_ms = _ms(tic)
         result = self.process(

@@ -193,14 +193,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def load_config(config: Path | None, with_filter: bool, **overrides):
     """PipelineConfig from a YAML file (default: the package's shipped config) plus overrides."""
-    from pcc_ros.pipeline import PipelineConfig, read_parameters
+    from pcc_ros.pipeline import NODE_DEFAULTS, PipelineConfig, read_parameters
 
     if config is None:
         name = "detection_filter.yaml" if with_filter else "completion.yaml"
         config = shipped_config_dir() / name
     values = read_parameters(config)
     values.update({k: v for k, v in overrides.items() if v is not None})
-    slop = float(values.get("sync_slop", 0.05))
+    slop = float(values.get("sync_slop", NODE_DEFAULTS["sync_slop"]))
     return PipelineConfig.from_dict(values), slop
 
 

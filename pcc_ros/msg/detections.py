@@ -155,15 +155,16 @@ def valid_detection_mask(msg) -> np.ndarray:
     return np.array([not r for r in _invalid_reasons(center, size, quat, score)], dtype=bool)
 
 
-def boxes_from_detection_array(msg, skip_invalid: bool = False) -> Boxes:
-    """:class:`Boxes` from a ``vision_msgs/Detection3DArray`` (see the module docstring)."""
+def decode_detection_array(msg, skip_invalid: bool = False) -> tuple[Boxes, np.ndarray]:
+    """:class:`Boxes` of a ``vision_msgs/Detection3DArray`` and which entries of
+    ``msg.detections`` they came from (one decode for callers that republish the originals)."""
     arrays = _detection_arrays(msg)
     if arrays is None:
-        return Boxes.empty()
+        return Boxes.empty(), np.zeros(0, dtype=bool)
     center_a, quat_a, size_a, label_a, score_a, track_a = arrays
     keep = _keep_valid(_invalid_reasons(center_a, size_a, quat_a, score_a), "detection", skip_invalid)
     quat_a = quat_a[keep] / np.linalg.norm(quat_a[keep], axis=1, keepdims=True)
-    return Boxes(
+    boxes = Boxes(
         center_a[keep],
         size_a[keep],
         yaw_from_quaternion(quat_a),
@@ -171,6 +172,12 @@ def boxes_from_detection_array(msg, skip_invalid: bool = False) -> Boxes:
         score_a[keep],
         track_a[keep],
     )
+    return boxes, keep
+
+
+def boxes_from_detection_array(msg, skip_invalid: bool = False) -> Boxes:
+    """:class:`Boxes` from a ``vision_msgs/Detection3DArray`` (see the module docstring)."""
+    return decode_detection_array(msg, skip_invalid)[0]
 
 
 def _check_boxes(boxes: Boxes) -> None:

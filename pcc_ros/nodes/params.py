@@ -11,7 +11,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from pcc_ros.filter import FilterConfig
-from pcc_ros.pipeline import PipelineConfig
+from pcc_ros.pipeline import NODE_DEFAULTS, PipelineConfig
 
 DESCRIPTIONS = {
     "backend": "completion backend registered in pcc_ros.models (pointpncnet, input, densify, mirror)",
@@ -35,7 +35,6 @@ DESCRIPTIONS = {
     "queue_size": "unmatched messages kept per input (older ones are dropped and counted)",
 }
 
-NODE_DEFAULTS: dict[str, Any] = {"sync_slop": 0.05, "queue_size": 5}
 
 
 @dataclass(frozen=True)
