@@ -17,24 +17,100 @@ a CPU.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 import torch
 from torch import nn
 
+#: Rows per chunk of the fused inference path: a chunk's widest intermediate (rows x 256
+#: float32 = 1 MiB at 1024 rows) stays in a core's L2 cache instead of a (P, C) tensor that
+#: makes a round trip through memory (and page faults on every fresh allocation).
+CHUNK_ROWS = 1024
+#: Rows (output points) per chunk of the folding decoder's inference path.
+DECODER_CHUNK_ROWS = 4096
 
-def segment_max(features: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor:
+_reference = False
+
+
+@contextmanager
+def reference_path(enabled: bool = True) -> Iterator[None]:
+    """Run the layers' original (pre-optimisation) code inside this block.
+
+    The original path (``torch.segment_reduce`` max-pooling, whole ``(P, C)`` intermediates)
+    is kept for the speed comparison of ``pcc bench complete`` / ``pcc bench pipeline`` and
+    for the tests that check the fast path returns the same values. Not thread-safe: it is a
+    process-wide switch meant for benchmarks and tests.
+    """
+    global _reference
+    previous, _reference = _reference, bool(enabled)
+    try:
+        yield
+    finally:
+        _reference = previous
+
+
+def using_reference_path() -> bool:
+    """True inside :func:`reference_path`."""
+    return _reference
+
+
+def segment_max(
+    features: torch.Tensor, segment: torch.Tensor, num_segments: int, method: str | None = None
+) -> torch.Tensor:
     """Channel-wise max of ``features`` ``(P, C)`` per segment id ``(P,)`` -> ``(S, C)``.
 
-    ``segment`` must be sorted (non-decreasing), which packing gives for free; then a
-    ``segment_reduce`` over run lengths is several times cheaper (forward and backward)
-    than a scatter max. Empty segments come out as zeros; callers mask them.
+    Empty segments come out as zeros; callers mask them. ``method``: ``"scatter"``
+    (``scatter_reduce`` amax, the default) or ``"segment_reduce"`` (the original
+    implementation, the default inside :func:`reference_path`; it needs ``segment`` sorted,
+    which packing gives for free). Both return bit-identical values (a max is exact); the
+    scatter is many times faster on CPU.
     """
-    lengths = torch.bincount(segment, minlength=num_segments)
+    method = method or ("segment_reduce" if _reference else "scatter")
     if features.shape[0] == 0:
         return features.new_zeros(num_segments, features.shape[1])
-    out = torch.segment_reduce(features, "max", lengths=lengths, unsafe=True)
-    return torch.where((lengths > 0)[:, None], out, torch.zeros_like(out))
+    if method == "segment_reduce":
+        lengths = torch.bincount(segment, minlength=num_segments)
+        out = torch.segment_reduce(features, "max", lengths=lengths, unsafe=True)
+        return torch.where((lengths > 0)[:, None], out, torch.zeros_like(out))
+    if method != "scatter":
+        raise ValueError(f"segment_max: unknown method {method!r}")
+    index = segment[:, None].expand(-1, features.shape[1])
+    out = features.new_zeros(num_segments, features.shape[1])
+    return out.scatter_reduce(0, index, features, "amax", include_self=False)
+
+
+def _fast_inference(module: nn.Module) -> bool:
+    """The fused chunked path applies: no autograd needed and not in the reference block."""
+    return not _reference and not (torch.is_grad_enabled() and any(p.requires_grad for p in module.parameters()))
+
+
+def _linears(mlp: SharedMLP | None) -> list[nn.Linear]:
+    return [] if mlp is None else [m for m in mlp.net if isinstance(m, nn.Linear)]
+
+
+def _mlp_chunk(
+    x: torch.Tensor, linears: Sequence[nn.Linear], last_relu: bool, out: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``x`` through ``linears`` with in-place ReLUs between them (after the last if ``last_relu``).
+
+    ``out``: where the last layer writes (a row slice of a preallocated tensor).
+    """
+    for i, lin in enumerate(linears):
+        dest = out if i == len(linears) - 1 else None
+        if lin.bias is not None:
+            x = torch.addmm(lin.bias, x, lin.weight.t(), out=dest) if dest is not None else torch.addmm(
+                lin.bias, x, lin.weight.t())
+        else:
+            x = torch.mm(x, lin.weight.t(), out=dest) if dest is not None else torch.mm(x, lin.weight.t())
+        if i < len(linears) - 1 or last_relu:
+            x.relu_()
+    return x
+
+
+def _scatter_max_(out: torch.Tensor, segment: torch.Tensor, values: torch.Tensor) -> None:
+    """``out[segment[i]] = max(out[segment[i]], values[i])`` channel-wise, in place."""
+    out.scatter_reduce_(0, segment[:, None].expand(-1, values.shape[1]), values, "amax")
 
 
 class SharedMLP(nn.Module):
@@ -81,12 +157,51 @@ class PCNEncoder(nn.Module):
 
     def forward(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor:
         """``points`` ``(P, 3)``, ``segment`` ``(P,)`` in ``[0, num_segments)`` -> ``(S, out_dim)``."""
+        if _fast_inference(self):
+            return self._forward_chunked(points, segment, num_segments)
         f = self.mlp1(points)
         g = segment_max(f, segment, num_segments)
         h = self.point_proj(f) + self.segment_proj(g)[segment]
         if not self._single:
             h = self.mlp2(torch.relu(h))
         return segment_max(h, segment, num_segments)
+
+    def _forward_chunked(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor:
+        """Inference: the same function, row chunk by row chunk, pooled as it goes.
+
+        No ``(P, C)`` intermediate except the ``mlp1`` features the second pass needs. The
+        segment half of the split layer is computed once per segment with the point half's
+        bias folded in; the last layer's bias is added after the max (rounding is monotonic,
+        so ``max(a_i + b) == max(a_i) + b`` exactly).
+        """
+        p, s = points.shape[0], num_segments
+        if p == 0:
+            return points.new_zeros(s, self.out_dim)
+        nonempty = (torch.bincount(segment, minlength=s) > 0)[:, None]
+        first = _linears(self.mlp1)
+        f = points.new_empty(p, first[-1].out_features)
+        g = points.new_full((s, f.shape[1]), -torch.inf)
+        for start in range(0, p, CHUNK_ROWS):
+            stop = min(start + CHUNK_ROWS, p)
+            fc = _mlp_chunk(points[start:stop], first, last_relu=False, out=f[start:stop])
+            _scatter_max_(g, segment[start:stop], fc)
+        g = torch.where(nonempty, g, 0.0)
+        gp = torch.addmm(self.point_proj.bias, g, self.segment_proj.weight.t())
+        rest = _linears(self.mlp2)
+        out = points.new_full((s, self.out_dim), -torch.inf)
+        wp = self.point_proj.weight.t()
+        for start in range(0, p, CHUNK_ROWS):
+            stop = min(start + CHUNK_ROWS, p)
+            seg = segment[start:stop]
+            h = gp.index_select(0, seg).addmm_(f[start:stop], wp)  # in place: no copy of the gathered rows
+            if rest:
+                h.relu_()
+                h = _mlp_chunk(h, rest[:-1], last_relu=True) if len(rest) > 1 else h
+                h = torch.mm(h, rest[-1].weight.t())
+            _scatter_max_(out, seg, h)
+        if rest and rest[-1].bias is not None:
+            out += rest[-1].bias
+        return torch.where(nonempty, out, 0.0)
 
 
 def folding_grid(size: int, scale: float) -> torch.Tensor:
@@ -134,6 +249,8 @@ class FoldingDecoder(nn.Module):
         """``code`` ``(S, code_dim)`` -> ``(coarse (S, K, 3), fine (S, K*G, 3))``."""
         s = code.shape[0]
         coarse = self.fc(code).view(s, self.num_coarse, 3)
+        if _fast_inference(self):
+            return coarse, self._fold_chunked(code, coarse)
         h = (
             self.fold_code(code)[:, None, None, :]
             + self.fold_point(coarse)[:, :, None, :]
@@ -142,6 +259,22 @@ class FoldingDecoder(nn.Module):
         offset = self.fold_mlp(torch.relu(h))
         fine = (coarse[:, :, None, :] + offset).reshape(s, -1, 3)
         return coarse, fine
+
+    def _fold_chunked(self, code: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
+        """Inference: the folding step a few instances at a time (same operations, same order)."""
+        s, k = coarse.shape[:2]
+        g = self.grid.shape[0]
+        base = self.fold_code(code)[:, None, :] + self.fold_point(coarse)  # (S, K, H)
+        grid = self.fold_grid(self.grid)  # (G, H)
+        layers = _linears(self.fold_mlp)
+        fine = coarse.new_empty(s, k, g, 3)
+        step = max(1, DECODER_CHUNK_ROWS // (k * g))
+        for start in range(0, s, step):
+            stop = min(start + step, s)
+            h = torch.add(base[start:stop, :, None, :], grid).relu_()
+            offset = _mlp_chunk(h.view(-1, h.shape[-1]), layers, last_relu=False).view(stop - start, k, g, 3)
+            torch.add(coarse[start:stop, :, None, :], offset, out=fine[start:stop])
+        return fine.view(s, k * g, 3)
 
 
 # --------------------------------------------------------------------------- losses

@@ -39,7 +39,14 @@ from torch import nn
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.models.base import SceneContext, TorchCompleter, register, resample_cloud
-from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, masked_mean, weighted_chamfer
+from pcc_ros.models.layers import (
+    FoldingDecoder,
+    PCNEncoder,
+    SharedMLP,
+    masked_mean,
+    using_reference_path,
+    weighted_chamfer,
+)
 
 log = logging.getLogger(__name__)
 
@@ -165,8 +172,9 @@ class PointPnCNetNet(nn.Module):
         e_g = self.global_encoder(points, segment, b)
         point_idx, region_idx = regions.nonzero(as_tuple=True)
         local_segment = segment[point_idx] * NUM_REGIONS + region_idx
-        order = torch.argsort(local_segment, stable=True)  # segment_max needs sorted segments
-        point_idx, local_segment = point_idx[order], local_segment[order]
+        if using_reference_path():  # segment_reduce needs sorted segments; the scatter max does not
+            order = torch.argsort(local_segment, stable=True)
+            point_idx, local_segment = point_idx[order], local_segment[order]
         e_l = self.local_encoder(points[point_idx], local_segment, b * NUM_REGIONS).view(b, NUM_REGIONS, -1)
         counts = torch.bincount(local_segment, minlength=b * NUM_REGIONS).view(b, NUM_REGIONS)
         present = counts >= self.min_region_points

@@ -1,0 +1,118 @@
+"""The fast inference paths return what the reference (original) paths return.
+
+Speed is measured by ``pcc bench complete`` / ``pcc bench pipeline``, never here; these
+tests only pin the values.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pcc_ros.models import default_checkpoint, layers, load_completer
+from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, reference_path, segment_max, using_reference_path
+
+
+def _packed(rng: np.random.Generator, sizes: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    points = torch.from_numpy(rng.normal(size=(sum(sizes), 3)).astype(np.float32))
+    segment = torch.from_numpy(np.repeat(np.arange(len(sizes)), sizes))
+    return points, segment
+
+
+@pytest.mark.parametrize("channels", [1, 7, 64])
+def test_scatter_segment_max_is_bit_identical_to_segment_reduce(channels):
+    rng = np.random.default_rng(channels)
+    sizes = [5, 0, 1, 300, 0, 17, 2]  # empty segments in the middle and at the end of nothing
+    feats = torch.from_numpy(rng.normal(size=(sum(sizes), channels)).astype(np.float32)) - 3.0  # mostly < 0
+    seg = torch.from_numpy(np.repeat(np.arange(len(sizes)), sizes))
+    fast = segment_max(feats, seg, len(sizes) + 1, method="scatter")
+    ref = segment_max(feats, seg, len(sizes) + 1, method="segment_reduce")
+    assert torch.equal(fast, ref)
+    assert torch.equal(fast[1], torch.zeros(channels)) and torch.equal(fast[-1], torch.zeros(channels))
+    with reference_path():
+        assert using_reference_path()
+        assert torch.equal(segment_max(feats, seg, len(sizes) + 1), ref)
+    assert not using_reference_path()
+    with pytest.raises(ValueError, match="unknown method"):
+        segment_max(feats, seg, 3, method="bogus")
+
+
+def test_scatter_segment_max_gradient_matches_segment_reduce():
+    rng = np.random.default_rng(1)
+    base = torch.from_numpy(rng.normal(size=(40, 6)).astype(np.float32))
+    seg = torch.from_numpy(np.repeat(np.arange(4), [10, 5, 0, 25]))
+    grads = []
+    for method in ("scatter", "segment_reduce"):
+        x = base.clone().requires_grad_(True)
+        (segment_max(x, seg, 4, method=method) * torch.arange(1.0, 7.0)).sum().backward()
+        grads.append(x.grad)
+    assert torch.equal(grads[0], grads[1])
+
+
+@pytest.mark.parametrize("widths2", [[32, 12], [12], [16, 24, 12]])
+def test_chunked_encoder_equals_reference(monkeypatch, widths2):
+    """Chunks that cut segments in the middle, empty segments, one or several mlp2 layers."""
+    monkeypatch.setattr(layers, "CHUNK_ROWS", 7)
+    torch.manual_seed(0)
+    enc = PCNEncoder([8, 16], widths2)
+    points, segment = _packed(np.random.default_rng(2), [3, 0, 20, 1, 9, 0])
+    with torch.no_grad():
+        fast = enc(points, segment, 7)
+        with reference_path():
+            ref = enc(points, segment, 7)
+    assert fast.shape == ref.shape == (7, widths2[-1])
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)
+    assert torch.equal(fast[[1, 5, 6]], torch.zeros(3, widths2[-1]))
+    with torch.no_grad():  # no points at all
+        assert torch.equal(enc(points[:0], segment[:0], 2), torch.zeros(2, widths2[-1]))
+
+
+def test_training_path_is_differentiable_and_equals_reference():
+    torch.manual_seed(0)
+    enc = PCNEncoder([8, 16], [32, 12])
+    points, segment = _packed(np.random.default_rng(3), [4, 11, 6])
+    fast = enc(points, segment, 3)  # grad enabled: the unchunked path with the scatter max
+    assert fast.requires_grad
+    fast.sum().backward()
+    fast_grad = [p.grad.clone() for p in enc.parameters()]
+    enc.zero_grad()
+    with reference_path():
+        ref = enc(points, segment, 3)
+        ref.sum().backward()
+    torch.testing.assert_close(fast, ref)
+    for a, p in zip(fast_grad, enc.parameters()):
+        torch.testing.assert_close(a, p.grad)
+
+
+def test_chunked_folding_decoder_equals_reference(monkeypatch):
+    monkeypatch.setattr(layers, "DECODER_CHUNK_ROWS", 30)  # 30 // 20 points = 1 instance per chunk
+    torch.manual_seed(0)
+    dec = FoldingDecoder(12, [16], num_coarse=5, grid_size=2, fold_widths=[10, 10], grid_scale=0.05)
+    code = torch.randn(3, 12)
+    with torch.no_grad():
+        coarse, fine = dec(code)
+        with reference_path():
+            ref_coarse, ref_fine = dec(code)
+    assert torch.equal(coarse, ref_coarse)
+    torch.testing.assert_close(fine, ref_fine, rtol=1e-6, atol=1e-7)
+
+
+def test_shipped_pointpncnet_fast_path_equals_reference_path():
+    """The whole network on the shipped weights: tiny, typical and capped clouds in one batch."""
+    path = default_checkpoint("pointpncnet")
+    if path is None:
+        pytest.skip("no shipped PointPnCNet checkpoint")
+    completer = load_completer("pointpncnet", path, device="cpu", batch_size=8)
+    rng = np.random.default_rng(4)
+    clouds = []
+    for n in (5, 40, 300, 1500, 12, 800, 3, 200, 64):  # 9 clouds: a second, partial chunk of the batch
+        pts = rng.uniform(-1, 1, (n, 3)) * [0.5, 0.2, 0.15]
+        clouds.append(pts.astype(np.float32))
+    fast = completer.complete(clouds)
+    with reference_path():
+        ref = completer.complete(clouds)
+    assert len(fast) == len(ref) == len(clouds)
+    for a, b in zip(fast, ref):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b, rtol=0, atol=2e-5)
