@@ -19,12 +19,13 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.rviz")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
         (f"share/{PACKAGE}/weights", glob(f"{PACKAGE}/weights/*.safetensors") + glob(f"{PACKAGE}/weights/*.json")),
     ],
-    # Runtime libraries. Versions are pinned for reproducible venvs in requirements.txt;
-    # here they stay loose so colcon/rosdep installs are not over-constrained.
+    # Runtime libraries. requirements.txt pins the exact versions the tests run against;
+    # here lower bounds only, so colcon/rosdep installs are not over-constrained — except
+    # torch, pinned exactly: the version the tests, shipped checkpoint and benchmarks use.
     install_requires=[
         "numpy>=1.24",
         "torch==2.13.0",

@@ -1,47 +1,112 @@
-"""Start completion_node and detection_filter_node with their parameter files.
+"""Start completion_node and detection_filter_node (and, with rviz:=true, RViz).
 
     ros2 launch pcc_ros perception.launch.py points:=/velodyne_points detections:=/detector/boxes
-    ros2 launch pcc_ros perception.launch.py backend:=mirror use_sim_time:=true   # with `ros2 bag play --clock`
+    ros2 launch pcc_ros perception.launch.py namespace:=/car1 backend:=mirror device:=cuda
+    ros2 launch pcc_ros perception.launch.py score_mapping:=sigmoid use_sim_time:=true   # PointRCNN, bag + --clock
+    ros2 launch pcc_ros perception.launch.py params_file:=/path/my_params.yaml outputs:=/perception/pcc
+
+Arguments (``ros2 launch pcc_ros perception.launch.py --show-args`` lists them):
+
+* ``params_file``: one YAML file with a ``/**/completion_node`` and a
+  ``/**/detection_filter_node`` block; empty = the shipped ``config/completion.yaml`` and
+  ``config/detection_filter.yaml``.
+* ``namespace``: namespace of both nodes (relative topics resolve inside it).
+* ``points`` / ``detections``: the input topics (remaps of ``points`` / ``detections``).
+* ``outputs``: namespace of the output topics (``<outputs>/completed``,
+  ``<outputs>/completed_markers``, ``<outputs>/detections_filtered``,
+  ``<outputs>/detections_rejected``, ``<outputs>/filter_markers``); empty = the nodes' namespace.
+* ``backend``, ``device``, ``score_mapping``: override the parameter file's value for both
+  nodes; empty = keep the file's value.
+* ``use_sim_time``: ``true`` to follow ``/clock`` (``ros2 bag play --clock``).
+* ``rviz``: ``true`` also starts ``rviz2`` with ``config/pcc_ros.rviz``.
+
+Every argument is plain text turned into node options by :func:`node_options` (no ROS
+imports there), which the package's tests check without ROS.
 """
 
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
-from launch.substitutions import LaunchConfiguration
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch_ros.actions import Node
+
+#: (name, default, description) of every launch argument.
+ARGUMENTS = (
+    ("params_file", "", "YAML with /**/completion_node and /**/detection_filter_node blocks; empty = shipped config"),
+    ("namespace", "", "namespace of both nodes"),
+    ("points", "points", "input sensor_msgs/PointCloud2 topic"),
+    ("detections", "detections", "input vision_msgs/Detection3DArray topic"),
+    ("outputs", "", "namespace of the output topics; empty = the nodes' namespace"),
+    ("backend", "", "completion backend (pointpncnet, input, densify, mirror); empty = the params file's"),
+    ("device", "", "auto, cpu, cuda or cuda:N; empty = the params file's"),
+    ("score_mapping", "", "identity (probabilities) or sigmoid (logits, e.g. PointRCNN); empty = the params file's"),
+    ("use_sim_time", "false", "true: use /clock (bag replay with --clock)"),
+    ("rviz", "false", "true: also start rviz2 with config/pcc_ros.rviz"),
+)
+NODES = (("completion_node", "completion.yaml"), ("detection_filter_node", "detection_filter.yaml"))
+OUTPUT_TOPICS = ("completed", "completed_markers", "detections_filtered", "detections_rejected", "filter_markers")
+
+
+def _flag(text: str, name: str) -> bool:
+    value = text.strip().lower()
+    if value not in ("true", "false", "1", "0"):
+        raise ValueError(f"launch argument {name}:={text!r}: use true or false")
+    return value in ("true", "1")
+
+
+def node_options(args: dict, share: str) -> list:
+    """``(executable, options)`` of every process to start, from the launch arguments' text."""
+    namespace = args["namespace"].strip()
+    overrides = {"use_sim_time": _flag(args["use_sim_time"], "use_sim_time")}
+    for name in ("backend", "device", "score_mapping"):
+        if args[name].strip():
+            overrides[name] = args[name].strip()
+    remappings = [("points", args["points"]), ("detections", args["detections"])]
+    outputs = args["outputs"].strip().rstrip("/")
+    if outputs:
+        remappings += [(topic, f"{outputs}/{topic}") for topic in OUTPUT_TOPICS]
+    processes = []
+    for name, config in NODES:
+        params_file = args["params_file"].strip() or os.path.join(share, "config", config)
+        processes.append(
+            (
+                name,
+                {
+                    "package": "pcc_ros",
+                    "executable": name,
+                    "name": name,
+                    "namespace": namespace,
+                    "parameters": [params_file, overrides],
+                    "remappings": remappings,
+                    "output": "screen",
+                },
+            )
+        )
+    if _flag(args["rviz"], "rviz"):
+        processes.append(
+            (
+                "rviz2",
+                {
+                    "package": "rviz2",
+                    "executable": "rviz2",
+                    "name": "rviz2",
+                    "namespace": namespace,
+                    "arguments": ["-d", os.path.join(share, "config", "pcc_ros.rviz")],
+                    "parameters": [{"use_sim_time": overrides["use_sim_time"]}],
+                    "output": "screen",
+                },
+            )
+        )
+    return processes
+
+
+def _launch_nodes(context, *args, **kwargs):
+    values = {name: context.launch_configurations.get(name, default) for name, default, _ in ARGUMENTS}
+    share = get_package_share_directory("pcc_ros")
+    return [Node(**options) for _, options in node_options(values, share)]
 
 
 def generate_launch_description() -> LaunchDescription:
-    share = get_package_share_directory("pcc_ros")
-    points = LaunchConfiguration("points")
-    detections = LaunchConfiguration("detections")
-    use_sim_time = LaunchConfiguration("use_sim_time")
-    backend = LaunchConfiguration("backend")
-    common = {"use_sim_time": use_sim_time, "backend": backend}
-    remaps = [("points", points), ("detections", detections)]
-    return LaunchDescription(
-        [
-            DeclareLaunchArgument("points", default_value="/points", description="input PointCloud2 topic"),
-            DeclareLaunchArgument("detections", default_value="/detections", description="input Detection3DArray"),
-            DeclareLaunchArgument("use_sim_time", default_value="false", description="use /clock (bag replay)"),
-            DeclareLaunchArgument("backend", default_value="pointpncnet", description="completion backend"),
-            Node(
-                package="pcc_ros",
-                executable="completion_node",
-                name="completion_node",
-                parameters=[os.path.join(share, "config", "completion.yaml"), common],
-                remappings=remaps,
-                output="screen",
-            ),
-            Node(
-                package="pcc_ros",
-                executable="detection_filter_node",
-                name="detection_filter_node",
-                parameters=[os.path.join(share, "config", "detection_filter.yaml"), common],
-                remappings=remaps,
-                output="screen",
-            ),
-        ]
-    )
+    declared = [DeclareLaunchArgument(name, default_value=value, description=text) for name, value, text in ARGUMENTS]
+    return LaunchDescription([*declared, OpaqueFunction(function=_launch_nodes)])

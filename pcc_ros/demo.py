@@ -110,7 +110,7 @@ def completion_scores(result, frame, shapes_root: Path) -> list[dict[str, float]
         if shape is None:
             continue
         length = float(truth.size[j, 0])
-        completed = result.completed_points[result.completed_instance == det]
+        completed = result.completion_points(det)
         pred = to_canonical(completed, truth.center[j], truth.yaw[j], length)
         metrics = instance_metrics(pred, shape, length=length, with_emd=False)
         rows.append({m: float(to_metres(m, metrics[m], length)) for m in COMPLETION_METRICS})

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -23,9 +24,9 @@ import numpy as np
 from pcc_ros.errors import ConfigError, PccError
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
 from pcc_ros.msg.typestore import new_message
-from pcc_ros.nodes.params import NODE_DEFAULTS, parameter_table
-from pcc_ros.pipeline import Pipeline, PipelineConfig, build_outputs
-from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, Runtime
+from pcc_ros.nodes.params import BACKEND_PARAMETERS, NODE_DEFAULTS, check_value, parameter_specs, parameter_table
+from pcc_ros.pipeline import FrameResult, Pipeline, PipelineConfig, build_outputs
+from pcc_ros.runtime.base import RELIABLE, QoS, Runtime, Transform
 from pcc_ros.sync import LatestSlot, StampPairer
 
 MODES = ("completion", "filter")
@@ -44,24 +45,56 @@ OUTPUTS = {
     },
 }
 DIAGNOSTICS_TOPIC = "/diagnostics"
-#: build_outputs() key of each output topic.
-_OUTPUT_KEY = {"filter_markers": "completed_markers"}
+
+
+#: Parameters every ROS node has, or rclpy adds itself; never reported as unknown.
+ROS_OWN_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
+def unknown_parameters(names) -> list[str]:
+    """The names in ``names`` that are not parameters of the nodes (ROS's own and rclpy's
+    ``qos_overrides.*`` excluded), sorted: a YAML typo must be reported, not ignored."""
+    table = {spec.name for spec in parameter_table()}
+    return sorted(
+        n for n in set(names) - table if n not in ROS_OWN_PARAMETERS and not n.startswith("qos_overrides.")
+    )
 
 
 def node_parameters(values: dict[str, Any] | None = None) -> dict[str, Any]:
     """Every node parameter: the defaults of the parameter table overridden by ``values``.
 
-    Unknown names raise :class:`ConfigError` (a YAML typo must not be silently ignored).
+    Each value is checked against its spec (type, range, choices); an unknown name or a bad
+    value raises :class:`ConfigError` naming the parameter.
     """
-    table = {spec.name: spec.default for spec in parameter_table()}
-    values = dict(values or {})
-    values.pop("use_sim_time", None)
-    unknown = set(values) - set(table)
+    specs = parameter_specs()
+    values = {k: v for k, v in (values or {}).items() if k not in ROS_OWN_PARAMETERS}
+    unknown = unknown_parameters(values)
     if unknown:
-        raise ConfigError(f"unknown node parameter(s): {sorted(unknown)}")
-    merged = {**table, **values}
+        raise ConfigError(f"unknown node parameter(s): {unknown} (see docs/nodes.md for the list)")
+    merged = {name: spec.default for name, spec in specs.items()}
+    merged.update({name: check_value(specs[name], value) for name, value in values.items()})
     merged["classes"] = list(merged["classes"])
     return merged
+
+
+def pipeline_config(values: dict[str, Any]) -> PipelineConfig:
+    """The pipeline part of flat node parameters (raises :class:`ConfigError` with the reason)."""
+    return PipelineConfig.from_dict({k: v for k, v in values.items() if k not in NODE_DEFAULTS})
+
+
+def qos_of(values: dict[str, Any], topic: str) -> QoS:
+    """The :class:`QoS` of ``points``, ``detections`` or ``outputs`` from the node parameters."""
+    return QoS(
+        reliable=values[f"qos.{topic}.reliability"] == "reliable", depth=int(values[f"qos.{topic}.depth"])
+    )
+
+
+@dataclass
+class SetResult:
+    """Outcome of :meth:`NodeCore.set_parameters` (rclpy's ``SetParametersResult`` fields)."""
+
+    successful: bool
+    reason: str = ""
 
 
 class NodeCore:
@@ -94,27 +127,33 @@ class NodeCore:
         self.log = runtime.get_logger()
         values = node_parameters(parameters)
         self.parameters = values
-        config = PipelineConfig.from_dict({k: v for k, v in values.items() if k not in NODE_DEFAULTS})
+        config = pipeline_config(values)
         self.pipeline = pipeline or Pipeline(config)  # a missing/corrupt checkpoint fails here, loudly
+        self.output_frame = str(values["output_frame"])
         self.pairer: StampPairer = StampPairer(
             slop_ns=int(float(values["sync_slop"]) * 1e9), queue_size=int(values["queue_size"])
         )
         self.slot: LatestSlot = LatestSlot(self.pairer.stats)
         self.frames = 0
         self.failures = 0
+        self.no_transform = 0  # frames skipped because a transform was not available
+        self.parameter_changes = 0
+        self._parameter_lock = threading.Lock()
         self.latency_ms: list[float] = []
         remap = remap or {}
         self.topics = {name: remap.get(name, name) for name in [*INPUTS, *OUTPUTS[mode]]}
 
         self.publishers = {
-            name: runtime.create_publisher(self.topics[name], msgtype, RELIABLE)
+            name: runtime.create_publisher(self.topics[name], msgtype, qos_of(values, "outputs"))
             for name, msgtype in OUTPUTS[mode].items()
         }
         self.pub_diagnostics = runtime.create_publisher(
             DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", RELIABLE
         )
-        runtime.create_subscription(self.topics["points"], INPUTS["points"], self.on_cloud, SENSOR_DATA)
-        runtime.create_subscription(self.topics["detections"], INPUTS["detections"], self.on_detections, RELIABLE)
+        runtime.create_subscription(self.topics["points"], INPUTS["points"], self.on_cloud, qos_of(values, "points"))
+        runtime.create_subscription(
+            self.topics["detections"], INPUTS["detections"], self.on_detections, qos_of(values, "detections")
+        )
         runtime.create_timer(1.0, self.publish_diagnostics)
 
         self.threaded = threaded
@@ -123,9 +162,69 @@ class NodeCore:
         if threaded:
             self._worker = threading.Thread(target=self._work, name=f"{node_name}_worker", daemon=True)
             self._worker.start()
+        self._warn_without_tf()
         self.log.info(
             f"{mode} node ready: backend={config.backend} classes={list(config.classes)} device={config.device}"
+            + (f" output_frame={self.output_frame}" if self.output_frame else "")
         )
+
+    def _warn_without_tf(self) -> None:
+        """Say once, at start-up or when output_frame is set, that frames will be skipped without tf2."""
+        if self.output_frame and not getattr(self.runtime, "has_tf", True):
+            self.log.error(
+                f"output_frame '{self.output_frame}' needs tf2_ros, which this runtime does not have (the ROS 2 "
+                "wheels from PyPI do not ship it): every frame whose scan is not already in that frame is "
+                "skipped and counted as frames_without_transform on /diagnostics. Install ROS 2 Jazzy's "
+                "tf2_ros or leave output_frame empty."
+            )
+
+    # ------------------------------------------------------------- parameters
+
+    def set_parameters(self, changes: dict[str, Any]) -> SetResult:
+        """Validate and apply parameter changes while the node runs; all or nothing.
+
+        The rclpy host calls this from its ``add_on_set_parameters_callback``. A change of
+        the backend, checkpoint, device, precision or batch size loads the new backend
+        first and swaps it in only when it loaded; thresholds, classes and the other
+        pipeline parameters swap without a reload. The frame in flight finishes with the
+        old pipeline; the node never stops serving. Refused (with the reason, nothing
+        changed): unknown names, wrong types, values outside their range, read-only
+        parameters (QoS, queue size), a backend that does not load.
+        """
+        specs = parameter_specs()
+        changes = {k: v for k, v in changes.items() if k not in ("use_sim_time",)}
+        with self._parameter_lock:
+            try:
+                unknown = unknown_parameters(changes)
+                if unknown:
+                    raise ConfigError(f"unknown parameter(s) {unknown}")
+                checked = {name: check_value(specs[name], value) for name, value in changes.items()}
+                changed = {n: v for n, v in checked.items() if v != self.parameters[n]}
+                fixed = sorted(n for n in changed if specs[n].read_only)
+                if fixed:
+                    raise ConfigError(f"{fixed} cannot change while the node runs: restart the node")
+                if not changed:
+                    return SetResult(True, "")
+                values = {**self.parameters, **changed}
+                config = pipeline_config(values)
+                old = self.pipeline
+                reload = any(
+                    n in changed for n in BACKEND_PARAMETERS
+                ) or not isinstance(old, Pipeline)
+                pipeline = Pipeline(config) if reload else Pipeline(config, completer=old.completer)
+            except PccError as exc:
+                self.log.warning(f"parameter change refused: {exc}")
+                return SetResult(False, str(exc))
+            self.pipeline = pipeline  # one reference swap: the worker picks it up with its next frame
+            self.parameters = values
+            self.output_frame = str(values["output_frame"])
+            self.pairer.slop_ns = int(float(values["sync_slop"]) * 1e9)
+            self.parameter_changes += 1
+        summary = ", ".join(f"{n}={v!r}" for n, v in sorted(changed.items()))
+        self.log.info(f"parameters changed: {summary}" + (" (backend reloaded)" if reload else ""))
+        if "output_frame" in changed:
+            self._warn_without_tf()
+        return SetResult(True, "")
 
     # ------------------------------------------------------------- callbacks
 
@@ -171,13 +270,21 @@ class NodeCore:
     def process(self, cloud, detections) -> dict[str, Any] | None:
         """Run one pair through the pipeline and publish; returns the published messages (None: skipped)."""
         tic = time.perf_counter()
+        pipeline, output_frame = self.pipeline, self.output_frame  # one consistent set per frame
         if detections.header.frame_id and detections.header.frame_id != cloud.header.frame_id:
             detections = self._detections_in_frame(detections, cloud)
             if detections is None:
                 return None
-        result, originals = self.pipeline.process_messages(cloud, detections)
-        outputs = build_outputs(result, originals, self.runtime.classes, detections_header=cloud.header)
-        published = {name: outputs[_OUTPUT_KEY.get(name, name)] for name in self.publishers}
+        result, originals = pipeline.process_messages(cloud, detections)
+        header = cloud.header
+        if output_frame and output_frame != result.frame_id:
+            moved = self._to_output_frame(result, originals, output_frame)
+            if moved is None:
+                return None
+            result, originals = moved
+            header = make_header(output_frame, result.stamp_ns, self.runtime.classes)
+        outputs = build_outputs(result, originals, self.runtime.classes, detections_header=header)
+        published = {name: outputs[name] for name in self.publishers}
         for name, msg in published.items():
             self.publishers[name].publish(msg)
         self.frames += 1
@@ -187,16 +294,37 @@ class NodeCore:
             self.log.debug(f"frame {result.stamp_ns}: skipped {result.skipped}")
         return published
 
+    def _lookup(self, target: str, source: str, stamp_ns: int):
+        """The runtime's transform, or None (counted; the reason logged once per frame pair)."""
+        tf = self.runtime.lookup_transform(target, source, stamp_ns)
+        if tf is None:
+            self.no_transform += 1
+            self.failures += 1
+            self.log.warning(f"no transform '{source}' -> '{target}'; frame skipped")
+        return tf
+
+    def _to_output_frame(self, result: FrameResult, originals, frame: str):
+        """The frame's result and detection messages re-expressed in ``frame``, or None (no transform)."""
+        from pcc_ros.geometry.transforms import transform_boxes
+
+        tf = self._lookup(frame, result.frame_id, result.stamp_ns)
+        if tf is None:
+            return None
+        matrix = tf.matrix()
+        points = (result.completed_points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]).astype(np.float32)
+        moved = replace(
+            result, frame_id=frame, detections=transform_boxes(result.detections, matrix), completed_points=points
+        )
+        return moved, transform_detections(originals, tf, frame)
+
     def _detections_in_frame(self, detections, cloud):
         """Detections re-expressed in the cloud's frame through the runtime's transforms, or None (logged)."""
         from pcc_ros.geometry.transforms import transform_boxes
         from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 
         source, target = detections.header.frame_id, cloud.header.frame_id
-        tf = self.runtime.lookup_transform(target, source, stamp_to_ns(detections.header.stamp))
+        tf = self._lookup(target, source, stamp_to_ns(detections.header.stamp))
         if tf is None:
-            self.failures += 1
-            self.log.warning(f"no transform '{source}' -> '{target}'; frame skipped")
             return None
         boxes = boxes_from_detection_array(detections, skip_invalid=True)
         moved = transform_boxes(boxes, tf.matrix())
@@ -216,6 +344,9 @@ class NodeCore:
             "dropped_clouds": stats.dropped_clouds,
             "dropped_detections": stats.dropped_detections,
             "dropped_pairs_newest_wins": stats.dropped_pairs,
+            "frames_without_transform": self.no_transform,
+            "parameter_changes": self.parameter_changes,
+            "backend": self.parameters["backend"],
             "latency_p50_ms": f"{np.percentile(latency, 50):.1f}",
             "latency_p95_ms": f"{np.percentile(latency, 95):.1f}",
         }
@@ -252,6 +383,45 @@ class NodeCore:
         self.slot.close()
         if self._worker is not None:
             self._worker.join(timeout=2.0)
+
+
+def transform_detections(detections, transform: Transform, frame: str) -> list:
+    """Copies of ``vision_msgs/Detection3D`` messages (any class flavour) whose box and
+    hypothesis poses are moved by ``transform``; ids, labels, scores and sizes untouched."""
+    import copy
+
+    matrix = transform.matrix()
+    rotation, translation = matrix[:3, :3], matrix[:3, 3]
+    turn = np.asarray(transform.rotation, dtype=np.float64)
+    turn = turn / np.linalg.norm(turn)
+
+    def move(pose) -> None:
+        p, o = pose.position, pose.orientation
+        x, y, z = rotation @ (p.x, p.y, p.z) + translation
+        p.x, p.y, p.z = float(x), float(y), float(z)
+        o.x, o.y, o.z, o.w = (float(v) for v in _quaternion_product(turn, (o.x, o.y, o.z, o.w)))
+
+    out = []
+    for detection in detections:
+        moved = copy.deepcopy(detection)
+        moved.header.frame_id = frame
+        move(moved.bbox.center)
+        for result in moved.results:
+            move(result.pose.pose)
+        out.append(moved)
+    return out
+
+
+def _quaternion_product(a, b) -> tuple[float, float, float, float]:
+    """Hamilton product ``a * b`` of x, y, z, w quaternions."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
 
 
 def _byte_is_bytes(classes) -> bool:

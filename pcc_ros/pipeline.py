@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,16 +22,38 @@ import numpy as np
 
 from pcc_ros.boxes import Boxes, class_mask
 from pcc_ros.errors import ConfigError
-from pcc_ros.filter import FilterConfig, mismatch_scores, reject_mask
+from pcc_ros.filter import FilterConfig, map_scores, mismatch_scores, reject_mask
 from pcc_ros.geometry.boxes import crop_canonical
 from pcc_ros.geometry.canonical import from_canonical
 
 log = logging.getLogger(__name__)
 
-#: Layout of the published completed cloud.
-COMPLETED_CLOUD_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("instance", "<i4")])
+#: Layout of the published completed cloud (28 bytes a point): ``instance`` = index of the
+#: detection in its array (-1 for raw scan points), ``source`` = :data:`SOURCE_OBSERVED` (a
+#: LiDAR return) or :data:`SOURCE_COMPLETED` (made by the backend), ``rgb`` = a per-instance
+#: colour packed as RViz's float ``rgb`` (0x00RRGGBB; raw scan points grey), ``score`` = the
+#: detection's score as the detector gave it (NaN for raw scan points).
+COMPLETED_CLOUD_DTYPE = np.dtype(
+    {
+        "names": ["x", "y", "z", "instance", "rgb", "score", "source"],
+        "formats": ["<f4", "<f4", "<f4", "<i4", "<f4", "<f4", "u1"],
+        "offsets": [0, 4, 8, 12, 16, 20, 24],
+        "itemsize": 28,
+    }
+)
 #: ``instance`` value of raw scan points in the completed cloud (``include_input_points``).
 RAW_POINT_INSTANCE = -1
+#: ``source`` values of the completed cloud.
+SOURCE_OBSERVED, SOURCE_COMPLETED = 0, 1
+#: Instance colours (tab10), cycled by detection index; raw scan points are grey.
+INSTANCE_PALETTE = np.array(
+    [
+        [31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
+        [140, 86, 75], [227, 119, 194], [188, 189, 34], [23, 190, 207], [127, 127, 127],
+    ],
+    dtype=np.uint32,
+)
+RAW_POINT_RGB = (160, 160, 160)
 
 
 @dataclass(frozen=True)
@@ -46,8 +68,11 @@ class PipelineConfig:
     max_instances: int = 32
     box_margin: float = 0.1
     ground_margin: float = 0.05
+    half_precision: bool = False
     batch_size: int = 32
     include_input_points: bool = False
+    include_observed_points: bool = False
+    class_thresholds: str = ""
     filter: FilterConfig = field(default_factory=FilterConfig)
 
     def __post_init__(self) -> None:
@@ -56,6 +81,15 @@ class PipelineConfig:
         if self.box_margin < 0 or self.ground_margin < 0:
             raise ConfigError("box_margin and ground_margin must be >= 0")
         object.__setattr__(self, "classes", tuple(str(c) for c in self.classes))
+        parse_class_thresholds(self.class_thresholds)  # refuse a malformed map now, not per frame
+
+    def detection_thresholds(self, labels: np.ndarray) -> np.ndarray:
+        """The filter's detection-score threshold of each label: ``class_thresholds`` where it
+        names the class (same matching as ``classes``), ``filter.detection_threshold`` elsewhere."""
+        out = np.full(len(labels), float(self.filter.detection_threshold))
+        for name, threshold in parse_class_thresholds(self.class_thresholds).items():
+            out[class_mask(labels, (name,))] = threshold
+        return out
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> PipelineConfig:
@@ -90,12 +124,52 @@ class PipelineConfig:
 
 #: Parameters the node shells read themselves (pairing, queues), with their defaults; the
 #: pipeline ignores them (and ROS's own ``use_sim_time``).
-NODE_DEFAULTS: dict[str, Any] = {"sync_slop": 0.05, "queue_size": 5}
+NODE_DEFAULTS: dict[str, Any] = {
+    "sync_slop": 0.05,
+    "queue_size": 5,
+    "output_frame": "",
+    "qos.points.reliability": "best_effort",
+    "qos.points.depth": 5,
+    "qos.detections.reliability": "reliable",
+    "qos.detections.depth": 10,
+    "qos.outputs.reliability": "reliable",
+    "qos.outputs.depth": 10,
+}
 NODE_ONLY_PARAMETERS = frozenset({*NODE_DEFAULTS, "use_sim_time"})
 
 
+def parse_class_thresholds(text: str) -> dict[str, float]:
+    """``"Van:0.6, Pedestrian:0.3"`` -> ``{"Van": 0.6, "Pedestrian": 0.3}`` (``""`` -> ``{}``).
+
+    Raises :class:`ConfigError` naming the bad entry (no colon, not a number, outside [0, 1]).
+    """
+    out: dict[str, float] = {}
+    for entry in str(text).split(","):
+        entry = entry.strip()
+        if not entry:
+            continue
+        name, sep, value = entry.rpartition(":")
+        try:
+            threshold = float(value)
+        except ValueError:
+            threshold = float("nan")
+        if not sep or not name.strip() or not 0.0 <= threshold <= 1.0:
+            raise ConfigError(
+                f"class_thresholds: bad entry {entry!r}; expected 'Class:threshold' with a threshold in [0, 1], "
+                "entries separated by commas (e.g. 'Van:0.6, Truck:0.7')"
+            )
+        out[name.strip()] = threshold
+    return out
+
+
 def read_parameters(path: str | Path, node_name: str | None = None) -> dict[str, Any]:
-    """The ``ros__parameters`` block of one node in a ROS 2 YAML parameter file."""
+    """The ``ros__parameters`` of one node in a ROS 2 YAML parameter file, dotted names.
+
+    As ROS 2 does, the blocks that apply to the node are merged, most specific last:
+    ``/**``, ``/**/<node>``, ``<node>`` and ``/<node>`` (the shipped files use
+    ``/**/<node>`` so they apply under any namespace). Without ``node_name`` the first
+    block of the file is read.
+    """
     import yaml
 
     path = Path(path)
@@ -103,14 +177,39 @@ def read_parameters(path: str | Path, node_name: str | None = None) -> dict[str,
         document = yaml.safe_load(path.read_text()) or {}
     except (OSError, yaml.YAMLError) as exc:
         raise ConfigError(f"{path}: cannot read parameter file ({exc})") from exc
+    if not isinstance(document, dict) or not document:
+        raise ConfigError(f"{path}: no node in parameter file")
     if node_name is None:
-        if not document:
-            raise ConfigError(f"{path}: no node in parameter file")
-        node_name = next(iter(document))
-    block = document.get(node_name) or document.get(f"/{node_name}") or document.get("/**")
-    if not isinstance(block, dict) or "ros__parameters" not in block:
-        raise ConfigError(f"{path}: no '{node_name}: ros__parameters:' block")
-    return dict(block["ros__parameters"])
+        keys = [next(iter(document))]
+        node_name = keys[0].rsplit("/", 1)[-1]
+    else:
+        keys = ["/**", f"/**/{node_name}", node_name, f"/{node_name}"]
+    values: dict[str, Any] = {}
+    found = False
+    for key in keys:
+        block = document.get(key)
+        if block is None:
+            continue
+        if not isinstance(block, dict) or not isinstance(block.get("ros__parameters"), dict):
+            raise ConfigError(f"{path}: '{key}' has no 'ros__parameters:' map")
+        values.update(flatten_parameters(block["ros__parameters"]))
+        found = True
+    if not found:
+        raise ConfigError(f"{path}: no '/**/{node_name}: ros__parameters:' block (nodes: {sorted(document)})")
+    return values
+
+
+def flatten_parameters(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested YAML maps -> dotted ROS parameter names (``qos: {points: {depth: 5}}`` ->
+    ``qos.points.depth``), as ROS 2 reads a parameter file."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten_parameters(value, f"{name}."))
+        else:
+            out[name] = value
+    return out
 
 
 @dataclass
@@ -136,6 +235,20 @@ class FrameResult:
     status: np.ndarray  # (N,) object
     timings_ms: dict[str, float] = field(default_factory=dict)
     skipped: dict[str, int] = field(default_factory=dict)
+    #: (M,) uint8 per completed-cloud point: SOURCE_COMPLETED or SOURCE_OBSERVED (None: all completed)
+    completed_source: np.ndarray | None = None
+    #: (N,) detection scores after ``score_mapping`` and the threshold each was held to (None: not judged)
+    probability: np.ndarray | None = None
+    threshold: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.completed_source is None:
+            self.completed_source = np.full(len(self.completed_points), SOURCE_COMPLETED, dtype=np.uint8)
+
+    def completion_points(self, index: int) -> np.ndarray:
+        """The points the backend made for detection ``index`` (observed points excluded)."""
+        mine = (self.completed_instance == index) & (self.completed_source == SOURCE_COMPLETED)
+        return self.completed_points[mine]
 
     @property
     def keep(self) -> np.ndarray:
@@ -173,7 +286,9 @@ class Pipeline:
     def _runtime_options(config: PipelineConfig) -> dict[str, Any]:
         from pcc_ros.models.base import get_backend
 
-        return {"batch_size": config.batch_size} if get_backend(config.backend).learned else {}
+        if not get_backend(config.backend).learned:
+            return {}  # baselines have no network: batch size and precision do not apply
+        return {"batch_size": config.batch_size, "half_precision": config.half_precision}
 
     # ------------------------------------------------------------------ core
 
@@ -196,7 +311,7 @@ class Pipeline:
             dropped = candidates[order[cfg.max_instances :]]
             _count(skipped, "over max_instances", len(dropped))
             candidates = np.sort(candidates[order[: cfg.max_instances]])
-        _, canonical = crop_canonical(points, detections[candidates], cfg.box_margin, cfg.ground_margin)
+        crop_index, canonical = crop_canonical(points, detections[candidates], cfg.box_margin, cfg.ground_margin)
         counts = np.array([len(c) for c in canonical], dtype=np.int64)
         num_points[candidates] = counts
         timings["crop_ms"] = _ms(tic)
@@ -223,8 +338,15 @@ class Pipeline:
         if crops:
             mismatch[selected] = mismatch_scores(crops, completions, cfg.filter)
         judged = np.isfinite(mismatch)
-        rejected = reject_mask(mismatch, detections.score, cfg.filter)
+        threshold = cfg.detection_thresholds(detections.label)
+        rejected = np.zeros(n, dtype=bool)
+        for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
+            group = threshold == value
+            rejected[group] = reject_mask(
+                mismatch[group], detections.score[group], replace(cfg.filter, detection_threshold=float(value))
+            )
         status[judged] = np.where(rejected[judged], "rejected", "kept")
+        probability = map_scores(detections.score, cfg.filter.score_mapping)
         timings["filter_ms"] = _ms(tic)
 
         tic = time.perf_counter()
@@ -234,11 +356,23 @@ class Pipeline:
         ]
         parts = [s.astype(np.float32) for s in sensor]
         instance = [np.full(len(s), i, dtype=np.int32) for s, i in zip(sensor, selected)]
+        source = [np.full(len(s), SOURCE_COMPLETED, dtype=np.uint8) for s in sensor]
+        observed = np.zeros(len(points), dtype=bool)  # raw points already published with their instance
+        if cfg.include_observed_points and len(selected):
+            chosen = [crop_index[k] for k in np.flatnonzero(enough)]
+            index = np.concatenate(chosen)
+            observed[index] = True
+            parts.append(np.ascontiguousarray(points[index, :3], dtype=np.float32))
+            instance.append(np.repeat(selected.astype(np.int32), [len(c) for c in chosen]))
+            source.append(np.full(len(index), SOURCE_OBSERVED, dtype=np.uint8))
         if cfg.include_input_points:
-            parts.insert(0, np.ascontiguousarray(points[:, :3], dtype=np.float32))
-            instance.insert(0, np.full(len(points), RAW_POINT_INSTANCE, dtype=np.int32))
+            raw = np.flatnonzero(~observed)
+            parts.insert(0, np.ascontiguousarray(points[raw, :3], dtype=np.float32))
+            instance.insert(0, np.full(len(raw), RAW_POINT_INSTANCE, dtype=np.int32))
+            source.insert(0, np.full(len(raw), SOURCE_OBSERVED, dtype=np.uint8))
         completed = np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
         instance_ids = np.concatenate(instance) if instance else np.zeros(0, np.int32)
+        sources = np.concatenate(source) if source else np.zeros(0, np.uint8)
         timings["uncanonical_ms"] = _ms(tic)
 
         return FrameResult(
@@ -255,6 +389,9 @@ class Pipeline:
             status=status,
             timings_ms=timings,
             skipped=skipped,
+            completed_source=sources,
+            probability=probability,
+            threshold=threshold,
         )
 
     # ------------------------------------------------------------------ messages
@@ -300,23 +437,26 @@ def build_outputs(
 ) -> dict[str, Any]:
     """The messages a node publishes for one frame, keyed by default topic name.
 
-    ``completed`` (PointCloud2 x, y, z, instance), ``completed_markers`` (MarkerArray:
-    boxes coloured by filter decision), ``detections_filtered`` / ``detections_rejected``
-    (Detection3DArray: the original detection messages when given, so every hypothesis
-    and id survives untouched, else re-encoded from the boxes).
+    ``completed`` (PointCloud2 of :data:`COMPLETED_CLOUD_DTYPE`: x, y, z, instance, rgb,
+    score, source), ``completed_markers`` (MarkerArray: boxes coloured by filter decision,
+    text "<label> <score>"), ``filter_markers`` (the same boxes, text "<label> p=<mapped
+    score> m=<mismatch> <decision>"), ``detections_filtered`` / ``detections_rejected``
+    (Detection3DArray: the original detection messages when given, so every hypothesis and
+    id survives untouched, else re-encoded from the boxes).
     """
     from pcc_ros.msg.detections import detection_array_from_boxes, marker_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
     from pcc_ros.msg.stamps import make_header
     from pcc_ros.msg.typestore import new_message
 
-    cloud = np.zeros(len(result.completed_points), dtype=COMPLETED_CLOUD_DTYPE)
-    cloud["x"], cloud["y"], cloud["z"] = result.completed_points.T
-    cloud["instance"] = result.completed_instance
     outputs = {
-        "completed": create_cloud(cloud, None, result.frame_id, result.stamp_ns, classes),
+        "completed": create_cloud(completed_cloud_array(result), None, result.frame_id, result.stamp_ns, classes),
         "completed_markers": marker_array_from_boxes(
             result.detections, result.frame_id, result.stamp_ns, status=result.status, ns="pcc", classes=classes
+        ),
+        "filter_markers": marker_array_from_boxes(
+            result.detections, result.frame_id, result.stamp_ns, status=result.status, ns="pcc_filter",
+            classes=classes, texts=filter_texts(result),
         ),
     }
     keep = result.keep
@@ -332,6 +472,34 @@ def build_outputs(
                 result.detections[mask], result.frame_id, result.stamp_ns, classes
             )
     return outputs
+
+
+def completed_cloud_array(result: FrameResult) -> np.ndarray:
+    """The structured points of the ``completed`` cloud (:data:`COMPLETED_CLOUD_DTYPE`)."""
+    instance = result.completed_instance
+    cloud = np.zeros(len(result.completed_points), dtype=COMPLETED_CLOUD_DTYPE)
+    cloud["x"], cloud["y"], cloud["z"] = result.completed_points.T
+    cloud["instance"] = instance
+    cloud["source"] = result.completed_source
+    mine = instance >= 0
+    rgb = np.full(len(instance), (RAW_POINT_RGB[0] << 16) | (RAW_POINT_RGB[1] << 8) | RAW_POINT_RGB[2], np.uint32)
+    colour = INSTANCE_PALETTE[instance[mine] % len(INSTANCE_PALETTE)]
+    rgb[mine] = (colour[:, 0] << 16) | (colour[:, 1] << 8) | colour[:, 2]
+    cloud["rgb"] = rgb.view(np.float32)
+    score = np.full(len(instance), np.nan, dtype=np.float32)
+    score[mine] = result.detections.score[instance[mine]]
+    cloud["score"] = score
+    return cloud
+
+
+def filter_texts(result: FrameResult) -> list[str]:
+    """One RViz label per detection: class, mapped score, mismatch score and decision."""
+    probability = result.probability if result.probability is not None else result.detections.score
+    texts = []
+    for label, p, m, status in zip(result.detections.label, probability, result.mismatch, result.status):
+        mismatch = f"m={m:.2f}" if np.isfinite(m) else "m=-"
+        texts.append(f"{label} p={p:.2f} {mismatch} {status}")
+    return texts
 
 
 def _count(counter: dict[str, int], reason: str, n: int) -> None:

@@ -13,7 +13,8 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.msg.typestore import get_typestore
-from pcc_ros.node_core import NodeCore, node_parameters
+from pcc_ros.node_core import NodeCore, node_parameters, unknown_parameters
+from pcc_ros.nodes.params import check_value, parameter_table
 from pcc_ros.pipeline import Pipeline, PipelineConfig, build_outputs
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, QoS, Transform
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
@@ -226,3 +227,198 @@ def test_parameters_are_checked():
         NodeCore(LocalRuntime(LocalGraph(), "n"), "n", "completer", {"backend": "mirror"})
     values = node_parameters({"backend": "mirror", "use_sim_time": True})
     assert values["backend"] == "mirror" and values["sync_slop"] == 0.05
+
+
+# ------------------------------------------------------------------ parameters (issue 21)
+
+
+def test_unknown_and_bad_parameters_are_refused_with_the_name():
+    with pytest.raises(ConfigError, match="'backendd'"):
+        node_parameters({"backendd": "mirror"})
+    with pytest.raises(ConfigError, match="'min_points' must be an integer"):
+        node_parameters({"min_points": "many"})
+    with pytest.raises(ConfigError, match=r"'match_threshold' = 1.5 is outside \[0.0, 1.0\]"):
+        node_parameters({"match_threshold": 1.5})
+    with pytest.raises(ConfigError, match=r"'qos\.points\.reliability' = 'sometimes' is not one of"):
+        node_parameters({"qos.points.reliability": "sometimes"})
+    # ROS's own and rclpy's QoS-override parameters are not ours to refuse
+    assert unknown_parameters(["use_sim_time", "qos_overrides./points.subscription.depth", "x"]) == ["x"]
+    assert node_parameters({"match_threshold": 1})["match_threshold"] == 1.0  # YAML's 1 for 1.0
+
+
+def test_every_parameter_has_a_description_and_its_default_passes_its_own_rule():
+    specs = parameter_table()
+    for spec in specs:
+        assert spec.description, spec.name
+        check_value(spec, spec.default)
+        if spec.range is not None:
+            assert spec.type_name in ("integer", "double") and spec.constraints.startswith(str(spec.range[0]))
+    names = {s.name for s in specs}
+    assert {"output_frame", "half_precision", "class_thresholds", "qos.points.reliability"} <= names
+    assert {s.name for s in specs if s.read_only} >= {"qos.points.depth", "qos.detections.reliability", "queue_size"}
+
+
+def test_qos_parameters_reach_the_subscriptions_and_publishers(graph):
+    core = _node(graph, "completion", **{"qos.points.reliability": "reliable", "qos.points.depth": 2,
+                                         "qos.outputs.reliability": "best_effort", "qos.outputs.depth": 3})
+    subs = {topic: s[0].qos for topic, s in graph._subs.items()}
+    assert subs["/points"] == QoS(reliable=True, depth=2)
+    assert subs["/detections"] == QoS(reliable=True, depth=10)
+    assert core.publishers["completed"].qos == QoS(reliable=False, depth=3)
+    # A reliable scan subscription no longer hears a best-effort (sensor-data) publisher.
+    cloud, _ = _messages(1_000_000_000)
+    LocalRuntime(graph, "driver").create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
+    assert core.pairer.stats.paired == 0 and len(core.pairer._left) == 0
+
+
+def test_set_parameters_swaps_thresholds_and_backend_without_dropping_the_node(graph):
+    core = _node(graph, "filter")
+    rejected = _tap(graph, "/detections_rejected", DETS)
+    driver = LocalRuntime(graph, "driver")
+    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
+    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+
+    def frame(k):
+        cloud, dets = _messages(k * 1_000_000_000)
+        pub_cloud.publish(cloud)
+        pub_dets.publish(dets)
+        return [d.id for d in rejected[-1].detections]
+
+    assert frame(1) == ["c"]  # the empty low-score (0.2) box
+    completer = core.pipeline.completer
+    assert core.set_parameters({"detection_threshold": 0.1}).successful
+    assert core.pipeline.completer is completer  # thresholds swap without reloading the backend
+    assert frame(2) == []  # 0.2 >= 0.1: kept by score alone
+    # A bad value is refused with its reason and changes nothing.
+    result = core.set_parameters({"detection_threshold": 0.9, "match_threshold": 7.0})
+    assert not result.successful and "match_threshold" in result.reason
+    assert core.parameters["detection_threshold"] == 0.1
+    refused = core.set_parameters({"backend": "no_such_backend"})
+    assert not refused.successful and "no_such_backend" in refused.reason
+    assert core.pipeline.completer is completer
+    assert not core.set_parameters({"qos.points.depth": 9}).successful  # read-only: restart the node
+    # A new backend loads and serves the next frame.
+    assert core.set_parameters({"backend": "input", "detection_threshold": 0.5}).successful
+    assert core.pipeline.completer.name == "input" and core.parameters["backend"] == "input"
+    frame(3)
+    assert core.frames == 3 and core.parameter_changes == 2
+    values = {kv.key: kv.value for kv in core.diagnostics_message().status[0].values}
+    assert values["backend"] == "input" and values["parameter_changes"] == "2"
+
+
+def test_class_thresholds_override_the_detection_threshold_per_class(graph):
+    with pytest.raises(ConfigError, match=r"'Car=0\.3'"):
+        _node(graph, "filter", class_thresholds="Car=0.3")
+    core = _node(graph, "filter", class_thresholds="Car:0.1")
+    rejected = _tap(graph, "/detections_rejected", DETS)
+    driver = LocalRuntime(graph, "driver")
+    cloud, dets = _messages(1_000_000_000)
+    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
+    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    assert rejected[-1].detections == []  # "c" scores 0.2 >= the Car threshold 0.1
+    assert not core.set_parameters({"class_thresholds": "Car:2"}).successful
+    assert core.set_parameters({"class_thresholds": "Van:0.1"}).successful
+    cloud, dets = _messages(2_000_000_000)
+    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
+    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    assert [d.id for d in rejected[-1].detections] == ["c"]
+
+
+def test_output_frame_moves_every_output_through_the_transform(graph):
+    core = _node(graph, "filter", output_frame="map")
+    kept = _tap(graph, "/detections_filtered", DETS)
+    markers = _tap(graph, "/filter_markers", "visualization_msgs/msg/MarkerArray")
+    driver = LocalRuntime(graph, "driver")
+    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
+    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    cloud, dets = _messages(1_000_000_000)
+    pub_cloud.publish(cloud)
+    pub_dets.publish(dets)
+    assert not kept and core.no_transform == 1  # no velodyne -> map yet: skipped and counted
+    # map <- velodyne: 90 degrees about z, then 100 m along x
+    quarter = (0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4))
+    graph.set_transform("map", "velodyne", Transform((100.0, 0.0, 0.0), quarter))
+    cloud, dets = _messages(2_000_000_000)
+    pub_cloud.publish(cloud)
+    pub_dets.publish(dets)
+    assert len(kept) == 1 and kept[0].header.frame_id == "map" and markers[-1].markers[1].header.frame_id == "map"
+    moved = boxes_from_detection_array(kept[0])
+    _, boxes = _scene()
+    expected = np.c_[100.0 - boxes.center[:, 1], boxes.center[:, 0], boxes.center[:, 2]]
+    index = {t: i for i, t in enumerate(boxes.track_id)}
+    rows = [index[t] for t in moved.track_id]
+    np.testing.assert_allclose(moved.center, expected[rows], atol=1e-6)
+    np.testing.assert_allclose(np.cos(moved.yaw - boxes.yaw[rows] - np.pi / 2), 1.0, atol=1e-9)
+    hypothesis = kept[0].detections[0].results[0].pose.pose.position
+    assert (hypothesis.x, hypothesis.y) == pytest.approx(tuple(moved.center[0, :2]))
+
+
+def test_output_frame_without_tf_says_so_once_and_counts_skipped_frames(graph, caplog):
+    runtime = LocalRuntime(graph, "filter_node")
+    runtime.has_tf = False  # what the rclpy host reports when tf2_ros is not installed
+    with caplog.at_level(logging.ERROR, logger="pcc_ros.filter_node"):
+        core = NodeCore(runtime, "filter_node", "filter", {"backend": "mirror", "output_frame": "map"}, threaded=False)
+    assert sum("needs tf2_ros" in r.message for r in caplog.records) == 1
+    driver = LocalRuntime(graph, "driver")
+    for k in (1, 2):
+        cloud, dets = _messages(k * 1_000_000_000)
+        driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
+        driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    values = core.diagnostics_values()
+    assert values["frames_without_transform"] == "2" and values["frames"] == "0"
+
+
+def test_completed_cloud_carries_instance_source_colour_and_score(graph):
+    _node(graph, "completion", include_observed_points=True)
+    completed = _tap(graph, "/completed", CLOUD)
+    driver = LocalRuntime(graph, "driver")
+    cloud, dets = _messages(1_000_000_000)
+    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
+    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    from pcc_ros.msg.pointcloud2 import structured_view
+
+    points = structured_view(completed[0])
+    assert [f.name for f in completed[0].fields] == ["x", "y", "z", "instance", "rgb", "score", "source"]
+    for instance, score in ((0, 0.9), (1, 0.8)):
+        mine = points[points["instance"] == instance]
+        observed = mine[mine["source"] == 0]
+        made = mine[mine["source"] == 1]
+        assert len(observed) >= 250 and len(made) > 0  # the car's own returns and the backend's points
+        assert np.all(mine["score"] == np.float32(score))
+        assert len(np.unique(mine["rgb"].view(np.uint32))) == 1
+    colours = {int(points["rgb"].view(np.uint32)[points["instance"] == i][0]) for i in (0, 1)}
+    assert len(colours) == 2  # one colour per instance
+
+
+def test_filter_markers_read_the_mapped_score_mismatch_and_decision(graph):
+    _node(graph, "filter", score_mapping="sigmoid", detection_threshold=0.6)
+    markers = _tap(graph, "/filter_markers", "visualization_msgs/msg/MarkerArray")
+    driver = LocalRuntime(graph, "driver")
+    cloud, dets = _messages(1_000_000_000)
+    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
+    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    texts = [m.text for m in markers[0].markers if m.ns.endswith("_text")]
+    assert len(texts) == 3
+    assert texts[2] == "Car p=0.55 m=1.00 rejected"  # sigmoid(0.2) = 0.55 < 0.6, empty box
+    assert texts[0].startswith("Car p=0.71 m=") and texts[0].endswith(" kept")
+
+
+def test_docs_show_the_parameter_table_as_the_code_defines_it():
+    from pathlib import Path
+
+    from pcc_ros.nodes.params import markdown_table
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "nodes.md").read_text()
+    assert markdown_table() in doc, "docs/nodes.md is out of date: paste pcc_ros.nodes.params.markdown_table()"
+
+
+def test_half_precision_runs_the_shipped_network_under_autocast():
+    points, boxes = _scene()
+    full = Pipeline(PipelineConfig(backend="pointpncnet", device="cpu"))
+    half = Pipeline(PipelineConfig(backend="pointpncnet", device="cpu", half_precision=True))
+    assert half.completer.half_precision and not full.completer.half_precision
+    a, b = full.process(points, boxes), half.process(points, boxes)
+    assert a.completed_points.shape == b.completed_points.shape
+    assert not np.array_equal(a.completed_points, b.completed_points)  # really ran in bfloat16
+    # bfloat16 keeps ~3 significant digits: the completed cars agree to millimetres (median)
+    assert np.median(np.abs(a.completed_points - b.completed_points)) < 0.01

@@ -88,7 +88,7 @@ def test_messages_round_trip_and_outputs(pipeline):
     result, originals = pipeline.process_messages(cloud, dets)
     outputs = build_outputs(result, originals)
     completed = outputs["completed"]
-    assert [f.name for f in completed.fields] == ["x", "y", "z", "instance"]
+    assert [f.name for f in completed.fields] == ["x", "y", "z", "instance", "rgb", "score", "source"]
     assert read_xyz(completed).shape == (len(result.completed_points), 3)
     kept = boxes_from_detection_array(outputs["detections_filtered"])
     rejected = boxes_from_detection_array(outputs["detections_rejected"])

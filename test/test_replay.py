@@ -70,7 +70,9 @@ def test_cli_replay_with_filter(kitti_bag, tmp_path, capsys):
     out = tmp_path / "cli"
     code = main(["replay", str(kitti_bag), "--out", str(out), "--backend", "densify", "--filter", "--no-copy-inputs"])
     assert code == 0 and "replay timing" in capsys.readouterr().out
-    assert set(read_topics(out)) == {"/completed", "/completed_markers", "/detections_filtered", "/detections_rejected"}
+    assert set(read_topics(out)) == {
+        "/completed", "/completed_markers", "/detections_filtered", "/detections_rejected", "/filter_markers"
+    }
 
 
 def test_shipped_config_loads_with_overrides():

@@ -30,6 +30,7 @@ COMPLETION_TOPICS = {
 FILTER_TOPICS = {
     "/detections_filtered": "vision_msgs/msg/Detection3DArray",
     "/detections_rejected": "vision_msgs/msg/Detection3DArray",
+    "/filter_markers": "visualization_msgs/msg/MarkerArray",
 }
 
 
@@ -182,7 +183,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, help="node parameter YAML (default: the shipped config/*.yaml)")
     parser.add_argument("--backend", help="override the config's backend")
     parser.add_argument("--checkpoint", help="override the config's checkpoint")
-    parser.add_argument("--device", help="auto | cpu | cuda")
+    parser.add_argument("--device", help="auto | cpu | cuda | cuda:N")
+    parser.add_argument(
+        "--score-mapping", choices=("identity", "sigmoid"),
+        help="override the config's score_mapping (sigmoid for logits, e.g. PointRCNN)",
+    )
     parser.add_argument("--filter", action="store_true", help="also record the detection filter's outputs")
     parser.add_argument("--points-topic", default="/points")
     parser.add_argument("--detections-topic", default="/detections", help="e.g. /ground_truth to complete GT boxes")
@@ -192,16 +197,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def load_config(config: Path | None, with_filter: bool, **overrides):
-    """PipelineConfig from a YAML file (default: the package's shipped config) plus overrides."""
-    from pcc_ros.pipeline import NODE_DEFAULTS, PipelineConfig, read_parameters
+    """PipelineConfig from a YAML file (default: the package's shipped config) plus overrides.
+
+    Every value goes through the nodes' own parameter check, so a file a node would refuse
+    (unknown key, wrong type, value out of range) is refused here with the same message.
+    """
+    from pcc_ros.errors import ConfigError
+    from pcc_ros.node_core import node_parameters, pipeline_config
+    from pcc_ros.pipeline import read_parameters
 
     if config is None:
         name = "detection_filter.yaml" if with_filter else "completion.yaml"
         config = shipped_config_dir() / name
     values = read_parameters(config)
     values.update({k: v for k, v in overrides.items() if v is not None})
-    slop = float(values.get("sync_slop", NODE_DEFAULTS["sync_slop"]))
-    return PipelineConfig.from_dict(values), slop
+    try:
+        values = node_parameters(values)
+        return pipeline_config(values), float(values["sync_slop"])
+    except ConfigError as exc:
+        raise ConfigError(f"{config}: {exc}") from exc
 
 
 def shipped_config_dir() -> Path:
@@ -219,7 +233,8 @@ def run(args: argparse.Namespace) -> int:
     from pcc_ros.pipeline import Pipeline
 
     config, slop = load_config(
-        args.config, args.filter, backend=args.backend, checkpoint=args.checkpoint, device=args.device
+        args.config, args.filter, backend=args.backend, checkpoint=args.checkpoint, device=args.device,
+        score_mapping=args.score_mapping,
     )
     pipeline = Pipeline(config)
     summary = replay_bag(

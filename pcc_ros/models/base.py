@@ -403,13 +403,14 @@ class TorchCompleter(Completer):
       ``batch_size`` clouds), called under ``torch.inference_mode`` with the model in eval
       mode; use :func:`resample_cloud` (content-seeded) if the network needs fixed sizes.
 
-    Run-time options that do not change the weights (``batch_size``) are not
+    Run-time options that do not change the weights (``batch_size``, ``half_precision``:
+    run the forward pass under autocast, float16 on CUDA and bfloat16 on CPU) are not
     hyper-parameters and are not saved.
     """
 
     learned: ClassVar[bool] = True
 
-    def __init__(self, device: str = "auto", batch_size: int = 32, **config: Any) -> None:
+    def __init__(self, device: str = "auto", batch_size: int = 32, half_precision: bool = False, **config: Any) -> None:
         defaults = self.default_config()
         unknown = sorted(set(config) - set(defaults))
         if unknown:
@@ -418,6 +419,7 @@ class TorchCompleter(Completer):
             raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
         super().__init__(device=device, **{**defaults, **config})
         self.batch_size = int(batch_size)
+        self.half_precision = bool(half_precision)
         self.device = select_device(device)
         self.model = self.build_model().to(self.device)
         self.model.eval()
@@ -443,7 +445,8 @@ class TorchCompleter(Completer):
         if self.model.training:
             self.model.eval()
         outputs: list[np.ndarray] = []
-        with torch.inference_mode():
+        half = torch.float16 if self.device.type == "cuda" else torch.bfloat16
+        with torch.inference_mode(), torch.autocast(self.device.type, dtype=half, enabled=self.half_precision):
             for start in range(0, len(clouds), self.batch_size):
                 stop = start + self.batch_size
                 outputs.extend(self.forward_batch(clouds[start:stop], contexts[start:stop]))

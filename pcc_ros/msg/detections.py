@@ -311,19 +311,22 @@ def marker_array_from_boxes(
     cubes: bool = False,
     line_width: float = 0.08,
     text_height: float = 0.6,
+    texts: Sequence[str] | None = None,
 ):
     """A ``visualization_msgs/msg/MarkerArray`` drawing ``boxes`` for RViz.
 
     Markers, in order: ``DELETEALL`` (namespace ``ns``); per box ``i`` a ``LINE_LIST``
     (``ns``, id ``i``) coloured by ``status[i]`` (:data:`STATUS_COLORS`), a
-    ``TEXT_VIEW_FACING`` (``ns + "_text"``, id ``i``) reading ``"<label> <score>"`` above the
-    box and, with ``cubes=True``, a translucent ``CUBE`` (``ns + "_cubes"``, id ``i``, text =
-    label) that :func:`boxes_from_marker_array` can read back.
+    ``TEXT_VIEW_FACING`` (``ns + "_text"``, id ``i``) reading ``texts[i]`` (default
+    ``"<label> <score>"``) above the box and, with ``cubes=True``, a translucent ``CUBE``
+    (``ns + "_cubes"``, id ``i``, text = label) that :func:`boxes_from_marker_array` can read back.
     """
     _check_boxes(boxes)
     n = len(boxes)
     if status is not None and len(status) != n:
         raise MessageError(f"status has {len(status)} entries for {n} boxes")
+    if texts is not None and len(texts) != n:
+        raise MessageError(f"texts has {len(texts)} entries for {n} boxes")
     header = make_header(frame_id, stamp_ns, classes)
 
     def marker(**fields):
@@ -359,7 +362,7 @@ def marker_array_from_boxes(
                 pose=_pose(classes, top, 0.0),
                 scale=_vector3(classes, (0.0, 0.0, text_height)),
                 color=_color(classes, rgba),
-                text=f"{boxes.label[i]} {boxes.score[i]:.2f}",
+                text=f"{boxes.label[i]} {boxes.score[i]:.2f}" if texts is None else str(texts[i]),
             )
         )
         if cubes:

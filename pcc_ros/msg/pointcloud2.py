@@ -316,7 +316,7 @@ def create_cloud(
         grid = points if fields is None else points[list(fields)]
         if grid.ndim not in (1, 2):
             raise MessageError(f"create_cloud: structured points must be (N,) or (H, W), got {grid.shape}")
-        grid = np.array(grid, order="C", copy=True)
+        grid = _zero_padded_copy(grid, grid.dtype)
     grid, bigendian = _uniform_byte_order(grid)
     height, width = (1, grid.shape[0]) if grid.ndim == 1 else grid.shape
     point_step = grid.dtype.itemsize
@@ -367,7 +367,15 @@ def _uniform_byte_order(grid: np.ndarray) -> tuple[np.ndarray, bool]:
             "itemsize": grid.dtype.itemsize,
         }
     )
-    return grid.astype(native), _NATIVE_BIG
+    return _zero_padded_copy(grid, native), _NATIVE_BIG
+
+
+def _zero_padded_copy(grid: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """A C-contiguous copy whose padding bytes are zero (numpy copies structured arrays field
+    by field, so ``np.array(copy=True)`` would put uninitialised memory on the wire)."""
+    out = np.zeros(grid.shape, dtype=dtype)
+    out[...] = grid
+    return out
 
 
 def _is_dense(grid: np.ndarray) -> bool:
