@@ -391,6 +391,17 @@ class Completer(abc.ABC):
         return f"{type(self).__name__}(name={self.name!r}, config={self.config!r})"
 
 
+def _cast_floating_inputs(dtype):
+    """Forward pre-hook: floating-point tensor arguments to ``dtype`` (indices stay integers)."""
+
+    import torch
+
+    def hook(module, args):
+        return tuple(a.to(dtype) if torch.is_tensor(a) and a.is_floating_point() else a for a in args)
+
+    return hook
+
+
 class TorchCompleter(Completer):
     """Base of learned backends: device, batching, eval mode, checkpoint I/O.
 
@@ -404,8 +415,8 @@ class TorchCompleter(Completer):
       mode; use :func:`resample_cloud` (content-seeded) if the network needs fixed sizes.
 
     Run-time options that do not change the weights (``batch_size``, ``half_precision``:
-    run the forward pass under autocast, float16 on CUDA and bfloat16 on CPU) are not
-    hyper-parameters and are not saved.
+    weights and activations in float16 on CUDA, bfloat16 on CPU; inputs are cast on the way
+    in, outputs come back as float32) are not hyper-parameters and are not saved.
     """
 
     learned: ClassVar[bool] = True
@@ -422,6 +433,12 @@ class TorchCompleter(Completer):
         self.half_precision = bool(half_precision)
         self.device = select_device(device)
         self.model = self.build_model().to(self.device)
+        if self.half_precision:
+            import torch
+
+            dtype = torch.float16 if self.device.type == "cuda" else torch.bfloat16
+            self.model.to(dtype)  # a checkpoint loaded later is cast by load_state_dict
+            self.model.register_forward_pre_hook(_cast_floating_inputs(dtype))
         self.model.eval()
         #: What the weights were trained on, their metrics ... (from a loaded checkpoint).
         self.checkpoint_config: dict[str, Any] | None = None
@@ -445,8 +462,7 @@ class TorchCompleter(Completer):
         if self.model.training:
             self.model.eval()
         outputs: list[np.ndarray] = []
-        half = torch.float16 if self.device.type == "cuda" else torch.bfloat16
-        with torch.inference_mode(), torch.autocast(self.device.type, dtype=half, enabled=self.half_precision):
+        with torch.inference_mode():
             for start in range(0, len(clouds), self.batch_size):
                 stop = start + self.batch_size
                 outputs.extend(self.forward_batch(clouds[start:stop], contexts[start:stop]))
