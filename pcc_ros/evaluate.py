@@ -379,10 +379,22 @@ def parse_checkpoints(items: Sequence[str]) -> dict[str, Path]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", type=Path, required=True, help="instance cache written by `pcc extract`")
+    parser.add_argument("--data", type=Path, help="instance cache written by `pcc extract` (not with --real)")
+    parser.add_argument(
+        "--real", action="store_true",
+        help="real-data evaluation: KITTI tracking / nuScenes frames with labels, each track's crops aggregated "
+        "as its partial ground truth (see pcc_ros/metrics/realdata.py)",
+    )
+    parser.add_argument(
+        "--real-sources", default="../shared/data/kitti_tracking,../shared/data/nuscenes_mini",
+        help="--real: comma-separated KITTI tracking / object or nuScenes roots (default: the shared samples)",
+    )
+    parser.add_argument("--real-voxel", type=float, default=0.03, help="--real: reference voxel size, metres")
+    parser.add_argument("--real-min-points", type=int, default=3, help="--real: inputs with fewer points are skipped")
     parser.add_argument("--split", default="test", help="split to evaluate (default: test)")
     parser.add_argument(
-        "--backends", default="input,densify,mirror", help="comma-separated backends (default: the baselines)"
+        "--backends", default=None,
+        help="comma-separated backends (default: the baselines; with --real every available backend)",
     )
     parser.add_argument(
         "--checkpoint", action="append", default=[], metavar="NAME=PATH",
@@ -548,7 +560,13 @@ def _previous_results(path: Path | None) -> dict[str, Any] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    if args.real:
+        from pcc_ros.evaluate_real import run_real
+
+        return run_real(args)
+    if args.data is None:
+        raise ConfigError("--data is required (an instance cache), unless --real")
+    backends = [b.strip() for b in (args.backends or "input,densify,mirror").split(",") if b.strip()]
     if not backends:
         raise ConfigError("--backends is empty")
     if len(set(backends)) != len(backends):

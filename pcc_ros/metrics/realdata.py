@@ -1,0 +1,172 @@
+"""Real-data completion metrics: what a completion of a real scan can be scored on without a
+complete shape (``pcc eval --real``).
+
+Per instance, all in metres (sensor frame; canonical values times the box length):
+
+* ``completeness``: mean distance from each point of the track's *aggregated partial ground
+  truth* (every frame's crop of the car, motion-compensated by its box and voxel-thinned,
+  see :mod:`pcc_ros.data.track_aggregate`) to the nearest completion point. Lower = more of
+  what the car really looked like over the sequence is covered (the AML / TraPCC KITTI
+  protocol's coverage direction).
+* ``fidelity``: mean distance (MCD, not squared) from each *input* point to the nearest
+  completion point: does the completion keep what was observed?
+* ``fidelity_generated``: the same against only the completion points that are not copies of
+  input points (a backend that returns the input plus new points scores 0 on ``fidelity``
+  trivially; this shows whether the *new* points lie on the observed surface).
+* ``spacing``: the input's own sampling spacing, mean distance from each input point to its
+  nearest other input point. Fidelity within ~2x spacing means "as close as the scan itself".
+* ``side_cd``: TraPCC L-S, squared Chamfer of the side-view (x-z) projections against the
+  aggregated reference, m^2.
+* ``inside_box``: share of completion points inside the labelled box (+ ``BOX_TOLERANCE_M``).
+* ``bottom_gap`` / ``top_gap``: box bottom to the completion's 1st z-percentile and the
+  completion's 99th z-percentile to the box top (positive = floating above the bottom /
+  short of the top).
+* ``lateral_offset``: |mean y| of the completion (the front view's left / right balance; a
+  completion that fills only the observed side is lopsided).
+* ``points``: output points, to see whether a 5-point and a 4000-point input get the same.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pcc_ros.metrics.chamfer import nearest_distances
+from pcc_ros.metrics.gtfree import side_view_cd
+
+#: Slack around the box for ``inside_box`` (labels are tight; KITTI boxes are ~cm accurate).
+BOX_TOLERANCE_M = 0.05
+#: Distance under which a completion point counts as a copy of an input point (canonical).
+COPY_TOLERANCE = 1e-6
+
+#: metric -> (unit, lower is better, one-line meaning); table order.
+REAL_METRICS: dict[str, tuple[str, bool | None, str]] = {
+    "completeness": ("m", True, "aggregated partial GT -> completion, mean NN distance"),
+    "fidelity": ("m", True, "input -> completion, mean NN distance (MCD)"),
+    "fidelity_generated": ("m", True, "input -> completion points that are not input copies, MCD"),
+    "spacing": ("m", None, "input -> nearest other input point, mean (the scan's own sampling)"),
+    "side_cd": ("m^2", True, "TraPCC L-S: squared Chamfer of side-view (x-z) projections vs aggregated GT"),
+    "inside_box": ("-", False, f"share of completion points inside the box (+{BOX_TOLERANCE_M} m)"),
+    "bottom_gap": ("m", True, "box bottom -> 1st percentile of completion z (positive: floating)"),
+    "top_gap": ("m", True, "99th percentile of completion z -> box top (positive: short of the top)"),
+    "lateral_offset": ("m", True, "|mean y| of the completion (front-view left/right balance)"),
+    "points": ("count", None, "output points per instance"),
+}
+
+
+def input_spacing(partial: np.ndarray) -> float:
+    """Mean distance from each point to its nearest *other* point (NaN for < 2 points)."""
+    pts = np.asarray(partial, dtype=np.float64)
+    if len(pts) < 2:
+        return float("nan")
+    d, _ = cKDTree(pts).query(pts, k=2)
+    return float(d[:, 1].mean())
+
+
+def real_instance_metrics(
+    completion: np.ndarray, partial: np.ndarray, reference: np.ndarray, box_size: np.ndarray
+) -> dict[str, float]:
+    """Every real-data metric of one instance (canonical clouds in, metres out)."""
+    size = np.asarray(box_size, dtype=np.float64)
+    length = float(size[0])
+    comp = np.asarray(completion, dtype=np.float64).reshape(-1, 3)
+    part = np.asarray(partial, dtype=np.float64).reshape(-1, 3)
+    out: dict[str, float] = {"points": float(len(comp))}
+    if len(comp) == 0:
+        nan = float("nan")
+        out.update({k: nan for k in REAL_METRICS if k != "points"})
+        out["inside_box"] = 0.0
+        return out
+    out["completeness"] = float(nearest_distances(reference, comp).mean()) * length
+    out["fidelity"] = float(nearest_distances(part, comp).mean()) * length
+    copies = nearest_distances(comp, part) <= COPY_TOLERANCE
+    generated = comp[~copies]
+    out["fidelity_generated"] = (
+        float(nearest_distances(part, generated).mean()) * length if len(generated) else float("nan")
+    )
+    out["spacing"] = input_spacing(part) * length
+    out["side_cd"] = side_view_cd(comp, reference) * length**2
+    half = size / length / 2.0
+    tol = BOX_TOLERANCE_M / length
+    out["inside_box"] = float(np.all(np.abs(comp) <= half + tol, axis=1).mean())
+    lo, hi = np.percentile(comp[:, 2], [1.0, 99.0])
+    out["bottom_gap"] = float(lo + half[2]) * length
+    out["top_gap"] = float(half[2] - hi) * length
+    out["lateral_offset"] = abs(float(comp[:, 1].mean())) * length
+    return out
+
+
+def mean_rows(rows: Sequence[dict[str, float]], mask: np.ndarray) -> dict[str, Any]:
+    """Per-metric means over the masked rows (NaN-aware); ``None`` for an empty band."""
+    chosen = [r for r, m in zip(rows, mask) if m]
+    out: dict[str, Any] = {"count": len(chosen)}
+    for key in REAL_METRICS:
+        values = np.array([r.get(key, np.nan) for r in chosen], dtype=np.float64)
+        values = values[np.isfinite(values)]
+        out[key] = float(values.mean()) if len(values) else None
+    if chosen:
+        pts = np.array([r["points"] for r in chosen])
+        out["points_min"] = float(pts.min())
+        out["points_max"] = float(pts.max())
+    return out
+
+
+def draw_three_views(
+    path: Any,
+    examples: Sequence[dict[str, Any]],
+    columns: Sequence[str],
+    title: str,
+    max_draw: int = 3000,
+) -> None:
+    """PNG grid of real completions: per example three rows (side x-z, front y-z, top x-y),
+    one column per cloud (input, each backend, aggregated reference), the box drawn in grey.
+
+    ``examples``: dicts with ``label`` (row text), ``box`` (canonical half extents, (3,)) and
+    ``clouds`` (column name -> canonical (n, 3) cloud). Axes are metres about the box centre.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    views = (("side", 0, 2), ("front", 1, 2), ("top", 0, 1))
+    axis_names = "xyz"
+    rows = len(examples) * len(views)
+    fig, axes = plt.subplots(rows, len(columns), figsize=(2.3 * len(columns), 1.55 * rows), squeeze=False)
+    rng = np.random.default_rng(0)
+    for e, ex in enumerate(examples):
+        length = float(ex["length"])
+        half = np.asarray(ex["box"], dtype=np.float64) * length
+        for v, (vname, u, w) in enumerate(views):
+            r = e * len(views) + v
+            lim_u, lim_w = 0.62 * length, half[w] * 1.35
+            for c, name in enumerate(columns):
+                ax = axes[r, c]
+                cloud = np.asarray(ex["clouds"].get(name, np.zeros((0, 3))), dtype=np.float64) * length
+                if len(cloud) > max_draw:
+                    cloud = cloud[rng.choice(len(cloud), max_draw, replace=False)]
+                colour = "tab:red" if c == 0 else ("tab:green" if c == len(columns) - 1 else "tab:blue")
+                ax.scatter(cloud[:, u], cloud[:, w], s=0.6, c=colour, linewidths=0)
+                ax.add_patch(plt.Rectangle((-half[u], -half[w]), 2 * half[u], 2 * half[w], fill=False,
+                                           ec="0.6", lw=0.6))
+                ax.set_xlim(-max(lim_u, half[u] * 1.15), max(lim_u, half[u] * 1.15))
+                ax.set_ylim(-lim_w, lim_w)
+                ax.set_aspect("equal")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if r == 0:
+                    ax.set_title(name, fontsize=8)
+                if c == 0:
+                    ax.set_ylabel(f"{vname} ({axis_names[u]}-{axis_names[w]})", fontsize=7)
+                if c == 0 and v == 0:
+                    ax.text(0.01, 0.99, ex["label"], transform=ax.transAxes, fontsize=6, va="top")
+                if v == 0:
+                    ax.text(0.99, 0.01, f"{len(ex['clouds'].get(name, ()))} pts", transform=ax.transAxes,
+                            fontsize=6, ha="right", va="bottom")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
