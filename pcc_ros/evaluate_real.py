@@ -7,7 +7,9 @@ observation of a track with at least ``--min-track-frames`` observations is comp
 every backend and scored with :mod:`pcc_ros.metrics.realdata` (completeness, fidelity,
 side-view CD, share inside the box, vertical extent against the box, front-view balance,
 output points), overall and by distance and input point-count band. An ``aggregated GT``
-row scores the reference itself on the box metrics, the yardstick for the backends.
+row scores the reference itself on the box metrics, the yardstick for the backends; a
+``NAME+input`` row scores each learned backend's completion together with the input crop
+(what ``completion_node`` publishes with ``include_input_points: true``).
 
 The reference contains the evaluated frame's own crop (as in the AML / TraPCC KITTI
 protocol); the real frames used in training (``pcc train --real``) are other recordings
@@ -97,9 +99,12 @@ def _bands(instances: list[dict[str, Any]], rows: list[dict[str, float]]) -> dic
 
 def evaluate_real(
     instances: list[dict[str, Any]], backends: list[str], checkpoints: dict[str, Path], device: str = "cpu",
-    batch_size: int = 32, progress: bool = True,
+    batch_size: int = 32, progress: bool = True, with_input: bool = True,
 ) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
-    """Complete every instance with every backend (batched) and score it."""
+    """Complete every instance with every backend (batched) and score it.
+
+    ``with_input``: also score each learned backend's completion united with the input crop
+    (row ``NAME+input``), since a consumer of the node's output gets both."""
     from tqdm import tqdm
 
     from pcc_ros.metrics.realdata import real_instance_metrics
@@ -128,6 +133,15 @@ def evaluate_real(
             results[name]["checkpoint"] = str(checkpoints.get(name, "shipped default"))
             results[name]["checkpoint_sha256"] = ck.get("sha256")
         completions[name] = outs
+        if cls.learned and with_input:
+            # The completion together with the car's own crop: what completion_node publishes
+            # with include_input_points (raw scan, instance -1, plus the completion).
+            union = [np.concatenate([o, i["partial"].astype(np.float32)]) for o, i in zip(outs, instances)]
+            rows = [real_instance_metrics(o, i["partial"], i["reference"], i["size"])
+                    for o, i in zip(union, instances)]
+            results[f"{name}+input"] = {**_bands(instances, rows), "learned": True,
+                                        "variant": f"{name} completion plus the input crop"}
+            completions[f"{name}+input"] = union
     results[REFERENCE_ROW] = {**_bands(instances, ref_rows), "learned": False}
     return results, completions
 
@@ -230,7 +244,7 @@ def run_real(args: argparse.Namespace) -> int:
            "backends": results, "criteria": verdict}
     if args.plot:
         picks = pick_examples(instances, args.examples)
-        names = [n for n in backends if n in completions and n != "input"]
+        names = [n for n in completions if n != "input" and not n.endswith("+input")]
         examples = []
         for p in picks:
             inst = instances[p]

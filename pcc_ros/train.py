@@ -84,6 +84,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-points", type=int, default=10, help="skip training observations with fewer points")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--no-progress", action="store_true", help="no tqdm bar (log lines only)")
+    parser.add_argument(
+        "--real-data", type=Path, action="append", default=[], metavar="CACHE",
+        help="instance cache of real scans mixed into training, all its splits (repeatable)",
+    )
+    parser.add_argument(
+        "--real-share", type=float, default=0.1,
+        help="share of training groups drawn from --real-data (default 0.1; the few real groups are repeated)",
+    )
+    parser.add_argument(
+        "--select-by", choices=("cd_l1", "fscore", "coverage"), default="cd_l1",
+        help="validation metric that picks the shipped weights (best, not last; default cd_l1)",
+    )
 
 
 # --------------------------------------------------------------------------- helpers
@@ -240,7 +252,54 @@ def validation_instances(cache: Any, split: str, count: int, seed: int) -> tuple
 # --------------------------------------------------------------------------- plotting
 
 
-def plot_log(records: list[dict[str, Any]], path: Path, title: str) -> None:
+def machine_info() -> dict[str, Any]:
+    """Where a run trained: host, CPU, threads, load (recorded in the checkpoint)."""
+    import platform
+
+    import torch
+
+    info: dict[str, Any] = {"host": platform.node(), "platform": platform.platform(),
+                            "processor": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+                            "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
+                            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+    with contextlib.suppress(OSError):
+        info["load_average"] = [round(x, 2) for x in os.getloadavg()]
+    return info
+
+
+def mix_real(
+    recipe: Any, data: list[Any], real_caches: list[Path], share: float, min_points: int
+) -> tuple[list[Any], dict[str, Any]]:
+    """Mix the training groups of real-scan caches into ``data`` at ``share`` of all groups.
+
+    Real scans are few, so their groups are repeated (references, no copies) until they make
+    up ``share`` of an epoch; what was mixed is returned for the checkpoint config.
+    """
+    from pcc_ros.data.instances import InstanceCache
+
+    if not real_caches:
+        return data, {"caches": [], "share": 0.0}
+    if not 0.0 < share < 1.0:
+        raise ConfigError(f"--real-share must be in (0, 1), got {share}")
+    real: list[Any] = []
+    per_cache = {}
+    for path in real_caches:
+        groups = recipe.training_data(InstanceCache.load(path), None, min_points=min_points)
+        per_cache[str(path)] = {"groups": len(groups), "observations": sum(len(g) for g in groups)}
+        real.extend(groups)
+    if not real:
+        raise ConfigError(f"--real-data {', '.join(map(str, real_caches))}: no usable real observations")
+    repeats = max(1, int(np.ceil(share * len(data) / ((1.0 - share) * len(real)))))
+    mixed = [*data, *(real * repeats)]
+    effective = len(real) * repeats / len(mixed)
+    log.info("real scans: %d groups x %d repeats = %.1f %% of the training groups", len(real), repeats,
+             100 * effective)
+    return mixed, {"caches": per_cache, "groups": len(real), "repeats": repeats, "share_requested": share,
+                   "share": round(effective, 4)}
+
+
+def plot_log(records: list[dict[str, Any]], path: Path, title: str, best: dict[str, Any] | None = None,
+             select_key: str = "val_cd_l1") -> None:
     """Training loss (and its parts) and validation Chamfer-L1 against the step, as a PNG."""
     import matplotlib
 
@@ -258,6 +317,16 @@ def plot_log(records: list[dict[str, Any]], path: Path, title: str) -> None:
     for key in ("val_cd_l1", "val_precision", "val_coverage"):
         if val and key in val[0]:
             axes[1].plot([r["step"] for r in val], [r[key] for r in val], marker="o", label=key[4:])
+    if val and "val_fscore" in val[0]:
+        twin = axes[1].twinx()
+        twin.plot([r["step"] for r in val], [r["val_fscore"] for r in val], marker="s", color="tab:red",
+                  label="F-score@1% (right axis)")
+        twin.set_ylabel("F-score@1%")
+        twin.legend(loc="upper center", fontsize=8)
+    if best is not None and select_key in best:
+        axes[1].axvline(best["step"], color="0.5", ls="--", lw=1)
+        axes[1].annotate(f"selected: step {best['step']}\n{select_key[4:]} {best[select_key]:.4f}",
+                         (best["step"], best[select_key]), fontsize=8, xytext=(5, 12), textcoords="offset points")
     axes[1].set(xlabel="step", ylabel="canonical units", title="validation (held-out split)")
     if val:
         axes[1].legend()
@@ -337,6 +406,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     total_views = sum(len(g) for g in data)
     log.info("training data: %d groups, %d observations of split %r (%.1f s)",
              len(data), total_views, args.split, time.perf_counter() - t0)
+    data, mixing = mix_real(recipe, data, args.real_data, args.real_share, args.min_points)
+    run_settings["real_data"] = mixing
     val_instances, reference = ([], "none")
     if dist.main:
         val_instances, reference = validation_instances(cache, args.val_split, args.val_instances, args.seed)
@@ -362,20 +433,43 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         with log_path.open("a") as f:
             f.write(json.dumps(record) + "\n")
 
+    select_key = f"val_{args.select_by}"
+    lower_better = args.select_by != "fscore"
+
+    def best_record() -> dict[str, Any] | None:
+        vals = [r for r in records if select_key in r and np.isfinite(r[select_key])]
+        if not vals:
+            return None
+        return (min if lower_better else max)(vals, key=lambda r: r[select_key])
+
+    def save_weights(name: str, record: dict[str, Any]) -> None:
+        training = {
+            **run_settings, "steps": step, "groups": len(data), "observations": total_views,
+            "validation_reference": reference, "wall_seconds": round(time.perf_counter() - started, 1),
+            "device": str(device), "machine": machine_info(), "selected_by": select_key,
+            "selected_step": record.get("step", step),
+        }
+        completer.save(out / f"{name}.safetensors", training=training,
+                       metrics={k: v for k, v in record.items() if k.startswith("val_")})
+
+    def on_validation(record: dict[str, Any]) -> None:
+        """Keep the best weights by validation (the shipped checkpoint is the best, not the last)."""
+        if dist.main and best_record() is record:
+            save_weights(args.backend, record)
+            log.info("step %d: best %s so far (%.5f): wrote %s", step, select_key, record[select_key],
+                     out / f"{args.backend}.safetensors")
+
     def checkpoint(final: bool = False) -> None:
         if not dist.main:
             return
         save_resume(out, args.backend, completer, optimizer, step, run_settings)
         if final:
             last_val = next((r for r in reversed(records) if "val_cd_l1" in r), {})
-            training = {
-                **run_settings, "steps": step, "groups": len(data), "observations": total_views,
-                "validation_reference": reference, "wall_seconds": round(time.perf_counter() - started, 1),
-                "device": str(device),
-            }
-            completer.save(out / f"{args.backend}.safetensors", training=training,
-                           metrics={k: v for k, v in last_val.items() if k.startswith("val_")})
-        plot_log(records, out / "training.png", f"pcc train {args.backend} ({args.config})")
+            save_weights(f"{args.backend}_last", last_val)
+            if best_record() is None:  # no validation data: the last weights are all there is
+                save_weights(args.backend, last_val)
+        plot_log(records, out / "training.png", f"pcc train {args.backend} ({args.config})",
+                 best=best_record(), select_key=select_key)
 
     started = time.perf_counter()
     window: dict[str, list[float]] = {}
@@ -409,6 +503,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             if dist.main and args.val_every and step % args.val_every == 0 and step < args.iterations:
                 emit({"step": step, **validate(completer, val_instances, args.seed)})
                 log.info("step %d: %s", step, records[-1])
+                on_validation(records[-1])
             if step % args.checkpoint_every == 0 and step < args.iterations:
                 checkpoint()
     except KeyboardInterrupt:
@@ -420,6 +515,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     if dist.main:
         emit({"step": step, **validate(completer, val_instances, args.seed)})
         log.info("final validation: %s", records[-1])
+        on_validation(records[-1])
     checkpoint(final=True)
     if dist.world > 1:
         torch.distributed.destroy_process_group()

@@ -79,9 +79,15 @@ def test_train_validate_checkpoint_and_resume(cache_dir, tmp_path, capsys):
     assert [r["step"] for r in vals] == [2, 4] and all(r["val_cd_l1"] > 0 for r in vals)
     assert [r["step"] for r in records if "loss" in r] == [4]
     config = load_config(out / "pointpncnet.json")
-    assert config["training"]["steps"] == 4 and config["training"]["validation_reference"] == "ground_truth"
+    best = min(vals, key=lambda r: r["val_cd_l1"])  # the shipped weights are the best by validation
+    assert config["training"]["selected_step"] == best["step"] == config["training"]["steps"]
+    assert config["training"]["validation_reference"] == "ground_truth"
+    assert config["training"]["selected_by"] == "val_cd_l1"
     assert config["training"]["recipe"]["drop_prob"] == 0.2
-    assert config["metrics"]["val_cd_l1"] == vals[-1]["val_cd_l1"]
+    assert config["metrics"]["val_cd_l1"] == best["val_cd_l1"]
+    assert config["training"]["machine"]["cpu_count"] >= 1 and config["training"]["real_data"]["share"] == 0.0
+    last = load_config(out / "pointpncnet_last.json")
+    assert last["training"]["steps"] == 4 and last["metrics"]["val_cd_l1"] == vals[-1]["val_cd_l1"]
     completer = load_completer("pointpncnet", out / "pointpncnet.safetensors", device="cpu")
     assert completer.complete([np.random.default_rng(0).normal(size=(50, 3)) * 0.2])[0].shape == (2048, 3)
 
@@ -97,6 +103,17 @@ def test_train_validate_checkpoint_and_resume(cache_dir, tmp_path, capsys):
     # resuming with other settings is refused
     assert main(_argv(cache_dir, out, "--iterations", "10", "--resume", "--lr", "1e-2")) == 1
     assert main(_argv(cache_dir, out, "--iterations", "10", "--resume", "--config", "paper")) == 1
+
+
+def test_real_scans_are_mixed_at_the_requested_share(cache_dir, tmp_path):
+    out = tmp_path / "mixed"
+    argv = [*_argv(cache_dir, out, "--iterations", "2"), "--val-instances", "0", "--real-data", str(cache_dir),
+            "--real-share", "0.25"]
+    assert main(argv) == 0
+    mixing = load_config(out / "pointpncnet.json")["training"]["real_data"]
+    assert mixing["share_requested"] == 0.25 and mixing["repeats"] >= 1 and mixing["share"] > 0  # tiny: 1 repeat
+    assert mixing["groups"] >= 1 and str(cache_dir) in mixing["caches"]
+    assert main([*argv[:-1], "1.5"]) == 1  # a share outside (0, 1) is a clear error, not a traceback
 
 
 def test_no_inpainting_ablation_is_recorded(cache_dir, tmp_path):
@@ -159,6 +176,7 @@ def test_torchrun_two_processes_gloo(cache_dir, tmp_path):
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.count('"step": 4') >= 1  # rank 0's summary only
-    config = load_config(out / "pointpncnet.json")
+    config = load_config(out / "pointpncnet_last.json")
     assert config["training"]["world_size"] == 2 and config["training"]["steps"] == 4
+    assert load_config(out / "pointpncnet.json")["training"]["selected_step"] in (2, 4)  # best by validation
     assert load_config(out / "resume.json")["resume"]["step"] == 4
