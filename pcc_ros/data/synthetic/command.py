@@ -19,6 +19,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--test-fraction", type=float, default=0.2, help="share of sequences in the test split")
     parser.add_argument("--shape-points", type=int, default=16384, help="points per ground-truth shape (>= 16384)")
     parser.add_argument("--low-res", action="store_true", help="16-beam, 0.8 deg sensor (quick looks, tests)")
+    parser.add_argument(
+        "--realistic-sensor", action="store_true",
+        help="add the real-scan artefacts the domain-gap comparison found missing: per-laser range / elevation "
+        "residuals and mixed pixels at depth edges (Sensor.realistic)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset made with other parameters")
     parser.add_argument("--preview", action="store_true", help="also write preview.png (BEV of one frame)")
     parser.add_argument("--preview-sequence", type=int, default=0, help="sequence shown by --preview")
@@ -27,9 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from pcc_ros.data.synthetic.generator import generate
-    from pcc_ros.data.synthetic.lidar import Sensor
+    from pcc_ros.data.synthetic.lidar import REALISTIC_ARTEFACTS, Sensor
 
-    sensor = Sensor.low_res() if args.low_res else Sensor()
+    extra = REALISTIC_ARTEFACTS if args.realistic_sensor else {}
+    sensor = Sensor.low_res(**extra) if args.low_res else Sensor(**extra)
     meta = generate(args.out, args.sequences, args.frames, args.seed, sensor=sensor,
                     shape_points=args.shape_points, test_fraction=args.test_fraction, overwrite=args.overwrite)
     n_tracks = sum(len(s["tracks"]) for s in meta["sequences"].values())

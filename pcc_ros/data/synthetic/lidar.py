@@ -23,6 +23,11 @@ _ALBEDO = np.array([MATERIALS[k][1] for k in sorted(MATERIALS)])
 _MAT_DROP = np.array([MATERIALS[k][2] for k in sorted(MATERIALS)])
 
 
+#: What :meth:`Sensor.realistic` adds to the ideal sensor.
+REALISTIC_ARTEFACTS = {"beam_range_bias": 0.015, "beam_elevation_error": 0.04, "mixed_pixel_prob": 0.5,
+                       "range_noise_per_100m": 0.04, "weak_dropout": 0.3}
+
+
 @dataclass(frozen=True)
 class Sensor:
     """Sensor model parameters (angles in degrees, distances in metres)."""
@@ -39,6 +44,20 @@ class Sensor:
     range_noise: float = 0.02
     dropout: float = 0.04
     far_dropout: float = 0.25  # extra dropout of weak returns at max range (grows with range^2)
+    #: Per-laser calibration residuals (fixed per sensor seed): range offset (m, std) and
+    #: elevation error (deg, std). They thicken a surface into per-ring layers as on a real HDL-64E.
+    beam_range_bias: float = 0.0
+    beam_elevation_error: float = 0.0
+    #: Mixed pixels: a beam whose footprint straddles a depth edge (neighbouring column more than
+    #: ``mixed_pixel_edge`` metres farther) returns, with this probability, a range between the
+    #: two surfaces: the trailing points behind car silhouettes in real scans.
+    mixed_pixel_prob: float = 0.0
+    mixed_pixel_edge: float = 0.3
+    calibration_seed: int = 0
+    #: Range noise growing with range (std added per 100 m): real surfaces thicken with range.
+    range_noise_per_100m: float = 0.0
+    #: Extra dropout of weak returns (glass, dark or grazing surfaces) at every range.
+    weak_dropout: float = 0.0
 
     @classmethod
     def low_res(cls, **overrides) -> Sensor:
@@ -48,12 +67,31 @@ class Sensor:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def realistic(cls, **overrides) -> Sensor:
+        """The HDL-64E with the real-scan artefacts the domain-gap comparison showed missing
+        (``python -m pcc_ros.data.domain_gap``): per-laser calibration residuals and mixed pixels."""
+        return cls(**{**REALISTIC_ARTEFACTS, **overrides})
+
     @cached_property
     def elevations(self) -> np.ndarray:
-        """``(beams,)`` elevation angles in degrees, top beam first."""
+        """``(beams,)`` elevation angles in degrees, top beam first (with the per-laser errors)."""
         upper = np.linspace(self.elevation_top, self.elevation_split[0], self.upper_beams)
         lower = np.linspace(self.elevation_split[1], self.elevation_bottom, self.beams - self.upper_beams)
-        return np.r_[upper, lower]
+        nominal = np.r_[upper, lower]
+        if self.beam_elevation_error > 0:
+            nominal = nominal + self._calibration[1] * self.beam_elevation_error
+        return nominal
+
+    @cached_property
+    def _calibration(self) -> np.ndarray:
+        """``(2, beams)`` standard-normal draws for the range and elevation residuals."""
+        return np.random.default_rng([self.calibration_seed, 6464]).standard_normal((2, self.beams))
+
+    @cached_property
+    def beam_bias(self) -> np.ndarray:
+        """``(beams,)`` range offset of each laser, metres."""
+        return self._calibration[0] * self.beam_range_bias
 
     @cached_property
     def azimuths(self) -> np.ndarray:
@@ -147,6 +185,7 @@ def cast(
     t_all = np.stack([h["t_hit"].numpy() for h in hits])
     which = np.argmin(t_all, axis=0) if len(hits) > 1 else np.zeros(len(rays), np.int64)
     t = np.take_along_axis(t_all, which[None], 0)[0].astype(np.float64)
+    mixed_t = _mixed_pixels(sensor, t, rng) if sensor.mixed_pixel_prob > 0 else None
     ok = np.isfinite(t) & (t <= sensor.max_range) & (t >= sensor.min_range)
     ray = np.flatnonzero(ok)
     t, which = t[ok], which[ok]
@@ -163,14 +202,47 @@ def cast(
     albedo = _ALBEDO[material]
     # Weak returns (dark, grazing, far) are lost more often, as on real scanners.
     strength = albedo * (0.25 + 0.75 * cos_inc)
-    p_drop = sensor.dropout + _MAT_DROP[material] + sensor.far_dropout * (t / sensor.max_range) ** 2 * (
-        1.0 - np.clip(strength / 0.4, 0, 1)
-    )
+    weak = 1.0 - np.clip(strength / 0.4, 0, 1)
+    p_drop = sensor.dropout + _MAT_DROP[material] + sensor.far_dropout * (t / sensor.max_range) ** 2 * weak
+    if sensor.weak_dropout > 0:
+        p_drop = p_drop + sensor.weak_dropout * weak
     keep = rng.random(len(t)) >= p_drop
     noisy = t + rng.normal(0.0, sensor.range_noise, len(t)) if sensor.range_noise > 0 else t.copy()
+    if sensor.range_noise_per_100m > 0:
+        noisy += rng.normal(0.0, 1.0, len(t)) * (sensor.range_noise_per_100m * t / 100.0)
+    if sensor.beam_range_bias > 0:
+        noisy += sensor.beam_bias[ray // len(sensor.azimuths)]
+    if mixed_t is not None:
+        noisy += mixed_t[ray]
     intensity = np.clip(strength * np.exp(-t / 200.0) + rng.normal(0.0, 0.02, len(t)), 0.0, 0.99)
     ray, t, noisy, obj, intensity = ray[keep], t[keep], noisy[keep], obj[keep], intensity[keep]
     points = np.empty((len(ray), 4), dtype=np.float32)
     points[:, :3] = local[ray] * noisy[:, None]
     points[:, 3] = intensity
     return Scan(points, obj, ray, t)
+
+
+def _mixed_pixels(sensor: Sensor, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Range added to each ray (0 for most) by a footprint that straddles a depth edge.
+
+    The range image is (beams, columns); a ray whose left or right neighbour hits something
+    more than ``mixed_pixel_edge`` farther (or nothing) while the other neighbour is on its
+    own surface returns, with ``mixed_pixel_prob``, a range uniformly between its own surface
+    and the neighbour's (capped at 2 m behind it).
+    """
+    cols = len(sensor.azimuths)
+    image = np.where(np.isfinite(t), t, np.inf).reshape(-1, cols)
+    edge_m = sensor.mixed_pixel_edge
+    with np.errstate(invalid="ignore"):  # inf - inf where neither hits: not an edge
+        d_left = np.roll(image, 1, axis=1) - image
+        d_right = np.roll(image, -1, axis=1) - image
+    # A depth edge: one neighbour much farther, the other on the same surface. A surface seen
+    # at a grazing angle has large steps on both sides (one nearer) and is not an edge.
+    left_edge = (d_left > edge_m) & (np.abs(d_right) < edge_m / 2)
+    right_edge = (d_right > edge_m) & (np.abs(d_left) < edge_m / 2)
+    gap = np.minimum(np.where(left_edge, d_left, d_right), 2.0)  # no return beside it: up to 2 m
+    edge = np.isfinite(image) & (left_edge | right_edge)
+    edge &= rng.random(image.shape) < sensor.mixed_pixel_prob
+    extra = np.zeros(image.shape)
+    extra[edge] = rng.random(int(edge.sum())) * gap[edge]
+    return extra.reshape(-1)
