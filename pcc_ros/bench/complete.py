@@ -1,48 +1,57 @@
-"""Completion speed and memory of a backend at batch 1, 8 and 32 (``pcc bench complete``).
+"""Completion throughput: fast vs original network path, threads, batch size, FLOP/s vs a matmul.
 
-Each configuration runs in a fresh process so its peak memory is its own (CPU: peak
-resident set size; CUDA: peak allocated device memory). The ``mirror`` baseline is measured
-the same way in the same run, as the ratio's reference. Inputs are car-like canonical
-clouds of ``--points`` points (or, with ``--data``, real instances of an instance cache,
-cycled in order), i.e. the sizes a detector crop actually has, not a resampled 3096.
+Everything runs in one process on the same inputs, interleaved round by round so machine
+load hits every alternative alike (this machine is shared: the load average before and after
+is recorded):
 
-Targets (issue: 20 cars in the pipeline's 100 ms frame budget on a 2-core CPU): PointPnCNet
-``default`` >= 200 instances/s at batch 32 and <= 20 ms for one instance.
+1. PointPnCNet ``default`` (shipped weights) at batch 32: the original path
+   (``pcc_ros.models.layers.reference_path``: ``segment_reduce`` max-pooling, whole
+   ``(P, C)`` intermediates) against the fast path, for every ``--threads`` setting
+   (intra-op threads; ``2x1`` = two Python worker threads, one intra-op thread each, each
+   completing half the batch: inter-op parallelism). Outputs are checked equal first.
+2. The network's FLOPs per instance (every ``nn.Linear`` call on these inputs, counted by
+   forward hooks: 2 * rows * in * out) and its achieved GFLOP/s against the matmul
+   ceiling: ``torch.mm`` at the shape of the network's largest layer on a chunk
+   (1024 x 128 @ 128 x 256) and at 1024^3, timed in the same rounds with the same threads;
+   the ceiling is the faster of the two.
+3. Batch sizes 1 .. 64 with the fastest thread setting: the batch size that maximises
+   instances/s.
+4. Every other registered learned backend (and the ``mirror`` baseline) at that setting.
 
-JSON: the first configuration's figures at the top level (``instances_per_s_b1``,
-``instances_per_s_b8``, ``instances_per_s_b32``, ``latency_ms_b1``, ``peak_memory_mb``), every
-configuration under ``configs``, the baseline under ``baseline``.
+Targets (issue #19): fast >= 2x the original path's instances/s at batch 32, and >= 80 % of
+the matmul ceiling.
 """
 
 from __future__ import annotations
 
 import argparse
-import multiprocessing as mp
+import os
 import resource
+import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pcc_ros.bench.common import median_ms, print_table
+from pcc_ros.bench.common import interleaved, load_average, print_table, summary_ms
 
-BATCHES = (1, 8, 32)
-TARGET_B32 = 200.0
-TARGET_LATENCY_MS = 20.0
+TARGET_SPEEDUP = 2.0
+TARGET_CEILING = 0.8
+BATCHES = (1, 8, 16, 32, 64)
+CEILING_SHAPES = ((1024, 128, 256), (1024, 1024, 1024))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--backend", default="pointpncnet", help="registered completion backend")
-    parser.add_argument(
-        "--sizes", default=None,
-        help="comma-separated size presets of the backend (default: all it has, e.g. default,paper)",
-    )
-    parser.add_argument("--checkpoint", type=Path, help="weights (default: shipped ones; else untrained)")
+    parser.add_argument("--checkpoint", type=Path, help="PointPnCNet weights (default: the shipped ones)")
     parser.add_argument("--points", type=int, default=512, help="points per synthetic input cloud (default 512)")
     parser.add_argument("--data", type=Path, help="instance cache: use its real instances as inputs instead")
-    parser.add_argument("--device", default="cpu", help="cpu | cuda | auto (default cpu)")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    parser.add_argument("--repeat", type=int, default=20, help="timed runs per batch size (default 20)")
+    parser.add_argument("--threads", default="1,2,2x1",
+                        help="thread settings: N intra-op threads, or WxN worker threads x intra-op (default 1,2,2x1)")
+    parser.add_argument("--repeat", type=int, default=15, help="timed rounds (default 15)")
+    parser.add_argument("--batches", default=",".join(map(str, BATCHES)), help="batch sizes of the sweep")
+    parser.add_argument("--backends", default=None,
+                        help="other backends to time (default: every registered learned backend, plus mirror)")
 
 
 def car_clouds(count: int, points: int, seed: int) -> list[np.ndarray]:
@@ -62,119 +71,215 @@ def cache_clouds(path: Path, count: int) -> list[np.ndarray]:
 
     cache = InstanceCache.load(path)
     idx = cache.indices("test") if len(cache.indices("test")) else np.arange(len(cache))
-    return [np.array(cache.points(int(i)), dtype=np.float32) for i in idx[:count]]
+    clouds = [np.array(cache.points(int(i)), dtype=np.float32) for i in idx[:count]]
+    return [clouds[i % len(clouds)] for i in range(count)] if clouds else []
 
 
-def _peak_memory_mb(device: Any) -> float:
+def parse_threads(spec: str) -> list[tuple[int, int]]:
+    """``"1,2,2x1"`` -> ``[(1, 1), (1, 2), (2, 1)]`` as (workers, intra-op threads)."""
+    out = []
+    for item in (s.strip() for s in spec.split(",") if s.strip()):
+        workers, _, intra = item.rpartition("x")
+        out.append((int(workers) if workers else 1, int(intra)))
+    return out
+
+
+def thread_label(setting: tuple[int, int]) -> str:
+    return f"{setting[0]}x{setting[1]}" if setting[0] > 1 else str(setting[1])
+
+
+def run_with(setting: tuple[int, int], fn: Callable[[list], object], batch: list) -> None:
+    """``fn(batch)`` with ``setting`` = (worker threads, intra-op threads)."""
     import torch
 
-    if device.type == "cuda":
-        return torch.cuda.max_memory_allocated(device) / 2**20
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kB
+    workers, intra = setting
+    torch.set_num_threads(intra)
+    if workers == 1:
+        fn(batch)
+        return
+    parts = [batch[i::workers] for i in range(workers)]
+    threads = [threading.Thread(target=fn, args=(p,)) for p in parts[1:]]
+    for t in threads:
+        t.start()
+    fn(parts[0])
+    for t in threads:
+        t.join()
 
 
-def measure(spec: dict[str, Any]) -> dict[str, Any]:
-    """Time one backend configuration (runs in its own process)."""
+def linear_flops(model, call: Callable[[], object]) -> int:
+    """FLOPs of every ``nn.Linear`` call during ``call()`` (2 * rows * in * out), original path."""
     import torch
 
-    from pcc_ros.models import get_backend, load_completer
+    from pcc_ros.models.layers import reference_path
 
-    if spec["threads"]:
-        torch.set_num_threads(spec["threads"])
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    cls = get_backend(spec["backend"])
-    kwargs = {"size": spec["size"]} if spec["size"] else {}
-    if cls.learned and spec["checkpoint"]:
-        completer = load_completer(spec["backend"], spec["checkpoint"], device=spec["device"])
-        weights = str(spec["checkpoint"])
-    else:
-        torch.manual_seed(0)
-        completer = cls(device=spec["device"], **kwargs) if cls.learned else cls(device=spec["device"])
-        weights = "untrained (speed only)" if cls.learned else "none"
-    device = getattr(completer, "device", torch.device("cpu"))
-    clouds = spec["clouds"]
-    row: dict[str, Any] = {
-        "backend": spec["backend"], "size": spec["size"] or "-", "weights": weights,
-        "points_in_mean": float(np.mean([len(c) for c in clouds])), "threads": torch.get_num_threads(),
-    }
-    for b in BATCHES:
-        if hasattr(completer, "batch_size"):
-            completer.batch_size = b
-        batch = [clouds[i % len(clouds)] for i in range(b)]
-        repeat = max(3, spec["repeat"] if b < 32 else spec["repeat"] // 2)
-        ms = median_ms(lambda batch=batch: completer.complete(batch), repeat=repeat, warmup=2)
-        row[f"instances_per_s_b{b}"] = b / (ms / 1e3)
-        if b == 1:
-            row["latency_ms_b1"] = ms
-    row["points_out"] = len(completer.complete(clouds[:1])[0])
-    row["peak_memory_mb"] = _peak_memory_mb(device)
-    row["memory_before_model_mb"] = rss_before
-    if hasattr(completer, "model"):
-        row["parameters"] = int(sum(p.numel() for p in completer.model.parameters()))
-    row["device"] = str(device)
-    return row
+    total = [0]
+
+    def hook(module, inputs, output):
+        rows = inputs[0].numel() // module.in_features
+        total[0] += 2 * rows * module.in_features * module.out_features
+
+    handles = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, torch.nn.Linear)]
+    try:
+        with reference_path():
+            call()
+    finally:
+        for h in handles:
+            h.remove()
+    return total[0]
 
 
-def _in_fresh_process(spec: dict[str, Any]) -> dict[str, Any]:
-    ctx = mp.get_context("spawn")
-    with ctx.Pool(1) as pool:
-        return pool.apply(measure, (spec,))
+def _load_pointpncnet(checkpoint: Path | None, batch_size: int):
+    import torch
 
+    from pcc_ros.models import create, default_checkpoint, load_completer
 
-def sizes_of(backend: str, requested: str | None) -> list[str | None]:
-    """Size presets to benchmark: the requested ones, else all the backend module defines."""
-    import importlib
-
-    from pcc_ros.models import get_backend
-
-    if requested:
-        return [s.strip() for s in requested.split(",") if s.strip()]
-    presets = getattr(importlib.import_module(get_backend(backend).__module__), "PRESETS", None)
-    return list(presets) if presets else [None]
+    path = checkpoint or default_checkpoint("pointpncnet")
+    if path is not None:
+        return load_completer("pointpncnet", path, device="cpu", batch_size=batch_size), str(path)
+    torch.manual_seed(0)
+    return create("pointpncnet", device="cpu", batch_size=batch_size), "untrained (same cost)"
 
 
 def run(args: argparse.Namespace) -> dict:
-    from pcc_ros.models import default_checkpoint, get_backend
+    import torch
 
-    count = max(BATCHES)
+    from pcc_ros.models import available, get_backend
+    from pcc_ros.models.base import create
+    from pcc_ros.models.layers import reference_path
+
+    load_before = load_average()
+    batches = [int(b) for b in args.batches.split(",") if b.strip()]
+    count = max(max(batches), 32)
     clouds = cache_clouds(args.data, count) if args.data else car_clouds(count, args.points, args.seed)
     if not clouds:
         raise SystemExit(f"{args.data}: no instances to benchmark with")
-    sizes = sizes_of(args.backend, args.sizes)
-    if "default" in sizes:  # the target applies to the default size: measure it first
-        sizes.remove("default")
-        sizes.insert(0, "default")
-    cls = get_backend(args.backend)
-    base = {"backend": args.backend, "device": args.device, "threads": args.threads, "repeat": args.repeat,
-            "clouds": clouds}
-    rows = []
-    for size in sizes:
-        checkpoint = args.checkpoint
-        if cls.learned and checkpoint is None and size in ("default", None):
-            checkpoint = default_checkpoint(args.backend)  # the shipped weights are the default size
-        rows.append(_in_fresh_process({**base, "size": size, "checkpoint": checkpoint}))
-    baseline = _in_fresh_process({**base, "backend": "mirror", "size": None, "checkpoint": None})
-    for row in rows:
-        row["vs_mirror_b32"] = row["instances_per_s_b32"] / baseline["instances_per_s_b32"]
-    table = [*rows, {**baseline, "vs_mirror_b32": 1.0}]
-    print_table(
-        f"pcc bench complete ({args.device}, inputs: "
-        f"{'cache ' + str(args.data) if args.data else f'{args.points}-point car-like clouds'})",
-        table,
-        ["backend", "size", "points_in_mean", "points_out", "instances_per_s_b1", "instances_per_s_b8",
-         "instances_per_s_b32", "latency_ms_b1", "peak_memory_mb", "vs_mirror_b32"],
-    )
-    first = rows[0]
-    results: dict[str, Any] = {k: v for k, v in first.items()}
-    results["configs"] = {str(r["size"]): r for r in rows}
-    results["baseline"] = baseline
-    results["inputs"] = str(args.data) if args.data else f"car-like clouds, {args.points} points"
-    if first["size"] == "default":
-        results["targets"] = {
-            "instances_per_s_b32_min": TARGET_B32,
-            "latency_ms_b1_max": TARGET_LATENCY_MS,
-            "met": bool(first["instances_per_s_b32"] >= TARGET_B32 and first["latency_ms_b1"] <= TARGET_LATENCY_MS),
+    completer, weights = _load_pointpncnet(args.checkpoint, 32)
+    batch32 = clouds[:32]
+
+    # ---- equal outputs first
+    torch.set_num_threads(1)
+    fast_out = completer.complete(batch32)
+    with reference_path():
+        ref_out = completer.complete(batch32)
+    max_diff = max(float(np.abs(a - b).max()) for a, b in zip(fast_out, ref_out))
+    if max_diff > 1e-4:
+        raise SystemExit(f"fast and original network paths disagree: max |diff| {max_diff:.2e} m (canonical)")
+    flops = linear_flops(completer.model, lambda: completer.complete(batch32)) / len(batch32)
+
+    def reference(setting: tuple[int, int], batch: list) -> None:
+        with reference_path():  # a process-wide switch: set it around the worker threads
+            run_with(setting, completer.complete, batch)
+
+    ceiling_inputs = {shape: (torch.randn(shape[0], shape[1]), torch.randn(shape[1], shape[2]))
+                      for shape in CEILING_SHAPES}
+
+    # ---- 1 + 2: original vs fast, per thread setting, with the matmul ceiling in the same rounds
+    settings = parse_threads(args.threads)
+    rows, per_setting = [], {}
+    for setting in settings:
+        alts: dict[str, Callable[[], object]] = {
+            "original": lambda s=setting: reference(s, batch32),
+            "fast": lambda s=setting: run_with(s, completer.complete, batch32),
         }
-        print(f"\ntarget (default): >= {TARGET_B32:.0f} inst/s at batch 32 and <= {TARGET_LATENCY_MS:.0f} ms "
-              f"at batch 1: {'met' if results['targets']['met'] else 'NOT met'}")
+        for shape, (a, b) in ceiling_inputs.items():
+            reps = max(1, int(2e9 // (2 * np.prod(shape))))  # ~2 GFLOP per timed call
+            alts[f"mm{shape}"] = lambda s=setting, a=a, b=b, reps=reps: run_with(
+                s, lambda _batch: [torch.mm(a, b) for _ in range(reps)], [None] * s[0])
+        times = interleaved(alts, args.repeat)
+        mm_rates = {}
+        for shape in CEILING_SHAPES:
+            reps = max(1, int(2e9 // (2 * np.prod(shape))))
+            per_call = 2 * np.prod(shape) * reps * setting[0]  # every worker runs reps matmuls
+            mm_rates[shape] = float(per_call / np.median(times[f"mm{shape}"]) / 1e9)
+        ceiling = max(mm_rates.values())
+        orig, fast = summary_ms(times["original"]), summary_ms(times["fast"])
+        fast_gflops = flops * len(batch32) / (fast["median_ms"] / 1e3) / 1e9
+        row = {
+            "threads": thread_label(setting),
+            "original_ms": orig["median_ms"], "fast_ms": fast["median_ms"],
+            "fast_min_ms": fast["min_ms"], "fast_max_ms": fast["max_ms"],
+            "original_inst_s": len(batch32) / (orig["median_ms"] / 1e3),
+            "fast_inst_s": len(batch32) / (fast["median_ms"] / 1e3),
+            "speedup": orig["median_ms"] / fast["median_ms"],
+            "gflop_s": fast_gflops,
+            "mm_gflop_s": ceiling,
+            "of_ceiling": fast_gflops / ceiling,
+        }
+        rows.append(row)
+        per_setting[row["threads"]] = {"original": orig, "fast": fast,
+                                       "matmul_gflop_s": {str(k): v for k, v in mm_rates.items()}, **row}
+    print_table(
+        f"PointPnCNet default, batch 32, {args.points if not args.data else 'cached'}-point inputs "
+        f"(median of {args.repeat} interleaved rounds; ms per batch)",
+        rows,
+        ["threads", "original_ms", "fast_ms", "fast_min_ms", "fast_max_ms", "original_inst_s", "fast_inst_s",
+         "speedup", "gflop_s", "mm_gflop_s", "of_ceiling"],
+    )
+    best = max(rows, key=lambda r: r["fast_inst_s"])
+    best_setting = settings[[thread_label(s) for s in settings].index(best["threads"])]
+
+    # ---- 3: batch size sweep (fast path, best thread setting)
+    n_sweep = max(batches)
+
+    def in_batches(b: int) -> None:
+        completer.batch_size = b  # the completer runs its input in chunks of batch_size
+        run_with(best_setting, completer.complete, clouds[:n_sweep])
+
+    sweep_alts = {str(b): (lambda b=b: in_batches(b)) for b in batches}
+    sweep_times = interleaved(sweep_alts, max(3, args.repeat // 2))
+    sweep = []
+    for b in batches:
+        s = summary_ms(sweep_times[str(b)])
+        sweep.append({"batch": b, "median_ms_per_instance": s["median_ms"] / n_sweep,
+                      "inst_s": n_sweep / (s["median_ms"] / 1e3)})
+    best_batch = max(sweep, key=lambda r: r["inst_s"])["batch"]
+    print_table(f"fast path, threads {best['threads']}: {n_sweep} instances in batches of b", sweep)
+    print(f"batch size with the highest throughput: {best_batch}")
+
+    # ---- 4: other backends at the best setting
+    names = ([s.strip() for s in args.backends.split(",") if s.strip()] if args.backends is not None else
+             [n for n in available() if n != "pointpncnet" and get_backend(n).learned] + ["mirror"])
+    others = []
+    for name in names:
+        try:
+            torch.manual_seed(0)
+            kwargs = {"batch_size": 32} if get_backend(name).learned else {}
+            other = create(name, device="cpu", **kwargs)
+            t = interleaved({name: lambda o=other: run_with(best_setting, o.complete, batch32)},
+                            max(3, args.repeat // 3), warmup=1)[name]
+            s = summary_ms(t)
+            others.append({"backend": name, "batch": 32, "median_ms": s["median_ms"],
+                           "inst_s": len(batch32) / (s["median_ms"] / 1e3)})
+        except Exception as exc:  # a broken backend is reported, not fatal to the bench
+            others.append({"backend": name, "batch": 32, "error": f"{type(exc).__name__}: {exc}"})
+    print_table(f"other backends, threads {best['threads']}, batch 32 (untrained weights: same cost)", others)
+
+    at1 = next(r for r in rows if r["threads"] == "1")
+    results: dict[str, Any] = {
+        "weights": weights,
+        "inputs": str(args.data) if args.data else f"car-like clouds, {args.points} points",
+        "flops_per_instance": flops,
+        "output_max_abs_diff": max_diff,
+        "threads": per_setting,
+        "best_threads": best["threads"],
+        "batch_sweep": sweep,
+        "best_batch": best_batch,
+        "backends": others,
+        "instances_per_s_b32": best["fast_inst_s"],
+        "original_instances_per_s_b32": best["original_inst_s"],
+        "speedup_b32": at1["speedup"],
+        "of_ceiling": best["of_ceiling"],
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "load_average_before": load_before,
+        "load_average_after": load_average(),
+    }
+    met = bool(at1["speedup"] >= TARGET_SPEEDUP and best["of_ceiling"] >= TARGET_CEILING)
+    results["targets"] = {"speedup_b32_min": TARGET_SPEEDUP, "of_ceiling_min": TARGET_CEILING, "met": met}
+    print(f"\n{flops / 1e6:.1f} MFLOP per instance; outputs equal (max |diff| {max_diff:.1e}).")
+    print(f"threads 1: {at1['speedup']:.2f}x the original path at batch 32; best setting ({best['threads']}): "
+          f"{best['fast_inst_s']:.0f} inst/s, {best['gflop_s']:.1f} GFLOP/s = {best['of_ceiling']:.0%} of the "
+          f"matmul ceiling {best['mm_gflop_s']:.1f} GFLOP/s. Targets (>= {TARGET_SPEEDUP}x, >= "
+          f"{TARGET_CEILING:.0%}): {'met' if met else 'NOT met'}.")
+    print(f"load average (1 min) before / after: {load_before[0]:.2f} / {results['load_average_after'][0]:.2f} "
+          f"on {os.cpu_count()} cores")
     return results
