@@ -183,9 +183,14 @@ def _group_by_box(pair_point: np.ndarray, pair_box: np.ndarray, n_boxes: int, *v
     """Split pair arrays per box; point indices stay ascending inside each box."""
     key = pair_box.astype(np.int16 if n_boxes < 32767 else np.int64)  # int16: radix sort
     order = np.argsort(key, kind="stable")
-    bounds = np.cumsum(np.bincount(pair_box, minlength=n_boxes))[:-1]
-    out = [np.split(np.take(pair_point, order), bounds)]
-    out.extend(np.split(np.take(v, order, axis=0), bounds) for v in values)
+    ends = np.cumsum(np.bincount(pair_box, minlength=n_boxes)).tolist()
+    starts = [0, *ends[:-1]]
+
+    def split(a: np.ndarray) -> list[np.ndarray]:  # plain slices: np.split costs ~10 us per piece
+        return [a[s:e] for s, e in zip(starts, ends)]
+
+    out = [split(np.take(pair_point, order))]
+    out.extend(split(np.take(v, order, axis=0)) for v in values)
     return out
 
 

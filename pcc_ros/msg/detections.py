@@ -33,7 +33,7 @@ import numpy as np
 from pcc_ros.boxes import Boxes
 from pcc_ros.errors import MessageError
 from pcc_ros.msg.stamps import make_header
-from pcc_ros.msg.typestore import ClassResolver, new_message
+from pcc_ros.msg.typestore import ClassResolver, new_message, resolve
 
 log = logging.getLogger(__name__)
 
@@ -333,7 +333,8 @@ def marker_array_from_boxes(
         return new_message("visualization_msgs/msg/Marker", classes, header=header, **fields)
 
     markers = [marker(ns=ns, id=0, action=DELETEALL)]
-    segments = box_edges(boxes)
+    segments = box_edges(boxes).tolist()  # Python floats, converted once for all boxes
+    point_cls = resolve(classes)("geometry_msgs/msg/Point")  # x, y, z given: no defaults to fill
     for i in range(n):
         rgba = STATUS_COLORS.get(None if status is None else str(status[i]), _OTHER_COLOR)
         identity = _pose(classes, (0.0, 0.0, 0.0), 0.0)
@@ -346,10 +347,7 @@ def marker_array_from_boxes(
                 pose=identity,
                 scale=_vector3(classes, (line_width, 0.0, 0.0)),
                 color=_color(classes, rgba),
-                points=[
-                    new_message("geometry_msgs/msg/Point", classes, x=float(p[0]), y=float(p[1]), z=float(p[2]))
-                    for p in segments[i]
-                ],
+                points=[point_cls(x=x, y=y, z=z) for x, y, z in segments[i]],
             )
         )
         top = boxes.center[i] + (0.0, 0.0, boxes.size[i, 2] / 2 + text_height)

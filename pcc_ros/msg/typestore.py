@@ -24,7 +24,7 @@ from __future__ import annotations
 import array
 import dataclasses
 from collections.abc import Callable
-from functools import lru_cache
+from functools import cache, lru_cache
 
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg
@@ -147,6 +147,22 @@ def _default_value(desc: tuple, classes: ClassResolver):
     return []  # SEQUENCE
 
 
+@cache
+def _rosbags_field_specs(cls: type) -> tuple[tuple[str, tuple], ...] | None:
+    """``(dataclass field name, field description)`` of a rosbags class; ``None`` for other classes.
+
+    Computed once per class: building a frame's markers constructs about a thousand
+    messages, and looking the definition up every time was most of the encode cost.
+    """
+    if not is_rosbags_class(cls):
+        return None
+    defs = get_typestore().fielddefs.get(cls.__msgtype__)
+    if defs is None:
+        raise MessageError(f"message class {cls.__msgtype__!r} is not in the type store")
+    # Dataclass field names are the definition's names after rosbags' keyword escaping.
+    return tuple((f.name, desc) for f, (_, desc) in zip(dataclasses.fields(cls), defs[1]))
+
+
 def new_message(typename: str, classes: ClassResolver | None = None, **fields):
     """Construct ``typename`` with keyword ``fields`` using the resolved class.
 
@@ -155,15 +171,11 @@ def new_message(typename: str, classes: ClassResolver | None = None, **fields):
     """
     resolver = resolve(classes)
     cls = resolver(typename)
-    if is_rosbags_class(cls):
-        store = get_typestore()
-        defs = store.fielddefs.get(cls.__msgtype__)
-        if defs is None:
-            raise MessageError(f"message class {cls.__msgtype__!r} is not in the type store")
-        # Dataclass field names are the definition's names after rosbags' keyword escaping.
-        for dc_field, (_, desc) in zip(dataclasses.fields(cls), defs[1]):
-            if dc_field.name not in fields:
-                fields[dc_field.name] = _default_value(desc, resolver)
+    specs = _rosbags_field_specs(cls)
+    if specs is not None and len(fields) < len(specs):
+        for name, desc in specs:
+            if name not in fields:
+                fields[name] = _default_value(desc, resolver)
     return cls(**fields)
 
 
