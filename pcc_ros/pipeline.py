@@ -70,14 +70,15 @@ class PipelineConfig:
     ground_margin: float = 0.05
     half_precision: bool = False
     batch_size: int = 32
+    workers: int = 1
     include_input_points: bool = False
     include_observed_points: bool = False
     class_thresholds: str = ""
     filter: FilterConfig = field(default_factory=FilterConfig)
 
     def __post_init__(self) -> None:
-        if self.min_points < 1 or self.max_instances < 1 or self.batch_size < 1:
-            raise ConfigError("min_points, max_instances and batch_size must be >= 1")
+        if self.min_points < 1 or self.max_instances < 1 or self.batch_size < 1 or self.workers < 1:
+            raise ConfigError("min_points, max_instances, batch_size and workers must be >= 1")
         if self.box_margin < 0 or self.ground_margin < 0:
             raise ConfigError("box_margin and ground_margin must be >= 0")
         object.__setattr__(self, "classes", tuple(str(c) for c in self.classes))
@@ -287,8 +288,8 @@ class Pipeline:
         from pcc_ros.models.base import get_backend
 
         if not get_backend(config.backend).learned:
-            return {}  # baselines have no network: batch size and precision do not apply
-        return {"batch_size": config.batch_size, "half_precision": config.half_precision}
+            return {}  # baselines have no network: batch size, precision and workers do not apply
+        return {"batch_size": config.batch_size, "half_precision": config.half_precision, "workers": config.workers}
 
     # ------------------------------------------------------------------ core
 

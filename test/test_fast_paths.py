@@ -116,3 +116,25 @@ def test_shipped_pointpncnet_fast_path_equals_reference_path():
     for a, b in zip(fast, ref):
         assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=2e-5)
+
+
+def test_worker_threads_return_the_same_completions_in_order():
+    from pcc_ros.errors import ConfigError
+    from pcc_ros.models import create
+
+    torch.manual_seed(0)
+    single = create("pointpncnet", device="cpu", batch_size=4)
+    threaded = create("pointpncnet", device="cpu", batch_size=4, workers=3)
+    threaded.model.load_state_dict(single.model.state_dict())
+    rng = np.random.default_rng(5)
+    clouds = [(rng.uniform(-1, 1, (n, 3)) * [0.5, 0.2, 0.15]).astype(np.float32) for n in (30, 200, 7, 90, 400, 55, 12)]
+    threads = torch.get_num_threads()
+    expected = single.complete(clouds)
+    got = threaded.complete(clouds)
+    assert torch.get_num_threads() == threads  # restored after the call
+    assert len(got) == len(expected)
+    for a, b in zip(got, expected):  # same order, same values
+        np.testing.assert_allclose(a, b, rtol=0, atol=2e-5)
+    assert len(threaded.complete(clouds[:1])) == 1  # fewer instances than workers
+    with pytest.raises(ConfigError, match="workers"):
+        create("pointpncnet", device="cpu", workers=0)

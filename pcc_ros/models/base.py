@@ -26,6 +26,7 @@ from __future__ import annotations
 import abc
 import hashlib
 import importlib
+import itertools
 import logging
 import pkgutil
 from collections.abc import Callable, Sequence
@@ -416,21 +417,32 @@ class TorchCompleter(Completer):
 
     Run-time options that do not change the weights (``batch_size``, ``half_precision``:
     weights and activations in float16 on CUDA, bfloat16 on CPU; inputs are cast on the way
-    in, outputs come back as float32) are not hyper-parameters and are not saved.
+    in, outputs come back as float32; ``workers``) are not hyper-parameters and are not saved.
+    ``workers > 1`` (CPU only) splits a call's instances over that many threads, each running
+    its share with one intra-op torch thread: parallelism without the per-operator barriers
+    of intra-op threads, which stall whenever another process holds a core (``pcc bench
+    complete`` / ``pipeline`` measure the settings). While such a call runs, torch's thread
+    count is 1 process-wide.
     """
 
     learned: ClassVar[bool] = True
 
-    def __init__(self, device: str = "auto", batch_size: int = 32, half_precision: bool = False, **config: Any) -> None:
+    def __init__(
+        self, device: str = "auto", batch_size: int = 32, half_precision: bool = False, workers: int = 1, **config: Any
+    ) -> None:
         defaults = self.default_config()
         unknown = sorted(set(config) - set(defaults))
         if unknown:
             raise ConfigError(f"backend {self.name!r}: unknown option(s) {unknown}; known: {sorted(defaults)}")
         if int(batch_size) < 1:
             raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
+        if int(workers) < 1:
+            raise ConfigError(f"workers must be >= 1, got {workers}")
         super().__init__(device=device, **{**defaults, **config})
         self.batch_size = int(batch_size)
         self.half_precision = bool(half_precision)
+        self.workers = int(workers)
+        self._pool = None
         self.device = select_device(device)
         self.model = self.build_model().to(self.device)
         if self.half_precision:
@@ -457,15 +469,45 @@ class TorchCompleter(Completer):
         """Complete one chunk (under inference mode, model in eval mode)."""
 
     def _complete(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
-        import torch
-
         if self.model.training:
             self.model.eval()
+        workers = min(self.workers, len(clouds))
+        if workers > 1 and self.device.type == "cpu":
+            return self._complete_threaded(clouds, contexts, workers)
+        return self._complete_chunks(clouds, contexts)
+
+    def _complete_chunks(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
+        import torch
+
         outputs: list[np.ndarray] = []
-        with torch.inference_mode():
+        with torch.inference_mode():  # thread-local: entered by every worker thread itself
             for start in range(0, len(clouds), self.batch_size):
                 stop = start + self.batch_size
                 outputs.extend(self.forward_batch(clouds[start:stop], contexts[start:stop]))
+        return outputs
+
+    def _complete_threaded(
+        self, clouds: list[np.ndarray], contexts: list[SceneContext | None], workers: int
+    ) -> list[np.ndarray]:
+        """Contiguous shares of the instances on ``workers`` threads (this one included), in order."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        import torch
+
+        if self._pool is None or self._pool._max_workers < self.workers - 1:
+            self._pool = ThreadPoolExecutor(max_workers=self.workers - 1, thread_name_prefix="pcc-complete")
+        bounds = np.linspace(0, len(clouds), workers + 1).round().astype(int).tolist()
+        shares = list(itertools.pairwise(bounds))
+        previous = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            futures = [self._pool.submit(self._complete_chunks, clouds[a:b], contexts[a:b]) for a, b in shares[1:]]
+            a, b = shares[0]
+            outputs = self._complete_chunks(clouds[a:b], contexts[a:b])
+            for future in futures:
+                outputs.extend(future.result())
+        finally:
+            torch.set_num_threads(previous)
         return outputs
 
     # ---- checkpoints

@@ -233,10 +233,13 @@ class PointPnCNet(TorchCompleter):
     ``size`` picks a preset (``default`` or ``paper``); any other key overrides the preset.
     """
 
-    def __init__(self, device: str = "auto", batch_size: int = 32, size: str = "default", **config: Any) -> None:
+    def __init__(
+        self, device: str = "auto", batch_size: int = 32, size: str = "default", workers: int = 1, **config: Any
+    ) -> None:
         if size not in PRESETS:
             raise ConfigError(f"pointpncnet: unknown size {size!r}; choose from {sorted(PRESETS)}")
-        super().__init__(device=device, batch_size=batch_size, size=size, **{**PRESETS[size], **config})
+        config = {**PRESETS[size], **config}
+        super().__init__(device=device, batch_size=batch_size, workers=workers, size=size, **config)
 
     @classmethod
     def default_config(cls) -> dict[str, Any]:
