@@ -61,6 +61,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "box_margin": (0.0, 5.0),
     "ground_margin": (0.0, 5.0),
     "batch_size": (1, 4096),
+    "workers": (1, 64),
     "match_threshold": (0.0, 1.0),
     "detection_threshold": (0.0, 1.0),
     "mcd_scale": (1e-6, 10.0),
@@ -87,7 +88,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
 READ_ONLY = frozenset({"queue_size", *(name for name in NODE_DEFAULTS if name.startswith("qos."))})
 
 #: Parameters that change the loaded network (a run-time change reloads the backend).
-BACKEND_PARAMETERS = ("backend", "checkpoint", "device", "half_precision", "batch_size")
+BACKEND_PARAMETERS = ("backend", "checkpoint", "device", "half_precision", "batch_size", "workers")
 
 
 @dataclass(frozen=True)
