@@ -13,6 +13,7 @@ import importlib
 import importlib.util
 import logging
 import sys
+import traceback
 
 from pcc_ros import __version__
 from pcc_ros.errors import PccError
@@ -53,6 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"pcc_ros {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--debug", action="store_true", help="on an error, also print the Python traceback")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, text) in _available_commands().items():
         module = importlib.import_module(module_name)
@@ -78,11 +80,34 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args._module.run(args) or 0)
-    except PccError as exc:
-        logging.getLogger("pcc").error("%s", exc)
-        return 1
     except KeyboardInterrupt:
+        _report("interrupted — outputs of this run were not committed; re-run the same command to resume")
         return 130
+    except Exception as exc:  # the command boundary: a named error, never a traceback
+        if args.debug:
+            traceback.print_exc()
+        _report(describe_error(exc))
+        return 1
+
+
+def describe_error(exc: BaseException) -> str:
+    """One line for any exception: ``<file>[:line|@offset]: <what> — <what to do>``."""
+    if isinstance(exc, PccError):
+        return str(exc)
+    if isinstance(exc, OSError) and exc.filename is not None:
+        return f"{exc.filename}: {exc.strerror or exc} — check the path, its permissions and the free disk space"
+    if isinstance(exc, MemoryError):
+        return "out of memory — process less at once (fewer frames, smaller --batch-size) or free memory"
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    return (
+        f"internal error {type(exc).__name__}{': ' + text if text else ''} — "
+        "this is a bug in pcc_ros; re-run with --debug for the traceback and report it"
+    )
+
+
+def _report(text: str) -> None:
+    """``ERROR pcc: <text>`` on stderr, through logging when it is set up."""
+    logging.getLogger("pcc").error("%s", text)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -245,12 +244,13 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pcc_ros import files
     from pcc_ros.bags.replay import load_config
 
     args.out.mkdir(parents=True, exist_ok=True)
     config, _ = load_config(None, with_filter=True, backend=args.backend, checkpoint=args.checkpoint)
     results = {"backend": config.backend, "synthcars": run_synthcars(args, config), "kitti": run_kitti(args, config)}
-    (args.out / "demo.json").write_text(json.dumps(results, indent=2) + "\n")
+    files.write_json(args.out / "demo.json", results, indent=2)
     print(f"\nwrote {args.out / 'demo.json'} and the PNGs: "
           + ", ".join(r["png"] for r in (results["synthcars"], results["kitti"]) if r))
     return 0

@@ -542,10 +542,10 @@ def example_indices(instances: Sequence[EvalInstance], count: int) -> list[int]:
 
 
 def _write_json(path: Path, results: dict[str, Any]) -> None:
+    from pcc_ros import files
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
-    tmp.replace(path)
+    files.write_json(path, results, indent=2, allow_nan=False)
 
 
 def _previous_results(path: Path | None) -> dict[str, Any] | None:

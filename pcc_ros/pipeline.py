@@ -74,15 +74,32 @@ class PipelineConfig:
     include_input_points: bool = False
     include_observed_points: bool = False
     class_thresholds: str = ""
+    max_box_size: float = 40.0
+    max_box_range: float = 1000.0
+    max_box_tilt: float = 0.35
+    max_crop_work: int = 500_000
     filter: FilterConfig = field(default_factory=FilterConfig)
 
     def __post_init__(self) -> None:
         if self.min_points < 1 or self.max_instances < 1 or self.batch_size < 1 or self.workers < 1:
             raise ConfigError("min_points, max_instances, batch_size and workers must be >= 1")
+        if self.max_crop_work < 1:
+            raise ConfigError("max_crop_work must be >= 1")
         if self.box_margin < 0 or self.ground_margin < 0:
             raise ConfigError("box_margin and ground_margin must be >= 0")
         object.__setattr__(self, "classes", tuple(str(c) for c in self.classes))
         parse_class_thresholds(self.class_thresholds)  # refuse a malformed map now, not per frame
+        self.detection_limits()  # refuse implausible box bounds now, not per frame
+
+    def detection_limits(self):
+        """The :class:`~pcc_ros.msg.detections.DetectionLimits` incoming detections must meet."""
+        from pcc_ros.msg.detections import DetectionLimits
+
+        return DetectionLimits(
+            max_size=float(self.max_box_size), max_range=float(self.max_box_range),
+            max_tilt=float(self.max_box_tilt),
+            score_range=(0.0, 1.0) if self.filter.score_mapping == "identity" else None,
+        )
 
     def detection_thresholds(self, labels: np.ndarray) -> np.ndarray:
         """The filter's detection-score threshold of each label: ``class_thresholds`` where it
@@ -219,8 +236,8 @@ class FrameResult:
 
     Per-detection arrays have one row per input detection (after invalid boxes were
     dropped, see ``skipped``): ``status`` is ``"kept"``, ``"rejected"`` or ``"skipped"``
-    (another class, too few points, over the per-frame cap — skipped detections pass the
-    filter untouched), ``mismatch`` is NaN where no shape was judged.
+    (another class, too few points, over the per-frame cap or work bound — skipped detections
+    pass the filter untouched), ``mismatch`` is NaN where no shape was judged.
     """
 
     stamp_ns: int
@@ -312,6 +329,20 @@ class Pipeline:
             dropped = candidates[order[cfg.max_instances :]]
             _count(skipped, "over max_instances", len(dropped))
             candidates = np.sort(candidates[order[: cfg.max_instances]])
+        # Work bound: crop, completion and filter cost grows with the (point, box) pairs, about
+        # the points under each box's footprint. Estimated in O(points + boxes) first; beyond
+        # max_crop_work the lowest-score boxes are skipped (counted), so one hostile frame
+        # (hundreds of huge boxes over a dense scan) cannot stall a node or exhaust memory.
+        work = estimated_crop_pairs(points, detections[candidates], cfg.box_margin)
+        if work.sum() > cfg.max_crop_work:
+            order = np.argsort(-detections.score[candidates], kind="stable")
+            fits = np.zeros(len(candidates), dtype=bool)
+            fits[order] = np.cumsum(work[order]) <= cfg.max_crop_work
+            _count(skipped, "over max_crop_work", int((~fits).sum()))
+            log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
+                        "lowest-score boxes", stamp_ns, int(work.sum()), len(candidates), cfg.max_crop_work,
+                        int((~fits).sum()))
+            candidates = candidates[fits]
         crop_index, canonical = crop_canonical(points, detections[candidates], cfg.box_margin, cfg.ground_margin)
         counts = np.array([len(c) for c in canonical], dtype=np.int64)
         num_points[candidates] = counts
@@ -411,6 +442,9 @@ class Pipeline:
         from pcc_ros.msg.pointcloud2 import read_xyz
         from pcc_ros.msg.stamps import stamp_to_ns
 
+        for what, msg in (("scan", cloud_msg), ("detections", detections_msg)):
+            if stamp_to_ns(msg.header.stamp) < 0:
+                raise MessageError(f"{what} stamp {stamp_to_ns(msg.header.stamp)} ns is negative (before 1970)")
         cloud_frame, boxes_frame = str(cloud_msg.header.frame_id), str(detections_msg.header.frame_id)
         if boxes_frame and boxes_frame != cloud_frame:
             raise MessageError(
@@ -419,7 +453,7 @@ class Pipeline:
             )
         tic = time.perf_counter()
         points = read_xyz(cloud_msg)
-        boxes, valid = decode_detection_array(detections_msg, skip_invalid=True)
+        boxes, valid = decode_detection_array(detections_msg, skip_invalid=True, limits=self.config.detection_limits())
         originals = [d for d, ok in zip(detections_msg.detections, valid) if ok]
         decode_ms = _ms(tic)
         result = self.process(
@@ -428,6 +462,27 @@ class Pipeline:
         result.timings_ms = {"decode_ms": decode_ms, **result.timings_ms}
         _count(result.skipped, "invalid detection", int((~valid).sum()))
         return result, originals
+
+
+def estimated_crop_pairs(points: np.ndarray, boxes: Boxes, margin: float = 0.0) -> np.ndarray:
+    """Per box, the number of scan points within its footprint's bounding square (an upper
+    estimate of the points it crops), from a BEV count grid and its summed-area table:
+    ``O(points + boxes)``, whatever the boxes' sizes."""
+    if len(boxes) == 0 or len(points) == 0:
+        return np.zeros(len(boxes), dtype=np.int64)
+    xy = np.asarray(points[:, :2], dtype=np.float64)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    cell = max(1.0, float((hi - lo).max()) / 1024.0)  # at most ~1024 x 1024 cells
+    shape = np.floor((hi - lo) / cell).astype(np.int64) + 1
+    cells = np.floor((xy - lo) / cell).astype(np.int64)
+    grid = np.bincount(cells[:, 0] * shape[1] + cells[:, 1], minlength=int(shape.prod())).reshape(shape)
+    table = np.zeros((shape[0] + 1, shape[1] + 1), dtype=np.int64)
+    table[1:, 1:] = grid.cumsum(axis=0).cumsum(axis=1)
+    radius = np.hypot(boxes.size[:, 0], boxes.size[:, 1]) / 2.0 + margin
+    first = np.clip(np.floor((boxes.center[:, :2] - radius[:, None] - lo) / cell), 0, shape).astype(np.int64)
+    last = np.clip(np.floor((boxes.center[:, :2] + radius[:, None] - lo) / cell) + 1, 0, shape).astype(np.int64)
+    return (table[last[:, 0], last[:, 1]] - table[first[:, 0], last[:, 1]]
+            - table[last[:, 0], first[:, 1]] + table[first[:, 0], first[:, 1]])
 
 
 def build_outputs(

@@ -86,12 +86,15 @@ def test_detection_array_round_trip(n, seed):
 
 def test_quaternion_is_normalised_and_yaw_extracted():
     yaw = 0.7
-    q = 3.0 * np.array([0, 0, np.sin(yaw / 2), np.cos(yaw / 2)])  # not unit length
+    q = 1.004 * np.array([0, 0, np.sin(yaw / 2), np.cos(yaw / 2)])  # float noise off unit length
     boxes = boxes_from_detection_array(array_of(detection(quat=tuple(q))))
     assert boxes.yaw[0] == pytest.approx(yaw)
     # yaw -> -yaw + 2 pi wrap, and q == -q
     boxes = boxes_from_detection_array(array_of(detection(quat=tuple(-q))))
     assert boxes.yaw[0] == pytest.approx(yaw)
+    # far from unit length is not a rotation: refused, not silently normalised
+    with pytest.raises(MessageError, match="quaternion norm 3 is not 1"):
+        boxes_from_detection_array(array_of(detection(quat=tuple(3.0 * q / 1.004))))
 
 
 def test_best_hypothesis_and_track_id():

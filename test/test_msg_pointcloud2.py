@@ -37,7 +37,7 @@ def layouts(draw, require_xyz: bool = False):
     fields, offset = [], 0
     for name in names:
         offset += draw(st.integers(0, 5))  # padding before the field, alignment not guaranteed
-        code = DATATYPES[draw(st.integers(1, 8))][1]
+        code = DATATYPES[draw(st.integers(7, 8) if name in "xyz" else st.integers(1, 8))][1]  # x, y, z: float
         count = 1 if name in "xyz" else draw(st.integers(1, 3))
         fields.append((name, np.dtype(order + code), count, offset))
         offset += np.dtype(code).itemsize * count

@@ -31,7 +31,9 @@ import json
 import logging
 import os
 import shutil
+import struct
 import tempfile
+import zlib
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -233,8 +235,11 @@ def atomic_bag(
         writer.open()
         if compress and storage == "mcap" and zstd_level is not None:
             _set_mcap_zstd_level(writer, zstd_level)
+        crcs = _record_chunk_crcs(writer) if storage == "mcap" else None
         yield BagWriter(writer)
         writer.close()
+        if crcs is not None:
+            _write_chunk_crcs(tmp_bag, crcs)
         if out.exists():  # force: replace only now that the new bag is complete
             shutil.rmtree(out) if out.is_dir() else out.unlink()
         os.replace(tmp_bag, out)
@@ -286,6 +291,51 @@ def write_bag(
     if summary.skipped_boxes:
         log.info("left out %d boxes without 3D extent (KITTI DontCare rows)", summary.skipped_boxes)
     return summary
+
+
+#: Byte offset of ``uncompressed_crc`` in an MCAP Chunk record: opcode (1), record length (8),
+#: message start / end time and uncompressed size (3 x 8).
+_CHUNK_CRC_OFFSET = 1 + 8 + 24
+
+
+def _record_chunk_crcs(writer: Writer) -> list[int]:
+    """Make rosbags' MCAP writer remember the CRC32 of every chunk's uncompressed bytes.
+
+    rosbags writes ``uncompressed_crc = 0`` ("no CRC"), which leaves a bit flip inside a
+    chunk undetectable; :func:`_write_chunk_crcs` fills the recorded values in after close,
+    so every reader (rosbags, the mcap library, ``ros2 bag``) verifies them.
+    """
+    storage = writer.storage
+    if not hasattr(storage, "compressor"):
+        raise DataError("this rosbags version's MCAP writer has no compressor to wrap")
+    compress = storage.compressor
+    crcs: list[int] = []
+
+    def compress_with_crc(data: bytes) -> bytes:
+        crcs.append(zlib.crc32(data))
+        return compress(data)
+
+    storage.compressor = compress_with_crc
+    return crcs
+
+
+def _write_chunk_crcs(bag: Path, crcs: list[int]) -> None:
+    """Write the CRCs recorded by :func:`_record_chunk_crcs` into the bag's chunk records."""
+    from mcap.reader import make_reader
+
+    files = sorted(bag.glob("*.mcap"))
+    if len(files) != 1:
+        raise DataError(f"{bag}: expected one .mcap file after writing, found {len(files)}")
+    with files[0].open("r+b") as stream:
+        summary = make_reader(stream).get_summary()
+        offsets = sorted(c.chunk_start_offset for c in summary.chunk_indexes) if summary else []
+        if len(offsets) != len(crcs):
+            raise DataError(f"{files[0]}: {len(offsets)} chunks written but {len(crcs)} CRCs recorded")
+        for offset, crc in zip(offsets, crcs):
+            stream.seek(offset + _CHUNK_CRC_OFFSET)
+            stream.write(struct.pack("<I", crc))
+        stream.flush()
+        os.fsync(stream.fileno())
 
 
 def _set_mcap_zstd_level(writer: Writer, level: int) -> None:

@@ -2,20 +2,25 @@
 
 Reads every message of the PointCloud2, Detection3DArray and TFMessage topics (for frame
 ids, point and box counts and the TF tree), so it takes about as long as reading the bag.
+Storage damage (MCAP chunk CRC / compression, corrupt sqlite3) is an error naming the file
+and offset; a message that does not deserialize is counted per topic (``undecodable``) and
+reported, and the command then exits with status 1.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import logging
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from rosbags.highlevel import AnyReaderError
 
-from pcc_ros.bags.read import open_bag
-from pcc_ros.errors import DataError
+from pcc_ros.bags.read import decode, iter_messages, open_bag
+from pcc_ros.errors import PccError
+from pcc_ros.files import write_json
+
+log = logging.getLogger("pcc")
 
 _INSPECTED = {
     "sensor_msgs/msg/PointCloud2",
@@ -43,19 +48,29 @@ def summarize(bag: str | Path) -> dict:
         sizes: dict[str, list[int]] = defaultdict(list)
         tf_edges: set[tuple[str, str, str]] = set()
         inspected = [c for c in reader.connections if c.msgtype in _INSPECTED]
-        for connection, _, raw in reader.messages(connections=inspected):
-            msg = reader.deserialize(raw, connection.msgtype)
+        for connection, time_ns, raw in iter_messages(reader, path, inspected):
             entry = topics[connection.topic]
-            if connection.msgtype == "tf2_msgs/msg/TFMessage":
-                for t in msg.transforms:
-                    tf_edges.add((connection.topic, t.header.frame_id, t.child_frame_id))
-                    entry["frame_ids"].add(t.header.frame_id)
+            try:
+                msg = decode(reader, raw, connection, time_ns, path)
+                if connection.msgtype == "tf2_msgs/msg/TFMessage":
+                    edges = [(str(t.header.frame_id), str(t.child_frame_id)) for t in msg.transforms]
+                    size = None
+                else:
+                    edges = [(str(msg.header.frame_id), None)]
+                    if connection.msgtype == "sensor_msgs/msg/PointCloud2":
+                        size = int(msg.width) * int(msg.height)
+                    else:
+                        size = len(msg.detections)
+            except (PccError, AttributeError, TypeError, ValueError) as exc:
+                entry["undecodable"] = entry.get("undecodable", 0) + 1
+                entry.setdefault("first_problem", str(exc))
                 continue
-            entry["frame_ids"].add(msg.header.frame_id)
-            if connection.msgtype == "sensor_msgs/msg/PointCloud2":
-                sizes[connection.topic].append(int(msg.width) * int(msg.height))
-            else:
-                sizes[connection.topic].append(len(msg.detections))
+            for parent, child in edges:
+                entry["frame_ids"].add(parent)
+                if child is not None:
+                    tf_edges.add((connection.topic, parent, child))
+            if size is not None:
+                sizes[connection.topic].append(size)
         for topic, values in sizes.items():
             v = np.asarray(values)
             key = "points_per_scan" if topics[topic]["type"].endswith("PointCloud2") else "boxes_per_message"
@@ -75,8 +90,6 @@ def summarize(bag: str | Path) -> dict:
             "tf": [{"topic": t, "parent": p, "child": c} for t, p, c in sorted(tf_edges)],
             "custom_data": dict(meta.custom or {}),
         }
-    except AnyReaderError as exc:
-        raise DataError(f"{path}: undecodable message ({exc})") from exc
     finally:
         reader.close()
 
@@ -118,6 +131,8 @@ def format_summary(s: dict) -> str:
             b = t["boxes_per_message"]
             extra = f"  boxes/msg {b['min']}..{b['max']} (mean {b['mean']:.1f})"
         frames = ",".join(t["frame_ids"]) or "-"
+        if t.get("undecodable"):
+            extra += f"  UNDECODABLE {t['undecodable']}"
         lines.append(f"  {name.ljust(width)}  {t['type']}  {t['count']} msgs  frame {frames}{extra}")
     if s["tf"]:
         lines.append("tf:")
@@ -129,5 +144,8 @@ def run(args: argparse.Namespace) -> int:
     summary = summarize(args.bag)
     print(format_summary(summary))
     if args.json:
-        args.json.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-    return 0
+        write_json(args.json, summary, indent=2, sort_keys=True)
+    bad = {name: t for name, t in summary["topics"].items() if t.get("undecodable")}
+    for name, t in sorted(bad.items()):
+        log.error("%s: %d undecodable %s message(s), first: %s", args.bag, t["undecodable"], name, t["first_problem"])
+    return 1 if bad else 0

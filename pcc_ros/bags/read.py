@@ -18,13 +18,22 @@ Messages are grouped by header stamp while reading in bag-time order; a group is
 once the bag time has moved ``window_ns`` past its first message (recorded bags stamp
 detections after the scan they belong to). Box messages whose scan never came are counted
 and logged, never silently attached to another frame.
+
+Integrity: every reader of the package goes through :func:`open_bag`,
+:func:`iter_messages` and :func:`decode`. Storage damage (an MCAP chunk whose CRC or
+compression fails, a truncated file, a corrupt sqlite3 database) is a :class:`BagError`
+naming the file and, for MCAP, the byte offset of the damaged chunk; a topic whose type is
+not the expected one is a :class:`BagError` naming topic and type; a single message that
+does not deserialize is skipped, counted (:class:`ReadStats`) and logged, never passed on.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Iterator
+import struct
+from collections import Counter
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,7 +52,7 @@ from pcc_ros.bags.convert import (
     TF_STATIC_TOPIC,
     TF_TOPIC,
 )
-from pcc_ros.errors import DataError, PccError
+from pcc_ros.errors import BagError, DataError, PccError
 from pcc_ros.frame import Frame
 from pcc_ros.msg.detections import boxes_from_detection_array
 from pcc_ros.msg.pointcloud2 import read_xyz
@@ -134,16 +143,184 @@ class _Tf:
         return None
 
 
+def _storage_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions the storage layers raise on damaged bytes (rosbags, zstd, lz4, sqlite)."""
+    from rosbags.typesys.base import TypesysError
+
+    errors: list[type[BaseException]] = [
+        AnyReaderError, ReaderError, TypesysError, OSError, EOFError, struct.error, ValueError, KeyError,
+        IndexError, TypeError, RuntimeError,  # lz4 raises RuntimeError on a damaged frame
+    ]
+    try:
+        from rosbags.rosbag2 import storage_mcap
+
+        errors.append(storage_mcap.zstd.ZstdError)
+    except (ImportError, AttributeError):
+        pass
+    try:
+        import apsw
+
+        errors.append(apsw.Error)
+    except ImportError:
+        pass
+    import sqlite3
+
+    errors.append(sqlite3.Error)
+    return tuple(errors)
+
+
+def _bag_files(path: Path) -> list[Path]:
+    if path.is_file():
+        return [path]
+    return sorted([*path.glob("*.mcap"), *path.glob("*.db3")]) if path.is_dir() else []
+
+
+def mcap_chunk_damage(file: str | Path) -> str | None:
+    """``"<file>@<offset>: <what>"`` for the first MCAP chunk whose compression or CRC fails,
+    ``"<file>: <what>"`` for an unreadable summary, or None when every chunk checks out.
+
+    Chunks written without a CRC (``uncompressed_crc == 0``) are only decompressed.
+    """
+    from mcap.reader import make_reader
+    from mcap.stream_reader import StreamReader, get_chunk_data_stream
+
+    file = Path(file)
+    try:
+        with file.open("rb") as stream:
+            summary = make_reader(stream).get_summary()
+            if summary is None:
+                return f"{file}: MCAP file has no summary section (truncated or still being recorded?)"
+            for index in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+                stream.seek(index.chunk_start_offset)
+                try:
+                    chunk = next(iter(StreamReader(stream, skip_magic=True, emit_chunks=True).records))
+                    get_chunk_data_stream(chunk, validate_crc=True)
+                except Exception as exc:  # any decoder's error (zstandard, lz4, CRC) locates the damage
+                    return f"{file}@{index.chunk_start_offset}: damaged MCAP chunk ({type(exc).__name__}: {exc})"
+    except Exception as exc:
+        return f"{file}: unreadable MCAP file ({type(exc).__name__}: {exc})"
+    return None
+
+
+def _is_sqlite_error(exc: BaseException) -> bool:
+    import sqlite3
+
+    try:
+        import apsw
+    except ImportError:  # pragma: no cover - rosbags depends on apsw
+        return isinstance(exc, sqlite3.Error)
+    return isinstance(exc, (apsw.Error, sqlite3.Error))
+
+
+def _damaged(path: Path, exc: BaseException, opening: bool = False) -> BagError:
+    """The :class:`BagError` for a storage failure on ``path``: where (file, MCAP offset), what to do."""
+    where = None
+    files = _bag_files(path)
+    if _is_sqlite_error(exc):
+        where = next((f"{f}: sqlite3 database is corrupt" for f in files if f.suffix == ".db3"), None)
+    elif not opening or isinstance(exc, (ReaderError, EOFError, struct.error)) or "zstd" in type(exc).__module__:
+        where = next((d for f in files if f.suffix == ".mcap" and (d := mcap_chunk_damage(f))), None)
+    detail = f"{type(exc).__name__}: {exc}"
+    if opening:
+        return BagError(
+            f"{where or path}: cannot open bag ({detail})",
+            hint="check that it is a complete rosbag2 (metadata.yaml + .mcap / .db3); re-copy, re-record or convert it",
+        )
+    sqlite = any(f.suffix == ".db3" for f in files)
+    return BagError(
+        where or f"{path}: damaged bag ({detail})",
+        hint="the bag's bytes are corrupted; re-copy or re-record it"
+        + (" (or salvage it with `sqlite3 FILE .recover`)" if sqlite else ""),
+    )
+
+
 def open_bag(path: str | Path) -> AnyReader:
     """An open rosbag2 reader (directory, ``.mcap`` or ``.db3``) with pcc_ros's type store;
-    :class:`DataError` naming the path when it is not a readable bag. The caller closes it."""
+    :class:`BagError` naming the path when it is not a readable bag. The caller closes it."""
     path = Path(path)
+    if not path.exists():
+        raise BagError(f"{path}: cannot open bag (no such file or directory)", hint="check the path")
     try:
         reader = AnyReader([path], default_typestore=get_typestore())
         reader.open()
-    except (AnyReaderError, ReaderError, FileNotFoundError, OSError) as exc:
-        raise DataError(f"{path}: cannot open bag ({exc})") from exc
+    except _storage_errors() as exc:
+        raise _damaged(path, exc, opening=True) from exc
     return reader
+
+
+def iter_messages(reader: AnyReader, path: str | Path, connections: Iterable) -> Iterator[tuple]:
+    """``reader.messages(connections=...)`` with storage damage raised as :class:`BagError`."""
+    messages = reader.messages(connections=list(connections))
+    while True:
+        try:
+            item = next(messages)
+        except StopIteration:
+            return
+        except _storage_errors() as exc:
+            raise _damaged(Path(path), exc) from exc
+        yield item
+
+
+@dataclass
+class ReadStats:
+    """What a bag pass skipped, by topic: undecodable messages and (for frames) malformed ones."""
+
+    undecodable: Counter = field(default_factory=Counter)
+    malformed: Counter = field(default_factory=Counter)
+    first_problem: str = ""
+
+    def note(self, kind: str, topic: str, text: str) -> None:
+        getattr(self, kind)[topic] += 1
+        if not self.first_problem:
+            self.first_problem = text
+
+    @property
+    def skipped(self) -> int:
+        return sum(self.undecodable.values()) + sum(self.malformed.values())
+
+    def describe(self) -> str:
+        parts = [f"{n} undecodable {t}" for t, n in sorted(self.undecodable.items())]
+        parts += [f"{n} malformed {t}" for t, n in sorted(self.malformed.items())]
+        return ", ".join(parts)
+
+
+def decode(reader: AnyReader, raw, connection, time_ns: int, path: str | Path):
+    """Deserialize one message; :class:`BagError` naming bag, topic and bag time when it cannot be."""
+    try:
+        return reader.deserialize(raw, connection.msgtype)
+    except (*_storage_errors(), AssertionError, UnicodeDecodeError, OverflowError) as exc:
+        raise BagError(
+            f"{path}: {connection.topic} message at bag time {time_ns} is undecodable "
+            f"({type(exc).__name__}: {exc})"
+        ) from None
+
+
+def check_topic_types(
+    reader: AnyReader, path: str | Path, expected: dict[str, str], required: Iterable[str] = ()
+) -> None:
+    """:class:`BagError` if a topic of ``expected`` exists with another type, or a ``required`` one is missing."""
+    topics: dict[str, set[str]] = {}
+    for c in reader.connections:
+        topics.setdefault(c.topic, set()).add(c.msgtype)
+    for topic in required:
+        if topic not in topics:
+            raise BagError(
+                f"{path}: no {topic} topic (topics: {', '.join(sorted(topics)) or 'none'})",
+                hint="name the right topic with the command's --*-topic option",
+            )
+    for topic, msgtype in expected.items():
+        wrong = topics.get(topic, set()) - {msgtype}
+        if wrong:
+            raise BagError(
+                f"{path}: topic {topic} has type {', '.join(sorted(wrong))}, expected {msgtype}",
+                hint="name the topic that carries that type with the command's --*-topic option",
+            )
+
+
+#: Topic -> type that :func:`read_frames` expects.
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+DETECTION3DARRAY = "vision_msgs/msg/Detection3DArray"
+TFMESSAGE = "tf2_msgs/msg/TFMessage"
 
 
 def read_frames(
@@ -152,23 +329,29 @@ def read_frames(
     detections_topic: str = DETECTIONS_TOPIC,
     ground_truth_topic: str = GROUND_TRUTH_TOPIC,
     window_ns: int = 200_000_000,
+    stats: ReadStats | None = None,
 ) -> Iterator[Frame]:
-    """Frames of a rosbag2 directory, ``.mcap`` or ``.db3`` (see the module docstring)."""
+    """Frames of a rosbag2 directory, ``.mcap`` or ``.db3`` (see the module docstring).
+
+    Undecodable messages and malformed frames are skipped, logged and counted in
+    ``stats``; a bag where every scan was skipped is a :class:`BagError`.
+    """
     path = Path(bag)
+    stats = ReadStats() if stats is None else stats
     reader = open_bag(path)
+    yielded = 0
     try:
-        if not any(c.topic == points_topic for c in reader.connections):
-            topics = sorted({c.topic for c in reader.connections})
-            raise DataError(f"{path}: no {points_topic} topic (topics: {', '.join(topics) or 'none'})")
-        wanted = {points_topic, detections_topic, ground_truth_topic, TF_TOPIC, TF_STATIC_TOPIC}
-        connections = [c for c in reader.connections if c.topic in wanted]
+        expected = {points_topic: POINTCLOUD2, detections_topic: DETECTION3DARRAY,
+                    ground_truth_topic: DETECTION3DARRAY, TF_TOPIC: TFMESSAGE, TF_STATIC_TOPIC: TFMESSAGE}
+        check_topic_types(reader, path, expected, required=[points_topic])
+        connections = [c for c in reader.connections if c.topic in expected]
         names = _frame_names(_bag_frames_runs(reader))
         tf = _Tf()
         groups: dict[int, _Group] = {}
         orphans = 0
 
         def flush(before: int | None) -> Iterator[Frame]:
-            nonlocal orphans
+            nonlocal orphans, yielded
             for stamp in sorted(groups):
                 group = groups[stamp]
                 if before is not None and group.first_time > before:
@@ -178,25 +361,37 @@ def read_frames(
                     # boxes without their scan are worth a warning; /tf alone (100 Hz) is normal
                     orphans += group.detections is not None or group.ground_truth is not None
                     continue
-                yield _frame(group, stamp, tf, window_ns, *next(names), path)
+                name = next(names)
+                try:
+                    frame = _frame(group, stamp, tf, window_ns, *name, path)
+                except DataError as exc:
+                    stats.note("malformed", points_topic, str(exc))
+                    log.warning("skipped %s", exc)
+                    continue
+                yielded += 1
+                yield frame
 
-        for connection, time_ns, raw in reader.messages(connections=connections):
-            try:
-                msg = reader.deserialize(raw, connection.msgtype)
-            except (AnyReaderError, PccError, ValueError) as exc:
-                raise DataError(f"{path}: undecodable {connection.topic} message at {time_ns} ({exc})") from exc
+        for connection, time_ns, raw in iter_messages(reader, path, connections):
             topic = connection.topic
+            try:
+                msg = decode(reader, raw, connection, time_ns, path)
+                if topic in (TF_TOPIC, TF_STATIC_TOPIC):
+                    edges = [(t.child_frame_id, t.header.frame_id, transform_to_matrix(t.transform),
+                              stamp_to_ns(t.header.stamp)) for t in msg.transforms]
+                else:
+                    stamp = stamp_to_ns(msg.header.stamp)
+            except PccError as exc:
+                stats.note("undecodable", topic, str(exc))
+                log.warning("skipped: %s", exc)
+                continue
             if topic in (TF_TOPIC, TF_STATIC_TOPIC):
-                for t in msg.transforms:
-                    edge = (t.header.frame_id, transform_to_matrix(t.transform))
+                for child, parent, matrix, edge_stamp in edges:
                     if topic == TF_STATIC_TOPIC:
-                        tf.static[t.child_frame_id] = edge
+                        tf.static[child] = (parent, matrix)
                     else:
-                        stamp = stamp_to_ns(t.header.stamp)
-                        groups.setdefault(stamp, _Group(time_ns)).tf[t.child_frame_id] = edge
-                        tf.latest[t.child_frame_id] = (stamp, *edge)
+                        groups.setdefault(edge_stamp, _Group(time_ns)).tf[child] = (parent, matrix)
+                        tf.latest[child] = (edge_stamp, parent, matrix)
             else:
-                stamp = stamp_to_ns(msg.header.stamp)
                 group = groups.setdefault(stamp, _Group(time_ns))
                 slot = {points_topic: "cloud", detections_topic: "detections", ground_truth_topic: "ground_truth"}
                 setattr(group, slot[topic], msg)
@@ -206,6 +401,13 @@ def read_frames(
             log.warning("%s: %d stamps had boxes but no %s scan", path, orphans, points_topic)
     finally:
         reader.close()
+    if stats.skipped:
+        log.warning("%s: skipped %s", path, stats.describe())
+        if not yielded:
+            raise BagError(
+                f"{path}: no usable {points_topic} scan ({stats.describe()}; first: {stats.first_problem})",
+                hint="check the recording; `pcc info` lists the topics and counts",
+            )
 
 
 def _frame(group: _Group, stamp: int, tf: _Tf, window_ns: int, sequence: str, index: int, path: Path) -> Frame:

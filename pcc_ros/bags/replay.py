@@ -5,6 +5,11 @@ Scans and detections are paired by header stamp with the nodes' own
 :meth:`~pcc_ros.pipeline.Pipeline.process_messages` and
 :func:`~pcc_ros.pipeline.build_outputs`, and the outputs are written on the nodes'
 topics and types. Offline nothing is dropped for lack of time: every pair is processed.
+
+Failures: the output bag is written next to ``--out`` and renamed into place only after
+every check passed (at least one frame processed); a message that does not deserialize is
+skipped, counted and left out of the output (also of the copied input topics); a frame
+the pipeline refuses is skipped and counted, as a node would.
 """
 
 from __future__ import annotations
@@ -42,6 +47,8 @@ class ReplaySummary:
     unpaired_detections: int = 0
     kept: int = 0
     rejected: int = 0
+    undecodable: int = 0
+    first_skip_reason: str = ""
     timings_ms: dict[str, list[float]] = field(default_factory=dict)
 
     def latency_table(self) -> list[dict]:
@@ -70,30 +77,31 @@ class BagPairs:
         # keeps pairing linear even for a bag whose streams never pair.
         self.pairer: StampPairer = StampPairer(slop_ns=int(slop_s * 1e9), queue_size=100)
         self.stats: SyncStats = self.pairer.stats
+        self.undecodable = 0
+        self.first_problem = ""
 
     def __iter__(self) -> Iterator[tuple[object, object, int]]:
-        from rosbags.highlevel import AnyReaderError
-
-        from pcc_ros.bags.read import open_bag
+        from pcc_ros.bags.read import DETECTION3DARRAY, POINTCLOUD2, check_topic_types, decode, iter_messages, open_bag
         from pcc_ros.msg.stamps import stamp_to_ns
 
         reader = open_bag(self.bag)
         try:
-            topics = {c.topic for c in reader.connections}
-            for needed in (self.points_topic, self.detections_topic):
-                if needed not in topics:
-                    raise DataError(f"{self.bag}: no {needed} topic (topics: {', '.join(sorted(topics))})")
             wanted = (self.points_topic, self.detections_topic)
+            expected = {self.points_topic: POINTCLOUD2, self.detections_topic: DETECTION3DARRAY}
+            check_topic_types(reader, self.bag, expected, required=wanted)
             connections = [c for c in reader.connections if c.topic in wanted]
-            for connection, time_ns, raw in reader.messages(connections=connections):
+            for connection, time_ns, raw in iter_messages(reader, self.bag, connections):
                 try:
-                    msg = reader.deserialize(raw, connection.msgtype)
-                except (AnyReaderError, ValueError, AssertionError) as exc:
-                    log.warning("%s: undecodable %s at %d skipped (%s)", self.bag, connection.topic, time_ns, exc)
+                    msg = decode(reader, raw, connection, time_ns, self.bag)
+                    stamp = stamp_to_ns(msg.header.stamp)
+                except (PccError, AttributeError) as exc:
+                    self.undecodable += 1
+                    self.first_problem = self.first_problem or str(exc)
+                    log.warning("skipped: %s", exc)
                     continue
                 is_cloud = connection.topic == self.points_topic
                 add = self.pairer.add_left if is_cloud else self.pairer.add_right
-                pair = add(stamp_to_ns(msg.header.stamp), msg)
+                pair = add(stamp, msg)
                 if pair is not None:
                     yield pair[0], pair[1], time_ns
             left, right = self.pairer.pending()
@@ -103,19 +111,38 @@ class BagPairs:
             reader.close()
 
 
-def copy_topics(bag: str | Path, writer, topics: set[str]) -> None:
-    """Copy the raw records of ``topics`` from ``bag`` into an open :class:`BagWriter`."""
+#: Types of the input topics ``pcc replay`` copies into its output.
+COPIED_TOPICS = {
+    "/ground_truth": "vision_msgs/msg/Detection3DArray",
+    "/tf": "tf2_msgs/msg/TFMessage",
+    "/tf_static": "tf2_msgs/msg/TFMessage",
+}
+
+
+def copy_topics(bag: str | Path, writer, topics: dict[str, str]) -> int:
+    """Copy the raw records of ``topics`` (name -> expected type) from ``bag`` into an open
+    :class:`BagWriter`; messages that do not deserialize are left out. Returns how many were."""
     from pcc_ros.bags.convert import TF_STATIC_QOS
-    from pcc_ros.bags.read import open_bag
+    from pcc_ros.bags.read import check_topic_types, decode, iter_messages, open_bag
 
     reader = open_bag(bag)
+    left_out = 0
     try:
+        check_topic_types(reader, bag, topics)
         connections = [c for c in reader.connections if c.topic in topics]
-        for connection, time_ns, raw in reader.messages(connections=connections):
+        for connection, time_ns, raw in iter_messages(reader, bag, connections):
+            try:
+                decode(reader, raw, connection, time_ns, bag)
+            except PccError:
+                left_out += 1  # BagPairs logs the paired topics; the others are logged here
+                if connection.topic not in ("/points", "/detections"):
+                    log.warning("%s: left out an undecodable %s message at %d", bag, connection.topic, time_ns)
+                continue
             qos = TF_STATIC_QOS if connection.topic == "/tf_static" else None
             writer.write_raw(connection.topic, connection.msgtype, raw, time_ns, qos)
     finally:
         reader.close()
+    return left_out
 
 
 def replay_bag(
@@ -150,13 +177,17 @@ def replay_bag(
     context = atomic_bag(out, storage=storage, force=force) if out is not None else nullcontext(None)
     with context as writer:
         if writer is not None and copy_inputs:
-            copy_topics(bag, writer, {points_topic, detections_topic, "/ground_truth", "/tf", "/tf_static"})
+            from pcc_ros.bags.read import DETECTION3DARRAY, POINTCLOUD2
+
+            copied = {points_topic: POINTCLOUD2, detections_topic: DETECTION3DARRAY, **COPIED_TOPICS}
+            copy_topics(bag, writer, copied)
         pairs = BagPairs(bag, points_topic, detections_topic, slop_s)
         for cloud, detections, time_ns in tqdm(pairs, unit="frame", desc="replay", disable=not progress):
             try:
                 result, originals = pipeline.process_messages(cloud, detections)
             except PccError as exc:
                 summary.skipped_frames += 1
+                summary.first_skip_reason = summary.first_skip_reason or str(exc)
                 log.warning("frame at %d skipped: %s", time_ns, exc)
                 continue
             outputs = build_outputs(result, originals, detections_header=cloud.header)
@@ -170,11 +201,25 @@ def replay_bag(
                 summary.timings_ms.setdefault(stage, []).append(ms)
             if on_result is not None:
                 on_result(result, cloud, detections)
-    summary.unpaired_clouds = pairs.stats.dropped_clouds
-    summary.unpaired_detections = pairs.stats.dropped_detections
-    if summary.frames == 0 and out is not None:
-        raise DataError(f"{bag}: no scan could be paired with detections within {slop_s} s")
+        summary.unpaired_clouds = pairs.stats.dropped_clouds
+        summary.unpaired_detections = pairs.stats.dropped_detections
+        summary.undecodable = pairs.undecodable
+        if summary.frames == 0 and out is not None:  # inside the block: the output is not committed
+            raise DataError(_no_frame_reason(bag, summary, slop_s, pairs.first_problem))
     return summary
+
+
+def _no_frame_reason(bag, summary: ReplaySummary, slop_s: float, first_problem: str) -> str:
+    """Why no frame came out: every frame malformed, every message undecodable, or no pairing."""
+    if summary.skipped_frames:
+        return (f"{bag}: all {summary.skipped_frames} paired frames were malformed and skipped "
+                f"(first: {summary.first_skip_reason}); no output written")
+    if summary.undecodable:
+        return (f"{bag}: {summary.undecodable} undecodable messages left nothing to pair "
+                f"(first: {first_problem}); no output written")
+    return (f"{bag}: no scan could be paired with detections within {slop_s} s "
+            f"({summary.unpaired_clouds} clouds, {summary.unpaired_detections} detection arrays unpaired); "
+            "no output written — check the stamps, or raise sync_slop in the config")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -252,6 +297,7 @@ def run(args: argparse.Namespace) -> int:
     print_table(f"replay timing per frame ({summary.frames} frames, backend {config.backend})", summary.latency_table())
     print(
         f"\nkept {summary.kept}, rejected {summary.rejected} detections; skipped frames {summary.skipped_frames}; "
+        f"undecodable messages {summary.undecodable} (left out of the output); "
         f"unpaired clouds {summary.unpaired_clouds}, unpaired detection arrays {summary.unpaired_detections}"
     )
     print(f"wrote {args.out}")

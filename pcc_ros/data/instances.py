@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pcc_ros import files
 from pcc_ros.boxes import Boxes, class_mask
 from pcc_ros.errors import DataError
 from pcc_ros.frame import Frame
@@ -150,15 +151,16 @@ def fingerprint(source: str | Path | None, config: ExtractConfig, extra: dict | 
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    files.write_json(path, data, indent=1, sort_keys=True)
 
 
-def _save_npy_atomic(path: Path, array: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".tmp.npy")
-    np.save(tmp, array, allow_pickle=False)
-    os.replace(tmp, path)
+#: What an (even interrupted) extraction leaves in its directory; anything else is not ours.
+_CACHE_ENTRIES = ("index.json", "shards", "eval_shapes", "info.png")
+
+
+def _only_cache_entries(out: Path) -> bool:
+    """``out`` holds nothing but what :func:`extract_instances` writes (and its temporaries)."""
+    return all(p.name in _CACHE_ENTRIES or files.TMP_MARK in p.name for p in out.iterdir())
 
 
 # --------------------------------------------------------------------------- extraction
@@ -301,7 +303,7 @@ class _Writer:
         if shape is None:
             return False
         dest.parent.mkdir(parents=True, exist_ok=True)
-        _save_npy_atomic(dest, shape.astype(np.float32))
+        files.save_npy(dest, shape.astype(np.float32))
         self.shapes_done.add((sequence, track))
         return True
 
@@ -318,15 +320,19 @@ class _Writer:
             counts = np.array([len(p) for p in self.shard.points], dtype=np.int64)
             offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
             points = np.concatenate(self.shard.points).astype(np.float32).reshape(-1, 3)
-            _save_npy_atomic(shards / f"{name}.points.npy", points)
-            _save_npy_atomic(shards / f"{name}.offsets.npy", offsets)
-            tmp = shards / f"{name}.meta.tmp.npz"
-            np.savez(tmp, **_columns_to_arrays(self.shard.columns))
-            os.replace(tmp, shards / f"{name}.meta.npz")
+            files.save_npy(shards / f"{name}.points.npy", points)
+            files.save_npy(shards / f"{name}.offsets.npy", offsets)
+            files.save_npz(shards / f"{name}.meta.npz", **_columns_to_arrays(self.shard.columns))
             self.index["shards"].append({"name": name, "instances": len(counts), "points": int(offsets[-1])})
             self.shard = _Shard()
         self.index["frames_done"] = frames_done
         _write_json_atomic(self.root / "index.json", self.index)
+
+
+def _clear_cache(out: Path) -> None:
+    for sub in ("shards", "eval_shapes"):
+        shutil.rmtree(out / sub, ignore_errors=True)
+    (out / "index.json").unlink(missing_ok=True)
 
 
 def extract_instances(
@@ -377,20 +383,26 @@ def extract_instances(
         if force and index is not None:
             index = None
         if index is None:
-            for sub in ("shards", "eval_shapes"):
-                shutil.rmtree(out / sub, ignore_errors=True)
-            index_path.unlink(missing_ok=True)
+            _clear_cache(out)
     elif out.exists() and any(out.iterdir()):
-        raise DataError(f"{out}: exists and is not an instance cache; choose an empty or new directory")
+        if not _only_cache_entries(out):
+            raise DataError(f"{out}: exists and is not an instance cache",
+                            hint="choose an empty or new directory")
+        # an extraction interrupted before it recorded any progress: nothing to resume
+        log.info("%s: no index.json (interrupted before any progress was recorded); starting over", out)
+        _clear_cache(out)
     if index is not None and index.get("complete"):
         log.info("%s: up to date (%d instances), nothing to do", out, sum(s["instances"] for s in index["shards"]))
         return InstanceCache.load(out)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    files.remove_stale_temporaries(out)
     if index is None:
         index = {"format": FORMAT, "version": VERSION, "fingerprint": fp, "config": asdict(config),
                  "source": None if source is None else str(source),
                  "synthcars": None if synth is None else str(synth.root),
                  "shards": [], "frames_done": 0, "complete": False, "skipped": {}}
+        _write_json_atomic(index_path, index)  # from now on the directory is recognisably ours
     # Shards written after the last recorded progress are orphans of an interrupted run.
     known = {s["name"] for s in index["shards"]}
     for leftover in (out / "shards").glob("*") if (out / "shards").exists() else []:
@@ -402,21 +414,29 @@ def extract_instances(
     skipped = Counter(index.get("skipped", {}))
     writer = _Writer(out, index, config, synth)
     done = 0
-    with tqdm(total=total, desc="extract", unit="frame", disable=not progress) as bar:
-        for frame in frames:
-            done += 1
-            bar.update(1)
-            if done <= resume_from:
-                continue
-            crops, columns = frame_instances(frame, config, synth, skipped)
-            writer.add(crops, columns)
-            if writer.full():
-                index["skipped"] = dict(skipped)
-                writer.flush(done)
-            bar.set_postfix(instances=sum(s["instances"] for s in index["shards"]) + len(writer.shard))
-    index["skipped"] = dict(skipped)
-    index["complete"] = True
-    writer.flush(done)
+    try:
+        with tqdm(total=total, desc="extract", unit="frame", disable=not progress) as bar:
+            for frame in frames:
+                done += 1
+                bar.update(1)
+                if done <= resume_from:
+                    continue
+                crops, columns = frame_instances(frame, config, synth, skipped)
+                writer.add(crops, columns)
+                if writer.full():
+                    index["skipped"] = dict(skipped)
+                    writer.flush(done)
+                bar.set_postfix(instances=sum(s["instances"] for s in index["shards"]) + len(writer.shard))
+        if done < resume_from:
+            raise DataError(f"{out}: the cache records {resume_from} frames done but the source has {done}",
+                            hint="the source changed; re-run with --force to rebuild")
+        index["skipped"] = dict(skipped)
+        index["complete"] = True
+        writer.flush(done)
+    except BaseException:
+        if created and not index["shards"]:  # nothing worth resuming: leave no partial output
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     if skipped:
         log.info("skipped: %s", ", ".join(f"{k}={v}" for k, v in sorted(skipped.items())))
     return InstanceCache.load(out)

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from pcc_ros.boxes import Boxes
-from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
+from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines, read_text_lines
 from pcc_ros.errors import DataError
 from pcc_ros.frame import Frame
 
@@ -85,10 +85,7 @@ def read_velodyne(path: str | Path) -> np.ndarray:
 
 
 def _read_lines(path: Path) -> list[str]:
-    try:
-        return path.read_text().splitlines()
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read ({exc.strerror})") from exc
+    return read_text_lines(path, "KITTI text")
 
 
 def read_detections(path: str | Path, calib: Calibration) -> Boxes:
@@ -201,10 +198,14 @@ class KittiTracking:
         return sorted(p.name for p in (self.root / "velodyne").iterdir() if p.is_dir())
 
     def scan_paths(self, sequence: str) -> list[Path]:
+        """The sequence's scans in order; :class:`DataError` naming the first missing one when
+        the numbering has a gap (never silently fewer frames)."""
         directory = self.root / "velodyne" / sequence
         if not directory.is_dir():
             raise DataError(f"{directory}: no such sequence (have {', '.join(self.sequences()) or 'none'})")
-        return sorted(directory.glob("*.bin"))
+        scans = sorted(directory.glob("*.bin"))
+        _check_no_gap(scans, directory)
+        return scans
 
     def calibration(self, sequence: str) -> Calibration:
         return Calibration.read(self.root / "calib" / f"{sequence}.txt")
@@ -308,7 +309,18 @@ class KittiObject(KittiTracking):
     def frames(  # type: ignore[override]
         self, detections_dir: str | Path | None = None, start: int = 0, stop: int | None = None
     ) -> Iterator[Frame]:
-        scans = sorted((self.root / "velodyne").glob("*.bin"))[start:stop]
+        all_scans = sorted((self.root / "velodyne").glob("*.bin"))
+        have = {p.stem for p in all_scans}
+        lo, hi = (all_scans[0].stem, all_scans[-1].stem) if all_scans else ("", "")
+        for folder in ("label_2", "calib"):  # a frame inside the scans' range with files but no scan
+            orphans = sorted(p.stem for p in (self.root / folder).glob("*.txt")
+                             if p.stem not in have and lo < p.stem < hi)
+            if orphans:
+                raise DataError(f"{self.root / 'velodyne' / (orphans[0] + '.bin')}: missing scan "
+                                f"({folder}/{orphans[0]}.txt exists; {len(orphans)} missing "
+                                f"between {lo}.bin and {hi}.bin)",
+                                hint="restore the scans, or remove the files of the frames you dropped")
+        scans = all_scans[start:stop]
         det_dir = None if detections_dir is None else Path(detections_dir)
         if det_dir is not None and not det_dir.is_dir():
             raise DataError(f"{det_dir}: detections directory does not exist")
@@ -341,6 +353,21 @@ def _h(matrix: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[: matrix.shape[0], : matrix.shape[1]] = matrix
     return out
+
+
+def _check_no_gap(scans: list[Path], directory: Path) -> None:
+    """:class:`DataError` naming the first missing ``FFFFFF.bin`` in a numbered sequence."""
+    if not scans:
+        return
+    indices = np.array([_frame_index(p) for p in scans], dtype=np.int64)
+    expected = np.arange(indices[0], indices[0] + len(indices))
+    if not np.array_equal(indices, expected):
+        first = int(expected[np.flatnonzero(indices != expected)[0]])
+        width = len(scans[0].stem)
+        total = int(indices[-1] - indices[0] + 1 - len(indices))
+        raise DataError(f"{directory / f'{first:0{width}d}.bin'}: missing scan ({total} missing between "
+                        f"{scans[0].name} and {scans[-1].name})",
+                        hint="restore the scan; a sequence with a gap would silently lose frames")
 
 
 def _frame_index(path: Path) -> int:

@@ -27,6 +27,31 @@ _KEY_ALIASES = {
 }
 
 
+def read_text_lines(path: str | Path, what: str = "text") -> list[str]:
+    """Lines of a KITTI text file; :class:`DataError` naming the file for an unreadable or binary one."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read {what} file ({exc.strerror})") from exc
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise DataError(f"{path}:{line}: not a {what} file (byte {exc.start} is not text)",
+                        hint="the file is binary or damaged; restore it from the dataset") from None
+    if "\0" in text:
+        line = text[: text.index("\0")].count("\n") + 1
+        raise DataError(f"{path}:{line}: not a {what} file (NUL byte)",
+                        hint="the file is binary or damaged; restore it from the dataset")
+    return text.splitlines()
+
+
+def _is_rotation(matrix: np.ndarray, tol: float = 1e-2) -> bool:
+    """``matrix`` is orthonormal with determinant +1 within ``tol`` (KITTI prints 7 digits)."""
+    return bool(np.allclose(matrix @ matrix.T, np.eye(3), atol=tol) and abs(np.linalg.det(matrix) - 1.0) < tol)
+
+
 def _homogeneous(matrix: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[: matrix.shape[0], : matrix.shape[1]] = matrix
@@ -46,12 +71,8 @@ class Calibration:
     @classmethod
     def read(cls, path: str | Path) -> Calibration:
         path = Path(path)
-        try:
-            text = path.read_text()
-        except OSError as exc:
-            raise DataError(f"{path}: cannot read calibration ({exc.strerror})") from exc
         values: dict[str, np.ndarray] = {}
-        for lineno, line in enumerate(text.splitlines(), 1):
+        for lineno, line in enumerate(read_text_lines(path, "calibration"), 1):
             parts = line.split()
             if not parts:
                 continue
@@ -60,6 +81,9 @@ class Calibration:
                 values[key] = np.array([float(v) for v in parts[1:]], dtype=np.float64)
             except ValueError as exc:
                 raise DataError(f"{path}:{lineno}: non-numeric calibration value ({exc})") from exc
+            if not np.isfinite(values[key]).all():
+                raise DataError(f"{path}:{lineno}: non-finite value in {key}",
+                                hint="the calibration file is damaged; restore it from the dataset")
 
         def get(name: str, shape: tuple[int, int], required: bool = True) -> np.ndarray | None:
             for alias in _KEY_ALIASES.get(name, (name,)):
@@ -73,13 +97,21 @@ class Calibration:
             return None
 
         known = {a for aliases in _KEY_ALIASES.values() for a in aliases} | {"P2"}
-        return cls(
+        calib = cls(
             P2=get("P2", (3, 4)),
             R0_rect=get("R0_rect", (3, 3)),
             Tr_velo_to_cam=get("Tr_velo_to_cam", (3, 4)),
             Tr_imu_to_velo=get("Tr_imu_to_velo", (3, 4), required=False),
             extra={k: v for k, v in values.items() if k not in known},
         )
+        for name in ("R0_rect", "Tr_velo_to_cam", "Tr_imu_to_velo"):
+            matrix = getattr(calib, name)
+            if matrix is not None and not _is_rotation(matrix[:3, :3]):
+                raise DataError(
+                    f"{path}: {name} is not a rotation (det {np.linalg.det(matrix[:3, :3]):.3g}; singular or scaled)",
+                    hint="the calibration file is damaged; restore it from the dataset",
+                )
+        return calib
 
     def write(self, path: str | Path) -> None:
         """Write in the object devkit spelling (readers accept both)."""
@@ -94,7 +126,9 @@ class Calibration:
         if self.Tr_imu_to_velo is not None:
             lines.append(("Tr_imu_to_velo", self.Tr_imu_to_velo.ravel()))
         lines.extend(extra.items())
-        Path(path).write_text("".join(f"{k}: {' '.join(f'{v:.12e}' for v in vals)}\n" for k, vals in lines))
+        from pcc_ros import files
+
+        files.write_text(path, "".join(f"{k}: {' '.join(f'{v:.12e}' for v in vals)}\n" for k, vals in lines))
 
     @property
     def velo_to_rect(self) -> np.ndarray:
@@ -155,6 +189,12 @@ def parse_label_lines(lines: list[str], tracking: bool, source: str = "<labels>"
             raise DataError(f"{source}:{lineno}: non-numeric field ({exc})") from exc
         if not np.all(np.isfinite(values)):
             raise DataError(f"{source}:{lineno}: non-finite value in label")
+        if not np.isfinite(scores[-1]):
+            raise DataError(f"{source}:{lineno}: non-finite score {parts[head + 15]!r}",
+                            hint="fix or drop that line of the detector output")
+        if parts[head] != "DontCare" and not min(values[7:10]) > 0:
+            raise DataError(f"{source}:{lineno}: {parts[head]} box has size h, w, l = {values[7:10]} (must be > 0)",
+                            hint="fix or drop that line; only DontCare rows may have no 3D extent")
         types.append(parts[head])
         numbers.append(values)
     n = len(types)

@@ -28,12 +28,12 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
-import os
 import subprocess
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pcc_ros import files
 from pcc_ros.errors import CheckpointError
 
 if TYPE_CHECKING:
@@ -116,7 +116,7 @@ def save_checkpoint(path: str | Path, model_state: Mapping[str, torch.Tensor], c
     ``format``, the tensor manifest and the hash are filled in here.
     """
     import torch
-    from safetensors.torch import save_file
+    from safetensors.torch import save
 
     weights_path, config_path = checkpoint_paths(path)
     if "backend" not in config or "hyper_parameters" not in config:
@@ -132,18 +132,12 @@ def save_checkpoint(path: str | Path, model_state: Mapping[str, torch.Tensor], c
     full["dtypes"] = {name: str(t.dtype).removeprefix("torch.") for name, t in tensors.items()}
 
     weights_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp_weights = weights_path.with_name(weights_path.name + f".tmp{os.getpid()}")
-    tmp_config = config_path.with_name(config_path.name + f".tmp{os.getpid()}")
-    try:
-        save_file(tensors, str(tmp_weights), metadata={"format": FORMAT, "backend": str(config["backend"])})
-        full["sha256"] = _sha256(tmp_weights)
-        full["size_bytes"] = tmp_weights.stat().st_size
-        tmp_config.write_text(json.dumps(full, indent=2, sort_keys=False) + "\n")
-        os.replace(tmp_weights, weights_path)
-        os.replace(tmp_config, config_path)
-    finally:
-        for tmp in (tmp_weights, tmp_config):
-            tmp.unlink(missing_ok=True)
+    blob = save(tensors, metadata={"format": FORMAT, "backend": str(config["backend"])})
+    full["sha256"] = hashlib.sha256(blob).hexdigest()
+    full["size_bytes"] = len(blob)
+    # weights first: a config is only ever next to the weights it describes
+    files.write_bytes(weights_path, blob)
+    files.write_json(config_path, full, indent=2, sort_keys=False)
     return weights_path
 
 

@@ -14,8 +14,19 @@ the conversion keeps:
 
 Reading is strict: a NaN / inf pose, a zero-length or non-finite quaternion, a size that is
 not finite and positive, or a non-finite score raises :class:`MessageError` naming the
-detection (``skip_invalid=True`` instead drops those boxes and logs a warning with the
-count). Writing validates the boxes the same way.
+detection (``skip_invalid=True`` instead drops those boxes and logs each one with its
+index and ``id``). Writing validates the boxes the same way. :class:`DetectionLimits`
+adds plausibility bounds, all configurable (the pipeline takes them from its parameters):
+
+* sizes above ``max_size`` metres and positions beyond ``max_range`` metres are refused
+  (a 1e30 m box would otherwise overflow the crop's grid arithmetic);
+* a quaternion whose norm is off 1 by more than ``quaternion_tolerance`` is refused (not a
+  rotation: some bug upstream); within the tolerance it is normalised;
+* roll / pitch: the box's z axis may tilt from vertical by at most ``max_tilt`` radians —
+  the tilt is then dropped and the heading kept; a more tilted box is refused, since a
+  yaw-only box would crop the wrong points;
+* ``score_range``: with ``score_mapping: identity`` scores are probabilities, and a score
+  outside [0, 1] (a logit?) is refused with a hint.
 
 :func:`marker_array_from_boxes` draws boxes for RViz: a ``DELETEALL`` first (stale boxes of
 the previous frame disappear), one ``LINE_LIST`` per box (12 edges plus a cross on the
@@ -27,6 +38,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -67,38 +79,102 @@ def yaw_from_quaternion(q: np.ndarray) -> np.ndarray:
     return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
-def _invalid_reasons(center: np.ndarray, size: np.ndarray, quat: np.ndarray | None, score: np.ndarray) -> list[str]:
+@dataclass(frozen=True)
+class DetectionLimits:
+    """Plausibility bounds for incoming boxes (see the module docstring)."""
+
+    max_size: float = 40.0  # metres, any of length / width / height (articulated buses, trams)
+    max_range: float = 1000.0  # metres, |centre coordinate|
+    quaternion_tolerance: float = 0.01  # allowed | |q| - 1 |
+    max_tilt: float = 0.35  # radians (20 degrees) of roll / pitch
+    score_range: tuple[float, float] | None = None  # e.g. (0, 1) for probabilities
+
+    def __post_init__(self) -> None:
+        if not (self.max_size > 0 and self.max_range > 0 and self.quaternion_tolerance >= 0
+                and 0 <= self.max_tilt <= np.pi):
+            from pcc_ros.errors import ConfigError
+
+            raise ConfigError("max_box_size and max_box_range must be > 0, max_box_tilt in [0, pi]")
+
+
+#: Bounds used when a caller passes none.
+DEFAULT_LIMITS = DetectionLimits()
+#: At most this many skipped detections are logged one by one per message; the rest are counted.
+_LOGGED_PER_MESSAGE = 5
+
+
+def _tilt(quat: np.ndarray) -> np.ndarray:
+    """Angle between the rotated z axis of unit quaternions ``(N, 4)`` and vertical, radians."""
+    x, y = quat[:, 0], quat[:, 1]
+    return np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0))
+
+
+def _invalid_reasons(
+    center: np.ndarray, size: np.ndarray, quat: np.ndarray | None, score: np.ndarray,
+    limits: DetectionLimits | None = None,
+) -> list[str]:
     """Per box, ``""`` if valid, else what is wrong (vectorised checks, strings only for bad rows)."""
-    bad_center = ~np.isfinite(center).all(axis=1)
-    bad_size = ~(np.isfinite(size).all(axis=1) & (size > 0).all(axis=1))
-    bad_score = ~np.isfinite(score)
-    if quat is not None:
-        norm = np.linalg.norm(quat, axis=1)
-        bad_quat = ~np.isfinite(quat).all(axis=1) | ~(norm > 1e-9)
-    else:
-        bad_quat = np.zeros(len(center), dtype=bool)
+    with np.errstate(invalid="ignore", over="ignore"):
+        bad_center = ~np.isfinite(center).all(axis=1)
+        bad_size = ~(np.isfinite(size).all(axis=1) & (size > 0).all(axis=1))
+        bad_score = ~np.isfinite(score)
+        far = big = bad_norm = tilted = off_range = np.zeros(len(center), dtype=bool)
+        if quat is not None:
+            norm = np.linalg.norm(quat, axis=1)
+            bad_quat = ~np.isfinite(quat).all(axis=1) | ~(norm > 1e-9)
+        else:
+            bad_quat = np.zeros(len(center), dtype=bool)
+        if limits is not None:
+            far = ~bad_center & (np.abs(center) > limits.max_range).any(axis=1)
+            big = ~bad_size & (size > limits.max_size).any(axis=1)
+            if quat is not None:
+                bad_norm = ~bad_quat & (np.abs(norm - 1.0) > limits.quaternion_tolerance)
+                unit = quat / np.where(bad_quat, 1.0, norm)[:, None]
+                tilt = _tilt(unit)
+                tilted = ~bad_quat & ~bad_norm & (tilt > limits.max_tilt)
+            if limits.score_range is not None:
+                lo, hi = limits.score_range
+                off_range = ~bad_score & ((score < lo) | (score > hi))
     reasons = [""] * len(center)
-    for i in np.flatnonzero(bad_center | bad_size | bad_score | bad_quat):
+    for i in np.flatnonzero(bad_center | bad_size | bad_score | bad_quat | far | big | bad_norm | tilted | off_range):
         parts = []
         if bad_center[i]:
             parts.append(f"non-finite position {center[i].tolist()}")
+        if far[i]:
+            parts.append(f"position {center[i].tolist()} beyond max_box_range {limits.max_range:g} m")
         if bad_quat[i]:
             parts.append(f"invalid orientation quaternion {quat[i].tolist()}")
+        if bad_norm[i]:
+            parts.append(f"quaternion norm {norm[i]:.6g} is not 1 (tolerance {limits.quaternion_tolerance:g})")
+        if tilted[i]:
+            parts.append(f"roll / pitch tilt {np.degrees(tilt[i]):.1f} deg exceeds max_box_tilt "
+                         f"{np.degrees(limits.max_tilt):.1f} deg (boxes are yaw-only)")
         if bad_size[i]:
             parts.append(f"size {size[i].tolist()} is not finite and positive")
+        if big[i]:
+            parts.append(f"size {size[i].tolist()} exceeds max_box_size {limits.max_size:g} m")
         if bad_score[i]:
             parts.append(f"non-finite score {score[i]}")
+        if off_range[i]:
+            parts.append(f"score {score[i]:g} outside {list(limits.score_range)} "
+                         "(score_mapping identity expects probabilities; use sigmoid for logits)")
         reasons[i] = ", ".join(parts)
     return reasons
 
 
-def _keep_valid(reasons: list[str], what: str, skip_invalid: bool) -> np.ndarray:
+def _keep_valid(reasons: list[str], what: str, skip_invalid: bool, ids: np.ndarray | None = None) -> np.ndarray:
     bad = [i for i, r in enumerate(reasons) if r]
+
+    def name(i: int) -> str:
+        return f"{what} {i}" + (f" (id {str(ids[i])!r})" if ids is not None and str(ids[i]) else "")
+
     if bad and not skip_invalid:
         more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
-        raise MessageError(f"{what} {bad[0]}: {reasons[bad[0]]}{more}")
-    if bad:
-        log.warning("skipped %d invalid %s(s), first: %s %d: %s", len(bad), what, what, bad[0], reasons[bad[0]])
+        raise MessageError(f"{name(bad[0])}: {reasons[bad[0]]}{more}")
+    for i in bad[:_LOGGED_PER_MESSAGE]:
+        log.warning("skipped %s: %s", name(i), reasons[i])
+    if len(bad) > _LOGGED_PER_MESSAGE:
+        log.warning("skipped %d more invalid %ss in this message", len(bad) - _LOGGED_PER_MESSAGE, what)
     keep = np.ones(len(reasons), dtype=bool)
     keep[bad] = False
     return keep
@@ -145,24 +221,27 @@ def _detection_arrays(msg) -> tuple[np.ndarray, ...] | None:
     )
 
 
-def valid_detection_mask(msg) -> np.ndarray:
+def valid_detection_mask(msg, limits: DetectionLimits | None = DEFAULT_LIMITS) -> np.ndarray:
     """Which entries of ``msg.detections`` :func:`boxes_from_detection_array` keeps with
     ``skip_invalid=True`` — so a caller can republish the original messages of the valid boxes."""
     arrays = _detection_arrays(msg)
     if arrays is None:
         return np.zeros(0, dtype=bool)
     center, quat, size, _, score, _ = arrays
-    return np.array([not r for r in _invalid_reasons(center, size, quat, score)], dtype=bool)
+    return np.array([not r for r in _invalid_reasons(center, size, quat, score, limits)], dtype=bool)
 
 
-def decode_detection_array(msg, skip_invalid: bool = False) -> tuple[Boxes, np.ndarray]:
+def decode_detection_array(
+    msg, skip_invalid: bool = False, limits: DetectionLimits | None = DEFAULT_LIMITS
+) -> tuple[Boxes, np.ndarray]:
     """:class:`Boxes` of a ``vision_msgs/Detection3DArray`` and which entries of
     ``msg.detections`` they came from (one decode for callers that republish the originals)."""
     arrays = _detection_arrays(msg)
     if arrays is None:
         return Boxes.empty(), np.zeros(0, dtype=bool)
     center_a, quat_a, size_a, label_a, score_a, track_a = arrays
-    keep = _keep_valid(_invalid_reasons(center_a, size_a, quat_a, score_a), "detection", skip_invalid)
+    reasons = _invalid_reasons(center_a, size_a, quat_a, score_a, limits)
+    keep = _keep_valid(reasons, "detection", skip_invalid, track_a)
     quat_a = quat_a[keep] / np.linalg.norm(quat_a[keep], axis=1, keepdims=True)
     boxes = Boxes(
         center_a[keep],
@@ -175,9 +254,11 @@ def decode_detection_array(msg, skip_invalid: bool = False) -> tuple[Boxes, np.n
     return boxes, keep
 
 
-def boxes_from_detection_array(msg, skip_invalid: bool = False) -> Boxes:
+def boxes_from_detection_array(
+    msg, skip_invalid: bool = False, limits: DetectionLimits | None = DEFAULT_LIMITS
+) -> Boxes:
     """:class:`Boxes` from a ``vision_msgs/Detection3DArray`` (see the module docstring)."""
-    return decode_detection_array(msg, skip_invalid)[0]
+    return decode_detection_array(msg, skip_invalid, limits)[0]
 
 
 def _check_boxes(boxes: Boxes) -> None:
@@ -274,7 +355,8 @@ def boxes_from_marker_array(msg, skip_invalid: bool = False) -> Boxes:
     quat_a = np.asarray(quat, dtype=np.float64)
     size_a = np.asarray(size, dtype=np.float64)
     score_a = np.ones(len(cubes))
-    keep = _keep_valid(_invalid_reasons(center_a, size_a, quat_a, score_a), "cube marker", skip_invalid)
+    reasons = _invalid_reasons(center_a, size_a, quat_a, score_a, DEFAULT_LIMITS)
+    keep = _keep_valid(reasons, "cube marker", skip_invalid)
     quat_a = quat_a[keep] / np.linalg.norm(quat_a[keep], axis=1, keepdims=True)
     return Boxes(
         center_a[keep],

@@ -29,6 +29,7 @@ import array
 import sys
 from collections.abc import Sequence
 from functools import lru_cache
+from itertools import pairwise
 
 import numpy as np
 
@@ -69,7 +70,7 @@ def _field_keys(msg) -> tuple[FieldKey, ...]:
 def _dtype(fields: tuple[FieldKey, ...], point_step: int, bigendian: bool) -> np.dtype:
     """The structured dtype of one point, after checking every field (cached per layout)."""
     order = ">" if bigendian else "<"
-    names, formats, offsets = [], [], []
+    names, formats, offsets, ends = [], [], [], []
     for name, offset, datatype, count in fields:
         if not isinstance(name, str) or not name:
             raise MessageError(f"PointCloud2 has a field with an empty or non-string name: {name!r}")
@@ -90,6 +91,12 @@ def _dtype(fields: tuple[FieldKey, ...], point_step: int, bigendian: bool) -> np
         names.append(name)
         formats.append(base if count == 1 else (base, (count,)))
         offsets.append(offset)
+        ends.append(end)
+    by_offset = sorted(range(len(offsets)), key=offsets.__getitem__)
+    for a, b in pairwise(by_offset):  # per layout (cached): fields must not share bytes
+        if ends[a] > offsets[b]:
+            raise MessageError(f"PointCloud2 fields {names[a]!r} and {names[b]!r} overlap (bytes "
+                               f"{offsets[a]}-{ends[a] - 1} and {offsets[b]}-{ends[b] - 1})")
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": max(point_step, 1)})
 
 
@@ -191,9 +198,12 @@ def read_xyz(msg, extra_fields: Sequence[str] = (), skip_nonfinite: bool = True)
     """
     cloud = _Cloud(msg)
     keys = [cloud.field(name) for name in ("x", "y", "z", *extra_fields)]
-    for name, _, _, count in keys[:3]:
+    for name, _, datatype, count in keys[:3]:
         if count != 1:
             raise MessageError(f"PointCloud2 field {name!r} has count {count}; x, y, z must have count 1")
+        if datatype not in (FLOAT32, FLOAT64):  # an integer x in mm would be read as metres
+            raise MessageError(f"PointCloud2 field {name!r} is {DATATYPES[datatype][0]}; x, y, z must be "
+                               "FLOAT32 or FLOAT64")
     n = cloud.height * cloud.width
     k = sum(key[3] for key in keys)
     if n == 0:

@@ -36,6 +36,11 @@ DESCRIPTIONS = {
     "include_observed_points": "also publish each completed car's own LiDAR points (its instance, source = observed)",
     "class_thresholds": "per-class detection_threshold, 'Class:threshold' entries separated by commas "
     "(e.g. 'Van:0.6, Truck:0.7'); other classes use detection_threshold",
+    "max_box_size": "metres; detections with a longer side are skipped (logged with their id)",
+    "max_box_range": "metres; detections whose centre is farther along any axis are skipped",
+    "max_box_tilt": "radians of roll / pitch a box may have (dropped, yaw kept); more tilted boxes are skipped",
+    "max_crop_work": "per-frame bound on (point, box) pairs, about the points under all box footprints; "
+    "lowest-score boxes beyond it are skipped and counted",
     "match_threshold": "shape-mismatch score above which a low-score detection is rejected",
     "detection_threshold": "detections scoring at least this (after score_mapping) are always kept",
     "score_mapping": "identity (scores are probabilities) or sigmoid (scores are logits, e.g. PointRCNN)",

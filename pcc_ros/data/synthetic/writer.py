@@ -19,11 +19,11 @@ printed precision (1e-6).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
+from pcc_ros import files
 from pcc_ros.boxes import Boxes
 from pcc_ros.data.kitti_format import Calibration, format_label_lines, lidar_to_camera_rows
 
@@ -124,20 +124,14 @@ def pose_lines(xy: np.ndarray, yaw: np.ndarray, z: float) -> list[str]:
 def write_text(path: Path, lines: list[str]) -> None:
     """Atomic text write (temp file + rename) so an interrupted run leaves no half file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text("".join(f"{line}\n" for line in lines))
-    os.replace(tmp, path)
+    files.write_text(path, "".join(f"{line}\n" for line in lines))
 
 
 def write_bin(path: Path, points: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    np.ascontiguousarray(points, dtype=np.float32).tofile(tmp)
-    os.replace(tmp, path)
+    files.write_bytes(path, np.ascontiguousarray(points, dtype=np.float32).tobytes())
 
 
 def write_npy(path: Path, array: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npy")
-    np.save(tmp, np.ascontiguousarray(array, dtype=np.float32))
-    os.replace(tmp, path)
+    files.save_npy(path, np.ascontiguousarray(array, dtype=np.float32))

@@ -1,0 +1,106 @@
+"""Fuzz corpus, outputs: atomic files, interrupted / failed extraction, re-runs with --force."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+from fuzz_support import car_points, small_frames
+
+from pcc_ros import files
+from pcc_ros.data.instances import ExtractConfig, InstanceCache, extract_instances
+from pcc_ros.errors import DataError
+
+
+def test_atomic_write_keeps_the_old_file_on_any_failure(tmp_path):
+    target = tmp_path / "out.json"
+    files.write_json(target, {"v": 1})
+    for error in (ValueError, KeyboardInterrupt):
+        with pytest.raises(error):
+            with files.atomic_write(target, "w") as stream:
+                stream.write('{"v": 2, "partial": ')
+                raise error
+        assert json.loads(target.read_text()) == {"v": 1}
+        assert [p.name for p in tmp_path.iterdir()] == ["out.json"]  # no temporary left
+    files.save_npy(tmp_path / "a.npy", np.arange(3))  # exact name, no ".npy.npy"
+    files.save_npz(tmp_path / "b.npz", x=np.ones(2))
+    assert np.load(tmp_path / "a.npy").tolist() == [0, 1, 2]
+    assert np.load(tmp_path / "b.npz")["x"].tolist() == [1.0, 1.0]
+
+
+def test_stale_temporaries_of_dead_processes_are_removed(tmp_path):
+    dead = tmp_path / ".x.json.tmp999999999"  # no such pid
+    alive = tmp_path / f".y.json.tmp{os.getppid()}"
+    dead.write_text("partial")
+    alive.write_text("being written")
+    assert files.remove_stale_temporaries(tmp_path) == 1
+    assert not dead.exists() and alive.exists()
+
+
+@pytest.fixture
+def synth_root(tmp_path):
+    """A SynthCars-like root (meta.json + the car's shape) so extraction copies eval shapes."""
+    root = tmp_path / "synth"
+    (root / "shapes" / "0000").mkdir(parents=True)
+    (root / "meta.json").write_text(json.dumps({"seed": 0, "splits": {"train": [], "test": ["0000"]}}))
+    np.save(root / "shapes" / "0000" / "7.npy", (car_points(np.random.default_rng(1)) / 4.2).astype(np.float32))
+    return root
+
+
+def _interrupted(frames, at):
+    for k, frame in enumerate(frames):
+        if k == at:
+            raise KeyboardInterrupt
+        yield frame
+
+
+def test_interrupt_before_any_progress_leaves_nothing_and_reruns(synth_root, tmp_path):
+    frames = small_frames(4)
+    cfg = ExtractConfig(ground_margin=0.0)
+    out = tmp_path / "cache"
+    with pytest.raises(KeyboardInterrupt):  # eval shapes were copied for frame 0, no shard yet
+        extract_instances(_interrupted(frames, 1), out, cfg, synthcars=synth_root, progress=False)
+    assert not out.exists()
+    out.mkdir()  # a directory the user made: kept, but recognisably a cache to resume
+    with pytest.raises(KeyboardInterrupt):
+        extract_instances(_interrupted(frames, 1), out, cfg, synthcars=synth_root, progress=False)
+    assert (out / "index.json").exists() and (out / "eval_shapes").exists()
+    cache = extract_instances(frames, out, cfg, synthcars=synth_root, progress=False)
+    assert len(cache) == 4
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_leftover_eval_shapes_without_index_are_rebuilt(synth_root, tmp_path, force):
+    """What an interrupted run of an older version left: eval_shapes/ and no index.json."""
+    out = tmp_path / "cache"
+    (out / "eval_shapes" / "0000").mkdir(parents=True)
+    np.save(out / "eval_shapes" / "0000" / "7.npy", np.zeros((3, 3), np.float32))
+    (out / ".index.json.tmp999999999").write_text("{")
+    cache = extract_instances(small_frames(2), out, ExtractConfig(ground_margin=0.0), synthcars=synth_root,
+                              force=force, progress=False)
+    assert len(cache) == 2
+    assert np.load(out / "eval_shapes" / "0000" / "7.npy").shape != (3, 3)  # re-copied, not the stale one
+    assert not list(out.glob(".*tmp*"))
+
+
+def test_foreign_directory_is_still_refused(tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    with pytest.raises(DataError, match="not an instance cache"):
+        extract_instances(small_frames(1), out, ExtractConfig(), force=True, progress=False)
+    assert (out / "notes.txt").read_text() == "keep me"
+
+
+def test_failed_extraction_leaves_no_cache(tmp_path):
+    def broken():
+        yield from small_frames(1)
+        raise DataError("scan 000001.bin: truncated")
+
+    with pytest.raises(DataError, match="truncated"):
+        extract_instances(broken(), tmp_path / "cache", ExtractConfig(ground_margin=0.0), progress=False)
+    assert not (tmp_path / "cache").exists()
+    with pytest.raises(DataError, match=r"index\.json"):
+        InstanceCache.load(tmp_path / "cache")
