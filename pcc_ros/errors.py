@@ -11,6 +11,7 @@ Layers and their errors:
   subclass :class:`BagError` for a rosbag2 (MCAP / sqlite3) that is damaged or unusable;
 - :class:`CheckpointError`: a model checkpoint;
 - :class:`BackendError`: a completion backend's output;
+- :class:`TrainingError`: a training run that cannot go on (non-finite loss);
 - :class:`ConfigError`: a parameter, YAML file or CLI flag.
 
 Messages name the input first (``<file>[:line|@offset]: <what>``); an optional ``hint``
@@ -54,6 +55,10 @@ class CheckpointError(PccError):
 
 class BackendError(PccError):
     """A completion backend produced unusable output (wrong shape, no finite point) for some input."""
+
+
+class TrainingError(PccError):
+    """Training cannot go on (a non-finite loss: diverged, or bad data that validation missed)."""
 
 
 class ConfigError(PccError):

@@ -98,7 +98,6 @@ class PipelineConfig:
         return DetectionLimits(
             max_size=float(self.max_box_size), max_range=float(self.max_box_range),
             max_tilt=float(self.max_box_tilt),
-            score_range=(0.0, 1.0) if self.filter.score_mapping == "identity" else None,
         )
 
     def detection_thresholds(self, labels: np.ndarray) -> np.ndarray:
@@ -428,6 +427,20 @@ class Pipeline:
 
     # ------------------------------------------------------------------ messages
 
+    def _check_score_range(self, boxes: Boxes) -> None:
+        """``score_mapping: identity`` means probabilities: scores outside [0, 1] (logits?) are
+        kept as they are but never silently — the first frame and then every 100th is logged."""
+        if self.config.filter.score_mapping != "identity" or not len(boxes):
+            return
+        outside = int(((boxes.score < 0.0) | (boxes.score > 1.0)).sum())
+        if outside:
+            self.scores_outside_unit = getattr(self, "scores_outside_unit", 0) + 1
+            if self.scores_outside_unit % 100 == 1:
+                log.warning("%d detection scores outside [0, 1] (e.g. %.3g) with score_mapping identity (%d frames so "
+                            "far): the detector gives logits? set score_mapping: sigmoid",
+                            outside, float(boxes.score[(boxes.score < 0) | (boxes.score > 1)][0]),
+                            self.scores_outside_unit)
+
     def process_messages(self, cloud_msg, detections_msg) -> tuple[FrameResult, Any]:
         """Decode a PointCloud2 and a Detection3DArray (any message classes) and run the frame.
 
@@ -454,6 +467,7 @@ class Pipeline:
         tic = time.perf_counter()
         points = read_xyz(cloud_msg)
         boxes, valid = decode_detection_array(detections_msg, skip_invalid=True, limits=self.config.detection_limits())
+        self._check_score_range(boxes)
         originals = [d for d, ok in zip(detections_msg.detections, valid) if ok]
         decode_ms = _ms(tic)
         result = self.process(

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.errors import CheckpointError, ConfigError
+from pcc_ros.errors import CheckpointError, ConfigError, TrainingError
 
 log = logging.getLogger("pcc.train")
 
@@ -401,6 +401,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         log_path.unlink(missing_ok=True)
 
     cache = InstanceCache.load(args.data)
+    cache.check_finite()
     t0 = time.perf_counter()
     data = recipe.training_data(cache, args.split, min_points=args.min_points)
     total_views = sum(len(g) for g in data)
@@ -485,7 +486,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             batch = next(batches).to(completer.device)
             loss, stats = recipe.loss(train_net, batch)
             if not torch.isfinite(loss):
-                raise FloatingPointError(f"non-finite training loss at step {step}: {stats}")
+                raise TrainingError(f"{args.data}: non-finite training loss at step {step} ({stats})",
+                                    hint="the run diverged: lower --lr or resume from the last checkpoint")
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()

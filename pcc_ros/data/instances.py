@@ -507,6 +507,17 @@ class InstanceCache:
     def __len__(self) -> int:
         return len(self._shard_of)
 
+    def check_finite(self) -> None:
+        """:class:`DataError` naming the shard file and the instance when a point is NaN / inf
+        (a damaged or hand-edited cache would otherwise surface as a NaN loss much later)."""
+        for (points, offsets), shard in zip(self._shards, self.index["shards"]):
+            bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
+            if len(bad):
+                row = int(np.searchsorted(offsets, bad[0], side="right") - 1)
+                where = self.root / "shards" / f"{shard['name']}.points.npy"
+                raise DataError(f"{where}: instance {row} of the shard has {len(bad)} non-finite point(s)",
+                                hint="the cache is damaged; rebuild it with `pcc extract ... --force`")
+
     def points(self, i: int) -> np.ndarray:
         """Canonical float32 ``(n, 3)`` points of instance ``i`` (a view into the shard)."""
         points, offsets = self._shards[self._shard_of[i]]

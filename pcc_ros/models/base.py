@@ -529,15 +529,12 @@ class TorchCompleter(Completer):
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "auto", **overrides: Any) -> TorchCompleter:
         """Build the backend from a checkpoint's config and load its validated weights."""
-        from pcc_ros.models.checkpoint import load_checkpoint, validate_state
+        from pcc_ros.models.checkpoint import check_hyper_parameters, load_checkpoint, validate_state
 
         state, config = load_checkpoint(path)
         if config["backend"] != cls.name:
             raise CheckpointError(f"{path}: checkpoint is for backend {config['backend']!r}, not {cls.name!r}")
-        hyper = dict(config.get("hyper_parameters", {}))
-        unknown = sorted(set(hyper) - set(cls.default_config()))
-        if unknown:
-            raise CheckpointError(f"{path}: config has hyper-parameters {unknown} unknown to backend {cls.name!r}")
+        hyper = check_hyper_parameters(config, cls.default_config(), str(path))
         try:
             completer = cls(device=device, **hyper, **overrides)
         except ConfigError:

@@ -41,6 +41,13 @@ if TYPE_CHECKING:
 
 FORMAT = "pcc_ros.checkpoint/1"
 _REQUIRED_KEYS = ("format", "backend", "hyper_parameters", "tensors", "sha256")
+#: Every top-level key :func:`make_config` / :func:`save_checkpoint` / ``pcc train`` write.
+_KNOWN_KEYS = frozenset({
+    *_REQUIRED_KEYS, "points", "training", "metrics", "git_revision", "pcc_ros_version", "created", "dtypes",
+    "size_bytes", "resume",
+})
+#: Deepest JSON nesting a checkpoint config may have (real ones are about 4 levels deep).
+MAX_CONFIG_DEPTH = 32
 
 
 def checkpoint_paths(path: str | Path) -> tuple[Path, Path]:
@@ -150,11 +157,22 @@ def load_config(path: str | Path) -> dict[str, Any]:
         config = json.loads(config_path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CheckpointError(f"{config_path}: not a valid JSON checkpoint config ({exc})") from exc
+    except RecursionError:
+        raise CheckpointError(f"{config_path}: JSON nested too deeply to parse (limit {MAX_CONFIG_DEPTH} levels)",
+                              hint="the file is not a checkpoint config; re-copy or re-train it") from None
     if not isinstance(config, dict):
         raise CheckpointError(f"{config_path}: checkpoint config must be a JSON object")
+    depth = _depth(config)
+    if depth > MAX_CONFIG_DEPTH:
+        raise CheckpointError(f"{config_path}: JSON nested more than {MAX_CONFIG_DEPTH} levels deep",
+                              hint="the file is not a checkpoint config; re-copy or re-train it")
     missing = [k for k in _REQUIRED_KEYS if k not in config]
     if missing:
         raise CheckpointError(f"{config_path}: checkpoint config lacks {missing}")
+    unknown = sorted(set(config) - _KNOWN_KEYS)
+    if unknown:
+        raise CheckpointError(f"{config_path}: unknown checkpoint config keys {unknown[:5]}",
+                              hint=f"a {FORMAT} config has only {sorted(_KNOWN_KEYS)}; was the file edited?")
     if config["format"] != FORMAT:
         raise CheckpointError(f"{config_path}: unsupported checkpoint format {config['format']!r} (expected {FORMAT})")
     if not isinstance(config["tensors"], dict) or not isinstance(config["hyper_parameters"], dict):
@@ -204,10 +222,50 @@ def load_checkpoint(path: str | Path, verify_hash: bool = True) -> tuple[dict[st
     problems = _compare_shapes(expected, actual_shapes, "config", "file")
     if problems:
         raise CheckpointError(f"{weights_path}: weights do not match {config_path.name}: {problems}")
+    recorded_dtypes = config.get("dtypes")
+    if recorded_dtypes is not None:
+        if not isinstance(recorded_dtypes, dict):
+            raise CheckpointError(f"{config_path}: 'dtypes' must be a JSON object")
+        wrong = [f"{n}: config {recorded_dtypes.get(n)} vs file {str(t.dtype).removeprefix('torch.')}"
+                 for n, t in state.items() if str(recorded_dtypes.get(n)) != str(t.dtype).removeprefix("torch.")]
+        if wrong:
+            raise CheckpointError(f"{weights_path}: tensor dtypes do not match {config_path.name}: {wrong[:3]}"
+                                  + (" …" if len(wrong) > 3 else ""), hint="re-export or re-train the checkpoint")
     for name, tensor in state.items():
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
             raise CheckpointError(f"{weights_path}: tensor {name!r} holds NaN or inf values")
     return state, config
+
+
+def check_hyper_parameters(config: Mapping[str, Any], defaults: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The checkpoint's hyper-parameters, refused unless they name exactly the backend's
+    (``defaults``): an unknown one would be ignored, a missing one silently defaulted."""
+    hyper = dict(config.get("hyper_parameters", {}))
+    backend = config.get("backend")
+    unknown = sorted(set(hyper) - set(defaults))
+    if unknown:
+        raise CheckpointError(f"{source}: config has hyper-parameters {unknown} unknown to backend {backend!r}")
+    missing = sorted(set(defaults) - set(hyper))
+    if missing:
+        raise CheckpointError(
+            f"{source}: config lacks hyper-parameters {missing} of backend {backend!r}",
+            hint="the weights were built with values nobody recorded; re-train, or add them to the JSON "
+            "if you know them",
+        )
+    return hyper
+
+
+def _depth(value: Any) -> int:
+    """Nesting depth of a parsed JSON value (iterative, so any depth is measured safely)."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        item, level = stack.pop()
+        deepest = max(deepest, level)
+        if deepest > MAX_CONFIG_DEPTH:
+            return deepest
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else ()
+        stack.extend((child, level + 1) for child in children if isinstance(child, (dict, list)))
+    return deepest
 
 
 def _compare_shapes(expected: Mapping[str, tuple], actual: Mapping[str, tuple], a: str, b: str, limit: int = 5) -> str:
@@ -225,9 +283,20 @@ def _compare_shapes(expected: Mapping[str, tuple], actual: Mapping[str, tuple], 
 
 
 def validate_state(model: torch.nn.Module, state: Mapping[str, torch.Tensor], source: str = "checkpoint") -> None:
-    """Raise :class:`CheckpointError` unless ``state`` has exactly the model's names and shapes."""
+    """Raise :class:`CheckpointError` unless ``state`` has exactly the model's names and shapes,
+    and dtypes that load without a silent cast (float32 weights load into any float model)."""
+    import torch
+
     expected = {name: tuple(t.shape) for name, t in model.state_dict().items()}
     actual = {name: tuple(t.shape) for name, t in state.items()}
     problems = _compare_shapes(expected, actual, "model", "checkpoint")
     if problems:
         raise CheckpointError(f"{source}: weights do not fit the model built from its config: {problems}")
+    model_state = model.state_dict()
+    wrong = [f"{n}: model {str(model_state[n].dtype).removeprefix('torch.')} vs checkpoint "
+             f"{str(t.dtype).removeprefix('torch.')}" for n, t in state.items()
+             if t.dtype != model_state[n].dtype and not (t.is_floating_point() and model_state[n].is_floating_point()
+                                                        and t.dtype == torch.float32)]
+    if wrong:  # a float16 / int32 tensor would be cast silently by load_state_dict
+        raise CheckpointError(f"{source}: tensor dtypes do not fit the model: {wrong[:3]}"
+                              + (" …" if len(wrong) > 3 else ""), hint="the weights must be saved in float32")
