@@ -492,7 +492,7 @@ def estimated_crop_pairs(points: np.ndarray, boxes: Boxes, margin: float = 0.0) 
     grid = np.bincount(cells[:, 0] * shape[1] + cells[:, 1], minlength=int(shape.prod())).reshape(shape)
     table = np.zeros((shape[0] + 1, shape[1] + 1), dtype=np.int64)
     table[1:, 1:] = grid.cumsum(axis=0).cumsum(axis=1)
-    radius = np.hypot(boxes.size[:, 0], boxes.size[:, 1]) / 2.0 + margin
+    radius = np.hypot(boxes.size[:, 0] / 2.0 + margin, boxes.size[:, 1] / 2.0 + margin)  # circumradius
     first = np.clip(np.floor((boxes.center[:, :2] - radius[:, None] - lo) / cell), 0, shape).astype(np.int64)
     last = np.clip(np.floor((boxes.center[:, :2] + radius[:, None] - lo) / cell) + 1, 0, shape).astype(np.int64)
     return (table[last[:, 0], last[:, 1]] - table[first[:, 0], last[:, 1]]

@@ -106,7 +106,7 @@ def test_damaged_weights_are_a_checkpoint_error(tmp_path, position, mask, cut):
     else:
         data[at] ^= mask
     (tmp_path / "m.safetensors").write_bytes(bytes(data))
-    with pytest.raises(CheckpointError, match="m.safetensors"):
+    with pytest.raises(CheckpointError, match=r"m\.safetensors"):
         load_checkpoint(tmp_path / "m")
 
 

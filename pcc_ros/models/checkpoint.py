@@ -104,6 +104,9 @@ def make_config(
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
     if extra:
+        unknown = sorted(set(extra) - _KNOWN_KEYS)
+        if unknown:  # readers refuse unknown keys: a new one must be registered in _KNOWN_KEYS
+            raise ValueError(f"checkpoint config keys {unknown} are not in checkpoint._KNOWN_KEYS")
         config.update(extra)
     return config
 
