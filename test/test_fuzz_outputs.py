@@ -104,3 +104,40 @@ def test_failed_extraction_leaves_no_cache(tmp_path):
     assert not (tmp_path / "cache").exists()
     with pytest.raises(DataError, match=r"index\.json"):
         InstanceCache.load(tmp_path / "cache")
+
+
+# ----------------------------------------------------------------------------- the CLI boundary
+
+
+@pytest.mark.parametrize("error, expected", [
+    (RuntimeError("boom"), "internal error RuntimeError: boom — this is a bug in pcc_ros; re-run with --debug"),
+    (FileNotFoundError(2, "No such file or directory", "/x/y.bin"), "/x/y.bin: No such file or directory"),
+    (DataError("a.txt:3: bad", hint="fix it"), "a.txt:3: bad — fix it"),
+])
+def test_every_exception_is_one_named_line_and_debug_shows_the_traceback(monkeypatch, caplog, capsys, error, expected):
+    from fuzz_support import run_cli
+
+    import pcc_ros.bags.info_command as info
+
+    def fail(args):
+        raise error
+
+    monkeypatch.setattr(info, "run", fail)
+    rc, text = run_cli(["info", "whatever"], caplog)
+    assert rc == 1 and f"ERROR pcc: {expected}" in text
+    assert "Traceback" not in capsys.readouterr().err
+    rc, text = run_cli(["--debug", "info", "whatever"], caplog)
+    assert rc == 1 and "Traceback" in capsys.readouterr().err
+
+
+def test_ctrl_c_is_reported_with_status_130(monkeypatch, caplog):
+    from fuzz_support import run_cli
+
+    import pcc_ros.bags.info_command as info
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(info, "run", interrupted)
+    rc, text = run_cli(["info", "whatever"], caplog)
+    assert rc == 130 and "ERROR pcc: interrupted" in text
