@@ -244,7 +244,7 @@ def run_real(args: argparse.Namespace) -> int:
            "backends": results, "criteria": verdict}
     if args.plot:
         picks = pick_examples(instances, args.examples)
-        names = [n for n in completions if n != "input" and not n.endswith("+input")]
+        names = [n for n in completions if n != "input"]
         examples = []
         for p in picks:
             inst = instances[p]

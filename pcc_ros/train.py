@@ -93,6 +93,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="share of training groups drawn from --real-data (default 0.1; the few real groups are repeated)",
     )
     parser.add_argument(
+        "--init", type=Path, metavar="CHECKPOINT",
+        help="start from these weights (e.g. the shipped checkpoint; fresh optimizer), recorded in the config",
+    )
+    parser.add_argument(
         "--select-by", choices=("cd_l1", "fscore", "coverage"), default="cd_l1",
         help="validation metric that picks the shipped weights (best, not last; default cd_l1)",
     )
@@ -252,6 +256,19 @@ def validation_instances(cache: Any, split: str, count: int, seed: int) -> tuple
 # --------------------------------------------------------------------------- plotting
 
 
+def init_weights(completer: Any, path: Path) -> dict[str, Any]:
+    """Load a checkpoint's weights into ``completer`` (same backend and size); what was loaded."""
+    from pcc_ros.models.checkpoint import load_checkpoint, validate_state
+
+    state, config = load_checkpoint(path)
+    if config.get("backend") != completer.name:
+        raise CheckpointError(f"{path}: a {config.get('backend')!r} checkpoint cannot initialise {completer.name!r}")
+    validate_state(completer.model, state, source=str(path))
+    completer.model.load_state_dict(state)
+    return {"path": str(path), "sha256": config.get("sha256"), "metrics": config.get("metrics", {}),
+            "training_steps": config.get("training", {}).get("steps")}
+
+
 def machine_info() -> dict[str, Any]:
     """Where a run trained: host, CPU, threads, load (recorded in the checkpoint)."""
     import platform
@@ -369,6 +386,9 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
 
     torch.manual_seed(args.seed)  # same initial weights on every rank
     completer = recipe.build_completer(device)
+    init = None
+    if args.init is not None and not args.resume:
+        init = init_weights(completer, args.init)
     net = completer.model
     net.train()
     lr = args.lr if args.lr is not None else float(getattr(recipe, "default_lr", 5e-4))
@@ -382,6 +402,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         "batch_size": args.batch_size, "world_size": dist.world, "lr": lr, "lr_decay_every": decay_every,
         "seed": args.seed, "data": str(args.data), "split": args.split, "recipe": recipe.describe(),
     }
+    if init is not None:
+        run_settings["init"] = init
     step = 0
     log_path = out / "log.jsonl"
     if args.resume:
@@ -438,7 +460,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     lower_better = args.select_by != "fscore"
 
     def best_record() -> dict[str, Any] | None:
-        vals = [r for r in records if select_key in r and np.isfinite(r[select_key])]
+        vals = [r for r in records if select_key in r and np.isfinite(r[select_key]) and r["step"] > 0]
         if not vals:
             return None
         return (min if lower_better else max)(vals, key=lambda r: r[select_key])
@@ -473,6 +495,9 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
                  best=best_record(), select_key=select_key)
 
     started = time.perf_counter()
+    if dist.main and init is not None and step == 0 and val_instances:
+        emit({"step": 0, **validate(completer, val_instances, args.seed)})  # where the initial weights stand
+        log.info("initial weights %s: %s", args.init, records[-1])
     window: dict[str, list[float]] = {}
     window_start = time.perf_counter()
     log_every = 50

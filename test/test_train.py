@@ -116,6 +116,23 @@ def test_real_scans_are_mixed_at_the_requested_share(cache_dir, tmp_path):
     assert main([*argv[:-1], "1.5"]) == 1  # a share outside (0, 1) is a clear error, not a traceback
 
 
+def test_init_from_a_checkpoint_is_recorded_and_validated_at_step_0(cache_dir, tmp_path):
+    first = tmp_path / "first"
+    assert main(_argv(cache_dir, first, "--iterations", "2")) == 0
+    out = tmp_path / "finetune"
+    assert main(_argv(cache_dir, out, "--iterations", "2", "--init", str(first / "pointpncnet_last.safetensors"))) == 0
+    config = load_config(out / "pointpncnet.json")
+    assert config["training"]["init"]["path"].endswith("pointpncnet_last.safetensors")
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    start = [r for r in records if r["step"] == 0]
+    assert start and start[0]["val_cd_l1"] == pytest.approx(
+        load_config(first / "pointpncnet_last.json")["metrics"]["val_cd_l1"], rel=1e-5)  # the same weights
+    assert config["training"]["selected_step"] == 2  # step 0 (the initial weights) is never "selected"
+    bad = tmp_path / "bad"
+    argv = _argv(cache_dir, bad, "--iterations", "2", "--init", str(tmp_path / "missing.safetensors"))
+    assert main(argv) == 1
+
+
 def test_no_inpainting_ablation_is_recorded(cache_dir, tmp_path):
     out = tmp_path / "ablation"
     assert main([*_argv(cache_dir, out, "--iterations", "2", "--no-inpainting"), "--val-instances", "0"]) == 0
