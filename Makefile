@@ -1,7 +1,9 @@
 # pcc_ros: two commands from a fresh clone.
 #   make demo   set everything up, then run the end-to-end demo
 #   make test   set everything up, then run the whole test suite
-# Set-up is idempotent: the venv is (re)built only when requirements.txt or setup.py change.
+# Set-up is idempotent: the venv is (re)built only when requirements.txt or setup.py change;
+# scripts/setup_ros.sh adds ROS 2 Jazzy (PyPI wheels + vision_msgs built once) unless a ROS 2
+# Jazzy environment is sourced, and keeps its own stamps.
 
 PYTHON ?= python3
 VENV   ?= .venv
@@ -9,9 +11,9 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.pcc_ros-installed
 OUT    ?= out
 
-.PHONY: setup system-deps test test-fast demo bench lint clean
+.PHONY: setup system-deps ros test test-fast demo bench lint clean
 
-setup: system-deps $(STAMP)
+setup: system-deps $(STAMP) ros
 
 system-deps:
 	@bash scripts/setup_system.sh
@@ -21,6 +23,9 @@ $(STAMP): requirements.txt setup.py
 	$(PY) -m pip install --disable-pip-version-check -q -r requirements.txt
 	$(PY) -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
 	@touch $@
+
+ros: $(STAMP)
+	@bash scripts/setup_ros.sh $(VENV)
 
 # pytest exits 5 when it collected nothing: say so loudly instead of failing make with a bare 2.
 test: setup

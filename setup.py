@@ -19,7 +19,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.rviz")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.rviz") + glob("config/*.xml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
         (f"share/{PACKAGE}/weights", glob(f"{PACKAGE}/weights/*.safetensors") + glob(f"{PACKAGE}/weights/*.json")),
     ],
@@ -39,7 +39,6 @@ setup(
         "matplotlib>=3.6",
         "scipy>=1.10",
         "pyyaml>=6",
-        "cyclonedds>=11,<12",
     ],
     zip_safe=False,  # weights and configs are found through __file__
     maintainer="pcc_ros maintainers",

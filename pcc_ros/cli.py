@@ -28,9 +28,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("pcc_ros.evaluate", "evaluate completion backends"),
     "replay": ("pcc_ros.bags.replay", "run the per-frame pipeline over a bag"),
     "demo": ("pcc_ros.demo", "end-to-end demo on SynthCars and real KITTI frames"),
-    "node": ("pcc_ros.runtime.node_command", "run a pcc_ros node on rclpy or, without ROS, on Cyclone DDS"),
-    "play": ("pcc_ros.runtime.play", "publish a bag onto the ROS 2 graph with its recorded timing (no ROS needed)"),
-    "echo": ("pcc_ros.runtime.echo", "print the messages of a ROS 2 topic (no ROS needed)"),
+    "play": ("pcc_ros.nodes.play", "publish a bag onto the ROS 2 graph with its recorded timing (rclpy)"),
+    "echo": ("pcc_ros.nodes.echo", "print the messages of a ROS 2 topic (rclpy)"),
     "bench": ("pcc_ros.bench", "run a benchmark and print a table"),
 }
 

@@ -1,9 +1,8 @@
 """The node logic shared by every runtime: pairing, newest-wins worker, pipeline, publishing, diagnostics.
 
-:class:`NodeCore` knows nothing of rclpy or DDS; it talks to a
-:class:`~pcc_ros.runtime.base.Runtime` (rclpy in :mod:`pcc_ros.nodes.ros_node`, Cyclone DDS
-in :mod:`pcc_ros.runtime.dds`, in-process in :mod:`pcc_ros.runtime.local`), so all three
-run the very same code.
+:class:`NodeCore` knows nothing of rclpy; it talks to a
+:class:`~pcc_ros.runtime.base.Runtime` (rclpy in :mod:`pcc_ros.nodes.ros_node`, in-process
+in :mod:`pcc_ros.runtime.local`), so live nodes, tests and replay run the very same code.
 
 Threading: subscription callbacks only pair messages and drop the pair into a
 :class:`~pcc_ros.sync.LatestSlot`; one worker thread runs the pipeline on the newest pair
@@ -139,6 +138,18 @@ class NodeCore:
         self.no_transform = 0  # frames skipped because a transform was not available
         self.parameter_changes = 0
         self._parameter_lock = threading.Lock()
+        # Arrival bookkeeping: scans that stop arriving while detections keep coming (a large
+        # cloud the middleware drops) must show on /diagnostics, not look like an idle node.
+        self.scans = 0
+        self.detection_arrays = 0
+        self.detections_without_scans = 0
+        self.scans_stalled = False
+        self._last_scan_ns: int | None = None
+        self._first_detections_ns: int | None = None
+        self._scan_timeout_ns = int(float(values["scan_timeout"]) * 1e9)
+        if self._scan_timeout_ns <= 0:
+            raise ConfigError(f"scan_timeout must be > 0, not {values['scan_timeout']}")
+        self._no_transform_logged: set[tuple[str, str]] = set()
         self.latency_ms: list[float] = []
         remap = remap or {}
         self.topics = {name: remap.get(name, name) for name in [*INPUTS, *OUTPUTS[mode]]}
@@ -229,9 +240,27 @@ class NodeCore:
     # ------------------------------------------------------------- callbacks
 
     def on_cloud(self, msg) -> None:
+        self.scans += 1
+        self._last_scan_ns = self.runtime.now_ns()
+        if self.scans_stalled:
+            self.scans_stalled = False
+            self.log.info("scans arrive again")
         self._pair(self.pairer.add_left, msg)
 
     def on_detections(self, msg) -> None:
+        self.detection_arrays += 1
+        now = self.runtime.now_ns()
+        if self._first_detections_ns is None:
+            self._first_detections_ns = now
+        since = self._last_scan_ns if self._last_scan_ns is not None else self._first_detections_ns
+        if now - since > self._scan_timeout_ns:
+            self.detections_without_scans += 1
+            if not self.scans_stalled:
+                self.scans_stalled = True
+                self.log.warning(
+                    f"detections arrive but no scan on '{self.topics['points']}' for {(now - since) / 1e9:.1f} s: "
+                    "large clouds dropped by the middleware? (docs/nodes.md, 'Large clouds')"
+                )
         self._pair(self.pairer.add_right, msg)
 
     def _pair(self, add, msg) -> None:
@@ -300,7 +329,12 @@ class NodeCore:
         if tf is None:
             self.no_transform += 1
             self.failures += 1
-            self.log.warning(f"no transform '{source}' -> '{target}'; frame skipped")
+            if (source, target) not in self._no_transform_logged:  # once per frame pair, then counted
+                self._no_transform_logged.add((source, target))
+                self.log.warning(
+                    f"no transform '{source}' -> '{target}': such frames are skipped "
+                    "(counted on /diagnostics as frames_without_transform)"
+                )
         return tf
 
     def _to_output_frame(self, result: FrameResult, originals, frame: str):
@@ -339,7 +373,6 @@ class NodeCore:
         values = {
             "frames": self.frames,
             "failed_frames": self.failures,
-            "undecodable_samples": getattr(self.runtime, "undecodable", 0),
             "paired": stats.paired,
             "dropped_clouds": stats.dropped_clouds,
             "dropped_detections": stats.dropped_detections,
@@ -347,6 +380,9 @@ class NodeCore:
             "frames_without_transform": self.no_transform,
             "parameter_changes": self.parameter_changes,
             "backend": self.parameters["backend"],
+            "scans_received": self.scans,
+            "detections_received": self.detection_arrays,
+            "detections_without_scans": self.detections_without_scans,
             "latency_p50_ms": f"{np.percentile(latency, 50):.1f}",
             "latency_p95_ms": f"{np.percentile(latency, 95):.1f}",
         }
@@ -355,13 +391,17 @@ class NodeCore:
     def diagnostics_message(self):
         """A ``diagnostic_msgs/DiagnosticArray`` of the runtime's class flavour (level WARN after failures)."""
         classes = self.runtime.classes
-        failed = self.failures or getattr(self.runtime, "undecodable", 0)
+        failed = self.failures
+        level = 1 if failed or self.scans_stalled else 0
+        message = f"{self.frames} frames"
+        if self.scans_stalled:
+            message += f"; detections arrive but no scan for more than {self._scan_timeout_ns / 1e9:g} s"
         status = new_message(
             "diagnostic_msgs/msg/DiagnosticStatus",
             classes,
-            level=bytes([1 if failed else 0]) if _byte_is_bytes(classes) else (1 if failed else 0),
+            level=bytes([level]) if _byte_is_bytes(classes) else level,
             name=f"pcc_ros: {self.node_name}",
-            message=f"{self.frames} frames",
+            message=message,
             hardware_id="pcc_ros",
             values=[
                 new_message("diagnostic_msgs/msg/KeyValue", classes, key=k, value=v)

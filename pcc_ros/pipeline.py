@@ -1,6 +1,6 @@
 """The per-frame pipeline: scan + detections in, completions and filter decisions out.
 
-One class serves every runtime — the rclpy nodes, the DDS runtime, ``pcc replay`` and
+One class serves every runtime — the rclpy nodes, ``pcc replay`` and
 the demo — and knows nothing of rclpy: the nodes only feed it frames and publish what
 it returns, so offline results are exactly what a running node would publish.
 
@@ -151,6 +151,7 @@ NODE_DEFAULTS: dict[str, Any] = {
     "qos.detections.depth": 10,
     "qos.outputs.reliability": "reliable",
     "qos.outputs.depth": 10,
+    "scan_timeout": 1.0,
 }
 NODE_ONLY_PARAMETERS = frozenset({*NODE_DEFAULTS, "use_sim_time"})
 

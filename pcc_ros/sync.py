@@ -3,7 +3,7 @@
 Detector wrappers often restamp their output, so a cloud and its detections rarely
 carry identical stamps: they are paired when their stamps differ by at most ``slop``.
 Queues are bounded; when processing falls behind, the oldest unmatched messages are
-dropped and counted, never silently. Pure Python so the nodes, the DDS runtime and the
+dropped and counted, never silently. Pure Python so the nodes and the
 tests share one implementation (message_filters' ApproximateTimeSynchronizer does the
 same under rclpy, but is not available without ROS).
 """

@@ -200,7 +200,8 @@ def test_detections_in_another_frame_go_through_the_runtime_transform(graph):
     dets = detection_array_from_boxes(shifted, "base_link", 1_000_000_000)
     pub_cloud.publish(cloud)
     pub_dets.publish(dets)
-    assert not kept and core.failures == 1  # no transform known: logged and skipped
+    assert not kept and core.no_transform == 1  # no transform known: logged once, skipped, counted
+    assert core.diagnostics_values()["frames_without_transform"] == "1"
     graph.set_transform("velodyne", "base_link", Transform((1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
     cloud, _ = _messages(2_000_000_000)
     dets = detection_array_from_boxes(shifted, "base_link", 2_000_000_000)
@@ -422,3 +423,42 @@ def test_half_precision_runs_the_shipped_network_under_autocast():
     assert not np.array_equal(a.completed_points, b.completed_points)  # really ran in bfloat16
     # bfloat16 keeps ~3 significant digits: the completed cars agree to millimetres (median)
     assert np.median(np.abs(a.completed_points - b.completed_points)) < 0.01
+
+
+# ------------------------------------------------------------------ scans that stop arriving (issue 13)
+
+
+def test_scan_timeout_must_be_positive():
+    with pytest.raises(ConfigError, match="scan_timeout"):
+        _node(LocalGraph(simulated=True), "completion", scan_timeout=0.0)
+
+
+def test_detections_without_scans_are_counted_and_reported(graph, caplog):
+    core = _node(graph, "completion", scan_timeout=0.5)
+    diags = _tap(graph, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+    driver = LocalRuntime(graph, "driver")
+    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
+    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    cloud, dets = _messages(1_000_000_000)
+    graph.advance_to(1_000_000_000)
+    pub_cloud.publish(cloud)
+    pub_dets.publish(dets)
+    # Scans stop (a 2 MB cloud the middleware drops); detections keep coming at 10 Hz.
+    with caplog.at_level(logging.WARNING):
+        for i in range(1, 21):
+            stamp = 1_000_000_000 + i * 100_000_000
+            graph.advance_to(stamp)
+            pub_dets.publish(_messages(stamp)[1])
+    assert core.scans == 1 and core.detection_arrays == 21
+    assert core.detections_without_scans == 15  # those more than 0.5 s after the last scan
+    assert core.scans_stalled
+    assert sum("no scan on 'points'" in r.getMessage() for r in caplog.records) == 1  # warned once
+    status = diags[-1].status[0]  # published at 3.0 s by the 1 Hz timer
+    assert int(status.level) == 1 and "no scan" in status.message
+    values = core.diagnostics_values()
+    assert values["detections_without_scans"] == "15" and values["scans_received"] == "1"
+    graph.advance_to(3_100_000_000)
+    pub_cloud.publish(_messages(3_100_000_000)[0])  # scans are back: the warning clears
+    assert not core.scans_stalled
+    graph.advance_to(4_000_000_000)
+    assert int(diags[-1].status[0].level) == 0

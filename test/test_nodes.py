@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import rclpy_or_skip
 
 from pcc_ros.nodes.params import parameter_table
 from pcc_ros.pipeline import read_parameters
@@ -36,14 +37,10 @@ def test_parameter_table_covers_the_yaml_files_with_types_and_descriptions():
     assert table["match_threshold"].default == 0.3 and table["detection_threshold"].default == 0.5
 
 
-rclpy = None
-if importlib.util.find_spec("rclpy") is not None:  # pragma: no cover - only on a ROS machine
-    rclpy = importlib.import_module("rclpy")
-
-
 @pytest.mark.ros
-@pytest.mark.skipif(rclpy is None, reason="rclpy (a ROS 2 install) is not available")
-def test_completion_node_publishes_completed_cloud():  # pragma: no cover - only on a ROS machine
+def test_completion_node_publishes_completed_cloud():
+    """The node class in-process under real rclpy (the end-to-end test runs the installed processes)."""
+    rclpy = rclpy_or_skip()
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import PointCloud2
     from vision_msgs.msg import Detection3DArray
@@ -54,6 +51,7 @@ def test_completion_node_publishes_completed_cloud():  # pragma: no cover - only
     from pcc_ros.nodes.ros_node import PipelineNode, rclpy_classes
 
     rclpy.init()
+    node = probe = None
     try:
         node = PipelineNode(
             "completion_node", "completion", parameter_overrides=[Parameter("backend", value="mirror")]
@@ -75,4 +73,9 @@ def test_completion_node_publishes_completed_cloud():  # pragma: no cover - only
                 rclpy.spin_once(n, timeout_sec=0.1)
         assert got and got[0].header.frame_id == "velodyne"
     finally:
+        # Nodes first (stops the worker thread), then the context: a worker still publishing
+        # into a shut-down context would log "publisher's context is invalid".
+        for n in (probe, node):
+            if n is not None:
+                n.destroy_node()
         rclpy.try_shutdown()

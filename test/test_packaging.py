@@ -9,6 +9,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+from conftest import colcon_style_install
 
 from pcc_ros.cli import COMMANDS, _available_commands, build_parser
 
@@ -94,20 +95,13 @@ def test_rclpy_is_imported_only_in_nodes():
 def test_colcon_style_install_layout(tmp_path):
     """What colcon runs for an ament_python package places scripts and data correctly."""
     prefix = tmp_path / "install"
-    build = tmp_path / "build"
-    cmd = [
-        sys.executable, "setup.py", "-q", "egg_info", "--egg-base", str(tmp_path),
-        "build", "--build-base", str(build),
-        "install", "--prefix", str(prefix), "--single-version-externally-managed",
-        "--record", str(tmp_path / "record.txt"),
-    ]
-    out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    out = colcon_style_install(prefix, tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
     assert (prefix / "lib" / "pcc_ros" / "pcc").is_file()
     share = prefix / "share" / "pcc_ros"
     assert (share / "package.xml").is_file()
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "pcc_ros").is_file()
-    for cfg in (REPO / "config").glob("*.yaml"):
+    for cfg in [*(REPO / "config").glob("*.yaml"), REPO / "config" / "fastdds_large_data.xml"]:
         assert (share / "config" / cfg.name).is_file()
     for launch in (REPO / "launch").glob("*.launch.py"):
         assert (share / "launch" / launch.name).is_file()

@@ -7,7 +7,7 @@ without a ROS install.
 
 Message classes come in two flavours that share attribute names:
 
-* rosbags dataclasses (tests, bags, the DDS runtime): every field is a required keyword,
+* rosbags dataclasses (tests, bags, `pcc replay`): every field is a required keyword,
   ``uint8[]`` and numeric arrays are ``numpy`` arrays;
 * rclpy's generated classes (production): every field has a default, ``uint8[]`` is an
   ``array.array('B')``.

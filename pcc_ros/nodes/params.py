@@ -57,6 +57,7 @@ DESCRIPTIONS = {
     "qos.detections.depth": "detections subscription: keep-last history depth",
     "qos.outputs.reliability": "every output publisher: reliable or best_effort",
     "qos.outputs.depth": "every output publisher: keep-last history depth",
+    "scan_timeout": "seconds without a scan while detections arrive before /diagnostics warns (scans lost?)",
 }
 
 #: Inclusive numeric ranges (the rclpy host declares them as Integer/FloatingPointRange).
@@ -75,6 +76,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "grid_extent": (0.1, 5.0),
     "sync_slop": (0.0, 10.0),
     "queue_size": (1, 1000),
+    "scan_timeout": (0.01, 3600.0),
     "qos.points.depth": (1, 1000),
     "qos.detections.depth": (1, 1000),
     "qos.outputs.depth": (1, 1000),
@@ -90,7 +92,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
 
 #: Fixed once the node runs (subscriptions, publishers and queues are built from them):
 #: declared read-only, a change is refused with "restart the node".
-READ_ONLY = frozenset({"queue_size", *(name for name in NODE_DEFAULTS if name.startswith("qos."))})
+READ_ONLY = frozenset({"queue_size", "scan_timeout", *(name for name in NODE_DEFAULTS if name.startswith("qos."))})
 
 #: Parameters that change the loaded network (a run-time change reloads the backend).
 BACKEND_PARAMETERS = ("backend", "checkpoint", "device", "half_precision", "batch_size", "workers")

@@ -2,8 +2,8 @@
 
 Thin by design (ros2/demos style): ROS parameters in, the node core does the rest —
 pairing, the newest-wins worker, the pipeline, publishing, diagnostics values — exactly
-as on the Cyclone DDS runtime (``pcc node --transport dds``) and in-process. This module
-and its siblings are the only ones that import rclpy.
+as in-process (:mod:`pcc_ros.runtime.local`, tests and ``pcc replay``). This module and
+its siblings are the only ones that import rclpy.
 """
 
 from __future__ import annotations
@@ -55,12 +55,18 @@ class RclpyRuntime:
     def __init__(self, node: Node) -> None:
         self.node = node
         self._tf_buffer = None
+        self._tf_missing_logged = False
         try:
             from tf2_ros import Buffer, TransformListener
-        except ImportError:
+        except ImportError:  # the ROS 2 Jazzy PyPI wheels do not ship tf2_ros
             return
         self._tf_buffer = Buffer()
         self._tf_listener = TransformListener(self._tf_buffer, node)
+
+    @property
+    def has_tf(self) -> bool:
+        """True where tf2_ros is installed (a ROS 2 install; not the PyPI wheels)."""
+        return self._tf_buffer is not None
 
     def create_publisher(self, topic, msgtype, qos):
         return self.node.create_publisher(rclpy_classes(msgtype), topic, qos_profile(qos))
@@ -79,7 +85,14 @@ class RclpyRuntime:
 
     def lookup_transform(self, target: str, source: str, stamp_ns: int) -> Transform | None:
         if self._tf_buffer is None:
-            self.node.get_logger().warning("tf2_ros is unavailable")
+            if not self._tf_missing_logged:  # said once; the node core counts every skipped frame
+                self._tf_missing_logged = True
+                self.node.get_logger().warning(
+                    f"tf2_ros is not installed (the ROS 2 Jazzy wheels do not ship it): no transform "
+                    f"'{source}' -> '{target}'; frames that need one (detections in another frame than the "
+                    "scan, or an output_frame) are skipped and counted (diagnostics: frames_without_transform). "
+                    "Publish detections in the scan frame, or run on a ROS 2 Jazzy install."
+                )
             return None
         try:
             tf = self._tf_buffer.lookup_transform(

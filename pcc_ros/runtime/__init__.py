@@ -5,13 +5,7 @@
   :class:`~pcc_ros.runtime.base.QoS` with the two profiles the nodes use.
 * :mod:`pcc_ros.runtime.local` - an in-process graph (no middleware): several runtimes in
   one process exchange messages synchronously; optional simulated clock. Used by tests,
-  benchmarks and anything that wants node behaviour offline.
-* :mod:`pcc_ros.runtime.dds` - ROS 2 wire-compatible runtime over Cyclone DDS (the
-  ``cyclonedds`` PyPI package): talks to a live ROS 2 Jazzy graph without a ROS install.
-  Wire types in :mod:`pcc_ros.runtime.idl`, discovery configuration in
-  :mod:`pcc_ros.runtime.discovery`.
-* the rclpy runtime lives in :mod:`pcc_ros.nodes.ros_node` (the only place rclpy is imported).
-
-Nothing here imports cyclonedds at package import time, so the seam and the local runtime
-work where cyclonedds is not installed.
+  benchmarks, ``pcc replay`` and anything that wants node behaviour offline.
+* the rclpy runtime lives in :mod:`pcc_ros.nodes.ros_node` (the only place rclpy is imported):
+  rclpy is the one node host.
 """

@@ -1,8 +1,8 @@
 """The runtime seam: what node logic needs from a middleware, and nothing more.
 
 :class:`pcc_ros.node_core.NodeCore` only talks to a :class:`Runtime`, so the same pairing,
-worker, pipeline and diagnostics run on rclpy (``ros2 run``), on the Cyclone DDS runtime
-(``pcc node --transport dds``) and in-process (:mod:`pcc_ros.runtime.local`).
+worker, pipeline and diagnostics run on rclpy (``ros2 run``, :mod:`pcc_ros.nodes.ros_node`)
+and in-process (:mod:`pcc_ros.runtime.local`: tests, ``pcc replay``).
 
 Message objects crossing the seam are of the runtime's own class flavour:
 :attr:`Runtime.classes` resolves a type name (``"sensor_msgs/msg/PointCloud2"``) to the

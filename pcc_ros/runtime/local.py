@@ -4,7 +4,7 @@ Several :class:`LocalRuntime` (one per node) share a :class:`LocalGraph`. ``publ
 delivers the message object itself, synchronously and in the publisher's thread, to every
 subscription on the same topic whose QoS matches (a best-effort writer never reaches a
 reliable reader, as in DDS). Messages are rosbags dataclasses (``classes`` =
-:func:`pcc_ros.msg.typestore.rosbags_classes`), the flavour bags and the DDS runtime use.
+:func:`pcc_ros.msg.typestore.rosbags_classes`), the flavour bags use.
 
 The clock is the wall clock, or — with ``LocalGraph(simulated=True)`` — a simulated one
 that only moves through :meth:`LocalGraph.advance_to` (``use_sim_time`` for offline work:
