@@ -105,3 +105,16 @@ def test_second_setup_rebuilds_nothing():
     assert "up to date" in out.stdout and "building" not in out.stdout and "installing" not in out.stdout
     assert VISION_STAMP.stat().st_mtime_ns == before
     assert time.monotonic() - tic < 60
+
+
+@pytest.mark.ros
+def test_setup_defers_to_a_sourced_ros_install_and_refuses_another_distro():
+    """ROS_DISTRO=jazzy: the sourced install is used, nothing installed; another distro: a clear refusal."""
+    rclpy_or_skip()
+    script = ["bash", "scripts/setup_ros.sh", sys.prefix]
+    jazzy = subprocess.run(script, cwd=REPO, env={**os.environ, "ROS_DISTRO": "jazzy"},
+                           capture_output=True, text=True, timeout=120)
+    assert jazzy.returncode == 0 and jazzy.stdout == "", jazzy.stderr
+    humble = subprocess.run(script, cwd=REPO, env={**os.environ, "ROS_DISTRO": "humble"},
+                            capture_output=True, text=True, timeout=120)
+    assert humble.returncode == 1 and "ROS_DISTRO=humble" in humble.stderr and "Jazzy" in humble.stderr
