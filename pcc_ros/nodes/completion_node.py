@@ -15,9 +15,9 @@ MODE = "completion"
 
 
 def main(args: list[str] | None = None) -> int:
-    from pcc_ros.nodes.ros_node import run  # rclpy only from here on
+    from pcc_ros.nodes.entry import node_main  # --help and a clear message without ROS; rclpy after
 
-    return run(NODE_NAME, MODE, args)
+    return node_main(NODE_NAME, MODE, args)
 
 
 if __name__ == "__main__":
