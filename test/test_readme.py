@@ -224,7 +224,7 @@ def test_tools_table_on_the_real_kitti_sample(workdir, capsys):
 def test_readme_eval_command_runs_as_written_on_a_small_cache(workdir):
     import json
 
-    assert cli.main(["synth", "--out", "data/synthcars", "--sequences", "1", "--frames", "4", "--seed", "0"]) == 0
+    assert cli.main(["synth", "--out", "data/synthcars", "--sequences", "2", "--frames", "3", "--seed", "0"]) == 0
     assert cli.main(["extract", "data/synthcars", "--out", "cache/synthcars"]) == 0
     argv = _readme_command("eval --data cache/synthcars")
     assert "--no-emd" in argv and "--max-instances" in argv  # the stated time holds only so

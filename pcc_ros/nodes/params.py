@@ -24,7 +24,7 @@ DESCRIPTIONS = {
     "backend": "completion backend registered in pcc_ros.models (pointpncnet, input, densify, mirror)",
     "checkpoint": "path of a .safetensors checkpoint; empty = the shipped default of the backend",
     "device": "auto, cpu, cuda or cuda:N (auto = the first GPU when CUDA is available)",
-    "half_precision": "run the network under autocast: float16 on CUDA, bfloat16 on CPU (learned backends)",
+    "half_precision": "network weights and activations in float16 on CUDA, bfloat16 on CPU (learned backends)",
     "classes": "detection class ids to complete (case-insensitive; 'vehicle.car' matches 'car')",
     "min_points": "boxes holding fewer LiDAR points are not completed (and not judged by the filter)",
     "max_instances": "per-frame cap on completed boxes, highest detection score first",
