@@ -462,3 +462,47 @@ def test_detections_without_scans_are_counted_and_reported(graph, caplog):
     assert not core.scans_stalled
     graph.advance_to(4_000_000_000)
     assert int(diags[-1].status[0].level) == 0
+
+
+# ------------------------------------------------------------------ under real rclpy
+
+
+def _rclpy_node_modules():
+    import importlib.util
+
+    return all(importlib.util.find_spec(m) is not None for m in ("rclpy", "vision_msgs"))
+
+
+@pytest.mark.skipif(not _rclpy_node_modules(), reason="rclpy and vision_msgs (ROS 2) are not importable")
+def test_rclpy_node_declares_rules_refuses_unknown_keys_and_swaps_at_run_time():
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from pcc_ros.nodes.ros_node import PipelineNode
+
+    rclpy.init()
+    nodes = []
+    try:
+        with pytest.raises(ConfigError, match=r"unknown node parameter\(s\): \['backendd'\]"):
+            PipelineNode("filter_node", "filter", parameter_overrides=[Parameter("backendd", value="mirror")])
+        with pytest.raises(ConfigError, match="'match_threshold'"):
+            PipelineNode("filter_node", "filter", parameter_overrides=[Parameter("match_threshold", value=3.0)])
+        node = PipelineNode("filter_node", "filter", parameter_overrides=[Parameter("backend", value="mirror")])
+        nodes.append(node)
+        described = node.describe_parameters(["match_threshold", "min_points", "qos.points.depth"])
+        assert described[0].floating_point_range[0].to_value == 1.0 and described[0].description
+        assert described[1].integer_range[0].from_value == 1
+        assert described[2].read_only
+        result = node.set_parameters([Parameter("match_threshold", value=7.0)])[0]
+        assert not result.successful and "match_threshold" in result.reason
+        result = node.set_parameters([Parameter("backend", value="no_such_backend")])[0]
+        assert not result.successful and "no_such_backend" in result.reason
+        assert node.get_parameter("backend").value == "mirror" and node.core.pipeline.completer.name == "mirror"
+        assert not node.set_parameters([Parameter("qos.points.depth", value=3)])[0].successful
+        ok = node.set_parameters([Parameter("backend", value="input"), Parameter("detection_threshold", value=0.4)])
+        assert all(r.successful for r in ok)
+        assert node.core.pipeline.completer.name == "input" and node.core.parameters["detection_threshold"] == 0.4
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()

@@ -11,15 +11,22 @@ from __future__ import annotations
 import importlib
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
 from rclpy.duration import Duration
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 
-from pcc_ros.errors import PccError
-from pcc_ros.node_core import NodeCore
-from pcc_ros.nodes.params import parameter_table
+from pcc_ros.errors import ConfigError, PccError
+from pcc_ros.node_core import NodeCore, unknown_parameters
+from pcc_ros.nodes.params import ParameterSpec, parameter_table
 from pcc_ros.runtime.base import QoS, Transform
 
 _TYPES = {
@@ -105,6 +112,23 @@ class RclpyRuntime:
         return Transform((t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
 
 
+def descriptor(spec: ParameterSpec) -> ParameterDescriptor:
+    """The rclpy descriptor of a parameter: description, type, range, read-only flag."""
+    out = ParameterDescriptor(
+        description=spec.description,
+        type=_TYPES[spec.type_name],
+        read_only=spec.read_only,
+        additional_constraints=spec.constraints,
+    )
+    if spec.range is not None and spec.type_name == "integer":
+        out.integer_range = [IntegerRange(from_value=int(spec.range[0]), to_value=int(spec.range[1]), step=0)]
+    elif spec.range is not None:
+        out.floating_point_range = [
+            FloatingPointRange(from_value=float(spec.range[0]), to_value=float(spec.range[1]), step=0.0)
+        ]
+    return out
+
+
 class PipelineNode(Node):
     """Completion (``mode="completion"``) or detection filtering (``mode="filter"``)."""
 
@@ -113,13 +137,23 @@ class PipelineNode(Node):
         super().__init__(node_name, **node_options)
         self.mode = mode
         for spec in parameter_table():
-            self.declare_parameter(
-                spec.name,
-                list(spec.default) if isinstance(spec.default, tuple) else spec.default,
-                ParameterDescriptor(description=spec.description, type=_TYPES[spec.type_name]),
-            )
+            default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
+            try:
+                self.declare_parameter(spec.name, default, descriptor(spec))
+            except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
+                raise ConfigError(f"parameter '{spec.name}': {exc}") from None
+        # rclpy ignores a parameter-file key nobody declares: a typo must stop the node instead.
+        unknown = unknown_parameters(self._parameter_overrides)
+        if unknown:
+            raise ConfigError(f"unknown node parameter(s): {unknown} (see docs/nodes.md for the list)")
         values = {spec.name: self.get_parameter(spec.name).value for spec in parameter_table()}
         self.core = NodeCore(RclpyRuntime(self), node_name, mode, values)
+        self.add_on_set_parameters_callback(self._on_set_parameters)  # after declaring: run-time changes only
+
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        """``ros2 param set``: the node core validates and swaps (or refuses, with the reason)."""
+        result = self.core.set_parameters({p.name: p.value for p in parameters})
+        return SetParametersResult(successful=result.successful, reason=result.reason)
 
     def destroy_node(self) -> None:
         self.core.shutdown()
