@@ -298,6 +298,12 @@ def test_set_parameters_swaps_thresholds_and_backend_without_dropping_the_node(g
     assert not refused.successful and "no_such_backend" in refused.reason
     assert core.pipeline.completer is completer
     assert not core.set_parameters({"qos.points.depth": 9}).successful  # read-only: restart the node
+    import torch
+
+    if not torch.cuda.is_available():  # a device that does not exist: refused, the old backend keeps serving
+        refused = core.set_parameters({"backend": "pointpncnet", "device": "cuda:0"})
+        assert not refused.successful and "CUDA is not available" in refused.reason
+        assert core.pipeline.completer is completer and core.parameters["device"] == "auto"
     # A new backend loads and serves the next frame.
     assert core.set_parameters({"backend": "input", "detection_threshold": 0.5}).successful
     assert core.pipeline.completer.name == "input" and core.parameters["backend"] == "input"
