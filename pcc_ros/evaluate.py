@@ -51,7 +51,8 @@ POINT_BANDS: tuple[tuple[str, float, float], ...] = (
     ("1000+pts", 1000, np.inf),
 )
 #: Metrics reported, in table order.
-REPORTED = ("cd_l1", "cd_l2", "precision", "coverage", "fscore", "fscore_fixed", "emd", "fidelity", "side_cd")
+REPORTED = ("cd_l1", "cd_l2", "precision", "coverage", "fscore", "fscore_fixed", "emd", "fidelity", "side_cd",
+            "l_g", "l_i", "l_s", "mean_cd")
 
 
 @dataclass
@@ -65,6 +66,10 @@ class EvalInstance:
     distance: float
     has_ground_truth: bool
     meta: dict[str, Any] = field(default_factory=dict)
+    #: the other instances of the same frame (``SceneContext``), for backends that use them
+    context: Any = None
+    #: TraPCC's retrieved pseudo GT (``whole`` / ``front`` / ``back`` clouds) for L-G / L-S / meanCD
+    pseudo_gt: dict[str, Any] | None = None
 
     @property
     def num_points(self) -> int:
@@ -90,6 +95,7 @@ def load_instances(
     seed: int,
     reference: str = "auto",
     min_track_frames: int = 2,
+    gt_free: bool = False,
 ) -> tuple[list[EvalInstance], str]:
     """Instances of ``split`` from the cache at ``path`` and the reference mode used.
 
@@ -98,7 +104,7 @@ def load_instances(
     from pcc_ros.data.instances import InstanceCache
 
     cache = InstanceCache.load(path)
-    return instances_from_cache(cache, split, max_instances, seed, reference, min_track_frames)
+    return instances_from_cache(cache, split, max_instances, seed, reference, min_track_frames, gt_free=gt_free)
 
 
 def instances_from_cache(
@@ -108,6 +114,7 @@ def instances_from_cache(
     seed: int,
     reference: str = "auto",
     min_track_frames: int = 2,
+    gt_free: bool = False,
 ) -> tuple[list[EvalInstance], str]:
     """Evaluation instances of an opened :class:`~pcc_ros.data.instances.InstanceCache`.
 
@@ -119,6 +126,12 @@ def instances_from_cache(
     has at least ``min_track_frames`` observations; ``auto`` = ``ground_truth`` when any
     instance of the split has a shape, else ``aggregated``. Skipped instances are logged
     with a count. ``max_instances`` then draws a seeded subset.
+
+    Every instance carries its frame's :class:`~pcc_ros.models.base.SceneContext` (the
+    other instances of the same frame in the cache), which context-using backends (TraPCC's
+    scene graph) receive as they would online. ``gt_free``: also retrieve TraPCC's pseudo GT
+    from the pools of the cache's ``train`` tracks (:mod:`pcc_ros.data.gt_pools`, cached
+    under ``CACHE/trapcc_gt``) for L-G / L-S / meanCD.
     """
     from pcc_ros.data.instances import EvalShapes, aggregate_track
 
@@ -158,7 +171,51 @@ def instances_from_cache(
             instances.append(_eval_instance(cache, keys, int(i), aggregated[key], False))
     if skipped:
         log.info("skipped %d instance(s) of split %r without a %s reference", skipped, split, reference)
+    attach_contexts(cache, instances)
+    if gt_free:
+        attach_pseudo_gt(cache, instances)
     return instances, reference
+
+
+def attach_contexts(cache: Any, instances: Sequence[EvalInstance]) -> None:
+    """Give each instance the :class:`SceneContext` of its frame (all cache instances of that frame)."""
+    from pcc_ros.models.base import SceneContext
+
+    if not instances:
+        return
+    wanted = {inst.meta["index"]: inst for inst in instances}
+    all_boxes = cache.boxes
+    for group in cache.frame_groups():  # loop over frames; only those holding an evaluated instance
+        hits = [i for i in group if int(i) in wanted]
+        if not hits:
+            continue
+        boxes = all_boxes[group]
+        clouds = [cache.points(int(i)) for i in group]
+        for row, i in enumerate(group):
+            if int(i) in wanted:
+                others = np.array([r for r in range(len(group)) if r != row], dtype=int)
+                wanted[int(i)].context = SceneContext(boxes[np.array([row])], boxes[others],
+                                                      [clouds[r] for r in others])
+
+
+def attach_pseudo_gt(cache: Any, instances: Sequence[EvalInstance], pool_split: str = "train") -> None:
+    """TraPCC's retrieved Whole- / Partial-GT of each instance (from the ``pool_split`` tracks)."""
+    from pcc_ros.data.gt_pools import PoolConfig, load_or_assign, load_or_build_pools
+
+    if not instances:
+        return
+    config = PoolConfig()
+    pools, folder = load_or_build_pools([cache], pool_split, Path(cache.root) / "trapcc_gt", config, progress=False)
+    if len(pools.whole) == 0:
+        log.warning("no Whole-GT pool in the %r tracks of %s: L-G / L-S / meanCD not computed", pool_split, cache.root)
+        return
+    index = np.array([inst.meta["index"] for inst in instances], dtype=np.int64)
+    found = load_or_assign(pools, folder, cache, index, "eval", config.size_candidates, progress=False)
+    for r, inst in enumerate(instances):
+        inst.pseudo_gt = {
+            p: (pools.part(p).cloud(int(found[f"{p}_index"][r])) if found[f"{p}_index"][r] >= 0 else None)
+            for p in ("whole", "front", "back")
+        }
 
 
 def _eval_instance(cache: Any, keys: np.ndarray, i: int, reference: np.ndarray, has_gt: bool) -> EvalInstance:
@@ -199,13 +256,15 @@ def score_backend(
     from pcc_ros.metrics import instance_metrics
 
     name = getattr(completer, "name", type(completer).__name__)
+    use_context = getattr(completer, "uses_context", False)
     completions: list[np.ndarray] = []
     seconds = 0.0
     with tqdm(total=len(instances), desc=f"complete {name}", unit="inst", disable=not progress, leave=False) as bar:
         for start in range(0, len(instances), chunk):
             part = instances[start : start + chunk]
             t0 = time.perf_counter()
-            completions.extend(completer.complete([inst.partial for inst in part]))
+            contexts = [inst.context for inst in part] if use_context else None
+            completions.extend(completer.complete([inst.partial for inst in part], contexts))
             seconds += time.perf_counter() - t0
             bar.update(len(part))
     rows = []
@@ -222,6 +281,7 @@ def score_backend(
                 with_emd=with_emd,
                 emd_points=emd_points,
                 seed=seed + i,
+                pseudo_gt=inst.pseudo_gt,
             )
         )
     return completions, rows, seconds
@@ -419,6 +479,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-emd", action="store_true", help="skip EMD (the slowest metric)")
     parser.add_argument("--examples", type=int, default=4, help="rows in the example grid")
     parser.add_argument(
+        "--no-gt-free", action="store_true",
+        help="skip TraPCC's L-G / L-S / meanCD (no pseudo-GT pools built from the cache's train tracks)",
+    )
+    parser.add_argument(
         "--no-resume", action="store_true",
         help="recompute every backend even if --json already holds results for the same instances and settings",
     )
@@ -479,6 +543,7 @@ def evaluate(
     if unused:
         raise ConfigError(f"--checkpoint given for backend(s) not evaluated: {unused}")
     settings = {
+        "gt_free": any(inst.pseudo_gt is not None for inst in instances),
         "reference": reference,
         "seed": seed,
         "fixed_threshold_m": fixed_threshold_m,
@@ -510,7 +575,8 @@ def evaluate(
             log.info("%s: reusing the results already in the JSON (same instances and settings)", name)
             results["backends"][name] = old
             picks = list(keep)
-            outs = completer.complete([instances[i].partial for i in picks]) if picks else []
+            contexts = [instances[i].context for i in picks] if getattr(completer, "uses_context", False) else None
+            outs = completer.complete([instances[i].partial for i in picks], contexts) if picks else []
             kept[name] = dict(zip(picks, outs))
         else:
             completions, rows, seconds = score_backend(
@@ -575,7 +641,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.data.exists():
         raise DataError(f"{args.data}: instance cache not found (write one with `pcc extract`)")
     instances, reference = load_instances(
-        args.data, args.split, args.max_instances, args.seed, args.reference, args.min_track_frames
+        args.data, args.split, args.max_instances, args.seed, args.reference, args.min_track_frames,
+        gt_free=not args.no_gt_free,
     )
     if not instances:
         raise DataError(f"{args.data}: no usable instances in split {args.split!r}")

@@ -425,11 +425,17 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     cache = InstanceCache.load(args.data)
     cache.check_finite()
     t0 = time.perf_counter()
+    own_mixing = hasattr(recipe, "use_real_data")  # TraPCC mixes real caches itself (into its GT pools too)
+    if own_mixing and args.real_data:
+        recipe.use_real_data([str(p) for p in args.real_data], args.real_share)
     data = recipe.training_data(cache, args.split, min_points=args.min_points)
     total_views = sum(len(g) for g in data)
     log.info("training data: %d groups, %d observations of split %r (%.1f s)",
              len(data), total_views, args.split, time.perf_counter() - t0)
-    data, mixing = mix_real(recipe, data, args.real_data, args.real_share, args.min_points)
+    if own_mixing:
+        mixing = recipe.data_summary()
+    else:
+        data, mixing = mix_real(recipe, data, args.real_data, args.real_share, args.min_points)
     run_settings["real_data"] = mixing
     val_instances, reference = ([], "none")
     if dist.main:
@@ -472,6 +478,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             "device": str(device), "machine": machine_info(), "selected_by": select_key,
             "selected_step": record.get("step", step),
         }
+        if hasattr(recipe, "data_summary"):  # what the backend trained on (e.g. TraPCC's real-data share)
+            training["data_summary"] = recipe.data_summary()
         completer.save(out / f"{name}.safetensors", training=training,
                        metrics={k: v for k, v in record.items() if k.startswith("val_")})
 

@@ -17,7 +17,7 @@ import numpy as np
 from pcc_ros.metrics.chamfer import PairDistances, chamfer_from_distances
 from pcc_ros.metrics.emd import DEFAULT_MAX_POINTS, emd
 from pcc_ros.metrics.fscore import fscore_from_distances, side_length
-from pcc_ros.metrics.gtfree import fidelity, side_view_cd
+from pcc_ros.metrics.gtfree import fidelity, gt_free_metrics, side_view_cd
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,10 @@ METRICS: dict[str, MetricInfo] = {
     "emd": MetricInfo(1, True, "earth mover's distance, exact on <= 1024-point subsamples"),
     "fidelity": MetricInfo(2, True, "TraPCC L-I / MCD: mean squared distance input -> prediction"),
     "side_cd": MetricInfo(2, True, "TraPCC L-S: squared Chamfer of the side-view (x-z) projections"),
+    "l_g": MetricInfo(2, True, "TraPCC L-G: squared Chamfer to the retrieved Whole-/Partial-GT (pseudo GT)"),
+    "l_i": MetricInfo(2, True, "TraPCC L-I: MCD input -> prediction (= fidelity)"),
+    "l_s": MetricInfo(2, True, "TraPCC L-S: side-view squared Chamfer to the retrieved Whole-GT"),
+    "mean_cd": MetricInfo(2, True, "TraPCC meanCD: mean of L-G, L-I and L-S"),
 }
 
 
@@ -66,13 +70,15 @@ def instance_metrics(
     with_emd: bool = True,
     emd_points: int = DEFAULT_MAX_POINTS,
     seed: int = 0,
+    pseudo_gt: dict[str, np.ndarray | None] | None = None,
 ) -> dict[str, float]:
     """Every metric of one canonical (prediction, reference) pair, canonical units.
 
     ``reference`` is the ground-truth shape (SynthCars) or, without one, the multi-frame
     aggregated cloud of the track. ``partial`` (the network input) enables ``fidelity``;
     ``side_cd`` is always computed against ``reference``. ``length`` (metres) converts the
-    fixed F-score threshold to canonical units.
+    fixed F-score threshold to canonical units. ``pseudo_gt`` (TraPCC's retrieved Whole- /
+    Partial-GT, see :func:`~pcc_ros.metrics.gtfree.gt_free_metrics`) adds L-G, L-I, L-S and meanCD.
     """
     if length <= 0 or not np.isfinite(length):
         raise ValueError(f"box length must be positive, got {length}")
@@ -85,4 +91,6 @@ def instance_metrics(
     if partial is not None:
         out["fidelity"] = fidelity(partial, pred)
     out["side_cd"] = side_view_cd(pred, reference)
+    if pseudo_gt is not None and partial is not None:
+        out.update(gt_free_metrics(pred, partial, pseudo_gt))
     return out

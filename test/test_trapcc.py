@@ -1,0 +1,379 @@
+"""TraPCC: GT pools and retrieval on synthetic tracks with known answers, the network, the
+scene graph, training steps and checkpoints."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pcc_ros.boxes import Boxes
+from pcc_ros.data.gt_pools import (
+    PoolConfig,
+    build_pools,
+    load_or_assign,
+    load_or_build_pools,
+    otsu_threshold,
+    retrieve,
+    size_candidates,
+)
+from pcc_ros.data.instances import ExtractConfig, extract_instances
+from pcc_ros.errors import ConfigError
+from pcc_ros.frame import Frame
+from pcc_ros.geometry.canonical import from_canonical, to_canonical
+from pcc_ros.models import SceneContext, create, load_completer
+from pcc_ros.models.trapcc import (
+    TrainOptions,
+    TraPCCRecipe,
+    nearest_neighbours,
+    neighbour_geometry,
+    training_recipe,
+)
+
+ELLIPSOID = np.array([4.0, 1.8, 1.5])
+BOXY = np.array([4.1, 1.8, 1.5])
+VAN = np.array([5.2, 2.1, 2.2])
+
+#: A tiny network so the tests run in seconds on a shared CPU.
+TINY = {
+    "half_encoder_widths1": [16], "half_encoder_widths2": [32], "half_decoder_widths": [32], "half_points": 32,
+    "encoder_widths1": [16], "encoder_widths2": [32], "decoder_fc_widths": [64], "coarse_points": 64,
+    "fold_widths": [16], "neighbour_encoder_widths1": [8], "neighbour_encoder_widths2": [16], "attention_dim": 16,
+    "neighbour_points": 64, "max_input_points": 256,
+}
+
+
+def ellipsoid_surface(n: int, size: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Canonical points and outward normals of an ellipsoidal car of ``size``."""
+    half = size / size[0] / 2.0 * 0.95
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d * half, d / half
+
+
+def box_surface(n: int, size: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Canonical points and outward normals on the faces of a box-shaped car."""
+    half = size / size[0] / 2.0 * 0.95
+    axis = rng.integers(0, 3, n)
+    sign = rng.choice([-1.0, 1.0], n)
+    pts = rng.uniform(-1, 1, (n, 3))
+    pts[np.arange(n), axis] = sign
+    normals = np.zeros((n, 3))
+    normals[np.arange(n), axis] = sign
+    return pts * half, normals
+
+
+def track_frames(surface, size, sequence, track, n_frames, drive_by=True, seed=0, density=0.15):
+    """Frames of one car: turning on the spot in front of the sensor (seen all round over the
+    track) or parked (one side only)."""
+    rng = np.random.default_rng(seed)
+    pts_c, normals = surface
+    frames = []
+    for f in range(n_frames):
+        center = np.array([8.0, 3.0, -0.9]) if drive_by else np.array([0.5, 8.0, -0.9])
+        yaw = 2 * np.pi * f / n_frames if drive_by else 0.0  # parked: only its right side is ever seen
+        origin = to_canonical(np.zeros((1, 3)), center, yaw, size[0])[0]
+        seen = np.einsum("ij,ij->i", normals, origin - pts_c) > 0
+        seen &= rng.random(len(pts_c)) < density
+        car = from_canonical(pts_c[seen] + rng.normal(0, 0.002, (seen.sum(), 3)), center, yaw, size[0])
+        boxes = Boxes([center], [size], [yaw], label=["Car"], track_id=[track])
+        points = np.c_[car, np.zeros(len(car))].astype(np.float32)
+        frames.append(Frame(stamp_ns=f * 100_000_000, frame_id="velodyne", points=points, ground_truth=boxes,
+                            sequence=sequence, index=f))
+    return frames
+
+
+@pytest.fixture(scope="module")
+def pool_cache(tmp_path_factory):
+    """Two complete drive-bys (ellipsoid, box) and a parked car seen from one side only."""
+    rng = np.random.default_rng(0)
+    frames = (
+        track_frames(ellipsoid_surface(6000, ELLIPSOID, rng), ELLIPSOID, "0000", "1", 16, seed=1)
+        + track_frames(box_surface(6000, BOXY, rng), BOXY, "0001", "2", 16, seed=2)
+        + track_frames(ellipsoid_surface(6000, VAN, rng), VAN, "0002", "3", 16, drive_by=False, seed=3)
+    )
+    cfg = ExtractConfig(val_fraction=0.0, test_fraction=0.0, ground_margin=0.0)
+    return extract_instances(frames, tmp_path_factory.mktemp("pools") / "cache", cfg, progress=False)
+
+
+def test_otsu_threshold_separates_two_groups():
+    scores = np.array([0.0, 0.02, 0.05, 0.61, 0.7, 0.72, 0.8])
+    t = otsu_threshold(scores)
+    assert 0.05 < t < 0.61
+    assert otsu_threshold(np.array([0.4, 0.4])) == 0.4  # one value: everything admitted
+    assert otsu_threshold(np.array([0.1, 0.9])) == pytest.approx(0.5)
+
+
+def test_pool_admission_by_evenness_with_data_driven_threshold(pool_cache):
+    pools = build_pools([pool_cache], "train", PoolConfig(min_points=1024, min_half_points=300))
+    assert pools.stats["whole"]["candidates"] == 3  # all three aggregates have >= 1024 points
+    assert sorted(k.split(":")[1] for k in pools.whole.key) == ["0000/1", "0001/2"]  # the parked car fails
+    t = pools.stats["whole"]["threshold"]
+    assert pools.whole.score.min() >= t > 0.0
+    # halves: both halves of both drive-bys; the one-sided parked car's halves fail too
+    assert sorted(k.split(":")[1] for k in pools.front.key) == ["0000/1", "0001/2"]
+    assert all((pools.front.cloud(e)[:, 0] >= 0).all() for e in range(len(pools.front)))
+    assert all((pools.back.cloud(e)[:, 0] < 0).all() for e in range(len(pools.back)))
+    assert pools.whole.count.min() >= 1024 // 2 and pools.whole.points.shape[1] == 2048
+    # min_points is the paper's candidate rule: nothing reaches 10**6 points
+    empty = build_pools([pool_cache], "train", PoolConfig(min_points=10**6, min_half_points=10**6))
+    assert len(empty.whole) == 0 and empty.stats["whole"]["threshold"] is None
+
+
+def test_retrieval_by_size_then_mcd(pool_cache):
+    pools = build_pools([pool_cache], "train", PoolConfig(min_points=1024, min_half_points=300))
+    keys = [k.split(":")[1] for k in pools.whole.key]
+    ell, box = keys.index("0000/1"), keys.index("0001/2")
+    rng = np.random.default_rng(5)
+    pts, normals = ellipsoid_surface(3000, ELLIPSOID, rng)
+    ell_query = pts[(normals[:, 1] < 0) & (rng.random(3000) < 0.2)]  # one side of an ellipsoid car
+    pts, normals = box_surface(3000, BOXY, rng)
+    box_query = pts[(normals[:, 1] < 0) & (rng.random(3000) < 0.2)]
+    sizes = np.array([ELLIPSOID, ELLIPSOID, [4.05, 1.8, 1.5]])
+    idx, mcd = retrieve(pools.whole, [ell_query, box_query, ell_query], sizes, k=8)
+    assert idx.tolist() == [ell, box, ell]  # shape decides among similar sizes
+    assert np.all(mcd >= 0) and mcd[0] < 1e-3
+    # with a single size candidate, size decides: an ellipsoid query with the box's size gets the box
+    idx1, _ = retrieve(pools.whole, [ell_query], np.array([BOXY]), k=1)
+    assert idx1.tolist() == [box]
+    assert size_candidates(np.array([BOXY]), pools.whole.size, 2)[0].tolist() == [box, ell]
+    empty_idx, empty_mcd = retrieve(pools.whole, [np.zeros((0, 3))], np.array([BOXY]), k=2)
+    assert empty_idx.tolist() == [-1] and np.isnan(empty_mcd[0])
+
+
+def test_pools_and_assignments_are_cached_and_resumable(pool_cache, tmp_path, monkeypatch):
+    import pcc_ros.data.gt_pools as gp
+
+    cfg = PoolConfig(min_points=1024, min_half_points=300)
+    pools, folder = load_or_build_pools([pool_cache], "train", tmp_path, cfg, progress=False)
+    idx = pool_cache.indices("train")
+    first = load_or_assign(pools, folder, pool_cache, idx, "train", 8, chunk=10, progress=False)
+    assert (first["indices"] == idx).all() and (first["whole_index"] >= 0).all()
+    assert not list(folder.glob("*.part*"))  # chunks merged
+    # a rerun reuses both files: building or assigning again would fail here
+    monkeypatch.setattr(gp, "build_pools", lambda *a, **k: pytest.fail("pools rebuilt"))
+    monkeypatch.setattr(gp, "assign", lambda *a, **k: pytest.fail("retrieval recomputed"))
+    again, folder2 = load_or_build_pools([pool_cache], "train", tmp_path, cfg, progress=False)
+    assert folder2 == folder and len(again.whole) == len(pools.whole)
+    second = load_or_assign(again, folder, pool_cache, idx, "train", 8, chunk=10, progress=False)
+    assert all(np.array_equal(first[k], second[k], equal_nan=True) for k in first)
+    # other options -> another fingerprint
+    _, other = gp.pools_fingerprint([pool_cache], "train", cfg), gp.pools_fingerprint(
+        [pool_cache], "train", PoolConfig(min_points=2048))
+    assert other != gp.pools_fingerprint([pool_cache], "train", cfg)
+
+
+def test_interrupted_assignment_resumes_from_chunks(pool_cache, tmp_path, monkeypatch):
+    import pcc_ros.data.gt_pools as gp
+
+    cfg = PoolConfig(min_points=1024, min_half_points=300)
+    pools, folder = load_or_build_pools([pool_cache], "train", tmp_path, cfg, progress=False)
+    idx = pool_cache.indices("train")
+    real_assign = gp.assign
+    calls = []
+
+    def flaky(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_assign(*args, **kwargs)
+
+    monkeypatch.setattr(gp, "assign", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        load_or_assign(pools, folder, pool_cache, idx, "train", 8, chunk=10, progress=False)
+    assert len(list(folder.glob("*.part0000.npz"))) == 1
+    calls.clear()
+    monkeypatch.setattr(gp, "assign", real_assign)
+    done = load_or_assign(pools, folder, pool_cache, idx, "train", 8, chunk=10, progress=False)
+    assert len(done["indices"]) == len(idx)
+
+
+# --------------------------------------------------------------------------- scene graph
+
+
+def test_scene_graph_neighbours_are_the_k_nearest_within_radius():
+    centers = np.array([[0.0, 0, 0], [5, 0, 0], [0, 3, 0], [30, 0, 0], [-4, 0, 0], [0, -6, 0]])
+    near = nearest_neighbours(centers, k=3, radius=10.0)
+    assert near[0].tolist() == [2, 4, 1]  # 3 m, 4 m, 5 m; the 6 m one is the fourth
+    assert near[3].tolist() == [-1, -1, -1]  # 25 m from everything: isolated
+    assert near[1].tolist() == [0, 2, 5]  # 5, sqrt(34), sqrt(61)
+    boxes = Boxes(centers, np.tile(ELLIPSOID, (6, 1)), np.zeros(6), label=["Car"] * 6)
+    clouds = [np.random.default_rng(i).normal(0, 0.1, (20, 3)).astype(np.float32) for i in range(6)]
+    ctx = SceneContext.from_frame(boxes, clouds)[0].nearest(3, 10.0)
+    assert np.allclose(ctx.neighbour_boxes.center, centers[[2, 4, 1]])  # the same rule online
+
+
+def test_neighbour_geometry_marks_occluders_between_target_and_sensor():
+    center = np.array([20.0, 0.0, 0.0])
+    nbs = np.array([[12.0, 0.0, 0.0], [28.0, 0.0, 0.0], [20.0, 6.0, 0.0]])
+    g = neighbour_geometry(center, 0.0, 4.0, nbs, np.array([0.0, np.pi / 2, 0.0]), radius=20.0)
+    assert g.shape == (3, 7)
+    assert g[0, 6] == pytest.approx(1.0) and g[1, 6] == pytest.approx(-1.0) and abs(g[2, 6]) < 1e-9
+    assert g[0, 5] == pytest.approx(8.0 / 20.0)  # distance / radius
+    assert g[1, 3] == pytest.approx(1.0) and g[1, 4] == pytest.approx(0.0, abs=1e-9)  # sin, cos of the yaw
+
+
+def _frame_contexts(n=4, isolated=True):
+    centers = np.array([[10.0, 0, 0], [14.0, 3, 0], [9.0, -4, 0], [60.0, 0, 0]])[:n]
+    boxes = Boxes(centers, np.tile(ELLIPSOID, (n, 1)), np.zeros(n), label=["Car"] * n)
+    rng = np.random.default_rng(3)
+    clouds = [ellipsoid_surface(200, ELLIPSOID, rng)[0].astype(np.float32) for _ in range(n)]
+    return clouds, SceneContext.from_frame(boxes, clouds)
+
+
+def test_scene_graph_changes_only_cars_with_neighbours():
+    torch.manual_seed(0)
+    net = create("trapcc", device="cpu", **TINY)
+    clouds, contexts = _frame_contexts()
+    without = net.complete(clouds)
+    with_ctx = net.complete(clouds, contexts)
+    # zero-initialised scene projection: an untrained scene graph changes nothing (CP-Net)
+    assert all(np.allclose(a, b, atol=1e-6) for a, b in zip(without, with_ctx))
+    with torch.no_grad():
+        net.model.scene_out.weight.normal_(0, 0.5)
+    with_ctx = net.complete(clouds, contexts)
+    without = net.complete(clouds)
+    changed = [not np.allclose(a, b, atol=1e-6) for a, b in zip(without, with_ctx)]
+    assert changed == [True, True, True, False]  # the car 50 m away has no neighbour within 20 m
+    cpnet = create("trapcc", device="cpu", scene_graph="none", **TINY)
+    assert not hasattr(cpnet.model, "nb_encoder")
+
+
+def test_completion_contract_and_batch_independence():
+    torch.manual_seed(0)
+    net = create("trapcc", device="cpu", batch_size=2, **TINY)
+    rng = np.random.default_rng(0)
+    front_only = ellipsoid_surface(300, ELLIPSOID, rng)[0]
+    front_only = front_only[front_only[:, 0] > 0.05]
+    clouds = [ellipsoid_surface(900, ELLIPSOID, rng)[0], front_only, np.array([[0.1, 0.2, 0.0]])]
+    out = net.complete(clouds)
+    assert [o.shape for o in out] == [(net.num_output_points, 3)] * 3
+    alone = net.complete([clouds[1]])[0]
+    assert np.allclose(alone, out[1], atol=1e-5)  # a cloud's completion does not depend on the batch
+    with pytest.raises(ConfigError):
+        create("trapcc", device="cpu", scene_graph="transformer")
+
+
+# --------------------------------------------------------------------------- training
+
+
+@pytest.fixture(scope="module")
+def train_cache(tmp_path_factory):
+    rng = np.random.default_rng(1)
+    frames = []
+    for t in range(3):  # three drive-by tracks, two cars per frame so the scene graph has neighbours
+        a = track_frames(ellipsoid_surface(5000, ELLIPSOID, rng), ELLIPSOID, f"000{t}", "1", 12, seed=t)
+        b = track_frames(box_surface(5000, BOXY, rng), BOXY, f"000{t}", "2", 12, seed=10 + t)
+        for fa, fb in zip(a, b):
+            fb_points = fb.points.copy()
+            fb_points[:, 1] += 6.0  # the second car in the next lane
+            boxes = Boxes(np.r_[fa.ground_truth.center, fb.ground_truth.center + np.array([0, 6.0, 0])],
+                          np.r_[fa.ground_truth.size, fb.ground_truth.size], np.zeros(2), label=["Car", "Car"],
+                          track_id=["1", "2"])
+            frames.append(Frame(fa.stamp_ns, "velodyne", np.r_[fa.points, fb_points], ground_truth=boxes,
+                                sequence=fa.sequence, index=fa.index))
+    cfg = ExtractConfig(val_fraction=0.0, test_fraction=0.0, ground_margin=0.0)
+    return extract_instances(frames, tmp_path_factory.mktemp("train") / "cache", cfg, progress=False)
+
+
+def _recipe(tmp_path, **model):
+    return training_recipe(gt_dir=str(tmp_path / "gt"), min_points_pool=512, **{**TINY, **model})
+
+
+def test_training_data_never_touches_complete_shapes_and_has_neighbours(train_cache, tmp_path):
+    recipe = _recipe(tmp_path)
+    data = recipe.training_data(train_cache, "train", min_points=10)
+    assert len(data) == len(train_cache.indices("train", min_points=10))
+    assert (data.whole >= 0).all()
+    assert (data.neighbours[:, 0] >= 0).all() and (data.neighbours[:, 1:] == -1).all()  # one other car per frame
+    summary = recipe.data_summary()
+    assert summary["complete_shapes_used"] is False and summary["real_instances"] == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model", [{}, {"pnet": False, "scene_graph": "none"}, {"scene_graph": "mean"}])
+def test_a_few_training_steps_lower_the_loss(train_cache, tmp_path, model):
+    torch.manual_seed(0)
+    recipe = _recipe(tmp_path, **model)
+    data = recipe.training_data(train_cache, "train")
+    completer = recipe.build_completer("cpu")
+    net = completer.model
+    net.train()
+    batch = next(recipe.batches(data, 8, completer.config, np.random.default_rng(0)))
+    optimizer = torch.optim.Adam(net.parameters(), lr=2e-3)
+    first, stats = recipe.loss(net, batch)
+    assert ("partial" in stats) == (model.get("pnet", True))
+    for _ in range(40):
+        loss, _ = recipe.loss(net, batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    last, _ = recipe.loss(net, batch)
+    assert float(last.detach()) < 0.7 * float(first.detach())
+
+
+def test_real_share_oversamples_the_real_cache(train_cache, tmp_path):
+    recipe = _recipe(tmp_path, real_data=[str(train_cache.root)], real_share=0.9)
+    data = recipe.training_data(train_cache, "train")
+    assert data.real.sum() == len(data) // 2  # the same cache twice: half of the instances are "real"
+    drawn = np.random.default_rng(0).choice(len(data), 4000, p=recipe.sampling_weights(data))
+    assert 0.87 < data.real[drawn].mean() < 0.93
+    summary = recipe.data_summary()
+    assert summary["real_share_of_samples"] == 0.9 and summary["real_fraction_of_instances"] == 0.5
+    with pytest.raises(ConfigError):
+        TraPCCRecipe(options=TrainOptions(real_share=1.5))
+
+
+def test_checkpoint_round_trip(tmp_path):
+    torch.manual_seed(0)
+    net = create("trapcc", device="cpu", scene_graph="mean", **TINY)
+    path = net.save(tmp_path / "t.safetensors", training={"steps": 3}, metrics={"val_cd_l1": 0.1})
+    loaded = load_completer("trapcc", path, device="cpu")
+    assert loaded.config == net.config and loaded.checkpoint_config["training"]["steps"] == 3
+    clouds, contexts = _frame_contexts()
+    with torch.no_grad():
+        net.model.scene_out.weight.normal_(0, 0.5)
+    path = net.save(tmp_path / "t.safetensors")
+    loaded = load_completer("trapcc", path, device="cpu")
+    for a, b in zip(net.complete(clouds, contexts), loaded.complete(clouds, contexts)):
+        assert np.array_equal(a, b)
+
+
+def test_gt_free_metrics_on_known_clouds():
+    from pcc_ros.metrics.gtfree import gt_free_metrics
+
+    whole = np.array([[0.2, 0.0, 0.0], [-0.2, 0.0, 0.0]])
+    pred = np.array([[0.2, 0.0, 0.1], [-0.2, 0.0, 0.0]])
+    partial = np.array([[-0.2, 0.1, 0.0]])
+    m = gt_free_metrics(pred, partial, {"whole": whole, "front": np.array([[0.2, 0.0, 0.0]]), "back": None})
+    # whole: (0.01 + 0) / 2 both ways = 0.01; front half [0.2, 0, 0.1] vs [0.2, 0, 0]: 0.01 + 0.01
+    assert m["l_g"] == pytest.approx((0.01 + 0.02) / 2)
+    assert m["l_i"] == pytest.approx(0.01)  # the input point is 0.1 from the prediction
+    assert m["l_s"] == pytest.approx(0.01)  # side view (x-z): like the whole 3D Chamfer here
+    assert m["mean_cd"] == pytest.approx((m["l_g"] + m["l_i"] + m["l_s"]) / 3)
+
+
+@pytest.mark.slow
+def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys):
+    import json
+
+    from pcc_ros.cli import main
+    from pcc_ros.models.checkpoint import load_config
+
+    out = tmp_path / "run"
+    argv = ["train", "trapcc", "--data", str(train_cache.root), "--out", str(out), "--batch-size", "4",
+            "--val-instances", "0", "--checkpoint-every", "2", "--no-progress", "--device", "cpu",
+            "--option", f"gt_dir={tmp_path / 'gt'}", "--option", "min_points_pool=512",
+            *(a for k, v in TINY.items() for a in ("--option", f"{k}={json.dumps(v)}"))]
+    assert main([*argv, "--iterations", "3"]) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 3
+    config = load_config(out / "trapcc.json")
+    summary = config["training"]["data_summary"]
+    assert summary["complete_shapes_used"] is False and summary["instances"] > 0
+    assert config["hyper_parameters"]["scene_graph"] == "attention"
+    assert config["training"]["recipe"]["half_points"] == 32
+    assert main([*argv, "--iterations", "5", "--resume"]) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 5
+    loaded = load_completer("trapcc", out / "trapcc.safetensors", device="cpu")
+    assert loaded.complete([np.random.default_rng(0).normal(size=(40, 3)) * 0.2])[0].shape == (256, 3)
+    assert main([*argv, "--iterations", "2", "--no-inpainting"]) == 1  # PointPnCNet's ablation: refused
