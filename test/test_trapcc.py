@@ -377,3 +377,19 @@ def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys):
     loaded = load_completer("trapcc", out / "trapcc.safetensors", device="cpu")
     assert loaded.complete([np.random.default_rng(0).normal(size=(40, 3)) * 0.2])[0].shape == (256, 3)
     assert main([*argv, "--iterations", "2", "--no-inpainting"]) == 1  # PointPnCNet's ablation: refused
+
+
+def test_fast_evenness_matches_the_instances_definition():
+    from pcc_ros.data.gt_pools import candidate_score, thin
+    from pcc_ros.data.instances import evenness
+
+    rng = np.random.default_rng(4)
+    cloud = ellipsoid_surface(4000, ELLIPSOID, rng)[0]
+    cloud = cloud[(cloud[:, 1] < 0.1) | (rng.random(len(cloud)) < 0.3)]
+    for part, cx in (("whole", 0.0), ("front", 0.25), ("back", -0.25)):
+        score, views = candidate_score(cloud, 0.02, part)
+        assert views == pytest.approx(evenness(cloud, 0.02, center=(cx, 0.0, 0.0)))
+        assert score == min(views.values())
+    thinned = thin(cloud, 0.05)
+    keys = np.floor(thinned / 0.05).astype(int)
+    assert len(np.unique(keys, axis=0)) == len(thinned) == len(np.unique(np.floor(cloud / 0.05), axis=0))

@@ -106,12 +106,20 @@ def otsu_threshold(scores: np.ndarray) -> float:
     return float(0.5 * (s[best] + s[best + 1]))
 
 
+def _cell_keys(coords: np.ndarray, cell: float) -> np.ndarray:
+    """One int64 key per grid cell of ``(N, D)`` coordinates (D <= 3; canonical clouds span < 2^20 cells)."""
+    ij = np.floor(np.asarray(coords, dtype=np.float64) / cell).astype(np.int64) + (1 << 20)
+    key = np.zeros(len(ij), dtype=np.int64)
+    for d in range(ij.shape[1]):
+        key = (key << 21) | ij[:, d]
+    return key
+
+
 def thin(cloud: np.ndarray, cell: float) -> np.ndarray:
     """One point per ``cell`` voxel (the first in array order): an even density."""
     if len(cloud) == 0 or cell <= 0:
         return cloud
-    keys = np.floor(cloud / cell).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    _, first = np.unique(_cell_keys(cloud, cell), return_index=True)
     return cloud[np.sort(first)]
 
 
@@ -122,11 +130,26 @@ def _subset(cloud: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarr
 
 
 def candidate_score(cloud: np.ndarray, cell: float, part: str = "whole") -> tuple[float, dict[str, float]]:
-    """The evenness score (minimum over side / front / top) and the per-view values."""
-    from pcc_ros.data.instances import evenness
+    """The evenness score (minimum over side / front / top) and the per-view values.
+
+    Same definition as :func:`pcc_ros.data.instances.evenness` (quadrant counts of the
+    occupied cells of each projection, ``min / max``), computed on 1-D cell keys.
+    """
+    from pcc_ros.data.instances import VIEWS
 
     center = (HALF_CENTRE.get(part, 0.0), 0.0, 0.0)
-    views = evenness(cloud, cell, center=center)
+    pts = np.asarray(cloud, dtype=np.float64)
+    views = {}
+    for name, u, v in VIEWS:
+        if len(pts) == 0:
+            views[name] = 0.0
+            continue
+        _, first = np.unique(_cell_keys(pts[:, [u, v]], cell), return_index=True)
+        cells = np.floor(pts[first][:, [u, v]] / cell)
+        mid = (cells + 0.5) * cell
+        quadrant = (mid[:, 0] >= center[u]).astype(int) + 2 * (mid[:, 1] >= center[v])
+        counts = np.bincount(quadrant, minlength=4)
+        views[name] = float(counts.min() / max(counts.max(), 1))
     return float(min(views.values())), views
 
 
@@ -242,16 +265,20 @@ def build_pools(caches: Sequence[Any], split: str | None, config: PoolConfig | N
     stats: dict[str, Any] = {"version": POOL_VERSION, "config": asdict(config), "split": split,
                              "tracks": len(tracks), "threshold_rule": "otsu over the candidates' evenness scores"}
     entries: dict[str, list] = {p: [] for p in PARTS}
+    for t in tracks:  # thin once; the halves are cut from the thinned aggregate
+        raw = t["cloud"]
+        front_raw = raw[:, 0] >= 0
+        t["raw_count"] = {"whole": len(raw), "front": int(front_raw.sum()), "back": int((~front_raw).sum())}
+        t["thinned"] = thin(raw, config.thin_cell)
     for part in PARTS:
         need = config.min_points if part == "whole" else config.min_half_points
         cands = []
         for t in tracks:  # loop over tracks (hundreds), each vectorised
-            cloud = t["cloud"]
+            if t["raw_count"][part] < need:  # the paper's candidate rule counts the aggregated points
+                continue
+            cloud = t["thinned"]
             if part != "whole":
                 cloud = cloud[cloud[:, 0] >= 0] if part == "front" else cloud[cloud[:, 0] < 0]
-            if len(cloud) < need:
-                continue
-            cloud = thin(cloud, config.thin_cell)
             score, views = candidate_score(cloud, config.cell, part)
             cands.append((t, cloud, score, views))
         scores = np.array([c[2] for c in cands])
@@ -353,6 +380,12 @@ def assign(pools: Pools, clouds: Sequence[np.ndarray], sizes: np.ndarray, k: int
 # --------------------------------------------------------------------------- cached builds
 
 
+def _query_subset(cloud: np.ndarray, count: int, seed: int) -> np.ndarray:
+    if len(cloud) <= count:
+        return cloud
+    return cloud[np.sort(np.random.default_rng(seed).choice(len(cloud), count, replace=False))]
+
+
 def pools_fingerprint(caches: Sequence[Any], split: str | None, config: PoolConfig) -> str:
     payload = {"version": POOL_VERSION, "caches": [c.index.get("fingerprint") for c in caches], "split": split,
                "config": asdict(config)}
@@ -373,17 +406,20 @@ def load_or_build_pools(caches: Sequence[Any], split: str | None, root: Path, co
 
 
 def load_or_assign(pools: Pools, folder: Path, cache: Any, indices: np.ndarray, name: str, k: int,
-                   chunk: int = 2048, progress: bool = True) -> dict[str, np.ndarray]:
+                   chunk: int = 2048, progress: bool = True, max_query_points: int = 128) -> dict[str, np.ndarray]:
     """The retrieval of ``cache``'s instances ``indices``, resumable in chunks.
 
-    Stored in ``folder/assign-<cache fingerprint>-<name>.npz`` (``name``: e.g. the split);
+    Stored in ``folder/assign-<cache fingerprint>-<name>-...npz`` (``name``: e.g. the split);
     an interrupted run keeps its finished ``.partNNNN.npz`` chunks and continues there.
+    The MCD of a query is estimated on a seeded subset of at most ``max_query_points`` of
+    its points (the mean over 128 points is a tight estimate; a dense 5000-point crop would
+    otherwise cost 40x more for the same choice).
     """
     from tqdm import tqdm
 
     indices = np.asarray(indices, dtype=np.int64)
     digest = hashlib.sha256(indices.tobytes()).hexdigest()[:8]
-    stem = f"assign-{cache.index.get('fingerprint', 'nofp')}-{name}-{digest}"
+    stem = f"assign-{cache.index.get('fingerprint', 'nofp')}-{name}-{digest}-q{max_query_points}"
     final = folder / f"{stem}.npz"
     if final.is_file():
         with np.load(final, allow_pickle=False) as z:
@@ -399,7 +435,8 @@ def load_or_assign(pools: Pools, folder: Path, cache: Any, indices: np.ndarray, 
             with np.load(part_path, allow_pickle=False) as z:
                 parts.append({k2: z[k2] for k2 in z.files})
             continue
-        clouds = [np.asarray(cache.points(int(i)), dtype=np.float32) for i in sel]
+        clouds = [_query_subset(np.asarray(cache.points(int(i)), dtype=np.float32), max_query_points, int(i))
+                  for i in sel]
         result = assign(pools, clouds, cache.meta["box_size"][sel], k)
         result["indices"] = sel
         tmp = folder / f"{stem}.part{c:04d}.tmp.npz"

@@ -352,9 +352,15 @@ class TrainOptions:
     half_loss_points: int = 256
     #: input points the MCD term compares (a random subset of the input when larger)
     input_loss_points: int = 256
+    #: detailed points in the Whole-GT Chamfer term, a fresh random subset each step (0: all);
+    #: halves the cost of the largest distance matrix, every point is still trained over steps
+    detail_loss_points: int = 1024
     weight_partial: float = 1.0
     weight_whole: float = 1.0
     weight_input: float = 1.0
+    #: cap on training input points (``None``: the model's ``max_input_points``); the max-pooled
+    #: encoders care little about density, and a lower cap makes CPU training steps cheaper
+    input_points: int | None = None
     #: random point dropout of training inputs (probability of thinning an input to 20-100 %)
     input_dropout: float = 0.5
     #: Chamfer form of the loss terms: "l1" (Euclidean) or "l2" (squared, the paper's Eq. 1-2)
@@ -511,7 +517,7 @@ class TraPCCRecipe:
     def make_batch(self, data: TrainData, chosen: np.ndarray, cfg: dict[str, Any],
                    rng: np.random.Generator) -> TrainBatch:
         o = self.options
-        cap = int(cfg["max_input_points"])
+        cap = min(int(cfg["max_input_points"]), int(o.input_points or cfg["max_input_points"]))
         inputs = []
         for i in chosen:  # instances of a batch (tens); per-point work vectorised
             c = data.clouds[int(i)]
@@ -599,7 +605,11 @@ def trapcc_loss(net: nn.Module, batch: TrainBatch, options: TrainOptions) -> tup
     out = net(batch.points, batch.segment, batch.batch_size, batch.neighbours)
     detailed = out["detailed"]
     squared = options.chamfer == "l2"
-    whole = chamfer(batch.whole, batch.whole_mask, detailed, 0.5, squared)
+    sub = detailed
+    if 0 < options.detail_loss_points < detailed.shape[1]:  # a fresh random subset every step
+        pick = torch.randperm(detailed.shape[1], device=detailed.device)[: options.detail_loss_points]
+        sub = detailed[:, pick]
+    whole = chamfer(batch.whole, batch.whole_mask, sub, 0.5, squared)
     has_whole = batch.whole_mask.any(-1)
     l_whole = masked_mean(whole, has_whole)
     l_input = masked_mean(one_sided(batch.inputs, batch.input_mask, detailed, squared), batch.input_mask.any(-1))
