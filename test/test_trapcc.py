@@ -393,3 +393,11 @@ def test_fast_evenness_matches_the_instances_definition():
     thinned = thin(cloud, 0.05)
     keys = np.floor(thinned / 0.05).astype(int)
     assert len(np.unique(keys, axis=0)) == len(thinned) == len(np.unique(np.floor(cloud / 0.05), axis=0))
+
+
+def test_half_precision_with_neighbours():
+    torch.manual_seed(0)
+    net = create("trapcc", device="cpu", half_precision=True, **TINY)
+    clouds, contexts = _frame_contexts()
+    out = net.complete(clouds, contexts)
+    assert all(o.dtype == np.float32 and np.isfinite(o).all() for o in out)

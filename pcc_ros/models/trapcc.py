@@ -330,8 +330,11 @@ class TraPCC(TorchCompleter):
     def forward_batch(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
         points, segment = pack_inputs(self.prepare(clouds))
         nb = self.neighbours_of(contexts)
-        out = self.model(points.to(self.device), segment.to(self.device), len(clouds),
-                         None if nb is None else nb.to(self.device))
+        if nb is not None:
+            nb = nb.to(self.device)
+            dtype = next(self.model.parameters()).dtype  # half_precision: the pre-hook casts only plain tensors
+            nb = NeighbourBatch(nb.points.to(dtype), nb.segment, nb.mask, nb.geometry.to(dtype))
+        out = self.model(points.to(self.device), segment.to(self.device), len(clouds), nb)
         return list(out["detailed"].float().cpu().numpy())
 
 
