@@ -377,6 +377,12 @@ def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys):
     loaded = load_completer("trapcc", out / "trapcc.safetensors", device="cpu")
     assert loaded.complete([np.random.default_rng(0).normal(size=(40, 3)) * 0.2])[0].shape == (256, 3)
     assert main([*argv, "--iterations", "2", "--no-inpainting"]) == 1  # PointPnCNet's ablation: refused
+    # the generic --real-data / --real-share flags reach TraPCC's own mixing (and its pools)
+    mixed = tmp_path / "mixed"
+    argv_mixed = [a if a != str(out) else str(mixed) for a in argv]
+    assert main([*argv_mixed, "--iterations", "1", "--real-data", str(train_cache.root), "--real-share", "0.3"]) == 0
+    summary = load_config(mixed / "trapcc.json")["training"]["data_summary"]
+    assert summary["real_instances"] > 0 and summary["real_share_of_samples"] == 0.3
 
 
 def test_fast_evenness_matches_the_instances_definition():
