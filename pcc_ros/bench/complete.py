@@ -264,7 +264,9 @@ def run(args: argparse.Namespace) -> dict:
             other = create(name, device="cpu", **kwargs)
             ctx = frame_contexts(batch32) if getattr(other, "uses_context", False) else None
             t = interleaved({
-                name: lambda o=other, c=ctx: run_with(best_setting, lambda b: o.complete(b, c), batch32),
+                name: lambda o=other, c=ctx: run_with(  # (cloud, context) pairs: workers split both alike
+                    best_setting, lambda pairs: o.complete([p[0] for p in pairs], None if c is None else
+                                                           [p[1] for p in pairs]), list(zip(batch32, c or batch32))),
                 "b1": lambda o=other, c=ctx: o.complete(batch32[:1], None if c is None else c[:1]),
             }, max(3, args.repeat // 3), warmup=1)
             s, s1 = summary_ms(t[name]), summary_ms(t["b1"])
