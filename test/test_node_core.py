@@ -512,3 +512,14 @@ def test_rclpy_node_declares_rules_refuses_unknown_keys_and_swaps_at_run_time():
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+def test_replay_config_is_checked_as_the_nodes_check_it(tmp_path):
+    from pcc_ros.bags.replay import load_config
+
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("/**/detection_filter_node:\n  ros__parameters:\n    backendd: mirror\n")
+    with pytest.raises(ConfigError, match=r"typo\.yaml: unknown node parameter\(s\): \['backendd'\]"):
+        load_config(typo, True)
+    config, slop = load_config(None, True, backend="mirror", score_mapping="sigmoid")
+    assert config.filter.score_mapping == "sigmoid" and config.backend == "mirror" and slop == 0.05
