@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from pcc_ros.assignments import parse_assignments
 from pcc_ros.errors import ConfigError, DataError
 
 log = logging.getLogger("pcc.eval")
@@ -429,13 +430,7 @@ def plot_examples(
 
 def parse_checkpoints(items: Sequence[str]) -> dict[str, Path]:
     """``NAME=PATH`` pairs into a mapping."""
-    out = {}
-    for item in items:
-        name, sep, path = item.partition("=")
-        if not sep or not name or not path:
-            raise ConfigError(f"--checkpoint expects NAME=PATH, got {item!r}")
-        out[name.strip()] = Path(path)
-    return out
+    return {name: Path(path) for name, path in parse_assignments(items, "--checkpoint", "NAME=PATH").items()}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

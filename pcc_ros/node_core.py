@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from pcc_ros.errors import ConfigError, PccError
+from pcc_ros.geometry.rotations import quaternion_product
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
 from pcc_ros.msg.typestore import new_message
 from pcc_ros.nodes.params import BACKEND_PARAMETERS, NODE_DEFAULTS, check_value, parameter_specs, parameter_table
@@ -439,7 +440,7 @@ def transform_detections(detections, transform: Transform, frame: str) -> list:
         p, o = pose.position, pose.orientation
         x, y, z = rotation @ (p.x, p.y, p.z) + translation
         p.x, p.y, p.z = float(x), float(y), float(z)
-        o.x, o.y, o.z, o.w = (float(v) for v in _quaternion_product(turn, (o.x, o.y, o.z, o.w)))
+        o.x, o.y, o.z, o.w = (float(v) for v in quaternion_product(turn, (o.x, o.y, o.z, o.w)))
 
     out = []
     for detection in detections:
@@ -450,18 +451,6 @@ def transform_detections(detections, transform: Transform, frame: str) -> list:
             move(result.pose.pose)
         out.append(moved)
     return out
-
-
-def _quaternion_product(a, b) -> tuple[float, float, float, float]:
-    """Hamilton product ``a * b`` of x, y, z, w quaternions."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
 
 
 def _byte_is_bytes(classes) -> bool:

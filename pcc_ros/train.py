@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from pcc_ros.assignments import parse_assignments
 from pcc_ros.errors import CheckpointError, ConfigError, TrainingError
 
 log = logging.getLogger("pcc.train")
@@ -108,14 +109,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def parse_options(items: list[str]) -> dict[str, Any]:
     """``KEY=VALUE`` strings to a dict; values parsed as JSON (``2``, ``0.3``, ``true``) else strings."""
     options: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"--option expects KEY=VALUE, got {item!r}")
+    for key, value in parse_assignments(items, "--option", "KEY=VALUE", require_value=False).items():
         try:
-            options[key.strip()] = json.loads(value)
+            options[key] = json.loads(value)
         except json.JSONDecodeError:
-            options[key.strip()] = value
+            options[key] = value
     return options
 
 

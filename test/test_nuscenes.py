@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pcc_ros.data.nuscenes import NuScenes, category_to_label, quaternion_to_matrix
+from pcc_ros.data.nuscenes import NuScenes, category_to_label
 from pcc_ros.errors import DataError
+from pcc_ros.geometry.rotations import quaternion_to_matrix, xyzw_from_wxyz
 
 # mmdetection3d's short names -> a full nuScenes category; "ignore" -> a made-up category
 # to exercise the pass-through of unknown names.
@@ -120,7 +121,7 @@ def nuscenes_root(shared_data, tmp_path):
 def test_quaternion_matches_scipy():
     rng = np.random.default_rng(0)
     q = rng.normal(size=(5, 4))
-    ours = quaternion_to_matrix(q)
+    ours = quaternion_to_matrix(xyzw_from_wxyz(q))
     theirs = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
     assert np.allclose(ours, theirs)
 

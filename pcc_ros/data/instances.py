@@ -150,10 +150,6 @@ def fingerprint(source: str | Path | None, config: ExtractConfig, extra: dict | 
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:32]
 
 
-def _write_json_atomic(path: Path, data: dict) -> None:
-    files.write_json(path, data, indent=1, sort_keys=True)
-
-
 #: What an (even interrupted) extraction leaves in its directory; anything else is not ours.
 _CACHE_ENTRIES = ("index.json", "shards", "eval_shapes", "info.png")
 
@@ -326,7 +322,7 @@ class _Writer:
             self.index["shards"].append({"name": name, "instances": len(counts), "points": int(offsets[-1])})
             self.shard = _Shard()
         self.index["frames_done"] = frames_done
-        _write_json_atomic(self.root / "index.json", self.index)
+        files.write_json(self.root / "index.json", self.index, indent=1, sort_keys=True)
 
 
 def _clear_cache(out: Path) -> None:
@@ -402,7 +398,7 @@ def extract_instances(
                  "source": None if source is None else str(source),
                  "synthcars": None if synth is None else str(synth.root),
                  "shards": [], "frames_done": 0, "complete": False, "skipped": {}}
-        _write_json_atomic(index_path, index)  # from now on the directory is recognisably ours
+        files.write_json(index_path, index, indent=1, sort_keys=True)  # from now on the directory is recognisably ours
     # Shards written after the last recorded progress are orphans of an interrupted run.
     known = {s["name"] for s in index["shards"]}
     for leftover in (out / "shards").glob("*") if (out / "shards").exists() else []:

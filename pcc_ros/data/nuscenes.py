@@ -33,6 +33,7 @@ from pcc_ros.boxes import Boxes
 from pcc_ros.data.kitti import read_float32_records
 from pcc_ros.errors import DataError
 from pcc_ros.frame import Frame
+from pcc_ros.geometry.rotations import quaternion_to_matrix, xyzw_from_wxyz
 
 log = logging.getLogger(__name__)
 
@@ -70,21 +71,6 @@ def category_to_label(name: str) -> str:
     return name
 
 
-def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """``(..., 4)`` quaternions (w, x, y, z), normalised here, -> ``(..., 3, 3)`` rotations."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
 def transform(record: dict, source: str) -> np.ndarray:
     """``4x4`` from a record with ``translation`` (3) and ``rotation`` (w, x, y, z)."""
     try:
@@ -95,7 +81,7 @@ def transform(record: dict, source: str) -> np.ndarray:
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q)) and np.linalg.norm(q) > 0):
         raise DataError(f"{source}: non-finite or zero pose")
     out = np.eye(4)
-    out[:3, :3] = quaternion_to_matrix(q)
+    out[:3, :3] = quaternion_to_matrix(xyzw_from_wxyz(q))
     out[:3, 3] = t
     return out
 
@@ -218,7 +204,9 @@ class NuScenes:
         try:
             centre = np.array([a["translation"] for a in anns], dtype=np.float64).reshape(n, 3)
             size_wlh = np.array([a["size"] for a in anns], dtype=np.float64).reshape(n, 3)
-            rotation = quaternion_to_matrix(np.array([a["rotation"] for a in anns], dtype=np.float64).reshape(n, 4))
+            rotation = quaternion_to_matrix(
+                xyzw_from_wxyz(np.array([a["rotation"] for a in anns], dtype=np.float64).reshape(n, 4))
+            )
             instance = [a["instance_token"] for a in anns]
             category = [self.categories[self.instances[t]["category_token"]]["name"] for t in instance]
         except (KeyError, ValueError, TypeError) as exc:

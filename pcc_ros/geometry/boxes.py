@@ -16,8 +16,7 @@ import numpy as np
 from pcc_ros.boxes import Boxes
 from pcc_ros.errors import DataError
 
-# Unit-cube corner signs, ordered: bottom face counter-clockwise (seen from above)
-# starting at front-left, then the top face in the same order.
+# Unit-cube corner signs in the order :func:`box_corners` documents.
 _CORNER_SIGNS = np.array(
     [
         [1, 1, -1], [-1, 1, -1], [-1, -1, -1], [1, -1, -1],
@@ -28,7 +27,19 @@ _CORNER_SIGNS = np.array(
 
 
 def box_corners(boxes: Boxes) -> np.ndarray:
-    """``(N, 8, 3)`` corners; bottom face first (counter-clockwise from front-left), then top."""
+    """``(N, 8, 3)`` corners of every box: the package's one corner function.
+
+    Order — bottom face first, counter-clockwise seen from above starting at front-left,
+    then the top face in the same order (corner ``k + 4`` sits above corner ``k``)::
+
+        seen from above, box frame          +y (left)
+                                              ^
+            1 rear-left  ---------  0 front-left
+            |                       |         --> +x (heading, front)
+            2 rear-right ---------  3 front-right
+
+    so ``[:, :4, :2]`` is the counter-clockwise bird's-eye-view footprint.
+    """
     half = boxes.size[:, None, :] / 2.0 * _CORNER_SIGNS[None]
     c, s = np.cos(boxes.yaw)[:, None], np.sin(boxes.yaw)[:, None]
     x = c * half[..., 0] - s * half[..., 1]

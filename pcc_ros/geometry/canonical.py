@@ -10,12 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def _rotation_z(yaw: np.ndarray) -> np.ndarray:
-    """``(..., 3, 3)`` rotations about +z."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    z, o = np.zeros_like(c), np.ones_like(c)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+from pcc_ros.geometry.rotations import rotation_z
 
 
 def to_canonical(points: np.ndarray, center: np.ndarray, yaw: float, length: float) -> np.ndarray:
@@ -39,13 +34,13 @@ def from_canonical(points: np.ndarray, center: np.ndarray, yaw: float, length: f
 
 def to_canonical_batch(points: np.ndarray, center: np.ndarray, yaw: np.ndarray, length: np.ndarray) -> np.ndarray:
     """``(B, N, 3)`` sensor points, one box per batch row, into canonical frames."""
-    rot = _rotation_z(np.asarray(yaw, dtype=np.float64))  # (B, 3, 3) box -> sensor
+    rot = rotation_z(np.asarray(yaw, dtype=np.float64))  # (B, 3, 3) box -> sensor
     d = np.asarray(points, dtype=np.float64)[..., :3] - np.asarray(center, dtype=np.float64)[:, None, :]
     return np.einsum("bnj,bjk->bnk", d, rot) / np.asarray(length, dtype=np.float64)[:, None, None]
 
 
 def from_canonical_batch(points: np.ndarray, center: np.ndarray, yaw: np.ndarray, length: np.ndarray) -> np.ndarray:
     """Exact inverse of :func:`to_canonical_batch`."""
-    rot = _rotation_z(np.asarray(yaw, dtype=np.float64))
+    rot = rotation_z(np.asarray(yaw, dtype=np.float64))
     p = np.asarray(points, dtype=np.float64)[..., :3] * np.asarray(length, dtype=np.float64)[:, None, None]
     return np.einsum("bnk,bjk->bnj", p, rot) + np.asarray(center, dtype=np.float64)[:, None, :]

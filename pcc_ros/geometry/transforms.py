@@ -6,32 +6,12 @@ from __future__ import annotations
 import numpy as np
 
 from pcc_ros.boxes import Boxes
-from pcc_ros.errors import DataError
+from pcc_ros.geometry.rotations import quaternion_matrix
 
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
     """Angles wrapped to (-pi, pi]."""
     return np.angle(np.exp(1j * np.asarray(angle, dtype=np.float64)))
-
-
-def quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    """3x3 rotation of a quaternion given as x, y, z, w (ROS order), normalised here.
-
-    Raises :class:`DataError` for a zero-length or non-finite quaternion (tf2 would too).
-    """
-    q = np.array([x, y, z, w], dtype=np.float64)
-    norm = np.linalg.norm(q)
-    if not np.isfinite(norm) or norm < 1e-12:
-        raise DataError(f"invalid quaternion {q.tolist()}")
-    q /= norm
-    x, y, z, w = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def transform_matrix(

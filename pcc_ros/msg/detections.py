@@ -44,6 +44,8 @@ import numpy as np
 
 from pcc_ros.boxes import Boxes
 from pcc_ros.errors import MessageError
+from pcc_ros.geometry.boxes import box_corners
+from pcc_ros.geometry.rotations import quaternion_from_yaw, tilt_from_quaternion, yaw_from_quaternion
 from pcc_ros.msg.stamps import make_header
 from pcc_ros.msg.typestore import ClassResolver, new_message, resolve
 
@@ -63,20 +65,12 @@ STATUS_COLORS: dict[str | None, tuple[float, float, float, float]] = {
 }
 _OTHER_COLOR = (1.0, 1.0, 1.0, 1.0)
 
-# Corner signs (length, width, height) and the line segments drawn per box.
-_CORNER_SIGNS = np.array(
-    [[1, 1, -1], [1, -1, -1], [-1, -1, -1], [-1, 1, -1], [1, 1, 1], [1, -1, 1], [-1, -1, 1], [-1, 1, 1]],
-    dtype=np.float64,
-)
+# Line segments drawn per box, as corner indices of :func:`pcc_ros.geometry.boxes.box_corners`
+# (0-3 bottom face counter-clockwise from front-left: FL, RL, RR, FR; 4-7 the top face alike):
+# bottom ring, top ring, verticals, then an X across the front face (corners 0, 3, 4, 7).
 _EDGES = np.array(
-    [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7], [0, 5], [1, 4]]
-)  # bottom ring, top ring, verticals, then an X across the front face (corners 0, 1, 4, 5)
-
-
-def yaw_from_quaternion(q: np.ndarray) -> np.ndarray:
-    """Yaw of ``(N, 4)`` unit quaternions ``(x, y, z, w)``: heading of the rotated x axis."""
-    x, y, z, w = q.T
-    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    [[0, 3], [3, 2], [2, 1], [1, 0], [4, 7], [7, 6], [6, 5], [5, 4], [0, 4], [3, 7], [2, 6], [1, 5], [0, 7], [3, 4]]
+)
 
 
 @dataclass(frozen=True)
@@ -103,12 +97,6 @@ DEFAULT_LIMITS = DetectionLimits()
 _LOGGED_PER_MESSAGE = 5
 
 
-def _tilt(quat: np.ndarray) -> np.ndarray:
-    """Angle between the rotated z axis of unit quaternions ``(N, 4)`` and vertical, radians."""
-    x, y = quat[:, 0], quat[:, 1]
-    return np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0))
-
-
 def _invalid_reasons(
     center: np.ndarray, size: np.ndarray, quat: np.ndarray | None, score: np.ndarray,
     limits: DetectionLimits | None = None,
@@ -130,7 +118,7 @@ def _invalid_reasons(
             if quat is not None:
                 bad_norm = ~bad_quat & (np.abs(norm - 1.0) > limits.quaternion_tolerance)
                 unit = quat / np.where(bad_quat, 1.0, norm)[:, None]
-                tilt = _tilt(unit)
+                tilt = tilt_from_quaternion(unit)
                 tilted = ~bad_quat & ~bad_norm & (tilt > limits.max_tilt)
             if limits.score_range is not None:
                 lo, hi = limits.score_range
@@ -275,7 +263,7 @@ def _pose(classes, center, yaw):
             "geometry_msgs/msg/Point", classes, x=float(center[0]), y=float(center[1]), z=float(center[2])
         ),
         orientation=new_message(
-            "geometry_msgs/msg/Quaternion", classes, x=0.0, y=0.0, z=float(np.sin(yaw / 2)), w=float(np.cos(yaw / 2))
+            "geometry_msgs/msg/Quaternion", classes, **dict(zip("xyzw", quaternion_from_yaw(yaw).tolist()))
         ),
     )
 
@@ -370,13 +358,7 @@ def boxes_from_marker_array(msg, skip_invalid: bool = False) -> Boxes:
 
 def box_edges(boxes: Boxes) -> np.ndarray:
     """``(N, 2 * len(_EDGES), 3)`` line-segment end points (12 edges + front cross) per box."""
-    half = boxes.size[:, None, :] * 0.5 * _CORNER_SIGNS[None]  # (N, 8, 3) in the box frame
-    c, s = np.cos(boxes.yaw)[:, None], np.sin(boxes.yaw)[:, None]
-    corners = (
-        np.stack([c * half[..., 0] - s * half[..., 1], s * half[..., 0] + c * half[..., 1], half[..., 2]], axis=-1)
-        + boxes.center[:, None, :]
-    )
-    return corners[:, _EDGES.reshape(-1)]
+    return box_corners(boxes)[:, _EDGES.reshape(-1)]
 
 
 def _color(classes, rgba):

@@ -191,11 +191,6 @@ def _icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
     return v, t
 
 
-def rotation_z(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def is_closed_oriented(vertices: np.ndarray, triangles: np.ndarray) -> bool:
     """Every directed edge appears once and its reverse once (closed, consistently oriented),
     and the enclosed signed volume is positive (normals point outward)."""

@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pcc_ros.boxes import Boxes
-from pcc_ros.data.synthetic.writer import box_corners
+from pcc_ros.geometry.boxes import box_corners
 
 
 def _outline(ax, boxes: Boxes, color: str, lw: float, ls: str = "-", label: str | None = None) -> None:

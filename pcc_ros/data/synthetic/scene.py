@@ -17,6 +17,7 @@ import numpy as np
 from pcc_ros.data.synthetic import mesh as M
 from pcc_ros.data.synthetic.lidar import Layer
 from pcc_ros.data.synthetic.vehicles import VehicleModel, random_vehicle
+from pcc_ros.geometry.rotations import rotation_z
 
 KIND_GROUND, KIND_STRUCTURE, KIND_VEHICLE, KIND_PEDESTRIAN, KIND_CLUTTER = range(5)
 
@@ -91,7 +92,7 @@ class Street:
             parts, owner = [], []
             for i, o in enumerate(self.objects):
                 if not o.moving:
-                    parts.append(o.mesh.transformed(M.rotation_z(o.yaw), o.position))
+                    parts.append(o.mesh.transformed(rotation_z(o.yaw), o.position))
                     owner.append(np.full(len(o.mesh.triangles), i, np.int32))
             self._static = (M.concatenate(parts), np.concatenate(owner))
         return self._static
@@ -108,7 +109,7 @@ class Street:
         parts, owners = [], []
         for i, o in enumerate(self.objects):  # moving objects only: a few dozen per sequence
             if o.moving and (near is None or np.hypot(*(centers[i, :2] - near)) < self.params.cull_range):
-                parts.append(o.mesh.transformed(M.rotation_z(o.yaw), centers[i]))
+                parts.append(o.mesh.transformed(rotation_z(o.yaw), centers[i]))
                 owners.append(np.full(len(o.mesh.triangles), i, np.int32))
         if not parts:
             return Layer(M.concatenate([]), np.zeros(0, np.int32))
@@ -137,7 +138,7 @@ class Street:
         owners = [static_owner[tri_keep]]
         for i, o in enumerate(self.objects):  # moving objects only: a few dozen per sequence
             if o.moving and keep_obj[i]:
-                parts.append(o.mesh.transformed(M.rotation_z(o.yaw), centers[i]))
+                parts.append(o.mesh.transformed(rotation_z(o.yaw), centers[i]))
                 owners.append(np.full(len(o.mesh.triangles), i, np.int32))
         return M.concatenate(parts), np.concatenate(owners)
 
@@ -190,7 +191,7 @@ def _centred(mesh: M.Mesh) -> tuple[M.Mesh, np.ndarray, np.ndarray]:
 def _place(kind: int, name: str, mesh: M.Mesh, x: float, y: float, base_z: float, yaw: float, **kw) -> SceneObject:
     """A mesh built standing on z = 0 in its own frame, placed with its base at ``base_z``."""
     m, size, c = _centred(mesh)
-    pos = np.array([x, y, 0.0]) + M.rotation_z(yaw) @ np.array([c[0], c[1], 0.0])
+    pos = np.array([x, y, 0.0]) + rotation_z(yaw) @ np.array([c[0], c[1], 0.0])
     pos[2] = base_z + c[2]
     return SceneObject(kind, name, m, size, pos, yaw, **kw)
 

@@ -26,6 +26,7 @@ import numpy as np
 from pcc_ros import files
 from pcc_ros.boxes import Boxes
 from pcc_ros.data.kitti_format import Calibration, format_label_lines, lidar_to_camera_rows
+from pcc_ros.geometry.boxes import box_corners
 
 IMAGE_SIZE = (1242, 375)  # KITTI colour camera, used for the 2D boxes
 EARTH_RADIUS = 6378137.0
@@ -38,19 +39,6 @@ def calibration() -> Calibration:
     velo_to_cam = np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 0.0]])
     imu_to_velo = np.c_[np.eye(3), np.zeros(3)]  # the pose reference (IMU) sits at the LiDAR
     return Calibration(P2=p2, R0_rect=np.eye(3), Tr_velo_to_cam=velo_to_cam, Tr_imu_to_velo=imu_to_velo, extra={})
-
-
-def box_corners(boxes: Boxes) -> np.ndarray:
-    """``(N, 8, 3)`` corners (for 2D projection only; geometry lives in pcc_ros.geometry)."""
-    # bottom face then top face, each front-left, front-right, rear-right, rear-left
-    sx = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * 0.5
-    sy = np.array([1, -1, -1, 1, 1, -1, -1, 1]) * 0.5
-    sz = np.array([-1, -1, -1, -1, 1, 1, 1, 1]) * 0.5
-    local = np.stack([sx * boxes.size[:, :1], sy * boxes.size[:, 1:2], sz * boxes.size[:, 2:3]], -1)
-    c, s = np.cos(boxes.yaw)[:, None], np.sin(boxes.yaw)[:, None]
-    x = c * local[..., 0] - s * local[..., 1]
-    y = s * local[..., 0] + c * local[..., 1]
-    return np.stack([x, y, local[..., 2]], -1) + boxes.center[:, None, :]
 
 
 def image_boxes(boxes: Boxes, calib: Calibration) -> np.ndarray:
