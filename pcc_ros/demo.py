@@ -121,9 +121,9 @@ def run_synthcars(args: argparse.Namespace, config) -> dict:
 
     from pcc_ros.bags.convert import write_bag
     from pcc_ros.bags.read import read_frames
-    from pcc_ros.bench.common import print_table
     from pcc_ros.data.kitti import KittiTracking
     from pcc_ros.data.synthetic import generate
+    from pcc_ros.tables import print_table
 
     root = args.out / "synthcars"
     meta = generate(root, sequences=2, frames=args.frames, seed=args.seed, test_fraction=0.5, progress=True)
@@ -166,10 +166,10 @@ def run_kitti(args: argparse.Namespace, config) -> dict | None:
 
     from pcc_ros.bags.convert import write_bag
     from pcc_ros.bags.read import read_frames
-    from pcc_ros.bench.common import print_table
     from pcc_ros.data.kitti import KittiTracking
     from pcc_ros.filter import FilterConfig
     from pcc_ros.paths import shared_data_dir
+    from pcc_ros.tables import print_table
 
     root = args.kitti or shared_data_dir() / "kitti_tracking"
     if not (root / "training").is_dir():

@@ -336,8 +336,8 @@ def _cell(value: Any) -> str:
 
 def print_tables(results: dict[str, Any], reference: str) -> None:
     """One table per metric: backends x (overall, distance bands, point bands), in metres."""
-    from pcc_ros.bench.common import print_table
     from pcc_ros.metrics import METRICS, unit_label
+    from pcc_ros.tables import print_table
 
     backends = results["backends"]
     if not backends:

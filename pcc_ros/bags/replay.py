@@ -274,8 +274,8 @@ def shipped_config_dir() -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pcc_ros.bench.common import print_table
     from pcc_ros.pipeline import Pipeline
+    from pcc_ros.tables import print_table
 
     config, slop = load_config(
         args.config, args.filter, backend=args.backend, checkpoint=args.checkpoint, device=args.device,

@@ -8,6 +8,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from pcc_ros.tables import print_table  # noqa: F401  (the benchmarks import it from here)
+
 
 def median_ms(fn: Callable[[], object], repeat: int = 30, warmup: int = 3) -> float:
     """Median wall time of ``fn()`` in milliseconds over ``repeat`` runs after ``warmup``."""
@@ -59,24 +61,3 @@ def load_average() -> list[float]:
 def machine() -> dict[str, object]:
     """Cores and load, for the JSON of a benchmark."""
     return {"cpu_count": os.cpu_count(), "load_average": load_average()}
-
-
-def print_table(title: str, rows: list[dict], columns: list[str] | None = None) -> None:
-    """Print ``rows`` (dicts) as an aligned text table."""
-    if not rows:
-        print(f"{title}: no rows")
-        return
-    columns = columns or list(rows[0])
-
-    def cell(v: object) -> str:
-        if isinstance(v, float):
-            return f"{v:.3f}" if abs(v) < 1000 else f"{v:.0f}"
-        return str(v)
-
-    body = [[cell(r.get(c, "")) for c in columns] for r in rows]
-    widths = [max(len(c), *(len(b[i]) for b in body)) for i, c in enumerate(columns)]
-    print(f"\n{title}")
-    print("  ".join(c.ljust(w) for c, w in zip(columns, widths)))
-    print("  ".join("-" * w for w in widths))
-    for b in body:
-        print("  ".join(v.ljust(w) for v, w in zip(b, widths)))

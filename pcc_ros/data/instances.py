@@ -556,6 +556,13 @@ class InstanceCache:
         uniq, starts = np.unique(keys, return_index=True)
         return dict(zip(uniq.tolist(), np.split(idx, starts[1:])))
 
+    def multiview_groups(
+        self, indices: np.ndarray | None = None, group_size: int = 20, min_views: int = 4
+    ) -> list[np.ndarray]:
+        """:func:`multiview_groups` of this cache (what a backend's training recipe calls, so
+        ``pcc_ros.models`` needs no import of the data layer)."""
+        return multiview_groups(self, indices, group_size, min_views)
+
     def frame_groups(self, indices: np.ndarray | None = None) -> list[np.ndarray]:
         """Instances grouped by (sequence, frame): the neighbours TraPCC's scene graph needs."""
         idx = np.arange(len(self)) if indices is None else np.asarray(indices)

@@ -448,10 +448,8 @@ class PointPnCNetRecipe:
         of a track); observations without a track are single-view groups. The cache holds
         no complete shapes, so none can reach training from here.
         """
-        from pcc_ros.data.instances import multiview_groups
-
         indices = cache.indices(split, min_points=min_points)
-        groups = multiview_groups(cache, indices, group_size=20, min_views=1)
+        groups = cache.multiview_groups(indices, group_size=20, min_views=1)
         grouped = np.zeros(len(cache), dtype=bool)
         for g in groups:
             grouped[g] = True
