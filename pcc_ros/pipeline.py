@@ -70,7 +70,7 @@ class PipelineConfig:
     ground_margin: float = 0.05
     half_precision: bool = False
     batch_size: int = 32
-    workers: int = 1
+    workers: int = 2
     include_input_points: bool = False
     include_observed_points: bool = False
     class_thresholds: str = ""

@@ -138,3 +138,23 @@ def test_worker_threads_return_the_same_completions_in_order():
     assert len(threaded.complete(clouds[:1])) == 1  # fewer instances than workers
     with pytest.raises(ConfigError, match="workers"):
         create("pointpncnet", device="cpu", workers=0)
+
+
+def test_multi_thread_chunking_equals_reference(monkeypatch):
+    """With several intra-op threads the chunks grow (fewer barriers); values stay the same."""
+    monkeypatch.setattr(layers, "CHUNK_ROWS", 3)
+    monkeypatch.setattr(layers, "MULTI_THREAD_CHUNK_FACTOR", 4)  # 12-row chunks
+    torch.manual_seed(0)
+    enc = PCNEncoder([8, 16], [32, 12])
+    points, segment = _packed(np.random.default_rng(6), [5, 0, 30, 2])
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert layers._chunk_rows(3) == 12
+        with torch.no_grad():
+            fast = enc(points, segment, 4)
+            with reference_path():
+                ref = enc(points, segment, 4)
+    finally:
+        torch.set_num_threads(threads)
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)

@@ -29,6 +29,14 @@ from torch import nn
 CHUNK_ROWS = 1024
 #: Rows (output points) per chunk of the folding decoder's inference path.
 DECODER_CHUNK_ROWS = 4096
+#: With several intra-op threads every operator is a parallel region ending in a barrier,
+#: and a barrier stalls whenever another process holds one of the cores: there, fewer and
+#: larger operators win (measured with ``pcc bench complete``), so chunks grow by this factor.
+MULTI_THREAD_CHUNK_FACTOR = 16
+
+
+def _chunk_rows(rows: int) -> int:
+    return rows if torch.get_num_threads() == 1 else rows * MULTI_THREAD_CHUNK_FACTOR
 
 _reference = False
 
@@ -178,11 +186,12 @@ class PCNEncoder(nn.Module):
         if p == 0:
             return points.new_zeros(s, self.out_dim)
         nonempty = (torch.bincount(segment, minlength=s) > 0)[:, None]
+        rows = _chunk_rows(CHUNK_ROWS)
         first = _linears(self.mlp1)
         f = points.new_empty(p, first[-1].out_features)
         g = points.new_full((s, f.shape[1]), -torch.inf)
-        for start in range(0, p, CHUNK_ROWS):
-            stop = min(start + CHUNK_ROWS, p)
+        for start in range(0, p, rows):
+            stop = min(start + rows, p)
             fc = _mlp_chunk(points[start:stop], first, last_relu=False, out=f[start:stop])
             _scatter_max_(g, segment[start:stop], fc)
         g = torch.where(nonempty, g, 0.0)
@@ -190,8 +199,8 @@ class PCNEncoder(nn.Module):
         rest = _linears(self.mlp2)
         out = points.new_full((s, self.out_dim), -torch.inf)
         wp = self.point_proj.weight.t()
-        for start in range(0, p, CHUNK_ROWS):
-            stop = min(start + CHUNK_ROWS, p)
+        for start in range(0, p, rows):
+            stop = min(start + rows, p)
             seg = segment[start:stop]
             h = gp.index_select(0, seg).addmm_(f[start:stop], wp)  # in place: no copy of the gathered rows
             if rest:
@@ -268,7 +277,7 @@ class FoldingDecoder(nn.Module):
         grid = self.fold_grid(self.grid)  # (G, H)
         layers = _linears(self.fold_mlp)
         fine = coarse.new_empty(s, k, g, 3)
-        step = max(1, DECODER_CHUNK_ROWS // (k * g))
+        step = max(1, _chunk_rows(DECODER_CHUNK_ROWS) // (k * g))
         for start in range(0, s, step):
             stop = min(start + step, s)
             h = torch.add(base[start:stop, :, None, :], grid).relu_()
