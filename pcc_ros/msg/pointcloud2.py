@@ -28,7 +28,7 @@ from __future__ import annotations
 import array
 import sys
 from collections.abc import Sequence
-from functools import lru_cache
+from functools import cache, lru_cache
 from itertools import pairwise
 
 import numpy as np
@@ -382,10 +382,35 @@ def _uniform_byte_order(grid: np.ndarray) -> tuple[np.ndarray, bool]:
 
 def _zero_padded_copy(grid: np.ndarray, dtype: np.dtype) -> np.ndarray:
     """A C-contiguous copy whose padding bytes are zero (numpy copies structured arrays field
-    by field, so ``np.array(copy=True)`` would put uninitialised memory on the wire)."""
-    out = np.zeros(grid.shape, dtype=dtype)
-    out[...] = grid
-    return out
+    by field, so ``np.array(copy=True)`` would put uninitialised memory on the wire).
+
+    Same layout: one byte copy, then the padding byte ranges zeroed (several times faster than
+    numpy's field-by-field structured assignment). Another layout (byte order): assignment.
+    """
+    if grid.dtype != dtype:
+        out = np.zeros(grid.shape, dtype=dtype)
+        out[...] = grid
+        return out
+    raw = np.ascontiguousarray(grid).reshape(-1).view(np.uint8).reshape(-1, dtype.itemsize).copy()
+    for start, stop in _padding_runs(dtype):
+        raw[:, start:stop] = 0
+    return raw.reshape(-1).view(dtype).reshape(grid.shape)
+
+
+@cache
+def _padding_runs(dtype: np.dtype) -> tuple[tuple[int, int], ...]:
+    """Byte ranges of a structured dtype's items that no field covers."""
+    used = np.zeros(dtype.itemsize, dtype=bool)
+    for name in dtype.names:
+        fdtype, offset = dtype.fields[name][:2]
+        used[offset : offset + fdtype.itemsize] = True
+    pad = np.flatnonzero(~used)
+    if not len(pad):
+        return ()
+    breaks = np.flatnonzero(np.diff(pad) > 1)
+    starts = np.r_[pad[0], pad[breaks + 1]]
+    stops = np.r_[pad[breaks], pad[-1]] + 1
+    return tuple(zip(starts.tolist(), stops.tolist()))
 
 
 def _is_dense(grid: np.ndarray) -> bool:
