@@ -73,7 +73,9 @@ def real_instances(
                     continue
                 instances.append({"key": f"{source.name}:{obs.key}", "partial": obs.points, "reference": reference,
                                   "size": np.asarray(obs.size, dtype=np.float64), "distance": obs.distance,
-                                  "track_frames": len(track), "label": obs.label})
+                                  "track_frames": len(track), "label": obs.label,
+                                  "frame_key": f"{source}:{obs.sequence}:{obs.frame}",
+                                  "center": np.asarray(obs.center, dtype=np.float64), "yaw": obs.yaw})
                 used += 1
         report[str(source)] = {"tracks": len(tracks), "instances": used, "skipped": dict(skipped)}
         if used == 0:
@@ -97,6 +99,26 @@ def _bands(instances: list[dict[str, Any]], rows: list[dict[str, float]]) -> dic
     }
 
 
+def scene_contexts(instances: list[dict[str, Any]]) -> list[Any]:
+    """One :class:`~pcc_ros.models.base.SceneContext` per instance: the other evaluated cars of
+    the same frame are its neighbours (what the pipeline gives a context-using backend)."""
+    from pcc_ros.boxes import Boxes
+    from pcc_ros.models.base import SceneContext
+
+    contexts: list[Any] = [None] * len(instances)
+    groups: dict[str, list[int]] = {}
+    for i, inst in enumerate(instances):
+        groups.setdefault(inst["frame_key"], []).append(i)
+    for members in groups.values():  # loop over frames; a handful of cars each
+        boxes = Boxes(np.stack([instances[i]["center"] for i in members]),
+                      np.stack([instances[i]["size"] for i in members]),
+                      np.array([instances[i]["yaw"] for i in members]),
+                      np.array([instances[i]["label"] for i in members], dtype=object))
+        for i, ctx in zip(members, SceneContext.from_frame(boxes, [instances[i]["partial"] for i in members])):
+            contexts[i] = ctx
+    return contexts
+
+
 def evaluate_real(
     instances: list[dict[str, Any]], backends: list[str], checkpoints: dict[str, Path], device: str = "cpu",
     batch_size: int = 32, progress: bool = True, with_input: bool = True,
@@ -104,7 +126,8 @@ def evaluate_real(
     """Complete every instance with every backend (batched) and score it.
 
     ``with_input``: also score each learned backend's completion united with the input crop
-    (row ``NAME+input``), since a consumer of the node's output gets both."""
+    (row ``NAME+input``), since a consumer of the node's output gets both. Backends that read
+    scene context (TraPCC) get the other evaluated cars of the frame as neighbours."""
     from tqdm import tqdm
 
     from pcc_ros.metrics.realdata import real_instance_metrics
@@ -123,9 +146,11 @@ def evaluate_real(
             log.warning("%s: skipped (%s)", name, exc)
             results[name] = {"skipped": str(exc)}
             continue
+        contexts = scene_contexts(instances) if getattr(completer, "uses_context", False) else None
         outs: list[np.ndarray] = []
         for start in tqdm(range(0, len(partials), 64), desc=f"complete {name}", disable=not progress, leave=False):
-            outs.extend(completer.complete(partials[start : start + 64]))
+            chunk = None if contexts is None else contexts[start : start + 64]
+            outs.extend(completer.complete(partials[start : start + 64], chunk))
         rows = [real_instance_metrics(o, i["partial"], i["reference"], i["size"]) for o, i in zip(outs, instances)]
         results[name] = {**_bands(instances, rows), "learned": bool(cls.learned)}
         if cls.learned:

@@ -120,3 +120,19 @@ def test_pcc_eval_real_missing_source_is_a_clear_error(tmp_path, caplog):
     rc = main(["eval", "--real", "--real-sources", str(tmp_path / "nope"), "--backends", "input"])
     assert rc == 1
     assert "nope" in caplog.text and "not found" in caplog.text
+
+
+def test_context_backends_get_the_other_cars_of_the_same_frame():
+    from pcc_ros.evaluate_real import scene_contexts
+
+    def inst(frame: str, x: float) -> dict:
+        return {"frame_key": frame, "center": np.array([x, 5.0, -0.8]), "size": np.array([4.0, 1.8, 1.5]),
+                "yaw": 0.1, "label": "Car", "partial": np.full((5, 3), x / 100, dtype=np.float32)}
+
+    instances = [inst("a", 10.0), inst("b", 20.0), inst("a", 30.0), inst("a", 40.0)]
+    contexts = scene_contexts(instances)
+    assert len(contexts[1].neighbour_boxes) == 0  # alone in its frame
+    first = contexts[0]
+    assert sorted(first.neighbour_boxes.center[:, 0].tolist()) == [30.0, 40.0]
+    assert first.box.center[0, 0] == 10.0
+    assert [p[0, 0] for p in first.neighbour_points] == pytest.approx([0.3, 0.4])
