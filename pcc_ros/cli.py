@@ -82,6 +82,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _report("interrupted — outputs of this run were not committed; re-run the same command to resume")
         return 130
+    except BrokenPipeError:  # `pcc info BAG | head`: the reader left; not an error worth a message
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except Exception as exc:  # the command boundary: a named error, never a traceback
         if args.debug:
             traceback.print_exc()

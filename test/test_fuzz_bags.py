@@ -96,6 +96,7 @@ def test_our_mcap_bags_carry_chunk_crcs(bags):
             crcs.append(next(iter(StreamReader(stream, skip_magic=True, emit_chunks=True).records)).uncompressed_crc)
     assert crcs and all(crcs)
     assert mcap_chunk_damage(path) is None
+    assert summarize(bags["mcap"])["chunk_crcs"] == "all" and summarize(bags["sqlite3"])["chunk_crcs"] == "n/a"
 
 
 @pytest.mark.parametrize("mask", [0x01, 0xFF])

@@ -82,6 +82,7 @@ def summarize(bag: str | Path) -> dict:
             "path": str(path),
             "storage": path.suffix.lstrip(".") if path.is_file() else _storage_id(path),
             "compression": _compression(path, meta),
+            "chunk_crcs": chunk_crcs(path),
             "messages": count,
             "start_ns": int(reader.start_time) if count else None,
             "duration_s": (reader.end_time - reader.start_time) / 1e9 if count else 0.0,
@@ -109,6 +110,29 @@ def _compression(path: Path, meta) -> str:
     return "chunk " + ("/".join(sorted(k or "none" for k in kinds)) or "none")
 
 
+def chunk_crcs(path: Path) -> str:
+    """Whether the MCAP chunks carry CRCs (``all``, ``none``, ``N of M``), ``n/a`` for sqlite3.
+
+    Without them a bit flip inside a chunk is undetectable (rosbags < 0.12 writes none;
+    ``pcc convert`` and ``pcc replay`` fill them in)."""
+    import struct
+
+    from mcap.reader import make_reader
+
+    files = [path] if path.suffix == ".mcap" else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    if not files:
+        return "n/a"
+    with_crc = total = 0
+    for file in files:
+        with file.open("rb") as stream:
+            summary = make_reader(stream).get_summary()
+            for index in summary.chunk_indexes if summary else []:
+                stream.seek(index.chunk_start_offset + 33)  # opcode, length, 3 x uint64, then the CRC
+                with_crc += struct.unpack("<I", stream.read(4))[0] != 0
+                total += 1
+    return "all" if with_crc == total else "none" if with_crc == 0 else f"{with_crc} of {total}"
+
+
 def _storage_id(path: Path) -> str:
     return "mcap" if any(path.glob("*.mcap")) else "sqlite3" if any(path.glob("*.db3")) else "unknown"
 
@@ -116,7 +140,9 @@ def _storage_id(path: Path) -> str:
 def format_summary(s: dict) -> str:
     lines = [
         f"bag:         {s['path']}",
-        f"storage:     {s['storage']} ({s['compression']}), {s['size_mb']:.1f} MB",
+        f"storage:     {s['storage']} ({s['compression']}), {s['size_mb']:.1f} MB"
+        + ("" if s.get("chunk_crcs", "n/a") == "n/a" else f", chunk CRCs: {s['chunk_crcs']}")
+        + (" (bit flips inside chunks are undetectable)" if s.get("chunk_crcs") == "none" else ""),
         f"messages:    {s['messages']}",
         f"duration:    {s['duration_s']:.3f} s" + (f" from {s['start_ns'] / 1e9:.3f}" if s["start_ns"] else ""),
         "topics:",

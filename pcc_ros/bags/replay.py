@@ -205,7 +205,8 @@ def replay_bag(
         summary.unpaired_detections = pairs.stats.dropped_detections
         summary.undecodable = pairs.undecodable
         if summary.frames == 0 and out is not None:  # inside the block: the output is not committed
-            raise DataError(_no_frame_reason(bag, summary, slop_s, pairs.first_problem))
+            raise DataError(_no_frame_reason(bag, summary, slop_s, pairs.first_problem),
+                            hint="nothing was written; `pcc info` shows the bag's topics, counts and damage")
     return summary
 
 
@@ -213,13 +214,12 @@ def _no_frame_reason(bag, summary: ReplaySummary, slop_s: float, first_problem: 
     """Why no frame came out: every frame malformed, every message undecodable, or no pairing."""
     if summary.skipped_frames:
         return (f"{bag}: all {summary.skipped_frames} paired frames were malformed and skipped "
-                f"(first: {summary.first_skip_reason}); no output written")
+                f"(first: {summary.first_skip_reason})")
     if summary.undecodable:
-        return (f"{bag}: {summary.undecodable} undecodable messages left nothing to pair "
-                f"(first: {first_problem}); no output written")
+        return f"{bag}: {summary.undecodable} undecodable messages left nothing to pair (first: {first_problem})"
     return (f"{bag}: no scan could be paired with detections within {slop_s} s "
-            f"({summary.unpaired_clouds} clouds, {summary.unpaired_detections} detection arrays unpaired); "
-            "no output written — check the stamps, or raise sync_slop in the config")
+            f"({summary.unpaired_clouds} clouds, {summary.unpaired_detections} detection arrays unpaired; "
+            "check the stamps, or raise sync_slop in the config)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -16,7 +16,6 @@ import argparse
 import ast
 import importlib
 import importlib.util
-import json
 import pkgutil
 from pathlib import Path
 
@@ -57,5 +56,7 @@ def run(args: argparse.Namespace) -> int:
     results = module.run(bench_args)
     if bench_args.json:
         bench_args.json.parent.mkdir(parents=True, exist_ok=True)
-        bench_args.json.write_text(json.dumps(results, indent=2, sort_keys=True) + "\n")
+        from pcc_ros.files import write_json
+
+        write_json(bench_args.json, results, indent=2, sort_keys=True)
     return 0

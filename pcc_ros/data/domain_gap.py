@@ -130,7 +130,9 @@ def main(argv: list[str] | None = None) -> int:
         named["sim (after)"] = crop_stats(InstanceCache.load(args.sim_after), args.max_instances)
     plot(named, args.out)
     report = {name: summary(s) for name, s in named.items()}
-    args.out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
+    from pcc_ros.files import write_json
+
+    write_json(args.out.with_suffix(".json"), report, indent=1)
     print(json.dumps(report, indent=1))
     return 0
 
