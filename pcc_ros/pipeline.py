@@ -77,7 +77,7 @@ class PipelineConfig:
     max_box_size: float = 40.0
     max_box_range: float = 1000.0
     max_box_tilt: float = 0.35
-    max_crop_work: int = 500_000
+    max_crop_work: int = 100_000
     filter: FilterConfig = field(default_factory=FilterConfig)
 
     def __post_init__(self) -> None:
@@ -480,8 +480,9 @@ class Pipeline:
 
 
 def estimated_crop_pairs(points: np.ndarray, boxes: Boxes, margin: float = 0.0) -> np.ndarray:
-    """Per box, the number of scan points within its footprint's bounding square (an upper
-    estimate of the points it crops), from a BEV count grid and its summed-area table:
+    """Per box, the number of scan points within its footprint's axis-aligned bounding
+    rectangle (an upper estimate of the points it crops), from a BEV count grid and its
+    summed-area table:
     ``O(points + boxes)``, whatever the boxes' sizes."""
     if len(boxes) == 0 or len(points) == 0:
         return np.zeros(len(boxes), dtype=np.int64)
@@ -493,9 +494,12 @@ def estimated_crop_pairs(points: np.ndarray, boxes: Boxes, margin: float = 0.0) 
     grid = np.bincount(cells[:, 0] * shape[1] + cells[:, 1], minlength=int(shape.prod())).reshape(shape)
     table = np.zeros((shape[0] + 1, shape[1] + 1), dtype=np.int64)
     table[1:, 1:] = grid.cumsum(axis=0).cumsum(axis=1)
-    radius = np.hypot(boxes.size[:, 0] / 2.0 + margin, boxes.size[:, 1] / 2.0 + margin)  # circumradius
-    first = np.clip(np.floor((boxes.center[:, :2] - radius[:, None] - lo) / cell), 0, shape).astype(np.int64)
-    last = np.clip(np.floor((boxes.center[:, :2] + radius[:, None] - lo) / cell) + 1, 0, shape).astype(np.int64)
+    # axis-aligned extent of the margin-enlarged, rotated footprint
+    hl, hw = boxes.size[:, 0] / 2.0 + margin, boxes.size[:, 1] / 2.0 + margin
+    c, s = np.abs(np.cos(boxes.yaw)), np.abs(np.sin(boxes.yaw))
+    half = np.stack([hl * c + hw * s, hl * s + hw * c], axis=1)
+    first = np.clip(np.floor((boxes.center[:, :2] - half - lo) / cell), 0, shape).astype(np.int64)
+    last = np.clip(np.floor((boxes.center[:, :2] + half - lo) / cell) + 1, 0, shape).astype(np.int64)
     return (table[last[:, 0], last[:, 1]] - table[first[:, 0], last[:, 1]]
             - table[last[:, 0], first[:, 1]] + table[first[:, 0], first[:, 1]])
 
