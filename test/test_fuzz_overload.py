@@ -8,7 +8,7 @@ start over, as a re-played bag does). Each phase lasts ``PCC_OVERLOAD_SECONDS`` 
 the issue's figure was taken with 30).
 
 This uses :class:`pcc_ros.runtime.local.LocalGraph` (the same NodeCore the rclpy node
-hosts), not a DDS / rclpy graph: transport behaviour under overload is not covered here.
+hosts, no transport); ``test_ros_overload.py`` runs the installed node under real ROS 2.
 """
 
 from __future__ import annotations
