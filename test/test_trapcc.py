@@ -407,3 +407,17 @@ def test_half_precision_with_neighbours():
     clouds, contexts = _frame_contexts()
     out = net.complete(clouds, contexts)
     assert all(o.dtype == np.float32 and np.isfinite(o).all() for o in out)
+
+
+def test_shipped_weights_record_their_training_data():
+    from pcc_ros.models import default_checkpoint
+
+    if default_checkpoint("trapcc") is None:
+        pytest.skip("no shipped TraPCC weights")
+    net = load_completer("trapcc", device="cpu")
+    training = net.checkpoint_config["training"]
+    assert training["data_summary"]["complete_shapes_used"] is False
+    assert training["data_summary"]["real_instances"] > 0 and training["steps"] > 0
+    clouds, contexts = _frame_contexts()
+    out = net.complete(clouds, contexts)
+    assert [o.shape for o in out] == [(2048, 3)] * len(clouds)
