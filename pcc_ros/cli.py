@@ -34,7 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def _available_commands() -> dict[str, tuple[str, str]]:
+def available_commands() -> dict[str, tuple[str, str]]:
     """Commands whose module exists in this installation (features land one by one)."""
     found = {}
     for name, (module, text) in COMMANDS.items():
@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     parser.add_argument("--debug", action="store_true", help="on an error, also print the Python traceback")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (module_name, text) in _available_commands().items():
+    for name, (module_name, text) in available_commands().items():
         module = importlib.import_module(module_name)
         command = sub.add_parser(name, help=text, description=(module.__doc__ or text).strip().splitlines()[0])
         module.add_arguments(command)

@@ -157,7 +157,7 @@ class Distributed:
         return cls(int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0")), world)
 
 
-def _optimizer_tensors(optimizer: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+def optimizer_tensors(optimizer: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """Flatten an optimizer state dict into named tensors + a JSON-able remainder (no pickle)."""
     import torch
 
@@ -173,7 +173,7 @@ def _optimizer_tensors(optimizer: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     return tensors, {"param_groups": state["param_groups"], "scalars": scalars}
 
 
-def _restore_optimizer(optimizer: Any, tensors: dict[str, Any], meta: dict[str, Any], source: Path) -> None:
+def restore_optimizer(optimizer: Any, tensors: dict[str, Any], meta: dict[str, Any], source: Path) -> None:
     state: dict[int, dict[str, Any]] = {}
     for name, value in tensors.items():
         pid, _, key = name[len(_OPT_PREFIX):].partition(".")
@@ -193,7 +193,7 @@ def save_resume(out: Path, backend: str, completer: Any, optimizer: Any, step: i
     """Weights + optimizer state (safetensors) and step + run settings (JSON) for ``--resume``."""
     from pcc_ros.models.checkpoint import make_config, save_checkpoint
 
-    opt_tensors, opt_meta = _optimizer_tensors(optimizer)
+    opt_tensors, opt_meta = optimizer_tensors(optimizer)
     tensors = {_MODEL_PREFIX + k: v for k, v in completer.model.state_dict().items()}
     tensors.update(opt_tensors)
     config = make_config(backend, completer.config, extra={"resume": {"step": step, "optimizer": opt_meta, **run}})
@@ -216,7 +216,7 @@ def load_resume(out: Path, backend: str, completer: Any, optimizer: Any) -> tupl
     model_state = {k[len(_MODEL_PREFIX):]: v for k, v in state.items() if k.startswith(_MODEL_PREFIX)}
     validate_state(completer.model, model_state, source=str(path))
     completer.model.load_state_dict(model_state, strict=True)
-    _restore_optimizer(optimizer, {k: v for k, v in state.items() if k.startswith(_OPT_PREFIX)},
+    restore_optimizer(optimizer, {k: v for k, v in state.items() if k.startswith(_OPT_PREFIX)},
                        resume["optimizer"], path)
     return int(resume["step"]), resume
 

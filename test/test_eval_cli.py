@@ -6,22 +6,13 @@ import json
 
 import numpy as np
 import pytest
+from shapes import car_with_cabin
 
 from pcc_ros.boxes import Boxes
 from pcc_ros.cli import main
 from pcc_ros.data.instances import ExtractConfig, extract_instances
 from pcc_ros.frame import Frame
 from pcc_ros.geometry.canonical import from_canonical
-
-
-def car_shape(rng, n=4096):
-    """Canonical surface of a box-and-cabin car, symmetric in y."""
-    pts = rng.uniform(-1, 1, (n, 3))
-    axis = rng.integers(0, 3, n)
-    pts[np.arange(n), axis] = rng.choice([-1, 1], n)
-    body = pts * [0.5, 0.2, 0.1] + [0, 0, -0.05]
-    cabin = pts * [0.25, 0.18, 0.07] + [-0.05, 0, 0.12]
-    return np.where((rng.random(n) < 0.7)[:, None], body, cabin).astype(np.float32)
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +25,7 @@ def tiny_cache(tmp_path_factory):
     for seq in ["0000", "0001"]:
         shapes = {}
         for t in range(3):
-            shapes[str(t)] = car_shape(rng)
+            shapes[str(t)] = car_with_cabin(rng)
             (root / "shapes" / seq).mkdir(parents=True, exist_ok=True)
             np.save(root / "shapes" / seq / f"{t}.npy", shapes[str(t)])
         for f in range(3):

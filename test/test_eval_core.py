@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from shapes import car_with_cabin
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.evaluate import (
@@ -23,13 +24,8 @@ from pcc_ros.evaluate import (
 
 def symmetric_car(rng, n=4000):
     """Surface samples of a box body + cabin, symmetric about y = 0 (canonical units)."""
-    pts = rng.uniform(-1, 1, (n, 3))
-    axis = rng.integers(0, 3, n)
-    pts[np.arange(n), axis] = rng.choice([-1, 1], n)
-    body = pts * [0.5, 0.2, 0.1] + [0, 0, -0.05]
-    cabin = pts * [0.25, 0.18, 0.07] + [-0.05, 0, 0.12]
-    car = np.where((rng.random(n) < 0.7)[:, None], body, cabin)
-    return np.concatenate([car, car * [1, -1, 1]]).astype(np.float32)
+    car = car_with_cabin(rng, n)
+    return np.concatenate([car, car * np.float32([1, -1, 1])])
 
 
 def make_instances(count=6, seed=0):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from shapes import box_surface
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.filter import FilterConfig, map_scores, mcd, mismatch_scores, mismatch_terms, reject_mask
@@ -11,12 +12,7 @@ from pcc_ros.filter import FilterConfig, map_scores, mcd, mismatch_scores, misma
 
 def car_surface(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
     """Points on a car-like canonical box surface: length 1, width 0.42, height 0.38."""
-    half = np.array([0.5, 0.21, 0.19])
-    pts = rng.uniform(-1, 1, (n, 3)) * half
-    axis = rng.integers(0, 3, n)
-    sign = rng.choice([-1.0, 1.0], n)
-    pts[np.arange(n), axis] = sign * half[axis]
-    return pts.astype(np.float32)
+    return box_surface(rng, n, [0.5, 0.21, 0.19]).astype(np.float32)
 
 
 def test_partial_view_of_the_car_matches_its_completion():

@@ -21,7 +21,7 @@ from safetensors.torch import load_file, save_file
 from pcc_ros.data.instances import ExtractConfig, extract_instances
 from pcc_ros.errors import CheckpointError
 from pcc_ros.models.base import load_completer
-from pcc_ros.models.checkpoint import _sha256, load_checkpoint
+from pcc_ros.models.checkpoint import load_checkpoint, sha256_file
 
 SHIPPED = Path(__file__).resolve().parents[1] / "pcc_ros" / "weights" / "pointpncnet"
 
@@ -39,7 +39,7 @@ def tampered(tmp: Path, edit_config=None, edit_state=None, config_text=None) -> 
     if edit_config:
         edit_config(config)
     save_file(state, str(weights))
-    config["sha256"], config["size_bytes"] = _sha256(weights), weights.stat().st_size
+    config["sha256"], config["size_bytes"] = sha256_file(weights), weights.stat().st_size
     config_path.write_text(config_text(config) if config_text else json.dumps(config))
     return weights
 

@@ -412,12 +412,12 @@ def test_create_cloud_errors():
 def test_nonfinite_compaction_across_chunks(extra):
     """Large clouds are compacted chunk by chunk: an all-NaN chunk, an all-finite chunk after
     a gap (an overlapping move), a partial chunk and a partial tail."""
-    from pcc_ros.msg.pointcloud2 import _COMPACT_ROWS
+    from pcc_ros.msg.pointcloud2 import COMPACT_ROWS
 
-    n = 3 * _COMPACT_ROWS + 77
+    n = 3 * COMPACT_ROWS + 77
     pts = np.random.default_rng(5).normal(size=(n, 4)).astype(np.float32)
-    pts[:_COMPACT_ROWS, 0] = np.nan  # chunk 0: nothing kept
-    pts[2 * _COMPACT_ROWS :: 3, 1] = np.inf  # chunk 2 and tail: partial
+    pts[:COMPACT_ROWS, 0] = np.nan  # chunk 0: nothing kept
+    pts[2 * COMPACT_ROWS :: 3, 1] = np.inf  # chunk 2 and tail: partial
     pts[-1, 2] = -np.inf
     msg = create_cloud(pts, ["x", "y", "z", "intensity"], "f", 0)
     got = read_xyz(msg, extra)

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from conftest import colcon_style_install
 
-from pcc_ros.cli import COMMANDS, _available_commands, build_parser
+from pcc_ros.cli import COMMANDS, available_commands, build_parser
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -55,10 +55,10 @@ def test_cli_registry_modules_expose_the_command_protocol():
 
     parser = build_parser()  # imports every available command module
     assert parser.prog == "pcc"
-    for name, (module_name, _) in _available_commands().items():
+    for name, (module_name, _) in available_commands().items():
         module = importlib.import_module(module_name)
         assert hasattr(module, "add_arguments") and hasattr(module, "run"), name
-    assert set(_available_commands()) <= set(COMMANDS)
+    assert set(available_commands()) <= set(COMMANDS)
 
 
 def test_pcc_help_runs_as_a_program():

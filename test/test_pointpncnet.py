@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from shapes import box_surface
 
 from pcc_ros.errors import CheckpointError, ConfigError
 from pcc_ros.geometry.partitions import octant_masks
@@ -26,10 +27,7 @@ from pcc_ros.models.pointpncnet import (
 
 def car_like(rng: np.random.Generator, n: int) -> np.ndarray:
     """Points on the surface of a car-sized canonical box (x in [-0.5, 0.5])."""
-    pts = rng.uniform(-1, 1, (n, 3))
-    axis = rng.integers(0, 3, n)
-    pts[np.arange(n), axis] = rng.choice([-1.0, 1.0], n)
-    return (pts * [0.5, 0.2, 0.15]).astype(np.float32)
+    return box_surface(rng, n, [0.5, 0.2, 0.15]).astype(np.float32)
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ from pcc_ros.data.kitti import KittiTracking
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
 from pcc_ros.data.synthetic import generate, load_shape
 from pcc_ros.data.synthetic.detector import detect
-from pcc_ros.data.synthetic.generator import SPLIT_CODES, _rng, build_sequence, sensor_pose, simulate_frame
+from pcc_ros.data.synthetic.generator import SPLIT_CODES, build_sequence, seeded_rng, sensor_pose, simulate_frame
 from pcc_ros.data.synthetic.lidar import Sensor, build_scene, cast
 from pcc_ros.data.synthetic.mesh import is_closed_oriented
 from pcc_ros.data.synthetic.scene import KIND_VEHICLE
@@ -177,7 +177,7 @@ def test_layout_labels_round_trip_and_reader(dataset):
         frames = list(KittiTracking(dataset).frames(seq, detections_dir=dataset / "detections" / "synthetic"))
         assert len(frames) == 3
         for f, frame in enumerate(frames):
-            res = simulate_frame(street, f, LOW, _rng(SEED, SPLIT_CODES[split], int(seq), 2, f))
+            res = simulate_frame(street, f, LOW, seeded_rng(SEED, SPLIT_CODES[split], int(seq), 2, f))
             assert frame.ground_truth.equals(res.gt, atol=2e-6)
             assert frame.detections.equals(res.detections, atol=2e-6)
             np.testing.assert_array_equal(frame.points, res.scan.points)

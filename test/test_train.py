@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from shapes import box_surface
 
 from pcc_ros.boxes import Boxes
 from pcc_ros.cli import main
@@ -16,14 +17,11 @@ from pcc_ros.frame import Frame
 from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.models import load_completer
 from pcc_ros.models.checkpoint import load_config
-from pcc_ros.train import _optimizer_tensors, _restore_optimizer, learning_rate, load_recipe, parse_options
+from pcc_ros.train import learning_rate, load_recipe, optimizer_tensors, parse_options, restore_optimizer
 
 
 def car_shape(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
-    pts = rng.uniform(-1, 1, (n, 3))
-    axis = rng.integers(0, 3, n)
-    pts[np.arange(n), axis] = rng.choice([-1, 1], n)
-    return (pts * [0.5, 0.2, 0.15]).astype(np.float32)
+    return box_surface(rng, n, [0.5, 0.2, 0.15]).astype(np.float32)
 
 
 @pytest.fixture(scope="module")
@@ -147,10 +145,10 @@ def test_optimizer_state_round_trip():
         opt.zero_grad()
         net(torch.randn(8, 4)).pow(2).sum().backward()
         opt.step()
-    tensors, meta = _optimizer_tensors(opt)
+    tensors, meta = optimizer_tensors(opt)
     meta = json.loads(json.dumps(meta))  # it must survive the JSON config
     fresh = torch.optim.Adam(net.parameters(), lr=1e-3)
-    _restore_optimizer(fresh, tensors, meta, source="test")
+    restore_optimizer(fresh, tensors, meta, source="test")
     a, b = opt.state_dict(), fresh.state_dict()
     assert a["param_groups"] == b["param_groups"]
     for pid in a["state"]:

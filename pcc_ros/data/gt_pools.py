@@ -45,7 +45,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -54,6 +53,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pcc_ros import files
 from pcc_ros.errors import DataError
 
 log = logging.getLogger("pcc.gt_pools")
@@ -211,10 +211,8 @@ class Pools:
             p = self.part(name)
             arrays.update({f"{name}_points": p.points, f"{name}_count": p.count, f"{name}_size": p.size,
                            f"{name}_key": p.key, f"{name}_score": p.score})
-        tmp = folder / "pools.tmp.npz"
-        np.savez(tmp, **arrays)
-        os.replace(tmp, folder / "pools.npz")
-        _write_json_atomic(folder / "pools.json", self.stats)
+        files.save_npz(folder / "pools.npz", **arrays)
+        files.write_json(folder / "pools.json", self.stats, indent=1, sort_keys=True, default=float)
 
     @classmethod
     def load(cls, folder: Path) -> Pools:
@@ -227,12 +225,6 @@ class Pools:
         except (OSError, ValueError, KeyError) as exc:
             raise DataError(f"{path}: unreadable GT pools ({exc}); delete the folder to rebuild") from exc
         return cls(*parts, stats=stats)
-
-
-def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=float) + "\n")
-    os.replace(tmp, path)
 
 
 def track_candidates(cache: Any, split: str | None, config: PoolConfig, source: str = "0",
@@ -439,16 +431,12 @@ def load_or_assign(pools: Pools, folder: Path, cache: Any, indices: np.ndarray, 
                   for i in sel]
         result = assign(pools, clouds, cache.meta["box_size"][sel], k)
         result["indices"] = sel
-        tmp = folder / f"{stem}.part{c:04d}.tmp.npz"
-        np.savez(tmp, **result)
-        os.replace(tmp, part_path)
+        files.save_npz(part_path, **result)
         parts.append(result)
     keys = ["indices"] + [f"{p}_{s}" for p in PARTS for s in ("index", "mcd")]
     merged = {k2: (np.concatenate([p[k2] for p in parts]) if parts else np.zeros(0)) for k2 in keys}
     merged["indices"] = merged["indices"].astype(np.int64)
-    tmp = folder / f"{stem}.tmp.npz"
-    np.savez(tmp, **merged)
-    os.replace(tmp, final)
+    files.save_npz(final, **merged)
     for c in range(len(starts)):
         (folder / f"{stem}.part{c:04d}.npz").unlink(missing_ok=True)
     return merged

@@ -111,7 +111,7 @@ def make_config(
     return config
 
 
-def _sha256(path: Path) -> str:
+def sha256_file(path: Path) -> str:
     digest = hashlib.sha256()
     with path.open("rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -207,7 +207,7 @@ def load_checkpoint(path: str | Path, verify_hash: bool = True) -> tuple[dict[st
             f"({'truncated' if size < recorded else 'trailing data'}; re-copy or re-train the checkpoint)"
         )
     if verify_hash:
-        actual = _sha256(weights_path)
+        actual = sha256_file(weights_path)
         if actual != config["sha256"]:
             raise CheckpointError(
                 f"{weights_path}: weights are corrupt or were replaced (sha256 {actual[:12]}… differs from "

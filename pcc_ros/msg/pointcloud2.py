@@ -243,7 +243,7 @@ def _gather_float32(cloud: _Cloud, keys: list[FieldKey]) -> np.ndarray:
 
 
 _QUARTER = np.full(3, 0.25, dtype=np.float32)
-_COMPACT_ROWS = 32768  # rows per in-place compaction step: the chunk stays in L2
+COMPACT_ROWS = 32768  # rows per in-place compaction step: the chunk stays in L2
 
 
 def _drop_nonfinite(points: np.ndarray) -> np.ndarray:
@@ -265,8 +265,8 @@ def _drop_nonfinite(points: np.ndarray) -> np.ndarray:
     if keep.all():
         return points
     kept = 0
-    for start in range(0, len(points), _COMPACT_ROWS):
-        stop = start + _COMPACT_ROWS
+    for start in range(0, len(points), COMPACT_ROWS):
+        stop = start + COMPACT_ROWS
         chunk_keep = keep[start:stop]
         count = int(np.count_nonzero(chunk_keep))
         if count == len(chunk_keep):

@@ -52,7 +52,14 @@ def write_preview(root: Path, sequence: int = 0, frame: int | None = None) -> Pa
     import json
 
     from pcc_ros.data.synthetic.detector import DetectorParams
-    from pcc_ros.data.synthetic.generator import _FRAME, SPLIT_CODES, LabelParams, _rng, build_sequence, simulate_frame
+    from pcc_ros.data.synthetic.generator import (
+        FRAME_STREAM,
+        SPLIT_CODES,
+        LabelParams,
+        build_sequence,
+        seeded_rng,
+        simulate_frame,
+    )
     from pcc_ros.data.synthetic.lidar import Sensor
     from pcc_ros.data.synthetic.preview import render_bev
     from pcc_ros.data.synthetic.scene import SceneParams
@@ -71,8 +78,8 @@ def write_preview(root: Path, sequence: int = 0, frame: int | None = None) -> Pa
     name = f"{sequence:04d}"
     split = "test" if name in meta["splits"]["test"] else "train"
     street = build_sequence(seed, sequence, p["frames"], split, scene)
-    res = simulate_frame(street, frame, sensor, _rng(seed, SPLIT_CODES[split], sequence, _FRAME, frame), detector,
-                         LabelParams(**p["labels"]))
+    rng = seeded_rng(seed, SPLIT_CODES[split], sequence, FRAME_STREAM, frame)
+    res = simulate_frame(street, frame, sensor, rng, detector, LabelParams(**p["labels"]))
     title = (f"SynthCars seq {name} frame {frame}: {len(res.scan.points)} points, "
              f"{int(res.detection_true.sum())} true / {int((~res.detection_true).sum())} false detections")
     return render_bev(res.scan.points, res.gt, res.detections, res.detection_true, Path(root) / "preview.png", title)

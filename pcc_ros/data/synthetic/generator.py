@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
 SPLIT_CODES = {"train": 1, "test": 2}
-_STREET, _SHAPES, _FRAME = 0, 1, 2
+STREET_STREAM, SHAPES_STREAM, FRAME_STREAM = 0, 1, 2
 
 
 @dataclass(frozen=True)
@@ -61,7 +61,8 @@ class FrameResult:
     detection_true: np.ndarray  # (D,) bool
 
 
-def _rng(seed: int, *key: int) -> np.random.Generator:
+def seeded_rng(seed: int, *key: int) -> np.random.Generator:
+    """The random stream of ``key`` (split, sequence, stream kind, ...) under ``seed``: independent per key."""
     return np.random.default_rng(np.random.SeedSequence(entropy=seed, spawn_key=key))
 
 
@@ -77,7 +78,7 @@ def splits_for(sequences: int, test_fraction: float) -> dict[str, list[str]]:
 
 def build_sequence(seed: int, index: int, frames: int, split: str, scene: SceneParams | None = None) -> Street:
     """The street of sequence ``index`` (identical on every call for the same arguments)."""
-    return build_street(frames, scene or SceneParams(), _rng(seed, SPLIT_CODES[split], index, _STREET))
+    return build_street(frames, scene or SceneParams(), seeded_rng(seed, SPLIT_CODES[split], index, STREET_STREAM))
 
 
 def sensor_pose(street: Street, frame: int, sensor: Sensor) -> tuple[np.ndarray, float]:
@@ -239,7 +240,7 @@ def generate(
         for o in street.objects:
             path = out / "shapes" / name / f"{o.track_id}.npy"
             if o.model is not None and o.track_id in seen and not path.exists():
-                rng = _rng(seed, SPLIT_CODES[split], index, _SHAPES, o.track_id)  # one stream per track
+                rng = seeded_rng(seed, SPLIT_CODES[split], index, SHAPES_STREAM, o.track_id)  # one stream per track
                 writer.write_npy(path, canonical_shape(o.model, shape_points, rng))
         meta["sequences"][name] = {"split": split, "tracks": tracks, "frames": frames}
     bar.close()
@@ -252,7 +253,8 @@ def _write_sequence(out, name, index, split, street, seed, sensor, detector, lab
     lines: list[str] = []
     seen: set[int] = set()
     for f in range(street.frames):
-        res = simulate_frame(street, f, sensor, _rng(seed, SPLIT_CODES[split], index, _FRAME, f), detector, labels)
+        rng = seeded_rng(seed, SPLIT_CODES[split], index, FRAME_STREAM, f)
+        res = simulate_frame(street, f, sensor, rng, detector, labels)
         writer.write_bin(out / "training" / "velodyne" / name / f"{f:06d}.bin", res.scan.points)
         writer.write_text(out / "detections" / "synthetic" / name / f"{f:06d}.txt",
                           writer.detection_lines(res.detections, calib))
