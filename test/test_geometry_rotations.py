@@ -50,3 +50,29 @@ def test_yaw_round_trip_tilt_and_rotation_z():
     np.testing.assert_allclose(tilt_from_quaternion(rolled), [0.3], atol=1e-12)
     np.testing.assert_allclose(yaw_from_quaternion(rolled), [1.0], atol=1e-12)
     assert rotation_z(0.5).shape == (3, 3)
+
+
+def test_detections_moved_by_a_yawed_transform_turn_with_it():
+    """node_core.transform_detections through a 30-degree yaw (an identity would hide a yaw bug)."""
+    from pcc_ros.boxes import Boxes
+    from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
+    from pcc_ros.node_core import transform_detections
+    from pcc_ros.runtime.base import Transform
+
+    boxes = Boxes([[10.0, 2.0, -0.8], [-4.0, 7.0, -0.7]], [[4.2, 1.8, 1.5], [4.5, 1.9, 1.6]], [0.2, -2.5],
+                  ["Car", "Car"], [0.9, 0.7], ["a", "b"])
+    turn = np.pi / 6
+    transform = Transform((1.0, -2.0, 0.5), tuple(quaternion_from_yaw(turn).tolist()))
+    array = detection_array_from_boxes(boxes, "base_link", 1)
+    moved = transform_detections(array.detections, transform, "velodyne")
+    array.detections = moved
+    out = boxes_from_detection_array(array)
+    expected = boxes.center @ rotation_z(turn).T + [1.0, -2.0, 0.5]
+    np.testing.assert_allclose(out.center, expected, atol=1e-9)
+    np.testing.assert_allclose(np.cos(out.yaw - boxes.yaw - turn), 1.0, atol=1e-12)
+    assert all(d.header.frame_id == "velodyne" for d in moved)
+    hypothesis = moved[1].results[0].pose.pose
+    assert (hypothesis.position.x, hypothesis.position.y) == pytest.approx(tuple(expected[1, :2]))
+    assert yaw_from_quaternion(np.array([[hypothesis.orientation.x, hypothesis.orientation.y,
+                                          hypothesis.orientation.z, hypothesis.orientation.w]]))[0] == pytest.approx(
+        np.angle(np.exp(1j * (boxes.yaw[1] + turn))))

@@ -234,14 +234,25 @@ def _damaged(path: Path, exc: BaseException, opening: bool = False) -> BagError:
     )
 
 
-def open_bag(path: str | Path) -> AnyReader:
+class BagReader(AnyReader):
+    """rosbags' :class:`AnyReader`, already open when :func:`open_bag` returns it; as a
+    context manager (rosbags' own habit) it closes on leaving the block."""
+
+    def __enter__(self) -> BagReader:
+        return self  # opened by open_bag, which names the path when that fails
+
+
+def open_bag(path: str | Path) -> BagReader:
     """An open rosbag2 reader (directory, ``.mcap`` or ``.db3``) with pcc_ros's type store;
-    :class:`BagError` naming the path when it is not a readable bag. The caller closes it."""
+    :class:`BagError` naming the path when it is not a readable bag.
+
+    Use it as ``with open_bag(path) as reader: ...`` (closed on leaving the block);
+    ``reader.close()`` in a ``finally`` does the same."""
     path = Path(path)
     if not path.exists():
         raise BagError(f"{path}: cannot open bag (no such file or directory)", hint="check the path")
     try:
-        reader = AnyReader([path], default_typestore=get_typestore())
+        reader = BagReader([path], default_typestore=get_typestore())
         reader.open()
     except _storage_errors() as exc:
         raise _damaged(path, exc, opening=True) from exc
@@ -338,9 +349,8 @@ def read_frames(
     """
     path = Path(bag)
     stats = ReadStats() if stats is None else stats
-    reader = open_bag(path)
     yielded = 0
-    try:
+    with open_bag(path) as reader:
         expected = {points_topic: POINTCLOUD2, detections_topic: DETECTION3DARRAY,
                     ground_truth_topic: DETECTION3DARRAY, TF_TOPIC: TFMESSAGE, TF_STATIC_TOPIC: TFMESSAGE}
         check_topic_types(reader, path, expected, required=[points_topic])
@@ -399,8 +409,6 @@ def read_frames(
         yield from flush(None)
         if orphans:
             log.warning("%s: %d stamps had boxes but no %s scan", path, orphans, points_topic)
-    finally:
-        reader.close()
     if stats.skipped:
         log.warning("%s: skipped %s", path, stats.describe())
         if not yielded:
