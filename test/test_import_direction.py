@@ -127,6 +127,9 @@ def imports(path: Path) -> list[tuple[str, int]]:
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
         if isinstance(node, ast.Import):
             out += [(alias.name, node.lineno) for alias in node.names]
+        elif (isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", "")) == "import_module"
+              and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            out.append((node.args[0].value, node.lineno))  # importlib.import_module("rclpy")
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")[: len(package.split(".")) - (node.level - 1)]
@@ -185,6 +188,7 @@ def test_imports_point_down_the_flow():
 
 
 def test_ros_python_only_under_nodes():
+    """(Also counts ``importlib.import_module("rclpy")``; this was test_packaging's rclpy test.)"""
     offenders = [
         f"{module_name(p)}:{line} imports {target}"
         for p in sources()
@@ -214,6 +218,7 @@ def test_the_checker_sees_a_violation(tmp_path, monkeypatch):
     (package / "geometry" / "__init__.py").write_text("")
     (package / "geometry" / "bad.py").write_text(
         "from pcc_ros import pipeline\n\ndef f():\n    from ..node_core import X\n    import rclpy\n"
+        "    importlib.import_module('rclpy.node')\n"
     )
     (package / "pipeline.py").write_text("")
     (package / "node_core.py").write_text("")
@@ -221,4 +226,4 @@ def test_the_checker_sees_a_violation(tmp_path, monkeypatch):
     assert {(a, b) for a, b, _ in upward_imports()} == {
         ("pcc_ros.geometry.bad", "pcc_ros.pipeline"), ("pcc_ros.geometry.bad", "pcc_ros.node_core")
     }
-    assert [t for t, _ in imports(package / "geometry" / "bad.py")][-1] == "rclpy"
+    assert [t for t, _ in imports(package / "geometry" / "bad.py")][-2:] == ["rclpy", "rclpy.node"]

@@ -72,25 +72,6 @@ def test_import_pcc_ros_needs_no_ros():
     assert out.stdout.strip() == "ok", out.stderr
 
 
-def test_rclpy_is_imported_only_in_nodes():
-    import ast
-
-    offenders = []
-    for path in (REPO / "pcc_ros").rglob("*.py"):
-        if "nodes" in path.relative_to(REPO / "pcc_ros").parts:
-            continue
-        for node in ast.walk(ast.parse(path.read_text())):
-            names = []
-            if isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.module:
-                names = [node.module]
-            elif isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "import_module" and node.args:
-                names = [getattr(node.args[0], "value", "")]
-            offenders += [f"{path}:{node.lineno}" for n in names if str(n).split(".")[0] == "rclpy"]
-    assert not offenders
-
-
 @pytest.mark.slow
 def test_colcon_style_install_layout(tmp_path):
     """What colcon runs for an ament_python package places scripts and data correctly."""
