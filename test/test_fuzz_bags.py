@@ -265,6 +265,7 @@ def test_missing_bag_and_junk_are_named(tmp_path, caplog):
         assert_named_failure(rc, text, str(bag))
 
 
+@pytest.mark.slow  # 30 bags written and replayed: 12 s of test-fast (load 13 on 2 cores)
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.binary(min_size=0, max_size=400), cut=st.integers(0, 400))
 def test_random_cdr_payloads_never_crash_replay(raw_messages, tmp_path_factory, data, cut):

@@ -27,6 +27,7 @@ states where it belongs.
 from __future__ import annotations
 
 import ast
+import functools
 import sys
 from pathlib import Path
 
@@ -119,6 +120,7 @@ def layer(module: str) -> int | None:
     return None
 
 
+@functools.cache
 def imports(path: Path) -> list[tuple[str, int]]:
     """``(imported module, line)`` for every import in the file, relative ones resolved."""
     module = module_name(path)

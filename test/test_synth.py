@@ -214,6 +214,7 @@ def test_train_and_test_shapes_are_disjoint(dataset):
     assert np.abs(a[:, None] - b[None]).max(-1).min() > 1e-3
 
 
+@pytest.mark.slow  # generates the dataset twice more: 10 s of test-fast (load 13 on 2 cores)
 def test_same_seed_same_bytes_and_resume(tmp_path, dataset):
     root = tmp_path / "again"
     generate(root, sequences=2, frames=3, seed=SEED, sensor=LOW, progress=False)
