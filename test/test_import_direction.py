@@ -212,6 +212,19 @@ def test_nothing_imports_the_cli():
     assert not offenders, offenders
 
 
+def test_tests_import_no_private_names():
+    """Tests go through the public API: no ``from pcc_ros.x import _y`` in ``test/``."""
+    offenders = [
+        f"{path.name}:{node.lineno} imports {alias.name} from {node.module}"
+        for path in sorted(Path(__file__).parent.glob("*.py"))
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("pcc_ros")
+        for alias in node.names
+        if alias.name.startswith("_")
+    ]
+    assert not offenders, offenders
+
+
 def test_the_checker_sees_a_violation(tmp_path, monkeypatch):
     """The scan is not vacuous: an upward import and a function-level rclpy import are found."""
     package = tmp_path / "pcc_ros"

@@ -468,11 +468,11 @@ def test_malformed_clouds_raise_message_error_only(mutation):
 
 def test_structured_copy_zeroes_padding_and_unselected_fields():
     """create_cloud's byte copy: padding bytes and fields left out are zero on the wire."""
-    from pcc_ros.msg.pointcloud2 import _zero_padded_copy
+    from pcc_ros.msg.pointcloud2 import zero_padded_copy
 
     dtype = np.dtype({"names": ["x", "ring"], "formats": ["<f4", "<u2"], "offsets": [0, 8], "itemsize": 16})
     raw = np.frombuffer(np.arange(64, dtype=np.uint8).tobytes(), dtype=dtype)  # garbage in the padding
-    out = _zero_padded_copy(raw, dtype)
+    out = zero_padded_copy(raw, dtype)
     assert out.flags.c_contiguous and not np.shares_memory(out, raw)
     assert np.array_equal(out["x"], raw["x"]) and np.array_equal(out["ring"], raw["ring"])
     b = out.view(np.uint8).reshape(4, 16)
@@ -480,6 +480,6 @@ def test_structured_copy_zeroes_padding_and_unselected_fields():
     organized = np.zeros((3, 4), dtype=dtype)
     organized["x"] = 2.5
     view = organized[:, ::2]  # not contiguous
-    copy = _zero_padded_copy(view, dtype)
+    copy = zero_padded_copy(view, dtype)
     assert copy.shape == (3, 2) and np.array_equal(copy["x"], view["x"])
     assert not copy.view(np.uint8).reshape(6, 16)[:, 4:8].any()

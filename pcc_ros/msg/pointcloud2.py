@@ -326,7 +326,7 @@ def create_cloud(
         grid = points if fields is None else points[list(fields)]
         if grid.ndim not in (1, 2):
             raise MessageError(f"create_cloud: structured points must be (N,) or (H, W), got {grid.shape}")
-        grid = _zero_padded_copy(grid, grid.dtype)
+        grid = zero_padded_copy(grid, grid.dtype)
     grid, bigendian = _uniform_byte_order(grid)
     height, width = (1, grid.shape[0]) if grid.ndim == 1 else grid.shape
     point_step = grid.dtype.itemsize
@@ -377,10 +377,10 @@ def _uniform_byte_order(grid: np.ndarray) -> tuple[np.ndarray, bool]:
             "itemsize": grid.dtype.itemsize,
         }
     )
-    return _zero_padded_copy(grid, native), _NATIVE_BIG
+    return zero_padded_copy(grid, native), _NATIVE_BIG
 
 
-def _zero_padded_copy(grid: np.ndarray, dtype: np.dtype) -> np.ndarray:
+def zero_padded_copy(grid: np.ndarray, dtype: np.dtype) -> np.ndarray:
     """A C-contiguous copy whose padding bytes are zero (numpy copies structured arrays field
     by field, so ``np.array(copy=True)`` would put uninitialised memory on the wire).
 
