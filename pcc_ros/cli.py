@@ -80,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args._module.run(args) or 0)
     except KeyboardInterrupt:
-        _report("interrupted — outputs of this run were not committed; re-run the same command to resume")
+        _report("interrupted — no partial output was left behind; re-run the command (pcc extract resumes "
+                "where it stopped, pcc train with --resume)")
         return 130
     except BrokenPipeError:  # `pcc info BAG | head`: the reader left; not an error worth a message
         import os
