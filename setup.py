@@ -38,6 +38,7 @@ setup(
         "tqdm>=4.60",
         "matplotlib>=3.6",
         "scipy>=1.10",
+        "scikit-image>=0.22",
         "pyyaml>=6",
     ],
     zip_safe=False,  # weights and configs are found through __file__

@@ -72,6 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the initial weights and of batch sampling")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/resume.safetensors")
     parser.add_argument("--no-inpainting", action="store_true", help="ablation: no synthetic region removal")
+    parser.add_argument("--stage", default=None, help="training stage of a multi-stage backend (aml: prior | encoder)")
     parser.add_argument(
         "--option", action="append", default=[], metavar="KEY=VALUE",
         help="backend training option (JSON value), e.g. --option views=2 (repeatable)",
@@ -322,14 +323,14 @@ def plot_log(records: list[dict[str, Any]], path: Path, title: str, best: dict[s
     import matplotlib.pyplot as plt
 
     train = [r for r in records if "loss" in r]
-    val = [r for r in records if "val_cd_l1" in r]
+    val = [r for r in records if any(k.startswith("val_") and k not in ("val_instances", "val_seconds") for k in r)]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for key in sorted({k for r in train for k in r if k not in ("step", "lr", "seconds", "instances_per_s")}):
         axes[0].plot([r["step"] for r in train], [r[key] for r in train], label=key)
     axes[0].set(xlabel="step", ylabel="loss (canonical units)", title="training loss")
     if train:
         axes[0].legend()
-    for key in ("val_cd_l1", "val_precision", "val_coverage"):
+    for key in ("val_cd_l1", "val_precision", "val_coverage", "val_loss", "val_iou", "val_sdf_iou"):
         if val and key in val[0]:
             axes[1].plot([r["step"] for r in val], [r[key] for r in val], marker="o", label=key[4:])
     if val and "val_fscore" in val[0]:
@@ -371,6 +372,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     options = parse_options(args.option)
     if args.no_inpainting:
         options["inpainting"] = False
+    if args.stage:
+        options["stage"] = args.stage
     recipe = load_recipe(args.backend, args.config, options)
 
     if dist.world > 1:
@@ -420,25 +423,36 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     elif dist.main:
         log_path.unlink(missing_ok=True)
 
-    cache = InstanceCache.load(args.data)
-    cache.check_finite()
+    # Optional recipe hooks (a backend whose data is not an instance cache, its own validation,
+    # a step between loading and training, a last transformation of saved weights):
+    # open_data, validation_data, validate, prepare, finalize, summary, select_metric.
+    cache = getattr(recipe, "open_data", InstanceCache.load)(args.data)
+    if hasattr(cache, "check_finite"):
+        cache.check_finite()
     t0 = time.perf_counter()
     own_mixing = hasattr(recipe, "use_real_data")  # TraPCC mixes real caches itself (into its GT pools too)
     if own_mixing and args.real_data:
         recipe.use_real_data([str(p) for p in args.real_data], args.real_share)
     data = recipe.training_data(cache, args.split, min_points=args.min_points)
-    total_views = sum(len(g) for g in data)
+    total_views = sum(len(g) for g in data) if isinstance(data, list) else len(data)
     log.info("training data: %d groups, %d observations of split %r (%.1f s)",
              len(data), total_views, args.split, time.perf_counter() - t0)
     if own_mixing:
         mixing = recipe.data_summary()
     else:
+        if args.real_data and not isinstance(data, list):
+            raise ConfigError(f"backend {args.backend!r} takes real-scan caches through its own option, "
+                              "not --real-data")
         data, mixing = mix_real(recipe, data, args.real_data, args.real_share, args.min_points)
     run_settings["real_data"] = mixing
     val_instances, reference = ([], "none")
     if dist.main:
-        val_instances, reference = validation_instances(cache, args.val_split, args.val_instances, args.seed)
+        find_val = getattr(recipe, "validation_data", validation_instances)
+        val_instances, reference = find_val(cache, args.val_split, args.val_instances, args.seed)
         log.info("validation: %d instances of split %r against %s", len(val_instances), args.val_split, reference)
+    validate_fn = getattr(recipe, "validate", validate)
+    if hasattr(recipe, "prepare"):
+        recipe.prepare(completer, data, val_instances, args.seed)
 
     train_net: Any = net
     if dist.world > 1:
@@ -460,8 +474,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         with log_path.open("a") as f:
             f.write(json.dumps(record) + "\n")
 
-    select_key = f"val_{args.select_by}"
-    lower_better = args.select_by != "fscore"
+    select_key = getattr(recipe, "select_metric", None) or f"val_{args.select_by}"
+    lower_better = select_key != "val_fscore"
 
     def best_record() -> dict[str, Any] | None:
         vals = [r for r in records if select_key in r and np.isfinite(r[select_key]) and r["step"] > 0]
@@ -478,8 +492,15 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         }
         if hasattr(recipe, "data_summary"):  # what the backend trained on (e.g. TraPCC's real-data share)
             training["data_summary"] = recipe.data_summary()
+        current = None
+        if hasattr(recipe, "finalize"):  # a last transformation of the saved weights only (AML's whitening)
+            current = {k: v.clone() for k, v in completer.model.state_dict().items()}
+            recipe.finalize(completer, data)
+        training.update(recipe.summary() if hasattr(recipe, "summary") else {})
         completer.save(out / f"{name}.safetensors", training=training,
                        metrics={k: v for k, v in record.items() if k.startswith("val_")})
+        if current is not None:
+            completer.model.load_state_dict(current)
 
     def on_validation(record: dict[str, Any]) -> None:
         """Keep the best weights by validation (the shipped checkpoint is the best, not the last)."""
@@ -493,7 +514,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             return
         save_resume(out, args.backend, completer, optimizer, step, run_settings)
         if final:
-            last_val = next((r for r in reversed(records) if "val_cd_l1" in r), {})
+            last_val = next((r for r in reversed(records) if select_key in r), {})
             save_weights(f"{args.backend}_last", last_val)
             if best_record() is None:  # no validation data: the last weights are all there is
                 save_weights(args.backend, last_val)
@@ -502,7 +523,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
 
     started = time.perf_counter()
     if dist.main and init is not None and step == 0 and val_instances:
-        emit({"step": 0, **validate(completer, val_instances, args.seed)})  # where the initial weights stand
+        emit({"step": 0, **validate_fn(completer, val_instances, args.seed)})  # where the initial weights stand
         log.info("initial weights %s: %s", args.init, records[-1])
     window: dict[str, list[float]] = {}
     window_start = time.perf_counter()
@@ -534,7 +555,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
                       "instances_per_s": round(n * args.batch_size * dist.world / max(seconds, 1e-9), 1)})
                 window, window_start = {}, time.perf_counter()
             if dist.main and args.val_every and step % args.val_every == 0 and step < args.iterations:
-                emit({"step": step, **validate(completer, val_instances, args.seed)})
+                emit({"step": step, **validate_fn(completer, val_instances, args.seed)})
                 log.info("step %d: %s", step, records[-1])
                 on_validation(records[-1])
             if step % args.checkpoint_every == 0 and step < args.iterations:
@@ -546,7 +567,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     finally:
         bar.close()
     if dist.main:
-        emit({"step": step, **validate(completer, val_instances, args.seed)})
+        emit({"step": step, **validate_fn(completer, val_instances, args.seed)})
         log.info("final validation: %s", records[-1])
         on_validation(records[-1])
     checkpoint(final=True)

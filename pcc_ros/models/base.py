@@ -126,6 +126,8 @@ def default_checkpoint(name: str) -> Path | None:
     """
     from pcc_ros.paths import share_dirs
 
+    cls = _REGISTRY.get(name)
+    name = (cls.weights_name if cls is not None else None) or name  # a variant sharing another's weights
     folders = [Path(__file__).resolve().parents[1] / "weights", *(d / "weights" for d in share_dirs())]
     candidates = [folder / f"{name}.safetensors" for folder in folders]
     for path in candidates:
@@ -340,6 +342,8 @@ class Completer(abc.ABC):
     learned: ClassVar[bool] = False
     #: Reads :class:`SceneContext` (others ignore it, and callers may skip building it).
     uses_context: ClassVar[bool] = False
+    #: Loads the checkpoints of another backend (an inference variant of it); ``None``: its own.
+    weights_name: ClassVar[str | None] = None
 
     def __init__(self, device: str = "auto", **config: Any) -> None:
         self.device_request = device
@@ -532,7 +536,7 @@ class TorchCompleter(Completer):
         from pcc_ros.models.checkpoint import check_hyper_parameters, load_checkpoint, validate_state
 
         state, config = load_checkpoint(path)
-        if config["backend"] != cls.name:
+        if config["backend"] not in (cls.name, cls.weights_name):
             raise CheckpointError(f"{path}: checkpoint is for backend {config['backend']!r}, not {cls.name!r}")
         hyper = check_hyper_parameters(config, cls.default_config(), str(path))
         try:
