@@ -25,7 +25,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("pcc_ros.bags.info_command", "summarise a ROS 2 bag"),
     "extract": ("pcc_ros.data.extract_command", "extract canonical car instances from bags or datasets"),
     "train": ("pcc_ros.train", "train a completion backend self-supervised"),
-    "eval": ("pcc_ros.evaluate", "evaluate completion backends"),
+    "eval": ("pcc_ros.evaluate", "evaluate completion backends (`pcc eval detections`: the detection filter)"),
+    "eval-detections": ("pcc_ros.detection_eval", "detection AP and the filter's operating curve vs baselines"),
+    "calibrate-filter": ("pcc_ros.filter_calibration", "fit the detection filter's weights (SynthCars + real frames)"),
     "replay": ("pcc_ros.bags.replay", "run the per-frame pipeline over a bag"),
     "demo": ("pcc_ros.demo", "end-to-end demo on SynthCars and real KITTI frames"),
     "play": ("pcc_ros.nodes.play", "publish a bag onto the ROS 2 graph with its recorded timing (rclpy)"),
@@ -63,7 +65,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Two-word commands: ``pcc eval detections ...`` runs ``pcc eval-detections ...``.
+NESTED = {("eval", "detections"): "eval-detections"}
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if tuple(argv[:2]) in NESTED:
+        argv = [NESTED[tuple(argv[:2])], *argv[2:]]
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     if extra:  # only commands that forward options to a sub-tool accept unknown ones

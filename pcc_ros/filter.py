@@ -1,9 +1,28 @@
-"""TraPCC's shape-mismatch filter (TraPCC paper §4.5 and §5.2).
+"""The detection filter: is there really a car in this box?
 
-Each detection is completed; if the detector boxed something that is not a vehicle (a
-bush, a pole, a wall, empty space), the completion network — which only knows cars —
-produces a car that does not explain the raw points. The mismatch between the raw crop
-and its completion is measured by
+Two rules (``FilterConfig.rule``):
+
+``evidence`` (default) — one calibrated probability that a detection is false, from terms
+measured in the scan itself (documented with their derivation in ``docs/filter.md``):
+
+* ``density``: log of (returns in the box + 1) / (returns a car there would give + 1), the
+  expectation being the sensor model's beams that hit the box (its visible cross-section at
+  that range and bearing), times the share of the scan's rays towards the box that are not
+  stopped in front of it (occlusion);
+* ``free_space``: log-odds of the rays through the box's solid core that return from
+  *beyond* it (the box is see-through: empty) against those that end inside it;
+* ``ground_gap``: metres between the box bottom and the local ground (cars stand on it);
+* ``score``: the detector score as a logit, after the explicit ``score_mapping``;
+* ``mismatch``: TraPCC's shape mismatch (below) against the completion of ``filter_backend``
+  (0 weight unless calibrated with a car-constrained backend).
+
+``p_false = sigmoid(w_bias + sum_k w_k * term_k)``; a detection is rejected when
+``p_false > reject_threshold``. Weights and threshold come from ``pcc calibrate-filter``
+(logistic regression; presets in ``config/``), never set by hand. Every box is judged —
+a sparse box is exactly where false detections hide.
+
+``trapcc`` — TraPCC (paper §4.5, §5.2): each detection is completed; the mismatch between
+the raw crop and its completion is measured by
 
 * MCD (TraPCC Eq. 2): the mean squared distance from each raw point to its nearest
   completed point (canonical units, i.e. fractions of the box length), and
@@ -13,8 +32,7 @@ and its completion is measured by
 
 folded into one score in [0, 1): ``1 - exp(-(mcd / mcd_scale + contour / contour_scale))``.
 A detection is rejected when its mismatch score is above ``match_threshold`` AND its
-(mapped) detection score is below ``detection_threshold`` — confident detections are
-never removed by shape alone (0.3 / 0.5 on KITTI in the paper).
+(mapped) detection score is below ``detection_threshold`` (0.3 / 0.5 on KITTI in the paper).
 
 Detector scores are not always probabilities (PointRCNN gives logits): ``score_mapping``
 makes the conversion explicit.
@@ -26,15 +44,31 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcc_ros.errors import ConfigError
+from pcc_ros.boxes import Boxes
+from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.geometry.boxes import box_corners, points_in_boxes
 from pcc_ros.metrics.chamfer import nearest_distances_batch
 
 SCORE_MAPPINGS = ("identity", "sigmoid")
+RULES = ("evidence", "trapcc")
 _VIEWS = ((0, 2), (1, 2), (0, 1))  # side (x-z), front (y-z), top (x-y)
 
 
 @dataclass(frozen=True)
 class FilterConfig:
+    rule: str = "evidence"
+    # evidence rule: logistic weights. Defaults = the KITTI preset written by `pcc calibrate-filter`
+    # into config/detection_filter.yaml (a test keeps the two equal; docs/filter.md has the command).
+    w_bias: float = 1.3016
+    w_density: float = -0.4338
+    w_free_space: float = 0.3253
+    w_ground_gap: float = 2.3514
+    w_score: float = -0.9236
+    w_mismatch: float = 0.0
+    reject_threshold: float = 0.6131
+    sensor: str = "hdl64"
+    filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
+    # trapcc rule
     match_threshold: float = 0.3
     detection_threshold: float = 0.5
     score_mapping: str = "identity"
@@ -46,8 +80,23 @@ class FilterConfig:
     def __post_init__(self) -> None:
         if self.score_mapping not in SCORE_MAPPINGS:
             raise ConfigError(f"score_mapping must be one of {SCORE_MAPPINGS}, got {self.score_mapping!r}")
+        if self.rule not in RULES:
+            raise ConfigError(f"rule must be one of {RULES}, got {self.rule!r}")
+        if self.sensor not in SENSOR_PRESETS:
+            raise ConfigError(f"sensor must be one of {sorted(SENSOR_PRESETS)}, got {self.sensor!r}")
         if not (self.mcd_scale > 0 and self.contour_scale > 0 and self.grid_cells > 1):
             raise ConfigError("mcd_scale, contour_scale must be > 0 and grid_cells > 1")
+        if not 0.0 < self.reject_threshold < 1.0:
+            raise ConfigError(f"reject_threshold must be in (0, 1), got {self.reject_threshold}")
+
+    @property
+    def weights(self) -> np.ndarray:
+        """``(len(TERMS),)`` weights in :data:`TERMS` order."""
+        return np.array([getattr(self, f"w_{t}") for t in TERMS], dtype=np.float64)
+
+    @property
+    def uses_mismatch(self) -> bool:
+        return self.rule == "trapcc" or self.w_mismatch != 0.0
 
 
 def map_scores(scores: np.ndarray, mapping: str) -> np.ndarray:
@@ -146,3 +195,390 @@ def reject_mask(mismatch: np.ndarray, detection_scores: np.ndarray, config: Filt
     return judged & (np.where(judged, mismatch, 0.0) > config.match_threshold) & (
         probability < config.detection_threshold
     )
+
+
+# ============================================================================ physics evidence
+
+#: The evidence terms, in the order of the logistic weights (:attr:`FilterConfig.weights`).
+TERMS = ("density", "free_space", "ground_gap", "score", "mismatch")
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """A spinning LiDAR's beam geometry: ``upper_rings`` beams evenly spread from
+    ``elevation_max_deg`` down to ``split_deg[0]``, the other ``rings - upper_rings`` from
+    ``split_deg[1]`` down to ``elevation_min_deg`` (one block when ``upper_rings`` is 0), one
+    return every ``azimuth_resolution_deg``.
+
+    Presets (datasheets): Velodyne HDL-64E as mounted on KITTI's car (two laser blocks,
+    +2.0 .. -8.33 deg and -8.83 .. -24.9 deg, 2083 columns at 10 Hz = 0.1728 deg) and the
+    HDL-32E of nuScenes (32 beams +10.67 .. -30.67 deg, 1084 columns at 20 Hz = 0.33 deg).
+    """
+
+    rings: int = 64
+    elevation_min_deg: float = -24.9
+    elevation_max_deg: float = 2.0
+    azimuth_resolution_deg: float = 0.1728
+    upper_rings: int = 32
+    split_deg: tuple[float, float] = (-8.33, -8.83)
+
+    def __post_init__(self) -> None:
+        if (
+            self.rings < 2
+            or self.azimuth_resolution_deg <= 0
+            or self.elevation_max_deg <= self.elevation_min_deg
+            or not 0 <= self.upper_rings < self.rings
+        ):
+            raise ConfigError(f"bad sensor model {self}")
+
+    def ring_elevations(self) -> np.ndarray:
+        """Ascending beam elevations, radians."""
+        if self.upper_rings == 0:
+            degrees = np.linspace(self.elevation_min_deg, self.elevation_max_deg, self.rings)
+        else:
+            upper = np.linspace(self.split_deg[0], self.elevation_max_deg, self.upper_rings)
+            lower = np.linspace(self.elevation_min_deg, self.split_deg[1], self.rings - self.upper_rings)
+            degrees = np.r_[lower, upper]
+        return np.deg2rad(np.sort(degrees))
+
+
+SENSOR_PRESETS = {
+    "hdl64": SensorModel(64, -24.9, 2.0, 0.1728, 32, (-8.33, -8.83)),
+    "hdl32": SensorModel(32, -30.67, 10.67, 0.33, 0, (0.0, 0.0)),
+}
+
+#: The solid core of a car body inside its box, as fractions of the box (length, width) and of
+#: its height from the bottom: below the windows, above the gap under the chassis. Rays that
+#: cross this core and return from beyond it say the box is empty.
+CORE_FRACTION = (0.8, 0.8)
+CORE_Z = (0.2, 0.6)
+#: Returns lower than this above the box bottom are ground (counted as passing, not as car).
+EVIDENCE_GROUND = 0.3
+#: The local ground is the 5 % quantile of the heights of the returns within this many metres
+#: of the box footprint (all around it: the returns beside a car reach the ground it hides).
+GROUND_REACH = 3.0
+#: Most beam columns sampled per box for the expected return count.
+EXPECTED_COLUMNS = 64
+#: Azimuth bins of the ray index (0.1 deg).
+_AZ_BINS = 3600
+
+
+@dataclass
+class Evidence:
+    """Per-detection raw measurements and the derived terms (one row per box)."""
+
+    n_in: np.ndarray  # returns inside the box above the ground band
+    n_stop: np.ndarray  # rays through the core that ended inside the box
+    n_pass: np.ndarray  # rays through the core that returned from beyond it
+    n_occluded: np.ndarray  # rays towards the box that ended in front of it
+    n_rays: np.ndarray  # scan rays towards the box (all outcomes)
+    expected: np.ndarray  # beams of the sensor model that hit the box
+    ground_z: np.ndarray  # local ground height under the box (NaN: none seen)
+    terms: dict[str, np.ndarray]
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        names = ("n_in", "n_stop", "n_pass", "n_occluded", "n_rays", "expected", "ground_z")
+        raw = {k: getattr(self, k) for k in names}
+        return {**raw, **self.terms}
+
+
+def _box_frame(boxes: Boxes, index: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """Points ``xyz (P, 3)`` in the frame of box ``index (P,)`` (origin at its centre)."""
+    c, s = np.cos(boxes.yaw[index]), np.sin(boxes.yaw[index])
+    d = xyz - boxes.center[index]
+    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
+
+
+def _slab(origin: np.ndarray, direction: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Entry and exit ray parameters of ``origin + t * direction`` through boxes ``[lo, hi]`` (rows)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / direction
+        t1 = (lo - origin) * inv
+        t2 = (hi - origin) * inv
+        # fmax / fmin skip the NaN of a ray parallel to a slab starting on its plane
+        tmin = np.fmax.reduce(np.minimum(t1, t2), axis=1)
+        tmax = np.fmin.reduce(np.maximum(t1, t2), axis=1)
+    return tmin, tmax
+
+
+def _angular_window(boxes: Boxes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per box: azimuth interval (lo, hi), conservative elevation interval (lo, hi), and
+    whether the sensor sits outside the box's footprint (boxes around the sensor are not judged)."""
+    corners = box_corners(boxes)
+    centre_az = np.arctan2(boxes.center[:, 1], boxes.center[:, 0])
+    rel = np.angle(np.exp(1j * (np.arctan2(corners[..., 1], corners[..., 0]) - centre_az[:, None])))
+    az_lo, az_hi = centre_az + rel.min(axis=1), centre_az + rel.max(axis=1)
+    r = np.linalg.norm(boxes.center[:, :2], axis=1)
+    half_diag = np.linalg.norm(boxes.size[:, :2], axis=1) / 2
+    outside = r > half_diag + 0.1
+    d_min = np.maximum(r - half_diag, 0.1)
+    d_max = r + half_diag
+    top = boxes.center[:, 2] + boxes.size[:, 2] / 2
+    bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
+    el_hi = np.arctan2(top, np.where(top > 0, d_min, d_max))
+    el_lo = np.arctan2(bottom, np.where(bottom < 0, d_min, d_max))
+    return az_lo, az_hi, el_lo, el_hi, outside
+
+
+def _rays_towards(xyz: np.ndarray, az_lo, az_hi, el_lo, el_hi, judged) -> tuple[np.ndarray, np.ndarray]:
+    """(point, box) pairs whose ray from the sensor lies in the box's angular window.
+
+    One pass over the scan (the azimuth of each point in the scan's precision, a radix sort
+    into 0.1 deg bins); the boxes' bins expand into candidate pairs without a Python loop;
+    elevations are computed for the candidates only. Non-finite points never pair."""
+    az = np.arctan2(xyz[:, 1], xyz[:, 0])
+    with np.errstate(invalid="ignore"):
+        scaled = (az + np.float32(np.pi)) * np.float32(_AZ_BINS / (2 * np.pi))
+        key = np.where(np.isfinite(scaled), scaled, 0).astype(np.int16)
+    np.clip(key, 0, _AZ_BINS - 1, out=key)
+    order = np.argsort(key, kind="stable")
+    starts = np.searchsorted(key[order], np.arange(_AZ_BINS + 1))
+    boxes_idx = np.flatnonzero(judged)
+    b0 = np.floor((az_lo[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64)
+    b1 = np.floor((az_hi[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64)
+    nbins = b1 - b0 + 1
+    box_of_bin = np.repeat(boxes_idx, nbins)
+    local = np.arange(nbins.sum()) - np.repeat(np.cumsum(nbins) - nbins, nbins)
+    bins = (np.repeat(b0, nbins) + local) % _AZ_BINS
+    lo, hi = starts[bins], starts[bins + 1]
+    count = hi - lo
+    pair_box = np.repeat(box_of_bin, count)
+    offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    pair_point = order[np.repeat(lo, count) + offset]
+    p = xyz[pair_point].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        e = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+        keep = (e >= el_lo[pair_box]) & (e <= el_hi[pair_box])
+    return pair_point[keep], pair_box[keep]
+
+
+def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_hi, judged) -> np.ndarray:
+    """Beams of the sensor model (rings x azimuth steps) whose rays hit each box."""
+    out = np.zeros(len(boxes))
+    rings = sensor.ring_elevations()
+    step = np.deg2rad(sensor.azimuth_resolution_deg)
+    idx = np.flatnonzero(judged)
+    if not len(idx):
+        return out
+    n_az_full = np.floor((az_hi[idx] - az_lo[idx]) / step).astype(np.int64) + 1
+    # A near box spans hundreds of columns: sample at most EXPECTED_COLUMNS of them, evenly,
+    # and scale the count back (an unbiased estimate; exact for far boxes).
+    n_az = np.minimum(n_az_full, EXPECTED_COLUMNS)
+    stretch = n_az_full / n_az
+    r_lo = np.searchsorted(rings, el_lo[idx])
+    r_hi = np.searchsorted(rings, el_hi[idx], side="right")
+    n_ring = np.maximum(r_hi - r_lo, 0)
+    per = n_az * n_ring
+    box = np.repeat(idx, per)
+    local = np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per)
+    n_az_b = np.repeat(n_az, per)
+    azimuth = np.repeat(az_lo[idx], per) + (local % n_az_b + 0.5) * step * np.repeat(stretch, per)
+    elevation = rings[np.repeat(r_lo, per) + local // n_az_b]
+    direction = np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
+    )
+    origin = _box_frame(boxes, box, np.zeros((len(box), 3)))
+    c, s = np.cos(boxes.yaw[box]), np.sin(boxes.yaw[box])
+    dx, dy = direction[:, 0], direction[:, 1]
+    d_local = np.stack([c * dx + s * dy, -s * dx + c * dy, direction[:, 2]], 1)
+    half = boxes.size[box] / 2
+    lo, hi = -half.copy(), half.copy()
+    lo[:, 2] += EVIDENCE_GROUND
+    tmin, tmax = _slab(origin, d_local, lo, hi)
+    hit = tmax >= np.maximum(tmin, 0.0)
+    weight = np.zeros(len(boxes))
+    weight[idx] = stretch
+    out += np.bincount(box[hit], minlength=len(boxes)) * weight
+    return out
+
+
+def _local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH, quantile: float = 0.05) -> np.ndarray:
+    """Ground height around each box: the ``quantile`` of the z of the returns within ``reach``
+    metres of its footprint and from 3 m below to 1 m above its bottom (NaN when there are none)."""
+    n = len(boxes)
+    if n == 0:
+        return np.zeros(0)
+    bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
+    centre = np.c_[boxes.center[:, :2], bottom - 1.0]
+    wide = Boxes(centre, np.c_[boxes.size[:, :2] + 2 * reach, np.full(n, 4.0)], boxes.yaw)
+    z = np.asarray(points)[:, 2]
+    out = np.full(n, np.nan)
+    for b, idx in enumerate(points_in_boxes(points, wide)):  # one partial sort per box (boxes, not points)
+        if len(idx):
+            k = int(quantile * (len(idx) - 1))
+            out[b] = np.partition(z[idx], k)[k]
+    return out
+
+
+def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None) -> Evidence:
+    """Free-space, return-count and ground-contact measurements of every box, from the scan.
+
+    The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
+    Vectorised over (ray, box) pairs: one pass over the scan, no loop over points or boxes.
+    """
+    sensor = sensor or SensorModel()
+    points = np.asarray(points)
+    n = len(boxes)
+    zero = np.zeros(n)
+    if n == 0:
+        return Evidence(*([zero] * 7), _derive(*([zero] * 7), boxes))
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise DataError(f"points must be (N, >=3), got shape {points.shape}")
+    az_lo, az_hi, el_lo, el_hi, judged = _angular_window(boxes)
+    xyz = points[:, :3]
+    pair_point, pair_box = _rays_towards(xyz, az_lo, az_hi, el_lo, el_hi, judged)
+    # Box-frame ray: origin (the sensor, one per box) + t * (point - origin); t = 1 at the return.
+    origin_box = _box_frame(boxes, np.arange(n), np.zeros((n, 3)))
+    o_local = origin_box[pair_box]
+    direction = _box_frame(boxes, pair_box, xyz[pair_point].astype(np.float64)) - o_local
+    half = boxes.size / 2
+    body_lo, body_hi = -half.copy(), half.copy()
+    body_lo[:, 2] += EVIDENCE_GROUND
+    tin, tout = _slab(o_local, direction, body_lo[pair_box], body_hi[pair_box])
+    through = np.flatnonzero(tout >= np.maximum(tin, 0.0))  # rays that cross the box at all
+    pair_box, o_local, direction = pair_box[through], o_local[through], direction[through]
+    tin, tout = tin[through], tout[through]
+    scale = np.array([CORE_FRACTION[0], CORE_FRACTION[1], 1.0])
+    core_lo, core_hi = -half * scale, half * scale
+    core_lo[:, 2] = -half[:, 2] + CORE_Z[0] * 2 * half[:, 2]
+    core_hi[:, 2] = -half[:, 2] + CORE_Z[1] * 2 * half[:, 2]
+    cin, cout = _slab(o_local, direction, core_lo[pair_box], core_hi[pair_box])
+    through_core = cout >= np.maximum(cin, 0.0)
+    inside = (tin <= 1.0) & (1.0 <= tout)
+    occluded = 1.0 < tin
+    stop = through_core & (tin <= 1.0) & (1.0 <= cout)
+    passed = through_core & (1.0 > cout)
+
+    def count(mask):
+        return np.bincount(pair_box[mask], minlength=n).astype(np.float64)
+
+    n_in, n_occ, n_stop = count(inside), count(occluded), count(stop)
+    n_pass, n_rays = count(passed), np.bincount(pair_box, minlength=n).astype(np.float64)
+    expected = _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged)
+    ground = _local_ground(xyz, boxes)
+    return Evidence(
+        n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
+        _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),
+    )
+
+
+def _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes: Boxes) -> dict[str, np.ndarray]:
+    """The dimensionless terms the score combines (documented in docs/filter.md)."""
+    visible = np.where(n_rays > 0, 1.0 - n_occ / np.maximum(n_rays, 1.0), 1.0)
+    density = np.log((n_in + 1.0) / (expected * visible + 1.0))
+    free_space = np.log((n_pass + 0.5) / (n_stop + 0.5))
+    bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
+    gap = np.abs(bottom - ground)
+    ground_gap = np.where(np.isfinite(gap), np.minimum(gap, 3.0), 0.0)
+    return {"density": density, "free_space": free_space, "ground_gap": ground_gap}
+
+
+def score_logit(scores: np.ndarray, mapping: str) -> np.ndarray:
+    """The detector score as a logit: raw for ``sigmoid`` (already a logit), ``logit(p)`` for
+    probabilities (clipped to [1e-4, 1 - 1e-4])."""
+    scores = np.asarray(scores, dtype=np.float64)
+    if mapping == "sigmoid":
+        return scores
+    p = np.clip(map_scores(scores, mapping), 1e-4, 1 - 1e-4)
+    return np.log(p / (1 - p))
+
+
+def term_matrix(terms: dict[str, np.ndarray]) -> np.ndarray:
+    """``(N, len(TERMS))`` feature matrix; a missing mismatch (NaN: not judged) reads 0."""
+    n = len(next(iter(terms.values())))
+    cols = [np.nan_to_num(np.asarray(terms.get(t, np.zeros(n)), dtype=np.float64), nan=0.0) for t in TERMS]
+    return np.stack(cols, axis=1)
+
+
+def false_probability(terms: dict[str, np.ndarray], config: FilterConfig) -> np.ndarray:
+    """``sigmoid(w_bias + X @ w)``: the calibrated probability that each detection is false."""
+    x = term_matrix(terms)
+    z = config.w_bias + x @ config.weights
+    return 1.0 / (1.0 + np.exp(-z))
+
+
+def filter_terms(
+    points: np.ndarray, boxes: Boxes, config: FilterConfig, mismatch: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
+    """Every term of the evidence rule for ``boxes`` in ``points`` (plus the raw counts)."""
+    ev = evidence(points, boxes, SENSOR_PRESETS[config.sensor])
+    out = ev.as_dict()
+    out["score"] = score_logit(boxes.score, config.score_mapping)
+    out["mismatch"] = np.full(len(boxes), np.nan) if mismatch is None else np.asarray(mismatch, dtype=np.float64)
+    return out
+
+
+# ============================================================================ visible decisions
+
+#: class_id of the extra hypothesis carrying the filter's probability that a detection is false.
+SCORE_CLASS_ID = "pcc_filter_score"
+#: class_id prefix of the hypotheses carrying the terms behind it (``pcc_filter/density`` ...).
+TERM_CLASS_PREFIX = "pcc_filter/"
+
+
+def decision_texts(result) -> list[str] | None:
+    """RViz text per detection: ``"Car 8.30 | p_false 0.02 kept"`` (evidence rule) or
+    ``"Car 0.40 | mismatch 0.71 rejected"`` (trapcc rule); None when nothing was judged."""
+    n = len(result.detections)
+    if not n:
+        return None
+    score = result.filter_score if result.filter_score is not None else np.full(n, np.nan)
+    out = []
+    for i in range(n):  # one label per box
+        head = f"{result.detections.label[i]} {result.detections.score[i]:.2f}"
+        if np.isfinite(score[i]):
+            out.append(f"{head} | p_false {score[i]:.2f} {result.status[i]}")
+        elif np.isfinite(result.mismatch[i]):
+            out.append(f"{head} | mismatch {result.mismatch[i]:.2f} {result.status[i]}")
+        else:
+            out.append(f"{head} | {result.status[i]}")
+    return out
+
+
+def annotate_detections(detections: list, result, index: np.ndarray, classes=None) -> list:
+    """Copies of ``detections`` (``vision_msgs/Detection3D``, detection ``index[k]`` of
+    ``result``) with the filter's decision appended to ``results``: one
+    ``ObjectHypothesisWithPose`` ``class_id="pcc_filter_score"``, score = probability that the
+    detection is false, then one ``pcc_filter/<term>`` per finite term (score = the term's
+    value), all with the box pose. The detector's own hypotheses come first, untouched."""
+    from pcc_ros.msg.typestore import new_message
+
+    if result.filter_score is None and not np.isfinite(result.mismatch).any():
+        return list(detections)
+    out = []
+    for det, i in zip(detections, index):  # a few dozen detections per frame
+        values: list[tuple[str, float]] = []
+        score = np.nan if result.filter_score is None else result.filter_score[i]
+        if np.isfinite(score):
+            values.append((SCORE_CLASS_ID, float(score)))
+        for term in TERMS:
+            v = result.filter_terms.get(term)
+            if v is not None and np.isfinite(v[i]):
+                values.append((TERM_CLASS_PREFIX + term, float(v[i])))
+        if np.isfinite(result.mismatch[i]) and not any(k.endswith("/mismatch") for k, _ in values):
+            values.append((TERM_CLASS_PREFIX + "mismatch", float(result.mismatch[i])))
+        extra = [
+            new_message(
+                "vision_msgs/msg/ObjectHypothesisWithPose",
+                classes,
+                hypothesis=new_message("vision_msgs/msg/ObjectHypothesis", classes, class_id=k, score=v),
+                pose=new_message(
+                    "geometry_msgs/msg/PoseWithCovariance", classes, pose=det.bbox.center,
+                    covariance=np.zeros(36, dtype=np.float64),
+                ),
+            )
+            for k, v in values
+        ]
+        out.append(
+            new_message(
+                "vision_msgs/msg/Detection3D", classes, header=det.header, results=[*det.results, *extra],
+                bbox=det.bbox, id=det.id,
+            )
+        )
+    return out
+
+
+def decision_counts(status: np.ndarray) -> dict[str, int]:
+    """kept / rejected / skipped counts of one frame's statuses (for /diagnostics)."""
+    status = np.asarray(status, dtype=object)
+    return {k: int((status == k).sum()) for k in ("kept", "rejected", "skipped")}

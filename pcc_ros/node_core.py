@@ -151,6 +151,8 @@ class NodeCore:
         if self._scan_timeout_ns <= 0:
             raise ConfigError(f"scan_timeout must be > 0, not {values['scan_timeout']}")
         self._no_transform_logged: set[tuple[str, str]] = set()
+        self.decisions = {"kept": 0, "rejected": 0, "skipped": 0}  # filter mode: totals
+        self.last_decisions = dict(self.decisions)
         self.latency_ms: list[float] = []
         remap = remap or {}
         self.topics = {name: remap.get(name, name) for name in [*INPUTS, *OUTPUTS[mode]]}
@@ -318,6 +320,12 @@ class NodeCore:
         for name, msg in published.items():
             self.publishers[name].publish(msg)
         self.frames += 1
+        if self.mode == "filter":
+            from pcc_ros.filter import decision_counts
+
+            self.last_decisions = decision_counts(result.status)
+            for k, v in self.last_decisions.items():
+                self.decisions[k] += v
         self.latency_ms.append((time.perf_counter() - tic) * 1e3)
         del self.latency_ms[:-200]
         if result.skipped:
@@ -387,6 +395,10 @@ class NodeCore:
             "latency_p50_ms": f"{np.percentile(latency, 50):.1f}",
             "latency_p95_ms": f"{np.percentile(latency, 95):.1f}",
         }
+        if self.mode == "filter":
+            for k in ("kept", "rejected", "skipped"):
+                values[f"detections_{k}"] = self.decisions[k]
+                values[f"last_frame_{k}"] = self.last_decisions[k]
         return {k: str(v) for k, v in values.items()}
 
     def diagnostics_message(self):

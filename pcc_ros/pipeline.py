@@ -22,7 +22,7 @@ import numpy as np
 
 from pcc_ros.boxes import Boxes, class_mask
 from pcc_ros.errors import ConfigError
-from pcc_ros.filter import FilterConfig, map_scores, mismatch_scores, reject_mask
+from pcc_ros.filter import FilterConfig, false_probability, filter_terms, map_scores, mismatch_scores, reject_mask
 from pcc_ros.geometry.boxes import crop_canonical
 from pcc_ros.geometry.canonical import from_canonical
 
@@ -267,6 +267,10 @@ class FrameResult:
         """The points the backend made for detection ``index`` (observed points excluded)."""
         mine = (self.completed_instance == index) & (self.completed_source == SOURCE_COMPLETED)
         return self.completed_points[mine]
+    #: evidence rule: probability that each detection is false (NaN: not judged) and the
+    #: terms behind it (``pcc_ros.filter.TERMS`` plus raw counts), one value per detection.
+    filter_score: np.ndarray | None = None
+    filter_terms: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def keep(self) -> np.ndarray:
@@ -299,6 +303,14 @@ class Pipeline:
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
             )
         self.completer = completer
+        # The filter's own completion backend for its shape-mismatch term (a car-constrained
+        # one such as TraPCC or AML); "" or the pipeline's backend: reuse its completions.
+        self.filter_completer = None
+        name = config.filter.filter_backend
+        if config.filter.uses_mismatch and name and name != config.backend:
+            from pcc_ros.models.base import load_completer
+
+            self.filter_completer = load_completer(name, None, device=config.device)
 
     @staticmethod
     def _runtime_options(config: PipelineConfig) -> dict[str, Any]:
@@ -367,17 +379,35 @@ class Pipeline:
         timings["complete_ms"] = _ms(tic)
 
         tic = time.perf_counter()
-        if crops:
-            mismatch[selected] = mismatch_scores(crops, completions, cfg.filter)
-        judged = np.isfinite(mismatch)
+        filter_score = np.full(n, np.nan)
+        terms: dict[str, np.ndarray] = {}
+        if crops and cfg.filter.uses_mismatch:
+            shapes = completions
+            if self.filter_completer is not None:
+                shapes = self.filter_completer.complete(crops, context)
+            mismatch[selected] = mismatch_scores(crops, shapes, cfg.filter)
         threshold = cfg.detection_thresholds(detections.label)
-        rejected = np.zeros(n, dtype=bool)
-        for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
-            group = threshold == value
-            rejected[group] = reject_mask(
-                mismatch[group], detections.score[group], replace(cfg.filter, detection_threshold=float(value))
-            )
-        status[judged] = np.where(rejected[judged], "rejected", "kept")
+        if cfg.filter.rule == "evidence":
+            # Every box of the configured classes is judged, sparse or not (the cap on
+            # completions does not apply: the evidence terms are cheap).
+            judged_idx = np.flatnonzero(wanted)
+            if len(judged_idx):
+                part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx])
+                terms = {k: np.full(n, np.nan) for k in part}
+                for k, v in part.items():
+                    terms[k][judged_idx] = v
+                filter_score[judged_idx] = false_probability(part, cfg.filter)
+                reject = filter_score[judged_idx] > cfg.filter.reject_threshold
+                status[judged_idx] = np.where(reject, "rejected", "kept")
+        else:
+            judged = np.isfinite(mismatch)
+            rejected = np.zeros(n, dtype=bool)
+            for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
+                group = threshold == value
+                rejected[group] = reject_mask(
+                    mismatch[group], detections.score[group], replace(cfg.filter, detection_threshold=float(value))
+                )
+            status[judged] = np.where(rejected[judged], "rejected", "kept")
         probability = map_scores(detections.score, cfg.filter.score_mapping)
         timings["filter_ms"] = _ms(tic)
 
@@ -424,6 +454,8 @@ class Pipeline:
             completed_source=sources,
             probability=probability,
             threshold=threshold,
+            filter_score=filter_score,
+            filter_terms=terms,
         )
 
     # ------------------------------------------------------------------ messages
@@ -519,6 +551,7 @@ def build_outputs(
     (Detection3DArray: the original detection messages when given, so every hypothesis and
     id survives untouched, else re-encoded from the boxes).
     """
+    from pcc_ros.filter import annotate_detections
     from pcc_ros.msg.detections import detection_array_from_boxes, marker_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
     from pcc_ros.msg.stamps import make_header
@@ -540,12 +573,13 @@ def build_outputs(
             header = detections_header or make_header(result.frame_id, result.stamp_ns, classes)
             chosen = [d for d, m in zip(original_detections, mask) if m]
             outputs[topic] = new_message(
-                "vision_msgs/msg/Detection3DArray", classes, header=header, detections=chosen
+                "vision_msgs/msg/Detection3DArray", classes, header=header,
+                detections=annotate_detections(chosen, result, np.flatnonzero(mask), classes),
             )
         else:
-            outputs[topic] = detection_array_from_boxes(
-                result.detections[mask], result.frame_id, result.stamp_ns, classes
-            )
+            array = detection_array_from_boxes(result.detections[mask], result.frame_id, result.stamp_ns, classes)
+            array.detections = annotate_detections(list(array.detections), result, np.flatnonzero(mask), classes)
+            outputs[topic] = array
     return outputs
 
 
@@ -568,12 +602,17 @@ def completed_cloud_array(result: FrameResult) -> np.ndarray:
 
 
 def filter_texts(result: FrameResult) -> list[str]:
-    """One RViz label per detection: class, mapped score, mismatch score and decision."""
+    """One RViz label per detection: class, mapped score, then the evidence rule's probability
+    that the detection is false (``p_false=``) or the TraPCC mismatch score (``m=``), and the decision."""
     probability = result.probability if result.probability is not None else result.detections.score
+    false = result.filter_score if result.filter_score is not None else np.full(len(probability), np.nan)
     texts = []
-    for label, p, m, status in zip(result.detections.label, probability, result.mismatch, result.status):
-        mismatch = f"m={m:.2f}" if np.isfinite(m) else "m=-"
-        texts.append(f"{label} p={p:.2f} {mismatch} {status}")
+    for label, p, f, m, status in zip(result.detections.label, probability, false, result.mismatch, result.status):
+        if np.isfinite(f):
+            texts.append(f"{label} p={p:.2f} p_false={f:.2f} {status}")
+        else:
+            mismatch = f"m={m:.2f}" if np.isfinite(m) else "m=-"
+            texts.append(f"{label} p={p:.2f} {mismatch} {status}")
     return texts
 
 

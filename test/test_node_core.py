@@ -189,7 +189,7 @@ def test_diagnostics_follow_the_simulated_clock(graph):
 
 
 def test_detections_in_another_frame_go_through_the_runtime_transform(graph):
-    core = _node(graph, "filter")
+    core = _node(graph, "filter", rule="trapcc")  # the scene's ground shows through its cars
     kept = _tap(graph, "/detections_filtered", DETS)
     driver = LocalRuntime(graph, "driver")
     pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
@@ -273,7 +273,7 @@ def test_qos_parameters_reach_the_subscriptions_and_publishers(graph):
 
 
 def test_set_parameters_swaps_thresholds_and_backend_without_dropping_the_node(graph):
-    core = _node(graph, "filter")
+    core = _node(graph, "filter", rule="trapcc")  # the TraPCC rule's thresholds (the scene is see-through)
     rejected = _tap(graph, "/detections_rejected", DETS)
     driver = LocalRuntime(graph, "driver")
     pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
@@ -316,7 +316,7 @@ def test_set_parameters_swaps_thresholds_and_backend_without_dropping_the_node(g
 def test_class_thresholds_override_the_detection_threshold_per_class(graph):
     with pytest.raises(ConfigError, match=r"'Car=0\.3'"):
         _node(graph, "filter", class_thresholds="Car=0.3")
-    core = _node(graph, "filter", class_thresholds="Car:0.1")
+    core = _node(graph, "filter", class_thresholds="Car:0.1", rule="trapcc")  # the TraPCC score gate
     rejected = _tap(graph, "/detections_rejected", DETS)
     driver = LocalRuntime(graph, "driver")
     cloud, dets = _messages(1_000_000_000)
@@ -398,7 +398,7 @@ def test_completed_cloud_carries_instance_source_colour_and_score(graph):
 
 
 def test_filter_markers_read_the_mapped_score_mismatch_and_decision(graph):
-    _node(graph, "filter", score_mapping="sigmoid", detection_threshold=0.6)
+    _node(graph, "filter", score_mapping="sigmoid", detection_threshold=0.6, rule="trapcc")
     markers = _tap(graph, "/filter_markers", "visualization_msgs/msg/MarkerArray")
     driver = LocalRuntime(graph, "driver")
     cloud, dets = _messages(1_000_000_000)

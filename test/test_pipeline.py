@@ -7,6 +7,7 @@ import pytest
 
 from pcc_ros.boxes import Boxes
 from pcc_ros.errors import ConfigError, MessageError
+from pcc_ros.filter import FilterConfig
 from pcc_ros.models.base import load_completer
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
@@ -45,7 +46,10 @@ def make_frame(seed: int = 0):
 
 @pytest.fixture(scope="module")
 def pipeline():
-    return Pipeline(PipelineConfig(backend="mirror", min_points=10), completer=load_completer("mirror"))
+    # The constructed scene has ground returns behind the cars (no LiDAR would see them): these
+    # tests exercise the TraPCC shape-mismatch rule; the evidence rule has test_filter_evidence.py.
+    config = PipelineConfig(backend="mirror", min_points=10, filter=FilterConfig(rule="trapcc"))
+    return Pipeline(config, completer=load_completer("mirror"))
 
 
 def test_completions_lie_around_their_boxes(pipeline):
@@ -94,7 +98,11 @@ def test_messages_round_trip_and_outputs(pipeline):
     rejected = boxes_from_detection_array(outputs["detections_rejected"])
     assert len(kept) + len(rejected) == len(boxes)
     assert list(rejected.track_id) == ["3"]
-    assert outputs["detections_filtered"].detections[0] is originals[0]  # originals republished untouched
+    # The original detections are republished with their own hypotheses first, untouched, and
+    # the filter's decision appended (pcc_filter/mismatch here: the TraPCC rule).
+    first = outputs["detections_filtered"].detections[0]
+    assert first.results[0] is originals[0].results[0] and first.bbox is originals[0].bbox
+    assert first.id == originals[0].id and first.results[-1].hypothesis.class_id == "pcc_filter/mismatch"
 
 
 def test_nan_box_is_skipped_and_counted(pipeline):
@@ -149,7 +157,8 @@ def test_shipped_backend_scores_false_detections_higher_on_synthcars(tmp_path):
     from pcc_ros.demo import truly_vehicle
 
     generate(tmp_path, sequences=1, frames=3, seed=11, progress=False)
-    pipeline = Pipeline(PipelineConfig(device="cpu", min_points=5, max_instances=64))
+    config = PipelineConfig(device="cpu", min_points=5, max_instances=64, filter=FilterConfig(rule="trapcc"))
+    pipeline = Pipeline(config)
     true_scores, false_scores = [], []
     frames = KittiTracking(tmp_path / "training").frames("0000", detections_dir=tmp_path / "detections" / "synthetic")
     for frame in frames:

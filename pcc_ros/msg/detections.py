@@ -168,9 +168,16 @@ def _keep_valid(reasons: list[str], what: str, skip_invalid: bool, ids: np.ndarr
     return keep
 
 
+#: class_id prefix of the detection filter's annotations (``pcc_filter_score``,
+#: ``pcc_filter/<term>``): never a detection's class (docs/filter.md).
+FILTER_HYPOTHESIS_PREFIX = "pcc_filter"
+
+
 def _best_hypothesis(results) -> tuple[str, float]:
     best_label, best_score = "", None
     for result in results:  # a handful of hypotheses per detection
+        if str(result.hypothesis.class_id).startswith(FILTER_HYPOTHESIS_PREFIX):
+            continue
         score = float(result.hypothesis.score)
         if best_score is None or score > best_score or (np.isnan(score) and not np.isnan(best_score)):
             best_label, best_score = str(result.hypothesis.class_id), score

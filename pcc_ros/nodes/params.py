@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.filter import SCORE_MAPPINGS, FilterConfig
+from pcc_ros.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
 from pcc_ros.pipeline import NODE_DEFAULTS, PipelineConfig
 
 RELIABILITIES = ("reliable", "best_effort")
@@ -41,6 +41,17 @@ DESCRIPTIONS = {
     "max_box_tilt": "radians of roll / pitch a box may have (dropped, yaw kept); more tilted boxes are skipped",
     "max_crop_work": "per-frame bound on (point, box) pairs, about the points under all box footprints; "
     "lowest-score boxes beyond it are skipped and counted",
+    "rule": "filter rule: evidence (calibrated scan evidence, docs/filter.md) | trapcc (shape mismatch + score gate)",
+    "w_bias": "evidence rule: logistic bias (pcc calibrate-filter)",
+    "w_density": "evidence rule: weight of log((returns in box + 1) / (returns a car would give + 1))",
+    "w_free_space": "evidence rule: weight of the log-odds of rays passing through the box core vs ending in it",
+    "w_ground_gap": "evidence rule: weight of the box bottom's distance to the local ground (m)",
+    "w_score": "evidence rule: weight of the detector score as a logit (after score_mapping)",
+    "w_mismatch": "evidence rule: weight of the shape-mismatch score (0 unless calibrated with a car-constrained "
+    "backend)",
+    "reject_threshold": "evidence rule: detections whose probability of being false exceeds this are rejected",
+    "sensor": "evidence rule: LiDAR beam model for the expected returns (hdl64 = KITTI, hdl32 = nuScenes)",
+    "filter_backend": "completion backend of the mismatch term ('' = the pipeline's backend)",
     "match_threshold": "shape-mismatch score above which a low-score detection is rejected",
     "detection_threshold": "detections scoring at least this (after score_mapping) are always kept",
     "score_mapping": "identity (scores are probabilities) or sigmoid (scores are logits, e.g. PointRCNN)",
@@ -70,6 +81,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "workers": (1, 64),
     "match_threshold": (0.0, 1.0),
     "detection_threshold": (0.0, 1.0),
+    "reject_threshold": (1e-6, 1.0 - 1e-6),
     "mcd_scale": (1e-6, 10.0),
     "contour_scale": (1e-6, 10.0),
     "grid_cells": (2, 256),
@@ -85,6 +97,8 @@ RANGES: dict[str, tuple[float, float]] = {
 #: Parameters restricted to a fixed set of strings.
 CHOICES: dict[str, tuple[str, ...]] = {
     "score_mapping": SCORE_MAPPINGS,
+    "rule": RULES,
+    "sensor": tuple(SENSOR_PRESETS),
     "qos.points.reliability": RELIABILITIES,
     "qos.detections.reliability": RELIABILITIES,
     "qos.outputs.reliability": RELIABILITIES,

@@ -1,0 +1,501 @@
+"""``pcc calibrate-filter``: fit the evidence rule's weights and threshold, reproducibly.
+
+Data (every detection becomes one row of the evidence terms of :mod:`pcc_ros.filter` and a
+true / false label):
+
+* **real frames** (``--real``): a labelled KITTI set with a detector's results, e.g. KITTI
+  tracking 0000 frames 0-19 with PointRCNN — real scans, real detections, real false ones;
+* **SynthCars** (``--synth``): its simulated detector's true detections, and false ones from
+  a simulator *matched to the real false detections*: each is a copy of a real false box
+  (size, range, height above the ground, detector score) placed at a random bearing in the
+  camera's field of view where the scan gives it about as many returns as the real one had
+  (the best of ``CANDIDATES`` seeded placements); synthetic true scores are mapped, rank for
+  rank, onto the real true detections' scores — so the score term has one scale;
+* **KITTI object frames** (``--object``, optional): real scans whose labelled cars become
+  true detections (with detector-like box noise and real true scores) and simulated false ones.
+
+Fit: an L2-regularised logistic regression (Newton / IRLS, deterministic) of
+``false ~ density + free_space + ground_gap + score`` (5 parameters), the real frames
+weighted as much as the simulated ones together. Threshold: the smallest probability that
+loses at most ``--max-lost`` of the calibration set's true detections.
+
+Honesty: ``--folds K`` also runs leave-frames-out cross-validation over the real frames
+(contiguous blocks of frames; the simulator's templates and the fit see only the training
+frames) and reports the held-out operating figures. Same inputs and seed, same output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pcc_ros.boxes import Boxes
+from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.filter import EVIDENCE_GROUND, TERMS, FilterConfig, _local_ground, filter_terms, term_matrix
+
+log = logging.getLogger(__name__)
+
+#: Terms the calibration fits (the mismatch term joins once a car-constrained backend exists).
+FIT_TERMS = ("density", "free_space", "ground_gap", "score")
+CANDIDATES = 48  # seeded placements tried per simulated false detection
+CAMERA_HALF_FOV = np.deg2rad(40.0)  # KITTI's colour camera sees about +-40 deg
+
+
+@dataclass
+class Table:
+    """Evidence rows: features ``x (N, len(TERMS))``, labels (1 = false detection), frame group,
+    source ("real" / "synth" / "object") and the real false-box statistics when from ``real``."""
+
+    x: np.ndarray
+    false: np.ndarray
+    group: np.ndarray
+    source: np.ndarray
+
+    @classmethod
+    def concatenate(cls, parts: list[Table]) -> Table:
+        parts = [p for p in parts if len(p.false)]
+        if not parts:
+            return cls(np.zeros((0, len(TERMS))), np.zeros(0, bool), np.zeros(0, object), np.zeros(0, object))
+        return cls(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("x", "false", "group", "source")))
+
+    def subset(self, mask: np.ndarray) -> Table:
+        return Table(self.x[mask], self.false[mask], self.group[mask], self.source[mask])
+
+
+@dataclass
+class FalseTemplates:
+    """Statistics of real false detections the simulator copies: one row each."""
+
+    size: np.ndarray  # (K, 3)
+    range: np.ndarray  # (K,)
+    points: np.ndarray  # (K,) returns in the box (evidence n_in)
+    gap: np.ndarray  # (K,) signed height of the box bottom above the local ground
+    score: np.ndarray  # (K,) raw detector score
+    rate: float  # false detections per frame
+    true_scores: np.ndarray  # raw scores of the real true detections
+
+
+# ----------------------------------------------------------------------------- logistic regression
+
+
+def fit_logistic(x: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None, l2: float = 1e-2,
+                 iterations: int = 50) -> tuple[float, np.ndarray]:
+    """L2-regularised logistic regression by Newton's method: (bias, weights). Deterministic.
+
+    Features are standardised inside (the penalty is on standardised weights; the bias is not
+    penalised); the returned weights apply to the raw features.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    w = np.ones(len(y)) if weight is None else np.asarray(weight, dtype=np.float64)
+    w = w / w.mean()
+    mu, sd = x.mean(axis=0), x.std(axis=0)
+    sd = np.where(sd > 1e-9, sd, 1.0)
+    z = np.c_[np.ones(len(x)), (x - mu) / sd]
+    beta = np.zeros(z.shape[1])
+    penalty = np.full(z.shape[1], l2 * len(y))
+    penalty[0] = 0.0
+    for _ in range(iterations):
+        p = 1.0 / (1.0 + np.exp(-np.clip(z @ beta, -30, 30)))
+        grad = z.T @ (w * (p - y)) + penalty * beta
+        hess = (z * (w * p * (1 - p))[:, None]).T @ z + np.diag(penalty + 1e-9)
+        step = np.linalg.solve(hess, grad)
+        beta -= step
+        if np.abs(step).max() < 1e-10:
+            break
+    weights = beta[1:] / sd
+    bias = beta[0] - float((beta[1:] * mu / sd).sum())
+    return float(bias), weights
+
+
+def predict(bias: float, weights: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-(bias + x @ weights)))
+
+
+def threshold_for(p: np.ndarray, false: np.ndarray, max_lost: float) -> float:
+    """Smallest probability threshold (reject ``p > t``) losing at most ``max_lost`` of the true rows."""
+    true_p = np.sort(p[~false])[::-1]
+    if not len(true_p):
+        return 0.5
+    allowed = int(np.floor(max_lost * len(true_p)))
+    t = true_p[allowed] if allowed < len(true_p) else 0.0
+    return float(min(max(t + 1e-6, 1e-6), 1 - 1e-6))
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def _columns(terms: dict[str, np.ndarray]) -> np.ndarray:
+    return term_matrix(terms)
+
+
+def real_table(frames, config: FilterConfig, gt_classes, true_iou: float) -> tuple[Table, FalseTemplates]:
+    """Evidence rows of real detections, and the false ones as simulator templates."""
+    from pcc_ros.detection_eval import detection_truth
+
+    xs, labels, groups, sizes, ranges, points, gaps, scores, true_scores = [], [], [], [], [], [], [], [], []
+    for f in frames:
+        truth = detection_truth(f, gt_classes, true_iou)
+        known = truth >= 0
+        boxes = f.dt.boxes[known]
+        if not len(boxes):
+            continue
+        terms = filter_terms(f.points, boxes, config)
+        xs.append(_columns(terms))
+        false = truth[known] == 0
+        labels.append(false)
+        groups.append(np.full(len(boxes), f.name, dtype=object))
+        sizes.append(boxes.size[false])
+        ranges.append(np.linalg.norm(boxes.center[false, :2], axis=1))
+        points.append(terms["n_in"][false])
+        bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
+        gaps.append(np.nan_to_num(bottom - terms["ground_z"], nan=0.0)[false])
+        scores.append(boxes.score[false])
+        true_scores.append(boxes.score[~false])
+    if not xs:
+        raise DataError("no real detections with a known truth to calibrate on")
+    table = Table(np.concatenate(xs), np.concatenate(labels), np.concatenate(groups),
+                  np.full(sum(len(x) for x in xs), "real", dtype=object))
+    templates = FalseTemplates(
+        np.concatenate(sizes), np.concatenate(ranges), np.concatenate(points), np.concatenate(gaps),
+        np.concatenate(scores), float(table.false.sum()) / max(len(frames), 1), np.concatenate(true_scores),
+    )
+    if not len(templates.range) or not len(templates.true_scores):
+        raise DataError("the real frames need both true and false detections to calibrate on")
+    return table, templates
+
+
+def simulate_false(points: np.ndarray, gt: Boxes, templates: FalseTemplates, rng: np.random.Generator,
+                   count: int) -> Boxes:
+    """``count`` false detections that look like the real ones (see the module docstring)."""
+    from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
+
+    if count == 0:
+        return Boxes.empty()
+    k = len(templates.range)
+    pick = rng.integers(0, k, count)
+    m = CANDIDATES
+    r = np.repeat(templates.range[pick], m) * np.exp(rng.normal(0.0, 0.1, count * m))
+    bearing = rng.uniform(-CAMERA_HALF_FOV, CAMERA_HALF_FOV, count * m)
+    size = np.repeat(templates.size[pick], m, axis=0)
+    yaw = rng.uniform(-np.pi, np.pi, count * m)
+    centre = np.c_[r * np.cos(bearing), r * np.sin(bearing), np.zeros(count * m)]
+    flat = Boxes(centre, size, yaw)
+    ground = _local_ground(points, flat)
+    ground = np.where(np.isfinite(ground), ground, np.nanmedian(ground) if np.isfinite(ground).any() else -1.73)
+    centre[:, 2] = ground + np.repeat(templates.gap[pick], m) + size[:, 2] / 2
+    cands = Boxes(centre, size, yaw, ["Car"] * (count * m), np.repeat(templates.score[pick], m))
+    n = np.array([len(i) for i in points_in_boxes(points, cands, 0.0, EVIDENCE_GROUND)], dtype=np.float64)
+    cost = np.abs(np.log1p(n) - np.log1p(np.repeat(templates.points[pick], m)))
+    if len(gt):
+        cost[iou_bev(cands, gt).max(axis=1) > 0.05] = np.inf
+    best = np.argmin(cost.reshape(count, m), axis=1) + np.arange(count) * m
+    ok = np.isfinite(cost[best])
+    return cands[best[ok]]
+
+
+def _map_scores(raw: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Rank-for-rank map of ``raw`` onto the distribution of ``reference`` (quantile mapping)."""
+    if not len(raw):
+        return raw
+    ranks = (np.argsort(np.argsort(raw, kind="stable"), kind="stable") + 0.5) / len(raw)
+    return np.quantile(reference, ranks)
+
+
+def simulated_table(frames, templates: FalseTemplates, config: FilterConfig, rng: np.random.Generator,
+                    source: str, true_iou: float, jitter: bool) -> Table:
+    """SynthCars (``jitter=False``: its detector's true detections) or real object frames
+    (``jitter=True``: labelled cars with detector-like noise) plus simulated false detections."""
+    from pcc_ros.boxes import class_mask
+    from pcc_ros.detection_eval import detection_truth
+
+    tables = []
+    for f in frames:
+        cars = f.gt.boxes[class_mask(f.gt.boxes.label, ("Car", "Van"))]
+        if jitter:
+            n = len(cars)
+            true = Boxes(
+                cars.center + rng.normal(0, 0.1, (n, 3)) * [1, 1, 0.5],
+                cars.size * np.exp(rng.normal(0, 0.03, (n, 3))),
+                cars.yaw + rng.normal(0, 0.05, n),
+                ["Car"] * n,
+                rng.choice(templates.true_scores, n),
+            )
+        else:
+            truth = detection_truth(f, ("Car", "Van"), true_iou)
+            true = f.dt.boxes[truth == 1]
+            true.score = _map_scores(true.score, templates.true_scores)
+        fake = simulate_false(f.points, f.gt.boxes, templates, rng, int(rng.poisson(templates.rate)))
+        boxes = Boxes.concatenate([true, fake])
+        if not len(boxes):
+            continue
+        terms = filter_terms(f.points, boxes, config)
+        tables.append(Table(
+            _columns(terms), np.r_[np.zeros(len(true), bool), np.ones(len(fake), bool)],
+            np.full(len(boxes), f"{source}:{f.name}", dtype=object), np.full(len(boxes), source, dtype=object),
+        ))
+    return Table.concatenate(tables)
+
+
+# ----------------------------------------------------------------------------- fit
+
+
+def fit(
+    table: Table, max_lost: float, l2: float, terms: tuple[str, ...] = FIT_TERMS
+) -> tuple[float, np.ndarray, float]:
+    """(bias, weights over TERMS, threshold); real rows weigh as much as all simulated ones."""
+    cols = [TERMS.index(t) for t in terms]
+    real = table.source == "real"
+    weight = np.ones(len(table.false))
+    if real.any() and (~real).any():
+        weight[real] = (~real).sum() / real.sum()
+    bias, w = fit_logistic(table.x[:, cols], table.false, weight, l2)
+    weights = np.zeros(len(TERMS))
+    weights[cols] = w
+    p = predict(bias, weights, table.x)
+    return bias, weights, threshold_for(p, table.false, max_lost)
+
+
+def calibrate(real_frames, synth_frames, object_frames, config: FilterConfig, seed: int, gt_classes,
+              true_iou: float = 0.3, max_lost: float = 0.01, l2: float = 1e-2,
+              terms: tuple[str, ...] = FIT_TERMS) -> dict[str, Any]:
+    """Tables, fit and the in-sample figures (see :func:`cross_validate` for held-out ones)."""
+    rng = np.random.default_rng(seed)
+    real, templates = real_table(real_frames, config, gt_classes, true_iou)
+    synth = simulated_table(synth_frames, templates, config, rng, "synth", true_iou, jitter=False)
+    obj = simulated_table(object_frames, templates, config, rng, "object", true_iou, jitter=True)
+    table = Table.concatenate([real, synth, obj])
+    bias, weights, threshold = fit(table, max_lost, l2, terms)
+    summary = {}
+    for name in ("real", "synth", "object"):
+        part = table.subset(table.source == name)
+        if not len(part.false):
+            continue
+        p = predict(bias, weights, part.x)
+        summary[name] = _figures(p, part.false, threshold, max_lost)
+    return {"bias": bias, "weights": weights, "threshold": threshold, "table": table, "in_sample": summary,
+            "templates": templates}
+
+
+def _figures(p: np.ndarray, false: np.ndarray, threshold: float, max_lost: float) -> dict[str, Any]:
+    from pcc_ros.detection_eval import auc, operating_curve, removed_at
+
+    curve = operating_curve(p, ~false)
+    best, _ = removed_at(curve, 0.02)
+    reject = p > threshold
+    return {
+        "detections": len(p), "false": int(false.sum()), "true": int((~false).sum()),
+        "false_removed_at_threshold": float(reject[false].mean()) if false.any() else float("nan"),
+        "true_lost_at_threshold": float(reject[~false].mean()) if (~false).any() else float("nan"),
+        "false_removed_at_0.02_lost_best": best,
+        "auc_false_above_true": auc(p, ~false),
+    }
+
+
+def cross_validate(real_frames, synth_frames, object_frames, config: FilterConfig, seed: int, gt_classes,
+                   folds: int, true_iou: float = 0.3, max_lost: float = 0.01, l2: float = 1e-2,
+                   terms: tuple[str, ...] = FIT_TERMS) -> dict[str, Any]:
+    """Leave-frames-out over the real frames: contiguous blocks (neighbouring tracking frames
+    see the same objects, so random splits would leak). Each fold: templates, simulation and
+    fit from the training frames only; the held-out real detections are scored with the
+    fold's weights *and threshold*. Returns pooled held-out figures and per-fold weights."""
+    if folds < 2 or folds > len(real_frames):
+        raise ConfigError(f"--folds must be between 2 and the number of real frames ({len(real_frames)})")
+    blocks = np.array_split(np.arange(len(real_frames)), folds)
+    p_all, false_all, reject_all, per_fold = [], [], [], []
+    for k, held in enumerate(blocks):
+        train = [f for i, f in enumerate(real_frames) if i not in set(held.tolist())]
+        test = [real_frames[i] for i in held]
+        fitted = calibrate(train, synth_frames, object_frames, config, seed + 1000 * (k + 1), gt_classes,
+                           true_iou, max_lost, l2, terms)
+        test_table, _ = _real_rows(test, config, gt_classes, true_iou)
+        if test_table is None:
+            continue
+        p = predict(fitted["bias"], fitted["weights"], test_table.x)
+        p_all.append(p)
+        false_all.append(test_table.false)
+        reject_all.append(p > fitted["threshold"])
+        per_fold.append({"frames": [f.name for f in test], "bias": fitted["bias"],
+                         "weights": dict(zip(TERMS, fitted["weights"].tolist())), "threshold": fitted["threshold"]})
+    p, false, reject = np.concatenate(p_all), np.concatenate(false_all), np.concatenate(reject_all)
+    figures = _figures(p, false, 0.5, max_lost)
+    figures["false_removed_at_fold_threshold"] = float(reject[false].mean())
+    figures["true_lost_at_fold_threshold"] = float(reject[~false].mean())
+    figures.pop("false_removed_at_threshold")
+    figures.pop("true_lost_at_threshold")
+    return {"folds": per_fold, "held_out": figures}
+
+
+def _real_rows(frames, config, gt_classes, true_iou):
+    try:
+        table, _ = real_table(frames, config, gt_classes, true_iou)
+    except DataError:
+        from pcc_ros.detection_eval import detection_truth
+
+        xs, labels = [], []
+        for f in frames:
+            truth = detection_truth(f, gt_classes, true_iou)
+            known = truth >= 0
+            if known.any():
+                xs.append(_columns(filter_terms(f.points, f.dt.boxes[known], config)))
+                labels.append(truth[known] == 0)
+        if not xs:
+            return None, None
+        table = Table(np.concatenate(xs), np.concatenate(labels), np.zeros(0, object), np.zeros(0, object))
+    return table, None
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def preset_yaml(base: Path, bias: float, weights: np.ndarray, threshold: float, values: dict[str, Any],
+                header: str) -> str:
+    """The node YAML ``base`` with the calibrated filter parameters put in: each key's line is
+    rewritten in place (indentation and trailing comment kept), missing keys are appended to
+    the ``ros__parameters`` block; everything else of the file stays as it was."""
+    import re
+
+    try:
+        lines = base.read_text().splitlines()
+    except OSError as exc:
+        raise DataError(f"{base}: cannot read the base node YAML ({exc.strerror})") from exc
+    params = {**values, "rule": "evidence", "w_bias": round(float(bias), 4)}
+    params.update({f"w_{t}": round(float(w), 4) for t, w in zip(TERMS, weights)})
+    params["reject_threshold"] = round(float(threshold), 4)
+    block = next((i for i, line in enumerate(lines) if line.strip() == "ros__parameters:"), None)
+    if block is None:
+        raise DataError(f"{base}: no 'ros__parameters:' block")
+    indent = next((re.match(r"\s*", line).group(0) for line in lines[block + 1:] if line.strip()), "    ")
+    for key, value in params.items():
+        pattern = re.compile(rf"^({re.escape(indent)}){re.escape(key)}:\s*([^#]*?)(\s*#.*)?$")
+        plain = isinstance(value, str) and re.fullmatch(r"[A-Za-z_][\w.-]*", value) is not None
+        text = value if plain else json.dumps(value) if isinstance(value, str) else repr(value)
+        for i, line in enumerate(lines):
+            m = pattern.match(line)
+            if m:
+                lines[i] = f"{m.group(1)}{key}: {text}{m.group(3) or ''}"
+                break
+        else:
+            lines.append(f"{indent}{key}: {text}")
+    body = [line for line in lines if not line.startswith("# calibrated:")]
+    return header + "\n".join(body) + "\n"
+
+
+#: What a preset writes besides the fitted weights: sensor model and score mapping. Both write
+#: ``score_mapping: identity`` (the project's convention: shipped configs assume probabilities;
+#: a logit detector such as PointRCNN sets ``sigmoid``): the score term is a logit either way,
+#: so weights fitted on logits hold for a detector that outputs sigmoid(logit).
+PRESETS: dict[str, dict[str, Any]] = {
+    "kitti": {"score_mapping": "identity"},
+    "nuscenes": {"sensor": "hdl32", "score_mapping": "identity", "match_threshold": 0.4},
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--real", type=Path, required=True, help="labelled KITTI root with real detections")
+    parser.add_argument("--real-detections", type=Path, required=True, help="the real detector's results")
+    parser.add_argument("--real-sequence", help="tracking sequence(s) of --real, comma-separated")
+    parser.add_argument("--real-frames", help="START:STOP of --real's scans")
+    parser.add_argument("--synth", type=Path, help="SynthCars root (pcc synth) with detections/synthetic")
+    parser.add_argument("--synth-frames", type=int, default=20, help="frames used per SynthCars sequence (20)")
+    parser.add_argument("--object", type=Path, help="KITTI object root: real scans, labelled cars as true detections")
+    parser.add_argument("--gt-classes", default="Car,Van", help="labels that make a real detection true (Car,Van)")
+    parser.add_argument("--score-mapping", choices=("identity", "sigmoid"), default="sigmoid",
+                        help="how the real detector's scores read (sigmoid: logits, PointRCNN)")
+    parser.add_argument("--sensor", default="hdl64", help="sensor model preset (hdl64 | hdl32)")
+    parser.add_argument("--max-lost", type=float, default=0.01, help="true detections the threshold may lose (0.01)")
+    parser.add_argument("--l2", type=float, default=1e-2, help="ridge penalty on standardised weights (0.01)")
+    parser.add_argument("--folds", type=int, default=5, help="leave-frames-out folds over the real frames (5; 0: none)")
+    parser.add_argument("--seed", type=int, default=0, help="simulator seed")
+    parser.add_argument("--terms", default=",".join(FIT_TERMS),
+                        help=f"terms to fit, comma-separated (default {','.join(FIT_TERMS)}; the rest get weight 0)")
+    parser.add_argument("--base-config", type=Path, help="node YAML to start from (default: the shipped one)")
+    parser.add_argument("--out", type=Path, help="write the calibrated node YAML here")
+    parser.add_argument(
+        "--preset", choices=tuple(PRESETS), default="kitti",
+        help="what --out is for: kitti (the fitted sensor and score mapping) | nuscenes (HDL-32E sensor model, "
+        "probability scores; the same physics weights: no real nuScenes detections to fit on)",
+    )
+    parser.add_argument("--json", type=Path, help="write weights, data sizes and the cross-validated figures here")
+
+
+def _synth_frames(root: Path, per_sequence: int):
+    from pcc_ros.detection_eval import load_kitti
+
+    split = root / "training" if (root / "training").is_dir() else root
+    frames = []
+    for seq in sorted(p.name for p in (split / "velodyne").iterdir() if p.is_dir()):
+        frames += load_kitti(root, root / "detections" / "synthetic", seq, slice(0, per_sequence))
+    return frames
+
+
+def run(args: argparse.Namespace) -> int:
+    from pcc_ros.detection_eval import DEFAULT_CONFIG, load_kitti, parse_frames, write_json
+
+    config = FilterConfig(rule="evidence", score_mapping=args.score_mapping, sensor=args.sensor)
+    gt_classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
+    sequences = [q.strip() for q in args.real_sequence.split(",")] if args.real_sequence else [None]
+    window = parse_frames(args.real_frames)
+    real = [f for q in sequences for f in load_kitti(args.real, args.real_detections, q, window)]
+    synth = _synth_frames(args.synth, args.synth_frames) if args.synth else []
+    obj = []
+    if args.object:
+        obj = load_kitti(args.object, None)  # labelled cars become the true detections
+    terms = tuple(t.strip() for t in args.terms.split(",") if t.strip())
+    unknown = set(terms) - set(TERMS)
+    if unknown or not terms:
+        raise ConfigError(f"--terms: unknown {sorted(unknown)} (have {', '.join(TERMS)})")
+    result = calibrate(real, synth, obj, config, args.seed, gt_classes, max_lost=args.max_lost, l2=args.l2,
+                       terms=terms)
+    table = result["table"]
+    counts = {s: {"true": int((~table.false[table.source == s]).sum()),
+                  "false": int(table.false[table.source == s].sum())}
+              for s in ("real", "synth", "object")}
+    print("calibration rows:", json.dumps(counts))
+    print("weights:", " ".join(f"w_{t}={w:+.4f}" for t, w in zip(TERMS, result["weights"])),
+          f"w_bias={result['bias']:+.4f} reject_threshold={result['threshold']:.4f}")
+    for name, fig in result["in_sample"].items():
+        print(f"in-sample {name}: " + ", ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
+                                                for k, v in fig.items()))
+    payload: dict[str, Any] = {
+        "seed": args.seed, "terms": list(terms), "rows": counts, "bias": result["bias"],
+        "weights": dict(zip(TERMS, result["weights"].tolist())), "threshold": result["threshold"],
+        "in_sample": result["in_sample"], "max_lost": args.max_lost, "l2": args.l2,
+        "real": str(args.real), "synth": str(args.synth), "object": str(args.object),
+        "false_templates": {"count": len(result["templates"].range),
+                            "range_median": float(np.median(result["templates"].range)),
+                            "points_median": float(np.median(result["templates"].points)),
+                            "score_median": float(np.median(result["templates"].score))},
+    }
+    if args.folds:
+        cv = cross_validate(real, synth, obj, config, args.seed, gt_classes, args.folds, max_lost=args.max_lost,
+                            l2=args.l2, terms=terms)
+        payload["cross_validation"] = cv
+        print(f"held-out ({args.folds} leave-frames-out folds over the real frames): " + ", ".join(
+            f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in cv["held_out"].items()))
+    if args.out:
+        header = (
+            f"# calibrated: pcc calibrate-filter --real {args.real} --real-detections {args.real_detections}"
+            f"{' --synth ' + str(args.synth) if args.synth else ''}"
+            f"{' --object ' + str(args.object) if args.object else ''}"
+            f" --score-mapping {args.score_mapping} --sensor {args.sensor} --seed {args.seed} --preset {args.preset}"
+            f" --out {args.out}\n"
+        )
+        values = {"score_mapping": args.score_mapping, "sensor": args.sensor, **PRESETS[args.preset]}
+        header += (
+            f"# calibrated: preset {args.preset}, sensor {values['sensor']}, score_mapping {values['score_mapping']}\n"
+        )
+        text = preset_yaml(args.base_config or DEFAULT_CONFIG, result["bias"], result["weights"], result["threshold"],
+                           values, header)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+        log.info("wrote %s", args.out)
+    if args.json:
+        write_json(args.json, payload)
+    return 0
