@@ -388,9 +388,9 @@ class Pipeline:
             mismatch[selected] = mismatch_scores(crops, shapes, cfg.filter)
         threshold = cfg.detection_thresholds(detections.label)
         if cfg.filter.rule == "evidence":
-            # Every box of the configured classes is judged, sparse or not (the cap on
-            # completions does not apply: the evidence terms are cheap).
-            judged_idx = np.flatnonzero(wanted)
+            # Every processed box is judged, sparse or not (min_points does not apply); boxes
+            # over max_instances or the work bound stay skipped (the terms cost per ray and box).
+            judged_idx = candidates
             if len(judged_idx):
                 part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx])
                 terms = {k: np.full(n, np.nan) for k in part}
