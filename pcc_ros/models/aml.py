@@ -630,10 +630,11 @@ class AMLRecipe:
             log.info("aml: %s was made from other shapes or settings; recomputing", cache)
         ref = synthcars_reference_shapes(root, truncation, self.max_shapes)
         if cache is not None:
+            from pcc_ros.files import atomic_write
+
             cache.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cache.with_name(cache.name + ".tmp.npz")
-            np.savez_compressed(tmp, occupancy=ref.occupancy, sdf=ref.sdf, keys=np.array(ref.keys), stamp=stamp)
-            tmp.replace(cache)
+            with atomic_write(cache, "wb") as stream:
+                np.savez_compressed(stream, occupancy=ref.occupancy, sdf=ref.sdf, keys=np.array(ref.keys), stamp=stamp)
         return ref
 
     def training_data(self, source: Any, split: str, min_points: int = 10) -> Any:
