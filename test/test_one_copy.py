@@ -18,7 +18,6 @@ RENAMERS = {"files.py", "bags/convert.py"}
 #: Atomic writes of their own in files other work of this round is still writing (they may be
 #: absent); next round they go through pcc_ros.files.
 RENAMERS_IN_FLIGHT = {
-    "models/aml.py",  # AML's voxel-grid cache (models/aml.py is being written now)
     "detection_eval.py",  # the detection-filter evaluation (being written now)
 }
 
