@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from conftest import rclpy_or_skip
 
+from pcc_ros.bags.read import open_bag as open_reader
 from pcc_ros.cli import main as pcc
 from pcc_ros.msg.stamps import ns_to_stamp, stamp_to_ns
 from pcc_ros.msg.typestore import get_typestore
@@ -234,3 +235,36 @@ def test_play_and_echo_without_rclpy_say_how_to_get_it(monkeypatch, tmp_path, ca
         caplog.clear()
         assert pcc(argv) != 0
         assert "needs rclpy" in caplog.text and "make setup" in caplog.text
+
+
+def test_play_names_a_damaged_bag_and_skips_undecodable_messages(graph, tmp_path):
+    """A truncated bag is one named error line (rc 1, no traceback); a message whose CDR
+    cannot be decoded is skipped, counted and never put on the graph."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.rosbag2.enums import StoragePlugin
+
+    rclpy_or_skip()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    truncated = tmp_path / "truncated"
+    mcap = next(Path(graph["bag"]).glob("*.mcap"))
+    truncated.mkdir()
+    (truncated / mcap.name).write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])
+    (truncated / "metadata.yaml").write_bytes((Path(graph["bag"]) / "metadata.yaml").read_bytes())
+    run = subprocess.run([*PCC, "play", str(truncated)], capture_output=True, text=True, timeout=120, env=env)
+    assert run.returncode == 1, run.stderr
+    assert "ERROR pcc: " in run.stderr and str(truncated) in run.stderr and "Traceback" not in run.stderr
+
+    store = get_typestore()
+    bad = tmp_path / "bad_cdr"
+    writer = Writer(bad, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.open()
+    with open_reader(graph["bag"]) as reader:
+        conns = [c for c in reader.connections if c.topic == "/points"]
+        conn = writer.add_connection("/points", conns[0].msgtype, typestore=store)
+        for i, (_, t, raw) in enumerate(reader.messages(connections=conns)):
+            writer.write(conn, t, bytes(raw)[:100] if i == 1 else bytes(raw))
+    writer.close()
+    run = subprocess.run([*PCC, "play", str(bad), "--rate", "20"], capture_output=True, text=True, timeout=120, env=env)
+    assert run.returncode == 0, run.stderr
+    assert "/points: 2 messages (1 undecodable, not played)" in run.stdout, run.stdout
+    assert "undecodable" in run.stderr and "Traceback" not in run.stderr

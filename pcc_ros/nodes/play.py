@@ -43,17 +43,17 @@ def run(args: argparse.Namespace) -> int:
     if args.rate <= 0:
         raise DataError("--rate must be > 0")
     from rclpy.executors import ExternalShutdownException
-    from rosbags.highlevel import AnyReader
 
-    from pcc_ros.msg.typestore import get_typestore
+    from pcc_ros.bags.read import decode, iter_messages, open_bag
     from pcc_ros.nodes.ros_node import rclpy_classes
     from pcc_ros.nodes.tools import topic_qos, wait_for
 
     rclpy.init()
     node = rclpy.create_node("pcc_play")
     counts: dict[str, int] = {}
+    undecodable: dict[str, int] = {}
     try:
-        with AnyReader([args.bag], default_typestore=get_typestore()) as reader:
+        with open_bag(args.bag) as reader:
             connections = [c for c in reader.connections if args.topics is None or c.topic in args.topics]
             publishers = {}
             for c in connections:
@@ -78,7 +78,14 @@ def run(args: argparse.Namespace) -> int:
             counts.update(dict.fromkeys(publishers, 0))
             while True:
                 start_wall, start_bag = None, None
-                for connection, time_ns, raw in reader.messages(connections=wanted):
+                for connection, time_ns, raw in iter_messages(reader, args.bag, wanted):
+                    try:  # a message the nodes could not decode is not put on the graph
+                        decode(reader, raw, connection, time_ns, args.bag)
+                    except DataError as exc:
+                        if not undecodable:
+                            log.warning("%s (skipped; later ones only counted)", exc)
+                        undecodable[connection.topic] = undecodable.get(connection.topic, 0) + 1
+                        continue
                     if start_wall is None:
                         start_wall, start_bag = time.monotonic(), time_ns
                     delay = start_wall + (time_ns - start_bag) / 1e9 / args.rate - time.monotonic()
@@ -95,5 +102,6 @@ def run(args: argparse.Namespace) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
     for topic, n in sorted(counts.items()):
-        print(f"{topic}: {n} messages")
+        skipped = f" ({undecodable[topic]} undecodable, not played)" if topic in undecodable else ""
+        print(f"{topic}: {n} messages{skipped}")
     return 0
