@@ -402,13 +402,12 @@ def _json_default(value):
 
 
 def write_json(path: Path, payload: dict[str, Any]) -> None:
-    import os
+    """``payload`` as JSON (NaN / inf as ``null``), atomically through :mod:`pcc_ros.files`."""
+    from pcc_ros import files
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
     text = json.dumps(payload, indent=1, default=_json_default, allow_nan=True)
-    tmp.write_text(text.replace("NaN", "null").replace("Infinity", "null"))
-    os.replace(tmp, path)
+    files.write_text(path, text.replace("NaN", "null").replace("Infinity", "null"))
 
 
 # ----------------------------------------------------------------------------- CLI
