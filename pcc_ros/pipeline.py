@@ -143,7 +143,7 @@ class PipelineConfig:
 #: pipeline ignores them (and ROS's own ``use_sim_time``).
 NODE_DEFAULTS: dict[str, Any] = {
     "sync_slop": 0.05,
-    "queue_size": 5,
+    "queue_size": 2,
     "output_frame": "",
     "qos.points.reliability": "best_effort",
     "qos.points.depth": 5,

@@ -39,7 +39,7 @@ class StampPairer(Generic[T, U]):
     """
 
     slop_ns: int
-    queue_size: int = 5
+    queue_size: int = 2
     stats: SyncStats = field(default_factory=SyncStats)
 
     def __post_init__(self) -> None:
