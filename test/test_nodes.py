@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import rclpy_or_skip
+from conftest import require_rclpy
 
 from pcc_ros.nodes.params import parameter_table
 from pcc_ros.pipeline import read_parameters
@@ -40,7 +40,7 @@ def test_parameter_table_covers_the_yaml_files_with_types_and_descriptions():
 @pytest.mark.ros
 def test_completion_node_publishes_completed_cloud():
     """The node class in-process under real rclpy (the end-to-end test runs the installed processes)."""
-    rclpy = rclpy_or_skip()
+    rclpy = require_rclpy()
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import PointCloud2
     from vision_msgs.msg import Detection3DArray

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import colcon_style_install, rclpy_or_skip
+from conftest import colcon_style_install, require_rclpy
 
 from pcc_ros.geometry.boxes import points_in_boxes
 from pcc_ros.msg.detections import boxes_from_detection_array
@@ -194,7 +194,7 @@ def stop_node(proc: subprocess.Popen, log: Path) -> tuple[int, str]:
 
 
 def test_nodes_end_to_end_on_kitti_at_10hz(installed, kitti_frames, tmp_path, capsys):
-    rclpy = rclpy_or_skip()
+    rclpy = require_rclpy()
     create_cloud, detection_array_from_boxes, classes = _messages()
     prefix, env = installed
     share = prefix / "share" / "pcc_ros" / "config"

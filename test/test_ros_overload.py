@@ -15,7 +15,7 @@ import os
 import time
 
 import pytest
-from conftest import rclpy_or_skip
+from conftest import require_rclpy
 from test_ros_e2e import READY_TIMEOUT_S, Graph, _messages, installed, kitti_frames, start_node, stop_node  # noqa: F401
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -62,7 +62,7 @@ def publish(graph: Graph, messages: list, rate_hz: float, seconds: float, first_
 
 
 def test_overload_on_rclpy_keeps_memory_bounded_counts_drops_and_recovers(installed, kitti_frames, tmp_path):  # noqa: F811
-    rclpy = rclpy_or_skip()
+    rclpy = require_rclpy()
     create_cloud, detection_array_from_boxes, classes = _messages()
     prefix, env = installed
     share = prefix / "share" / "pcc_ros" / "config"

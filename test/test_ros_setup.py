@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO, rclpy_or_skip
+from conftest import REPO, require_rclpy
 
 from pcc_ros.msg.typestore import VISION_MSGS, type_hash
 
@@ -25,7 +25,7 @@ from_wheels = pytest.mark.skipif(
 @pytest.mark.ros
 def test_built_vision_msgs_have_upstream_rihs01_hashes():
     """The generated type descriptions hash exactly as upstream vision_msgs 4.1 (wire-compatible)."""
-    rclpy_or_skip()
+    require_rclpy()
     from ament_index_python.packages import get_package_share_directory
 
     share = Path(get_package_share_directory("vision_msgs"))
@@ -42,7 +42,7 @@ def test_built_vision_msgs_have_upstream_rihs01_hashes():
 @pytest.mark.ros
 def test_the_middleware_announces_the_upstream_hash():
     """What another ROS 2 Jazzy participant sees on the graph for a Detection3DArray publisher."""
-    rclpy = rclpy_or_skip()
+    rclpy = require_rclpy()
     from rclpy.signals import SignalHandlerOptions
     from vision_msgs.msg import Detection3DArray
 
@@ -110,7 +110,7 @@ def test_second_setup_rebuilds_nothing():
 @pytest.mark.ros
 def test_setup_defers_to_a_sourced_ros_install_and_refuses_another_distro():
     """ROS_DISTRO=jazzy: the sourced install is used, nothing installed; another distro: a clear refusal."""
-    rclpy_or_skip()
+    require_rclpy()
     script = ["bash", "scripts/setup_ros.sh", sys.prefix]
     jazzy = subprocess.run(script, cwd=REPO, env={**os.environ, "ROS_DISTRO": "jazzy"},
                            capture_output=True, text=True, timeout=120)

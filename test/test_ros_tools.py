@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import rclpy_or_skip
+from conftest import require_rclpy
 
 from pcc_ros.bags.read import open_bag as open_reader
 from pcc_ros.cli import main as pcc
@@ -60,7 +60,7 @@ def _stamp_of(raw: bytes, msgtype: str) -> int:
 @pytest.fixture(scope="module")
 def graph(tmp_path_factory, shared_data):
     """The bag, replay references, the two node processes and an rclpy probe (raw subscriptions)."""
-    rclpy = rclpy_or_skip()
+    rclpy = require_rclpy()
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
@@ -155,22 +155,28 @@ def test_play_through_the_nodes_matches_replay(graph):
     assert min(len(r) for r in got["completed"]) > 1000  # real completions, not empty clouds
 
 
-def test_malformed_cloud_on_the_wire_is_logged_skipped_and_the_node_keeps_serving(graph):
+def _probe_publishers(graph):
+    """The bag's first frame (cloud, detections, stamp) and the probe's publishers of the nodes' inputs."""
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
     from vision_msgs.msg import Detection3DArray
 
-    probe, got, lock = graph["probe"], graph["got"], graph["lock"]
-    store = get_typestore()
     clouds = _read_topic(graph["bag"], "/points")
     dets = _read_topic(graph["bag"], "/detections")
     stamp0 = min(clouds)
-    pub_cloud = probe.create_publisher(PointCloud2, "/points", qos_profile_sensor_data)
-    pub_dets = probe.create_publisher(Detection3DArray, "/detections", 10)
+    pub_cloud = graph["probe"].create_publisher(PointCloud2, "/points", qos_profile_sensor_data)
+    pub_dets = graph["probe"].create_publisher(Detection3DArray, "/detections", 10)
+    return clouds[stamp0], dets[stamp0], pub_cloud, pub_dets
+
+
+def test_malformed_cloud_on_the_wire_is_logged_skipped_and_the_node_keeps_serving(graph):
+    got, lock = graph["got"], graph["lock"]
+    store = get_typestore()
+    cloud0, det0, pub_cloud, pub_dets = _probe_publishers(graph)
     assert _wait(lambda: pub_cloud.get_subscription_count() == 2 and pub_dets.get_subscription_count() == 2, 30)
 
     def send(stamp_ns: int, truncate: bool = False) -> None:
-        cloud, det = copy.deepcopy(clouds[stamp0]), copy.deepcopy(dets[stamp0])
+        cloud, det = copy.deepcopy(cloud0), copy.deepcopy(det0)
         cloud.header.stamp = det.header.stamp = ns_to_stamp(stamp_ns)
         if truncate:
             cloud.data = np.asarray(cloud.data)[:1000]  # width / row_step claim 123k points, data holds 62
@@ -196,17 +202,8 @@ def test_malformed_cloud_on_the_wire_is_logged_skipped_and_the_node_keeps_servin
 
 
 def test_echo_finds_the_type_on_the_graph_and_prints_filtered_detections(graph):
-    from rclpy.qos import qos_profile_sensor_data
-    from sensor_msgs.msg import PointCloud2
-    from vision_msgs.msg import Detection3DArray
-
-    probe = graph["probe"]
     store = get_typestore()
-    clouds = _read_topic(graph["bag"], "/points")
-    dets = _read_topic(graph["bag"], "/detections")
-    stamp0 = min(clouds)
-    pub_cloud = probe.create_publisher(PointCloud2, "/points", qos_profile_sensor_data)
-    pub_dets = probe.create_publisher(Detection3DArray, "/detections", 10)
+    cloud0, det0, pub_cloud, pub_dets = _probe_publishers(graph)
     echo = subprocess.Popen(
         [*PCC, "echo", "/detections_filtered", "--count", "1", "--timeout", "60"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
@@ -214,10 +211,9 @@ def test_echo_finds_the_type_on_the_graph_and_prints_filtered_detections(graph):
     try:
         k = 0
         while echo.poll() is None and k < 120:  # volatile topics: keep sending until echo has matched
-            cloud, det = clouds[stamp0], dets[stamp0]
-            cloud.header.stamp = det.header.stamp = ns_to_stamp((2_100_000_000 + k) * 10**9)
-            pub_cloud.publish(bytes(store.serialize_cdr(cloud, "sensor_msgs/msg/PointCloud2")))
-            pub_dets.publish(bytes(store.serialize_cdr(det, "vision_msgs/msg/Detection3DArray")))
+            cloud0.header.stamp = det0.header.stamp = ns_to_stamp((2_100_000_000 + k) * 10**9)
+            pub_cloud.publish(bytes(store.serialize_cdr(cloud0, "sensor_msgs/msg/PointCloud2")))
+            pub_dets.publish(bytes(store.serialize_cdr(det0, "vision_msgs/msg/Detection3DArray")))
             k += 1
             time.sleep(0.5)
         out, err = echo.communicate(timeout=30)
@@ -243,7 +239,7 @@ def test_play_names_a_damaged_bag_and_skips_undecodable_messages(graph, tmp_path
     from rosbags.rosbag2 import Writer
     from rosbags.rosbag2.enums import StoragePlugin
 
-    rclpy_or_skip()
+    require_rclpy()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     truncated = tmp_path / "truncated"
     mcap = next(Path(graph["bag"]).glob("*.mcap"))
