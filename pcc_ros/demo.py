@@ -222,21 +222,23 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
         (False, True): ("tab:red", "--", "false, rejected"),
     }
     corners = box_corners(result.detections)[:, [0, 1, 2, 3, 0], :2] if len(result.detections) else []
+    # The number the filter decided on: p_false (evidence rule) or the mismatch (trapcc rule).
+    judged = result.filter_score if result.filter_score is not None else result.mismatch
     used = set()
     for i, c in enumerate(corners):
         key = (bool(truth[i]), result.status[i] == "rejected")
         color, ls, name = styles[key]
         ax.plot(c[:, 0], c[:, 1], color=color, ls=ls, lw=1.6, label=None if key in used else name)
         used.add(key)
-        if np.isfinite(result.mismatch[i]):
-            ax.text(c[0, 0], c[0, 1], f"{result.mismatch[i]:.2f}", fontsize=7, color=color, clip_on=True)
+        if np.isfinite(judged[i]):
+            ax.text(c[0, 0], c[0, 1], f"{judged[i]:.2f}", fontsize=7, color=color, clip_on=True)
     ax.plot([0], [0], marker=">", color="k", ms=10)
     ax.set_aspect("equal")
     ax.set_xlim(-50, 50)
     ax.set_ylim(-40, 40)
     ax.set_xlabel("x forward (m)")
     ax.set_ylabel("y left (m)")
-    ax.set_title(f"{title}\ncoloured points: completions; numbers: shape-mismatch score")
+    ax.set_title(f"{title}\ncoloured points: completions; numbers: the filter's score (p_false, or mismatch)")
     ax.legend(loc="upper right", fontsize=8, markerscale=8)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110, bbox_inches="tight")
