@@ -40,7 +40,7 @@ demo: setup
 
 bench: setup
 	@mkdir -p benchmarks/results
-	@for name in $$($(PY) -c 'from pcc_ros.bench import available; print(" ".join(available()))'); do \
+	@for name in $$($(PY) -c 'from benchmarks import available; print(" ".join(available()))'); do \
 	  echo "== pcc bench $$name"; \
 	  $(VENV)/bin/pcc bench $$name --json benchmarks/results/$$name.json || exit 1; \
 	done

@@ -14,7 +14,7 @@ PACKAGE = "pcc_ros"
 setup(
     name=PACKAGE,
     version="0.1.0",
-    packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
+    packages=find_packages(exclude=["test", "test.*", "benchmarks", "benchmarks.*"]),
     package_data={PACKAGE: ["weights/*.safetensors", "weights/*.json"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
@@ -49,7 +49,7 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "pcc = pcc_ros.cli:main",
+            "pcc = pcc_ros.cli.main:main",
             "completion_node = pcc_ros.nodes.completion_node:main",
             "detection_filter_node = pcc_ros.nodes.detection_filter_node:main",
         ],

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes, class_mask
+from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +78,8 @@ def truly_vehicle(detections: Boxes, truth: Boxes | None) -> np.ndarray:
 
 
 def _replay(bag: Path, out_bag: Path | None, config, frames_by_stamp: dict, on_frame) -> object:
-    from pcc_ros.bags.replay import replay_bag
-    from pcc_ros.pipeline import Pipeline
+    from pcc_ros.pipeline.core import Pipeline
+    from pcc_ros.runtime.bag import replay_bag
 
     pipeline = Pipeline(config)
     return replay_bag(
@@ -119,8 +119,8 @@ def completion_scores(result, frame, shapes_root: Path) -> list[dict[str, float]
 def run_synthcars(args: argparse.Namespace, config) -> dict:
     from dataclasses import replace
 
-    from pcc_ros.bags.convert import write_bag
-    from pcc_ros.bags.read import read_frames
+    from pcc_ros.data.bag import read_frames
+    from pcc_ros.data.bag_writer import write_bag
     from pcc_ros.data.kitti import KittiTracking
     from pcc_ros.data.synthetic import generate
     from pcc_ros.tables import print_table
@@ -164,11 +164,11 @@ def run_synthcars(args: argparse.Namespace, config) -> dict:
 def run_kitti(args: argparse.Namespace, config) -> dict | None:
     from dataclasses import replace
 
-    from pcc_ros.bags.convert import write_bag
-    from pcc_ros.bags.read import read_frames
+    from pcc_ros.data.bag import read_frames
+    from pcc_ros.data.bag_writer import write_bag
     from pcc_ros.data.kitti import KittiTracking
-    from pcc_ros.filter import FilterConfig
     from pcc_ros.paths import shared_data_dir
+    from pcc_ros.pipeline.filter import FilterConfig
     from pcc_ros.tables import print_table
 
     root = args.kitti or shared_data_dir() / "kitti_tracking"
@@ -247,7 +247,7 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from pcc_ros import files
-    from pcc_ros.bags.replay import load_config
+    from pcc_ros.runtime.bag import load_config
 
     args.out.mkdir(parents=True, exist_ok=True)
     config, _ = load_config(None, with_filter=True, backend=args.backend, checkpoint=args.checkpoint)

@@ -1,6 +1,6 @@
 """``pcc eval detections``: does the detection filter earn its place? The yardstick.
 
-Runs the filter node's pipeline (the same :class:`pcc_ros.pipeline.Pipeline` a node runs,
+Runs the filter node's pipeline (the same :class:`pcc_ros.pipeline.core.Pipeline` a node runs,
 configured from a node YAML) over a labelled KITTI tracking / object dataset (SynthCars is
 one) with a detector's results, and reports
 
@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.metrics.detection import DIFFICULTIES, NEIGHBOURS, FrameBoxes, ap_table
+from pcc_ros.types import Boxes
 
 log = logging.getLogger(__name__)
 
@@ -132,8 +132,8 @@ def detection_truth(
     frame: LabelledFrame, gt_classes: tuple[str, ...], true_iou: float
 ) -> np.ndarray:
     """Per detection: 1 true, 0 false, -1 unknown (in a DontCare region)."""
-    from pcc_ros.boxes import class_mask
     from pcc_ros.geometry.boxes import iou_bev
+    from pcc_ros.types import class_mask
 
     names = {c.lower() for c in gt_classes}
     for c in list(names):
@@ -424,7 +424,7 @@ def parse_frames(text: str | None) -> slice:
 
 
 def build_pipeline(config_path: Path | None, overrides: dict[str, Any]):
-    from pcc_ros.pipeline import Pipeline, PipelineConfig
+    from pcc_ros.pipeline.core import Pipeline, PipelineConfig
 
     config = PipelineConfig.from_yaml(config_path or DEFAULT_CONFIG)
     main = {k: v for k, v in overrides.items() if k in ("backend", "checkpoint", "device") and v is not None}

@@ -102,8 +102,8 @@ def _bands(instances: list[dict[str, Any]], rows: list[dict[str, float]]) -> dic
 def scene_contexts(instances: list[dict[str, Any]]) -> list[Any]:
     """One :class:`~pcc_ros.models.base.SceneContext` per instance: the other evaluated cars of
     the same frame are its neighbours (what the pipeline gives a context-using backend)."""
-    from pcc_ros.boxes import Boxes
     from pcc_ros.models.base import SceneContext
+    from pcc_ros.types import Boxes
 
     contexts: list[Any] = [None] * len(instances)
     groups: dict[str, list[int]] = {}
@@ -193,9 +193,9 @@ def criteria(results: dict[str, Any]) -> dict[str, Any]:
 
 
 def print_real_tables(results: dict[str, Any]) -> None:
-    from pcc_ros.bench.common import print_table
     from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS, _cell
     from pcc_ros.metrics.realdata import REAL_METRICS
+    from pcc_ros.tables import print_table
 
     scored = {n: r for n, r in results.items() if "overall" in r}
     columns = ["backend", "overall"] + [b[0] for b in DISTANCE_BANDS] + [b[0] for b in POINT_BANDS]

@@ -1,6 +1,6 @@
 """``pcc calibrate-filter``: fit the evidence rule's weights and threshold, reproducibly.
 
-Data (every detection becomes one row of the evidence terms of :mod:`pcc_ros.filter` and a
+Data (every detection becomes one row of the evidence terms of :mod:`pcc_ros.pipeline.filter` and a
 true / false label):
 
 * **real frames** (``--real``): a labelled KITTI set with a detector's results, e.g. KITTI
@@ -35,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import ConfigError, DataError
-from pcc_ros.filter import EVIDENCE_GROUND, TERMS, FilterConfig, _local_ground, filter_terms, term_matrix
+from pcc_ros.pipeline.filter import EVIDENCE_GROUND, TERMS, FilterConfig, _local_ground, filter_terms, term_matrix
+from pcc_ros.types import Boxes
 
 log = logging.getLogger(__name__)
 
@@ -212,8 +212,8 @@ def simulated_table(frames, templates: FalseTemplates, config: FilterConfig, rng
                     source: str, true_iou: float, jitter: bool) -> Table:
     """SynthCars (``jitter=False``: its detector's true detections) or real object frames
     (``jitter=True``: labelled cars with detector-like noise) plus simulated false detections."""
-    from pcc_ros.boxes import class_mask
     from pcc_ros.detection_eval import detection_truth
+    from pcc_ros.types import class_mask
 
     tables = []
     for f in frames:

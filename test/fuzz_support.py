@@ -14,9 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
-from pcc_ros.cli import main
-from pcc_ros.frame import Frame
+from pcc_ros.cli.main import main
+from pcc_ros.types import Boxes, Sample
 
 CAR = dict(center=(10.0, 2.0, 0.8), size=(4.2, 1.8, 1.5), yaw=0.3)
 
@@ -31,7 +30,7 @@ def car_points(rng: np.random.Generator, n: int = 400) -> np.ndarray:
     return world
 
 
-def small_frames(n: int = 3, seed: int = 0, points: int = 1500) -> list[Frame]:
+def small_frames(n: int = 3, seed: int = 0, points: int = 1500) -> list[Sample]:
     """``n`` frames 0.1 s apart: ground clutter + one car, detections and ground truth of it."""
     rng = np.random.default_rng(seed)
     frames = []
@@ -41,7 +40,7 @@ def small_frames(n: int = 3, seed: int = 0, points: int = 1500) -> list[Frame]:
         pts = np.c_[xyz, rng.uniform(0, 1, len(xyz)).astype(np.float32)]
         box = Boxes(np.array([CAR["center"]]), np.array([CAR["size"]]), np.array([CAR["yaw"]]),
                     np.array(["Car"], dtype=object), np.array([0.9]), np.array(["7"], dtype=object))
-        frames.append(Frame(stamp_ns=1_700_000_000_000_000_000 + i * 100_000_000, frame_id="velodyne",
+        frames.append(Sample(stamp_ns=1_700_000_000_000_000_000 + i * 100_000_000, frame_id="velodyne",
                             points=pts, fields=("x", "y", "z", "intensity"), detections=box,
                             ground_truth=box, sequence="0000", index=i))
     return frames

@@ -10,20 +10,20 @@ import pytest
 from test_kitti import OXTS, _copy_tracking
 from test_nuscenes import build_tables
 
-from pcc_ros.bags.convert import write_bag
-from pcc_ros.bags.info_command import summarize
-from pcc_ros.bags.read import read_frames
-from pcc_ros.cli import main
+from pcc_ros.cli.info import summarize
+from pcc_ros.cli.main import main
+from pcc_ros.data.bag import read_frames
+from pcc_ros.data.bag_writer import write_bag
 from pcc_ros.data.kitti import KittiObject, KittiTracking
 from pcc_ros.data.nuscenes import NuScenes
 from pcc_ros.data.sources import kind_of, open_frames
 from pcc_ros.errors import DataError
-from pcc_ros.frame import Frame
+from pcc_ros.types import Sample
 
 STORAGES = ("mcap", "sqlite3")
 
 
-def assert_same_frames(original: list[Frame], back: list[Frame]) -> None:
+def assert_same_frames(original: list[Sample], back: list[Sample]) -> None:
     assert len(back) == len(original)
     for a, b in zip(original, back):
         assert (b.stamp_ns, b.frame_id, b.sequence, b.index) == (a.stamp_ns, a.frame_id, a.sequence, a.index)
@@ -229,10 +229,10 @@ def test_recorded_bag_late_detections_and_orphans(tmp_path, caplog):
     scan; they still join it by header stamp, and boxes whose scan never came are counted."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from pcc_ros.boxes import Boxes
     from pcc_ros.msg.detections import detection_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
     from pcc_ros.msg.typestore import get_typestore
+    from pcc_ros.types import Boxes
 
     store = get_typestore()
     rng = np.random.default_rng(3)

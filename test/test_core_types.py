@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.kitti_format import (
     Calibration,
     camera_to_lidar_boxes,
@@ -20,6 +19,7 @@ from pcc_ros.geometry.canonical import (
     to_canonical,
     to_canonical_batch,
 )
+from pcc_ros.types import Boxes
 
 
 def random_boxes(rng: np.random.Generator, n: int) -> Boxes:

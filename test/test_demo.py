@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from pcc_ros.cli import main
+from pcc_ros.cli.main import main
 
 
 @pytest.mark.slow

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.metrics.detection import FrameBoxes, ap_table, average_precision, get_thresholds
+from pcc_ros.types import Boxes
 
 TALL = np.array([[0.0, 0.0, 50.0, 100.0]])  # a 100 px high 2D box: valid in every difficulty
 

@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 from shapes import car_with_cabin
 
-from pcc_ros.boxes import Boxes
-from pcc_ros.cli import main
+from pcc_ros.cli.main import main
 from pcc_ros.data.instances import ExtractConfig, extract_instances
-from pcc_ros.frame import Frame
 from pcc_ros.geometry.canonical import from_canonical
+from pcc_ros.types import Boxes, Sample
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +44,7 @@ def tiny_cache(tmp_path_factory):
             pts = np.concatenate(points).astype(np.float32)
             pts = np.column_stack([pts, np.zeros(len(pts), np.float32)])
             boxes = Boxes(centers, size, yaws, ["Car"] * 3, None, [str(t) for t in range(3)])
-            frames.append(Frame(stamp_ns=f * 100_000_000, frame_id="velodyne", points=pts, ground_truth=boxes,
+            frames.append(Sample(stamp_ns=f * 100_000_000, frame_id="velodyne", points=pts, ground_truth=boxes,
                                 sequence=seq, index=f))
     cache_dir = tmp_path_factory.mktemp("cache") / "cache"
     cache = extract_instances(frames, cache_dir, ExtractConfig(ground_margin=0.0), synthcars=root, progress=False)

@@ -7,7 +7,7 @@ import pytest
 from shapes import box_surface
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.filter import FilterConfig, map_scores, mcd, mismatch_scores, mismatch_terms, reject_mask
+from pcc_ros.pipeline.filter import FilterConfig, map_scores, mcd, mismatch_scores, mismatch_terms, reject_mask
 
 
 def car_surface(rng: np.random.Generator, n: int = 4000) -> np.ndarray:

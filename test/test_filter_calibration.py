@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from pcc_ros.cli import main
+from pcc_ros.cli.main import main
 from pcc_ros.detection_eval import load_kitti, operating_curve, removed_at
-from pcc_ros.filter import FilterConfig
 from pcc_ros.filter_calibration import calibrate, fit_logistic, predict
+from pcc_ros.pipeline.filter import FilterConfig
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import ConfigError
-from pcc_ros.filter import (
+from pcc_ros.pipeline.filter import (
     SENSOR_PRESETS,
     FilterConfig,
     evidence,
@@ -15,6 +14,7 @@ from pcc_ros.filter import (
     filter_terms,
     score_logit,
 )
+from pcc_ros.types import Boxes
 
 SENSOR = SENSOR_PRESETS["hdl64"]
 GROUND_Z = -1.73
@@ -118,7 +118,7 @@ def test_shipped_filter_rejects_the_empty_box_and_keeps_the_car():
 def test_defaults_are_the_shipped_calibration():
     from pathlib import Path
 
-    from pcc_ros.pipeline import read_parameters
+    from pcc_ros.pipeline.core import read_parameters
 
     shipped = read_parameters(Path(__file__).resolve().parents[1] / "config" / "detection_filter.yaml")
     defaults = FilterConfig()
@@ -134,9 +134,9 @@ def test_node_publishes_scores_terms_markers_and_counts():
     from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
     from pcc_ros.msg.typestore import get_typestore
-    from pcc_ros.node_core import NodeCore
     from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
     from pcc_ros.runtime.local import LocalGraph, LocalRuntime
+    from pcc_ros.runtime.node import NodeCore
 
     scan = cast([(CAR_LO, CAR_HI)])
     boxes = Boxes([[16.1, 0.0, GROUND_Z + 0.75], [25.0, -8.0, GROUND_Z + 0.75]], [[4.2, 1.8, 1.5]] * 2,

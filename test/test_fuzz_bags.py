@@ -20,13 +20,13 @@ from rosbags.rosbag2.enums import StoragePlugin
 from rosbags.typesys import Stores, get_types_from_msg
 from rosbags.typesys import get_typestore as rosbags_typestore
 
-from pcc_ros.bags.convert import write_bag
-from pcc_ros.bags.info_command import summarize
-from pcc_ros.bags.read import ReadStats, mcap_chunk_damage, open_bag, read_frames
-from pcc_ros.bags.replay import replay_bag
+from pcc_ros.cli.info import summarize
+from pcc_ros.data.bag import ReadStats, mcap_chunk_damage, open_bag, read_frames
+from pcc_ros.data.bag_writer import write_bag
 from pcc_ros.errors import BagError
 from pcc_ros.msg.typestore import get_typestore
-from pcc_ros.pipeline import Pipeline, PipelineConfig
+from pcc_ros.pipeline.core import Pipeline, PipelineConfig
+from pcc_ros.runtime.bag import replay_bag
 
 POINTS, DETECTIONS = "sensor_msgs/msg/PointCloud2", "vision_msgs/msg/Detection3DArray"
 

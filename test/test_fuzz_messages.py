@@ -18,7 +18,7 @@ from pcc_ros.geometry.boxes import points_in_boxes
 from pcc_ros.msg.detections import DEFAULT_LIMITS, decode_detection_array
 from pcc_ros.msg.pointcloud2 import FLOAT32, INT16, create_cloud, read_xyz
 from pcc_ros.msg.typestore import new_message
-from pcc_ros.pipeline import Pipeline, PipelineConfig, estimated_crop_pairs
+from pcc_ros.pipeline.core import Pipeline, PipelineConfig, estimated_crop_pairs
 
 STAMP = 1_700_000_000_000_000_000
 
@@ -144,7 +144,7 @@ def test_work_bound_skips_lowest_scores_and_counts(caplog):
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31), n=st.integers(1, 30), margin=st.floats(0, 1))
 def test_work_estimate_bounds_the_real_crop(seed, n, margin):
-    from pcc_ros.boxes import Boxes
+    from pcc_ros.types import Boxes
 
     rng = np.random.default_rng(seed)
     points = rng.uniform(-40, 40, (5000, 3)).astype(np.float32)

@@ -117,7 +117,7 @@ def test_failed_extraction_leaves_no_cache(tmp_path):
 def test_every_exception_is_one_named_line_and_debug_shows_the_traceback(monkeypatch, caplog, capsys, error, expected):
     from fuzz_support import run_cli
 
-    import pcc_ros.bags.info_command as info
+    import pcc_ros.cli.info as info
 
     def fail(args):
         raise error
@@ -133,7 +133,7 @@ def test_every_exception_is_one_named_line_and_debug_shows_the_traceback(monkeyp
 def test_ctrl_c_is_reported_with_status_130(monkeypatch, caplog):
     from fuzz_support import run_cli
 
-    import pcc_ros.bags.info_command as info
+    import pcc_ros.cli.info as info
 
     def interrupted(args):
         raise KeyboardInterrupt

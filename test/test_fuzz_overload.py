@@ -23,9 +23,9 @@ import pytest
 from test_node_core import CLOUD, DETS
 
 from pcc_ros.msg.stamps import make_header
-from pcc_ros.node_core import NodeCore
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
+from pcc_ros.runtime.node import NodeCore
 
 PHASE_S = float(os.environ.get("PCC_OVERLOAD_SECONDS", "3"))
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import (
     box_corners,
@@ -16,6 +15,7 @@ from pcc_ros.geometry.boxes import (
     polygon_intersection_area,
 )
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
+from pcc_ros.types import Boxes
 
 
 def slow_points_in_boxes(points, boxes, margin=0.0, ground_margin=0.0):

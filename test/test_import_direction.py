@@ -3,19 +3,18 @@ every import counted (module level and inside functions alike).
 
 Layers, lowest first — a module may import its own layer and the ones below, never above:
 
-0. base: the shared nouns and helpers (``errors``, ``boxes``, ``frame``, ``files``, ``paths``,
+0. base: the shared nouns and helpers (``errors``, ``types``, ``files``, ``paths``,
    ``tables``, ``assignments``, the package itself);
 1. ``geometry/``: numpy math on boxes and rotations (the one ``box_corners``, the one
    quaternion convention);
 2. ``msg/``: ROS messages <-> arrays (markers are drawn from ``geometry.box_corners``, poses
    decoded with ``geometry.rotations`` — so geometry sits under msg, not above it);
-3. ``data/``, ``models/``, ``metrics/`` and the bag reader / writer (``bags/read``,
-   ``bags/convert``: Samples from and to rosbag2, as the KITTI and nuScenes readers are);
-   ``data`` and ``models`` are siblings that never import each other;
-4. pipeline: ``pipeline``, ``filter``, ``sync``;
-5. runtime: ``runtime/``, ``node_core``, ``bags/replay``;
-6. the doors: ``nodes/``, ``cli``, every ``*_command`` / ``command`` module, ``bench/``,
-   ``train``, ``evaluate``, ``evaluate_real``, ``demo``.
+3. ``data/`` (with the bag reader and writer, ``data/bag``, ``data/bag_writer``), ``models/``,
+   ``metrics/``; ``data`` and ``models`` are siblings that never import each other;
+4. ``pipeline/``: config (the parameter table), core, filter;
+5. ``runtime/``: the seam, the node logic, pairing, replay over a bag;
+6. the doors: ``nodes/``, ``cli/``, ``train``, ``evaluate``, ``evaluate_real``,
+   ``detection_eval``, ``filter_calibration``, ``demo``.
 
 Also: ``rclpy`` (and the rest of a ROS install: ``rclpy``, ``tf2_ros``, ``rosidl_runtime_py``)
 is imported only under ``pcc_ros/nodes/``, and nothing imports ``pcc_ros.cli``.
@@ -39,21 +38,11 @@ LAYER_NAMES = ("base", "geometry", "msg", "data/models", "pipeline", "runtime", 
 EXACT = {
     "pcc_ros": 0,
     "pcc_ros.errors": 0,
-    "pcc_ros.boxes": 0,
-    "pcc_ros.frame": 0,
+    "pcc_ros.types": 0,
     "pcc_ros.files": 0,
     "pcc_ros.paths": 0,
     "pcc_ros.tables": 0,
     "pcc_ros.assignments": 0,
-    "pcc_ros.bags": 3,
-    "pcc_ros.bags.read": 3,
-    "pcc_ros.bags.convert": 3,
-    "pcc_ros.pipeline": 4,
-    "pcc_ros.filter": 4,
-    "pcc_ros.sync": 4,
-    "pcc_ros.node_core": 5,
-    "pcc_ros.bags.replay": 5,
-    "pcc_ros.cli": 6,
     "pcc_ros.train": 6,
     "pcc_ros.evaluate": 6,
     "pcc_ros.evaluate_real": 6,
@@ -68,9 +57,9 @@ PREFIXES = {
     "pcc_ros.models.": 3,
     "pcc_ros.metrics.": 3,
     "pcc_ros.weights.": 3,
+    "pcc_ros.pipeline.": 4,
     "pcc_ros.runtime.": 5,
     "pcc_ros.nodes.": 6,
-    "pcc_ros.bench.": 6,
     "pcc_ros.cli.": 6,
 }
 #: Sibling folders of one layer that must not import each other.
@@ -78,12 +67,7 @@ SIBLINGS = (("pcc_ros.data", "pcc_ros.models"),)
 
 #: Known upward imports left for the next round of #14, each with why it is not fixed here.
 #: An entry that no longer occurs fails the test too (delete it when its import is gone).
-ALLOWED = {
-    # node_core (runtime) reads the parameter table in nodes/params; both files are being
-    # rewritten by the UX work of this round. Next round: the table moves down to
-    # pipeline/config (the one parameter table) and this entry goes.
-    ("pcc_ros.node_core", "pcc_ros.nodes.params"),
-}
+ALLOWED: set[tuple[str, str]] = set()
 #: Like ALLOWED, for modules other work of this round is still adding (they may be absent).
 IN_FLIGHT = {
     # TraPCC's training recipe builds its ground-truth pools from the data layer; models/
@@ -111,8 +95,6 @@ def module_name(path: Path) -> str:
 def layer(module: str) -> int | None:
     if module in EXACT:
         return EXACT[module]
-    if module.split(".")[-1].endswith("command"):  # *_command.py, command.py: a door
-        return 6
     for prefix, value in sorted(PREFIXES.items(), key=lambda kv: -len(kv[0])):
         if (module + ".").startswith(prefix):
             return value
@@ -231,13 +213,11 @@ def test_the_checker_sees_a_violation(tmp_path, monkeypatch):
     (package / "__init__.py").write_text("")
     (package / "geometry" / "__init__.py").write_text("")
     (package / "geometry" / "bad.py").write_text(
-        "from pcc_ros import pipeline\n\ndef f():\n    from ..node_core import X\n    import rclpy\n"
+        "from pcc_ros.pipeline import core\n\ndef f():\n    from ..runtime.node import X\n    import rclpy\n"
         "    importlib.import_module('rclpy.node')\n"
     )
-    (package / "pipeline.py").write_text("")
-    (package / "node_core.py").write_text("")
     monkeypatch.setattr(sys.modules[__name__], "PACKAGE", package)
     assert {(a, b) for a, b, _ in upward_imports()} == {
-        ("pcc_ros.geometry.bad", "pcc_ros.pipeline"), ("pcc_ros.geometry.bad", "pcc_ros.node_core")
+        ("pcc_ros.geometry.bad", "pcc_ros.pipeline"), ("pcc_ros.geometry.bad", "pcc_ros.runtime.node")
     }
     assert [t for t, _ in imports(package / "geometry" / "bad.py")][-2:] == ["rclpy", "rclpy.node"]

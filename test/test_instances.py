@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.instances import (
     EvalShapes,
     ExtractConfig,
@@ -21,8 +20,8 @@ from pcc_ros.data.instances import (
     whole_gt_pool,
 )
 from pcc_ros.errors import DataError
-from pcc_ros.frame import Frame
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
+from pcc_ros.types import Boxes, Sample
 
 CAR = np.array([4.0, 1.8, 1.5])
 
@@ -61,7 +60,7 @@ def make_track_frames(n_frames=24, noise=0.005, seed=0, sequence="0000", track="
         if with_pose:
             pose = np.eye(4)
             pose[0, 3] = 2.0 * f
-        frames.append(Frame(stamp_ns=f * 100_000_000, frame_id="velodyne", points=pts, ground_truth=boxes,
+        frames.append(Sample(stamp_ns=f * 100_000_000, frame_id="velodyne", points=pts, ground_truth=boxes,
                             sequence=sequence, index=f, pose=pose))
     return frames, surface
 
@@ -189,7 +188,7 @@ def test_pose_aggregation_of_parked_car(tmp_path):
         pts_c = surface[visible(surface, origin_c)][::5]
         car = from_canonical(pts_c, center, 0.3, 4.0).astype(np.float32)
         boxes = Boxes([center + rng.normal(0, 0.05, 3)], [CAR], [0.3 + rng.normal(0, 0.02)], track_id=["1"])
-        frames.append(Frame(f, "velodyne", np.c_[car, np.zeros(len(car))].astype(np.float32), ground_truth=boxes,
+        frames.append(Sample(f, "velodyne", np.c_[car, np.zeros(len(car))].astype(np.float32), ground_truth=boxes,
                             sequence="0001", index=f, pose=pose))
     cache = extract_instances(frames, tmp_path / "p", ExtractConfig(ground_margin=0.0, margin=0.2), progress=False)
     (obs,) = cache.tracks().values()

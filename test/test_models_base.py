@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import CheckpointError, ConfigError, DataError
 from pcc_ros.models import (
     Completer,
@@ -22,6 +21,7 @@ from pcc_ros.models import (
     select_device,
 )
 from pcc_ros.models.checkpoint import load_checkpoint, load_config, save_checkpoint
+from pcc_ros.types import Boxes
 
 
 @register("tiny_test")

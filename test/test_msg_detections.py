@@ -7,7 +7,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import MessageError
 from pcc_ros.msg.detections import (
     CUBE,
@@ -24,6 +23,7 @@ from pcc_ros.msg.detections import (
 )
 from pcc_ros.msg.stamps import stamp_to_ns
 from pcc_ros.msg.typestore import get_typestore, new_message
+from pcc_ros.types import Boxes
 
 DET = "vision_msgs/msg/Detection3DArray"
 MARKERS = "visualization_msgs/msg/MarkerArray"

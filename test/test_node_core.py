@@ -8,16 +8,16 @@ import time
 import numpy as np
 import pytest
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import ConfigError
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.msg.typestore import get_typestore
-from pcc_ros.node_core import NodeCore, node_parameters, unknown_parameters
-from pcc_ros.nodes.params import check_value, parameter_table
-from pcc_ros.pipeline import Pipeline, PipelineConfig, build_outputs
+from pcc_ros.pipeline.config import check_value, parameter_table
+from pcc_ros.pipeline.core import Pipeline, PipelineConfig, build_outputs
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, QoS, Transform
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
+from pcc_ros.runtime.node import NodeCore, node_parameters, unknown_parameters
+from pcc_ros.types import Boxes
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
 DETS = "vision_msgs/msg/Detection3DArray"
@@ -413,10 +413,10 @@ def test_filter_markers_read_the_mapped_score_mismatch_and_decision(graph):
 def test_docs_show_the_parameter_table_as_the_code_defines_it():
     from pathlib import Path
 
-    from pcc_ros.nodes.params import markdown_table
+    from pcc_ros.pipeline.config import markdown_table
 
     doc = (Path(__file__).resolve().parents[1] / "docs" / "nodes.md").read_text()
-    assert markdown_table() in doc, "docs/nodes.md is out of date: paste pcc_ros.nodes.params.markdown_table()"
+    assert markdown_table() in doc, "docs/nodes.md is out of date: paste pcc_ros.pipeline.config.markdown_table()"
 
 
 def test_half_precision_runs_the_shipped_network_under_autocast():
@@ -515,7 +515,7 @@ def test_rclpy_node_declares_rules_refuses_unknown_keys_and_swaps_at_run_time():
 
 
 def test_replay_config_is_checked_as_the_nodes_check_it(tmp_path):
-    from pcc_ros.bags.replay import load_config
+    from pcc_ros.runtime.bag import load_config
 
     typo = tmp_path / "typo.yaml"
     typo.write_text("/**/detection_filter_node:\n  ros__parameters:\n    backendd: mirror\n")

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from conftest import require_rclpy
 
-from pcc_ros.nodes.params import parameter_table
-from pcc_ros.pipeline import read_parameters
+from pcc_ros.pipeline.config import parameter_table
+from pcc_ros.pipeline.core import read_parameters
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -45,10 +45,10 @@ def test_completion_node_publishes_completed_cloud():
     from sensor_msgs.msg import PointCloud2
     from vision_msgs.msg import Detection3DArray
 
-    from pcc_ros.boxes import Boxes
     from pcc_ros.msg.detections import detection_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
     from pcc_ros.nodes.ros_node import PipelineNode, rclpy_classes
+    from pcc_ros.types import Boxes
 
     rclpy.init()
     node = probe = None

@@ -3,7 +3,7 @@
 Read from the source with ``ast``: quaternion helpers are defined only in
 ``geometry/rotations.py``, box-corner functions only in ``geometry/boxes.py``, and files are
 renamed into place (``os.replace`` / ``os.rename`` / ``Path.rename``) only by
-``pcc_ros/files.py`` (files) and ``bags/convert.atomic_bag`` (bag directories).
+``pcc_ros/files.py`` (files) and ``data/bag_writer.atomic_bag`` (bag directories).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "pcc_ros"
 
 HOMES = {"quaternion": "geometry/rotations.py", "corners": "geometry/boxes.py"}
-RENAMERS = {"files.py", "bags/convert.py"}
+RENAMERS = {"files.py", "data/bag_writer.py"}
 
 
 def _trees():

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from conftest import colcon_style_install
 
-from pcc_ros.cli import COMMANDS, available_commands, build_parser
+from pcc_ros.cli.main import COMMANDS, available_commands, build_parser
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -67,7 +67,7 @@ def test_pcc_help_runs_as_a_program():
 
 
 def test_import_pcc_ros_needs_no_ros():
-    code = "import sys, pcc_ros, pcc_ros.cli; assert 'rclpy' not in sys.modules; print('ok')"
+    code = "import sys, pcc_ros, pcc_ros.cli.main; assert 'rclpy' not in sys.modules; print('ok')"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.stdout.strip() == "ok", out.stderr
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import ConfigError, MessageError
-from pcc_ros.filter import FilterConfig
 from pcc_ros.models.base import load_completer
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
-from pcc_ros.pipeline import RAW_POINT_INSTANCE, Pipeline, PipelineConfig, build_outputs, read_parameters
+from pcc_ros.pipeline.core import RAW_POINT_INSTANCE, Pipeline, PipelineConfig, build_outputs, read_parameters
+from pcc_ros.pipeline.filter import FilterConfig
+from pcc_ros.types import Boxes
 
 REPO_CONFIG = __import__("pathlib").Path(__file__).resolve().parents[1] / "config"
 

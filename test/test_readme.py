@@ -26,8 +26,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pcc_ros import cli
-from pcc_ros.nodes.params import check_value, parameter_specs
+import pcc_ros.cli.main as cli
+from pcc_ros.pipeline.config import check_value, parameter_specs
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
@@ -136,7 +136,7 @@ def test_ros2_lines_name_real_executables_files_arguments_and_parameters():
 
 
 def test_shipped_config_score_mapping_is_what_the_readme_says():
-    from pcc_ros.pipeline import read_parameters
+    from pcc_ros.pipeline.core import read_parameters
 
     shipped = read_parameters(REPO / "config" / "detection_filter.yaml", "detection_filter_node")["score_mapping"]
     assert shipped == "identity" and "`score_mapping:\nidentity`" in README
@@ -198,7 +198,7 @@ def _readme_command(prefix: str) -> list[str]:
 
 @pytest.mark.slow
 def test_tools_table_on_the_real_kitti_sample(workdir, capsys):
-    from pcc_ros.bags.read import open_bag
+    from pcc_ros.data.bag import open_bag
 
     assert cli.main(_readme_command("convert kitti-tracking")) == 0
     capsys.readouterr()

@@ -8,11 +8,10 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.track_aggregate import aggregate_clouds, collect_tracks, voxel_downsample
-from pcc_ros.frame import Frame
 from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.metrics.realdata import input_spacing, real_instance_metrics
+from pcc_ros.types import Boxes, Sample
 
 
 def _car_surface(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
@@ -24,13 +23,13 @@ def _car_surface(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
     return pts
 
 
-def _frame(index: int, canonical: np.ndarray, center, yaw: float, clutter: np.ndarray) -> Frame:
+def _frame(index: int, canonical: np.ndarray, center, yaw: float, clutter: np.ndarray) -> Sample:
     size = np.array([4.0, 1.8, 1.5])
     sensor = from_canonical(canonical, np.asarray(center, float), yaw, size[0])
     points = np.concatenate([sensor, clutter]).astype(np.float32)
     boxes = Boxes(np.array([center], float), size[None], np.array([yaw]), np.array(["Car"], dtype=object),
                   np.ones(1), np.array(["7"], dtype=object))
-    return Frame(stamp_ns=index * 100_000_000, frame_id="velodyne", points=points, ground_truth=boxes,
+    return Sample(stamp_ns=index * 100_000_000, frame_id="velodyne", points=points, ground_truth=boxes,
                  sequence="s", index=index)
 
 
@@ -93,7 +92,7 @@ def test_real_metrics_measure_floating_and_coverage():
 
 @pytest.mark.slow
 def test_pcc_eval_real_on_kitti(shared_data, tmp_path, capsys):
-    from pcc_ros.cli import main
+    from pcc_ros.cli.main import main
 
     out_json, out_png = tmp_path / "real.json", tmp_path / "real.png"
     rc = main(["eval", "--real", "--real-sources", f"{shared_data / 'kitti_tracking'},{shared_data / 'nuscenes_mini'}",
@@ -115,7 +114,7 @@ def test_pcc_eval_real_on_kitti(shared_data, tmp_path, capsys):
 
 
 def test_pcc_eval_real_missing_source_is_a_clear_error(tmp_path, caplog):
-    from pcc_ros.cli import main
+    from pcc_ros.cli.main import main
 
     rc = main(["eval", "--real", "--real-sources", str(tmp_path / "nope"), "--backends", "input"])
     assert rc == 1

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from pcc_ros.bags.convert import write_bag
-from pcc_ros.bags.replay import BagPairs, load_config, replay_bag
-from pcc_ros.cli import main
+from pcc_ros.cli.main import main
+from pcc_ros.data.bag_writer import write_bag
 from pcc_ros.data.kitti import KittiTracking
 from pcc_ros.errors import DataError
 from pcc_ros.models.base import load_completer
 from pcc_ros.msg.pointcloud2 import read_xyz
 from pcc_ros.msg.typestore import get_typestore
-from pcc_ros.pipeline import Pipeline, PipelineConfig
+from pcc_ros.pipeline.core import Pipeline, PipelineConfig
+from pcc_ros.runtime.bag import BagPairs, load_config, replay_bag
 
 
 @pytest.fixture(scope="module", params=["mcap", "sqlite3"])

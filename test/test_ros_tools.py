@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 from conftest import require_rclpy
 
-from pcc_ros.bags.read import open_bag as open_reader
-from pcc_ros.cli import main as pcc
+from pcc_ros.cli.main import main as pcc
+from pcc_ros.data.bag import open_bag as open_reader
 from pcc_ros.msg.stamps import ns_to_stamp, stamp_to_ns
 from pcc_ros.msg.typestore import get_typestore
 

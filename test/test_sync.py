@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 
-from pcc_ros.sync import LatestSlot, StampPairer
+from pcc_ros.runtime.pairing import LatestSlot, StampPairer
 
 MS = 1_000_000
 

@@ -9,7 +9,6 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.kitti import KittiTracking
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
 from pcc_ros.data.synthetic import generate, load_shape
@@ -20,6 +19,7 @@ from pcc_ros.data.synthetic.mesh import is_closed_oriented
 from pcc_ros.data.synthetic.scene import KIND_VEHICLE
 from pcc_ros.data.synthetic.vehicles import FAMILIES, build_vehicle, canonical_shape
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.types import Boxes
 
 SEED = 7
 LOW = Sensor.low_res()

@@ -9,15 +9,14 @@ import pytest
 import torch
 from shapes import box_surface
 
-from pcc_ros.boxes import Boxes
-from pcc_ros.cli import main
+from pcc_ros.cli.main import main
 from pcc_ros.data.instances import ExtractConfig, extract_instances
 from pcc_ros.errors import ConfigError
-from pcc_ros.frame import Frame
 from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.models import load_completer
 from pcc_ros.models.checkpoint import load_config
 from pcc_ros.train import learning_rate, load_recipe, optimizer_tensors, parse_options, restore_optimizer
+from pcc_ros.types import Boxes, Sample
 
 
 def car_shape(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
@@ -48,7 +47,7 @@ def cache_dir(tmp_path_factory):
             pts = np.concatenate(points).astype(np.float32)
             boxes = Boxes(centers, np.column_stack([lengths, lengths * 0.4, lengths * 0.3]), yaws, ["Car"] * 3,
                           None, ["0", "1", "2"])
-            frames.append(Frame(stamp_ns=f * 100_000_000, frame_id="velodyne",
+            frames.append(Sample(stamp_ns=f * 100_000_000, frame_id="velodyne",
                                 points=np.column_stack([pts, np.zeros(len(pts), np.float32)]),
                                 ground_truth=boxes, sequence=seq, index=f))
     out = tmp_path_factory.mktemp("cache") / "cache"

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 import torch
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.gt_pools import (
     PoolConfig,
     build_pools,
@@ -19,7 +18,6 @@ from pcc_ros.data.gt_pools import (
 )
 from pcc_ros.data.instances import ExtractConfig, extract_instances
 from pcc_ros.errors import ConfigError
-from pcc_ros.frame import Frame
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.models import SceneContext, create, load_completer
 from pcc_ros.models.trapcc import (
@@ -29,6 +27,7 @@ from pcc_ros.models.trapcc import (
     neighbour_geometry,
     training_recipe,
 )
+from pcc_ros.types import Boxes, Sample
 
 ELLIPSOID = np.array([4.0, 1.8, 1.5])
 BOXY = np.array([4.1, 1.8, 1.5])
@@ -78,7 +77,7 @@ def track_frames(surface, size, sequence, track, n_frames, drive_by=True, seed=0
         car = from_canonical(pts_c[seen] + rng.normal(0, 0.002, (seen.sum(), 3)), center, yaw, size[0])
         boxes = Boxes([center], [size], [yaw], label=["Car"], track_id=[track])
         points = np.c_[car, np.zeros(len(car))].astype(np.float32)
-        frames.append(Frame(stamp_ns=f * 100_000_000, frame_id="velodyne", points=points, ground_truth=boxes,
+        frames.append(Sample(stamp_ns=f * 100_000_000, frame_id="velodyne", points=points, ground_truth=boxes,
                             sequence=sequence, index=f))
     return frames
 
@@ -270,7 +269,7 @@ def train_cache(tmp_path_factory):
             boxes = Boxes(np.r_[fa.ground_truth.center, fb.ground_truth.center + np.array([0, 6.0, 0])],
                           np.r_[fa.ground_truth.size, fb.ground_truth.size], np.zeros(2), label=["Car", "Car"],
                           track_id=["1", "2"])
-            frames.append(Frame(fa.stamp_ns, "velodyne", np.r_[fa.points, fb_points], ground_truth=boxes,
+            frames.append(Sample(fa.stamp_ns, "velodyne", np.r_[fa.points, fb_points], ground_truth=boxes,
                                 sequence=fa.sequence, index=fa.index))
     cfg = ExtractConfig(val_fraction=0.0, test_fraction=0.0, ground_margin=0.0)
     return extract_instances(frames, tmp_path_factory.mktemp("train") / "cache", cfg, progress=False)
@@ -357,7 +356,7 @@ def test_gt_free_metrics_on_known_clouds():
 def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys):
     import json
 
-    from pcc_ros.cli import main
+    from pcc_ros.cli.main import main
     from pcc_ros.models.checkpoint import load_config
 
     out = tmp_path / "run"

@@ -42,12 +42,11 @@ from pathlib import Path
 import numpy as np
 
 from pcc_ros import files
-from pcc_ros.boxes import Boxes, class_mask
 from pcc_ros.errors import DataError
-from pcc_ros.frame import Frame
 from pcc_ros.geometry.boxes import crop_canonical, iou_3d
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.geometry.partitions import front_back_masks
+from pcc_ros.types import Boxes, Sample, class_mask
 
 log = logging.getLogger("pcc.extract")
 
@@ -197,7 +196,7 @@ class _Shard:
 
 
 def frame_instances(
-    frame: Frame, config: ExtractConfig, synth: SynthCarsInfo | None = None, skipped: Counter | None = None
+    frame: Sample, config: ExtractConfig, synth: SynthCarsInfo | None = None, skipped: Counter | None = None
 ) -> tuple[list[np.ndarray], dict[str, list]]:
     """Canonical crops and metadata columns of the wanted boxes of one frame.
 
@@ -332,7 +331,7 @@ def _clear_cache(out: Path) -> None:
 
 
 def extract_instances(
-    frames: Iterable[Frame],
+    frames: Iterable[Sample],
     out: str | Path,
     config: ExtractConfig | None = None,
     *,

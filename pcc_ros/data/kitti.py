@@ -1,6 +1,6 @@
 """KITTI tracking and object readers, detector results and OXTS ego poses.
 
-Every reader yields :class:`pcc_ros.frame.Frame` objects in the Velodyne frame
+Every reader yields :class:`pcc_ros.types.Sample` objects in the Velodyne frame
 (``frame_id = "velodyne"``, REP 103) with boxes already converted from KITTI's camera
 convention (rectified camera frame, bottom centre, ``rotation_y``) to pcc_ros boxes
 (geometric centre, size (l, w, h), yaw about +z) by :mod:`pcc_ros.data.kitti_format`,
@@ -24,8 +24,8 @@ second way from their file index.
 
 Poses: the standard KITTI OXTS -> pose conversion (Mercator projection with the scale of
 the first frame's latitude, rotation Rz(yaw) Ry(pitch) Rx(roll), relative to the first
-frame), giving ``odom <- imu``; ``Frame.pose`` is ``odom <- velodyne`` =
-``odom <- imu @ inv(Tr_imu_to_velo)`` and ``Frame.extras["sensor_to_base"]`` holds
+frame), giving ``odom <- imu``; ``Sample.pose`` is ``odom <- velodyne`` =
+``odom <- imu @ inv(Tr_imu_to_velo)`` and ``Sample.extras["sensor_to_base"]`` holds
 ``base_link <- velodyne`` (base_link = the OXTS IMU), which the bag writer publishes on
 ``/tf_static``.
 """
@@ -40,10 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines, read_text_lines
 from pcc_ros.errors import DataError
-from pcc_ros.frame import Frame
+from pcc_ros.types import Boxes, Sample
 
 log = logging.getLogger(__name__)
 
@@ -247,7 +246,7 @@ class KittiTracking:
 
     def frames(
         self, sequence: str, detections_dir: str | Path | None = None, start: int = 0, stop: int | None = None
-    ) -> Iterator[Frame]:
+    ) -> Iterator[Sample]:
         """Frames of one sequence in order; ``start``/``stop`` select a slice of the scans."""
         before = self._counts()
         scans = self.scan_paths(sequence)[start:stop]
@@ -264,7 +263,7 @@ class KittiTracking:
             extras = {"scan_path": str(scan)}
             if poses is not None and sensor_to_base is not None:
                 extras["sensor_to_base"] = sensor_to_base
-            yield Frame(
+            yield Sample(
                 stamp_ns=int(stamp),
                 frame_id=FRAME_ID,
                 points=read_velodyne(scan),
@@ -308,7 +307,7 @@ class KittiObject(KittiTracking):
 
     def frames(  # type: ignore[override]
         self, detections_dir: str | Path | None = None, start: int = 0, stop: int | None = None
-    ) -> Iterator[Frame]:
+    ) -> Iterator[Sample]:
         all_scans = sorted((self.root / "velodyne").glob("*.bin"))
         have = {p.stem for p in all_scans}
         lo, hi = (all_scans[0].stem, all_scans[-1].stem) if all_scans else ("", "")
@@ -334,7 +333,7 @@ class KittiObject(KittiTracking):
                 rows = parse_label_lines(_read_lines(label_path), tracking=False, source=str(label_path))
                 truth = camera_to_lidar_boxes(rows, calib)
                 _count_unknown(truth.label, self.unknown_classes)
-            yield Frame(
+            yield Sample(
                 stamp_ns=KITTI_EPOCH_NS + index * FRAME_PERIOD_NS,
                 frame_id=FRAME_ID,
                 points=read_velodyne(scan),

@@ -2,7 +2,7 @@
 
 KITTI stores 3D boxes in the rectified camera frame (x right, y down, z forward) by
 their *bottom* centre, sizes as (h, w, l) and heading ``rotation_y`` about the camera
-y axis. pcc_ros boxes (:class:`pcc_ros.boxes.Boxes`) live in the LiDAR frame by their
+y axis. pcc_ros boxes (:class:`pcc_ros.types.Boxes`) live in the LiDAR frame by their
 geometric centre with yaw about +z. The conversion happens here, once, for readers
 (KITTI tracking/object, detector results) and for the SynthCars writer alike, so a
 label written by one and read by the other round-trips exactly.
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.transforms import wrap_angle
+from pcc_ros.types import Boxes
 
 # Official object devkit spelling first, tracking devkit spelling second.
 _KEY_ALIASES = {

@@ -2,7 +2,7 @@
 
 Reads ``ROOT/VERSION/{scene,sample,sample_data,sample_annotation,instance,category,
 ego_pose,calibrated_sensor}.json`` (plus ``sensor.json`` when present) and yields one
-:class:`pcc_ros.frame.Frame` per LIDAR_TOP key frame, scene by scene in sample order:
+:class:`pcc_ros.types.Sample` per LIDAR_TOP key frame, scene by scene in sample order:
 
 - points: ``ROOT/<sample_data.filename>`` (``.pcd.bin``, 5 float32 per point: x, y, z,
   intensity 0-255, ring 0-31), fields ``("x", "y", "z", "intensity", "ring")``, frame
@@ -11,8 +11,8 @@ ego_pose,calibrated_sensor}.json`` (plus ``sensor.json`` when present) and yield
   w, x, y, z), nuScenes size (w, l, h) reordered to pcc_ros (l, w, h), yaw about the
   LiDAR's +z; ``track_id`` = instance token; ``label`` = a KITTI-like class
   (:data:`CATEGORY_TO_LABEL`), the original nuScenes category in
-  ``Frame.extras["category"]`` (same order as the boxes) and the annotators' point count
-  in ``Frame.extras["num_lidar_pts"]``;
+  ``Sample.extras["category"]`` (same order as the boxes) and the annotators' point count
+  in ``Sample.extras["num_lidar_pts"]``;
 - stamp: ``sample_data.timestamp`` (microseconds) in ns;
 - pose: ``odom <- LIDAR_TOP`` where odom is the nuScenes global (map) frame, i.e.
   ``ego_pose @ calibrated_sensor``; ``extras["sensor_to_base"]`` = ``calibrated_sensor``
@@ -29,11 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.kitti import read_float32_records
 from pcc_ros.errors import DataError
-from pcc_ros.frame import Frame
 from pcc_ros.geometry.rotations import quaternion_to_matrix, xyzw_from_wxyz
+from pcc_ros.types import Boxes, Sample
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +148,7 @@ class NuScenes:
     def scenes(self) -> list[str]:
         return [s["name"] for s in self.tables["scene"]]
 
-    def frames(self, scene: str | None = None) -> Iterator[Frame]:
+    def frames(self, scene: str | None = None) -> Iterator[Sample]:
         """Key frames of ``scene`` (name or token; ``None`` = every scene) in sample order."""
         chosen = [s for s in self.tables["scene"] if scene is None or scene in (s.get("name"), s.get("token"))]
         if not chosen:
@@ -173,7 +172,7 @@ class NuScenes:
         if skipped:
             log.warning("nuScenes: skipped %s", dict(skipped))
 
-    def _frame(self, scene: str, index: int, sd: dict) -> Frame:
+    def _frame(self, scene: str, index: int, sd: dict) -> Sample:
         source = f"{self.root / self.version}/sample_data.json[{sd['token']}]"
         try:
             ego = transform(self.ego_poses[sd["ego_pose_token"]], f"ego_pose {sd['ego_pose_token']}")
@@ -182,7 +181,7 @@ class NuScenes:
             raise DataError(f"{source}: references missing record {exc}") from exc
         lidar_from_global = np.linalg.inv(ego @ sensor)
         boxes, categories, counts = self._boxes(sd["sample_token"], lidar_from_global)
-        return Frame(
+        return Sample(
             stamp_ns=int(sd["timestamp"]) * 1000,
             frame_id=FRAME_ID,
             points=read_pcd_bin(self.root / sd["filename"]),

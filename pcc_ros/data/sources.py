@@ -10,7 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from pcc_ros.errors import DataError
-from pcc_ros.frame import Frame
+from pcc_ros.types import Sample
 
 BAG_SUFFIXES = (".mcap", ".db3")
 
@@ -43,7 +43,7 @@ def open_frames(
     sequence: str | None = None,
     detections_dir: str | Path | None = None,
     version: str | None = None,
-) -> Iterator[Frame]:
+) -> Iterator[Sample]:
     """Frames from a bag, KITTI tracking (``sequence`` or every sequence), KITTI object or nuScenes.
 
     ``detections_dir`` adds detector results to KITTI frames (bags carry their own);
@@ -52,7 +52,7 @@ def open_frames(
     path = Path(path)
     kind = kind_of(path)
     if kind == "bag":
-        from pcc_ros.bags.read import read_frames
+        from pcc_ros.data.bag import read_frames
 
         return read_frames(path)
     if kind == "kitti-tracking":

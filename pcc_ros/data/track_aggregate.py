@@ -33,9 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pcc_ros.boxes import class_mask
-from pcc_ros.frame import Frame
 from pcc_ros.geometry.boxes import crop_canonical
+from pcc_ros.types import Sample, class_mask
 
 log = logging.getLogger("pcc.aggregate")
 
@@ -110,7 +109,7 @@ def aggregate_clouds(clouds: Iterable[np.ndarray], voxel: float | None = None) -
 
 
 def frame_observations(
-    frame: Frame,
+    frame: Sample,
     classes: tuple[str, ...] = ("Car", "Van"),
     min_points: int = 1,
     margin: float = 0.0,
@@ -146,7 +145,7 @@ def frame_observations(
 
 
 def collect_tracks(
-    frames: Iterable[Frame],
+    frames: Iterable[Sample],
     classes: tuple[str, ...] = ("Car", "Van"),
     min_points: int = 1,
     margin: float = 0.0,

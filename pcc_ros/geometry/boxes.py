@@ -1,6 +1,6 @@
 """Box geometry: corners, points-in-boxes (one vectorised pass), crops, rotated IoU.
 
-Everything here works on :class:`pcc_ros.boxes.Boxes` (struct of arrays) so a frame's
+Everything here works on :class:`pcc_ros.types.Boxes` (struct of arrays) so a frame's
 boxes are processed together. The points-in-boxes test is the hot path of both nodes:
 it runs on every 120k-point scan, so it avoids touching the whole scan once per box.
 Instead one pass over the scan hashes every point into a coarse bird's-eye-view grid
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import DataError
+from pcc_ros.types import Boxes
 
 # Unit-cube corner signs in the order :func:`box_corners` documents.
 _CORNER_SIGNS = np.array(

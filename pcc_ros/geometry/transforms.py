@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.geometry.rotations import quaternion_matrix
+from pcc_ros.types import Boxes
 
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray:

@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import iou_3d, iou_bev
+from pcc_ros.types import Boxes
 
 DIFFICULTIES = ("easy", "moderate", "hard")
 MIN_HEIGHT = (40.0, 25.0, 25.0)  # pixels

@@ -36,8 +36,8 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
+from pcc_ros.types import Boxes
 
 if TYPE_CHECKING:  # torch is imported lazily so baselines and metrics stay torch-free
     import torch

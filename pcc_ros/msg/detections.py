@@ -1,6 +1,6 @@
 """3D boxes <-> ``vision_msgs/Detection3DArray`` and ``visualization_msgs/MarkerArray``.
 
-The package's box is :class:`~pcc_ros.boxes.Boxes` (centre, size = length / width / height,
+The package's box is :class:`~pcc_ros.types.Boxes` (centre, size = length / width / height,
 yaw about +z). vision_msgs 4.x stores a full 6-DoF pose plus a list of class hypotheses;
 the conversion keeps:
 
@@ -42,12 +42,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import MessageError
 from pcc_ros.geometry.boxes import box_corners
 from pcc_ros.geometry.rotations import quaternion_from_yaw, tilt_from_quaternion, yaw_from_quaternion
 from pcc_ros.msg.stamps import make_header
 from pcc_ros.msg.typestore import ClassResolver, new_message, resolve
+from pcc_ros.types import Boxes
 
 log = logging.getLogger(__name__)
 

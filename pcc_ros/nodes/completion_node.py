@@ -3,7 +3,7 @@
 Topics: in ``points`` (PointCloud2, sensor-data QoS) and ``detections``
 (vision_msgs/Detection3DArray); out ``completed`` (PointCloud2 x, y, z, instance) and
 ``completed_markers`` (MarkerArray), plus ``/diagnostics``.
-Parameters: see :func:`pcc_ros.nodes.params.parameter_table` and ``config/completion.yaml``.
+Parameters: see :func:`pcc_ros.pipeline.config.parameter_table` and ``config/completion.yaml``.
 """
 
 from __future__ import annotations

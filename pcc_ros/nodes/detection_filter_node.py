@@ -3,7 +3,7 @@
 Topics: in ``points`` (PointCloud2, sensor-data QoS) and ``detections``
 (vision_msgs/Detection3DArray); out ``detections_filtered`` / ``detections_rejected``
 (Detection3DArray) and ``filter_markers`` (MarkerArray), plus ``/diagnostics``.
-Parameters: see :func:`pcc_ros.nodes.params.parameter_table` and ``config/detection_filter.yaml``.
+Parameters: see :func:`pcc_ros.pipeline.config.parameter_table` and ``config/detection_filter.yaml``.
 """
 
 from __future__ import annotations

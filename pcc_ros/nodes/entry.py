@@ -21,7 +21,7 @@ CONFIG = {"completion": "completion.yaml", "filter": "detection_filter.yaml"}
 
 
 def usage(node_name: str, mode: str) -> str:
-    from pcc_ros.nodes.params import parameter_table
+    from pcc_ros.pipeline.config import parameter_table
 
     lines = [
         f"usage: ros2 run pcc_ros {node_name} [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]",

@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         raise DataError("--rate must be > 0")
     from rclpy.executors import ExternalShutdownException
 
-    from pcc_ros.bags.read import decode, iter_messages, open_bag
+    from pcc_ros.data.bag import decode, iter_messages, open_bag
     from pcc_ros.nodes.ros_node import rclpy_classes
     from pcc_ros.nodes.tools import topic_qos, wait_for
 

@@ -1,4 +1,4 @@
-"""The rclpy runtime: a thin adapter that hosts :class:`pcc_ros.node_core.NodeCore` in an rclpy node.
+"""The rclpy runtime: a thin adapter that hosts :class:`pcc_ros.runtime.node.NodeCore` in an rclpy node.
 
 Thin by design (ros2/demos style): ROS parameters in, the node core does the rest —
 pairing, the newest-wins worker, the pipeline, publishing, diagnostics values — exactly
@@ -25,9 +25,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.time import Time
 
 from pcc_ros.errors import ConfigError, PccError
-from pcc_ros.node_core import NodeCore, unknown_parameters
-from pcc_ros.nodes.params import ParameterSpec, parameter_table
+from pcc_ros.pipeline.config import ParameterSpec, parameter_table
 from pcc_ros.runtime.base import QoS, Transform
+from pcc_ros.runtime.node import NodeCore, unknown_parameters
 
 _TYPES = {
     "bool": ParameterType.PARAMETER_BOOL,

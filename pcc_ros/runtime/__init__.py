@@ -1,4 +1,4 @@
-"""Runtimes the node logic (:mod:`pcc_ros.node_core`) runs on: the seam and its implementations.
+"""Runtimes the node logic (:mod:`pcc_ros.runtime.node`) runs on: the seam and its implementations.
 
 * :mod:`pcc_ros.runtime.base` - the seam: :class:`~pcc_ros.runtime.base.Runtime`
   (publishers, subscriptions, timers, clock, logger, transforms) and

@@ -1,6 +1,6 @@
 """The runtime seam: what node logic needs from a middleware, and nothing more.
 
-:class:`pcc_ros.node_core.NodeCore` only talks to a :class:`Runtime`, so the same pairing,
+:class:`pcc_ros.runtime.node.NodeCore` only talks to a :class:`Runtime`, so the same pairing,
 worker, pipeline and diagnostics run on rclpy (``ros2 run``, :mod:`pcc_ros.nodes.ros_node`)
 and in-process (:mod:`pcc_ros.runtime.local`: tests, ``pcc replay``).
 

@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.geometry.transforms import wrap_angle
+from pcc_ros.types import Boxes
 
 
 @dataclass(frozen=True)

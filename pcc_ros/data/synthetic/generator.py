@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.synthetic import writer
 from pcc_ros.data.synthetic.detector import DetectorParams, detect
 from pcc_ros.data.synthetic.lidar import Scan, Sensor, cast
@@ -35,6 +34,7 @@ from pcc_ros.data.synthetic.scene import (
 from pcc_ros.data.synthetic.vehicles import LABELS, canonical_shape
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.transforms import wrap_angle
+from pcc_ros.types import Boxes
 
 log = logging.getLogger(__name__)
 

@@ -10,8 +10,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.geometry.boxes import box_corners
+from pcc_ros.types import Boxes
 
 
 def _outline(ax, boxes: Boxes, color: str, lw: float, ls: str = "-", label: str | None = None) -> None:

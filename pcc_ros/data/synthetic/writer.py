@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from pcc_ros import files
-from pcc_ros.boxes import Boxes
 from pcc_ros.data.kitti_format import Calibration, format_label_lines, lidar_to_camera_rows
 from pcc_ros.geometry.boxes import box_corners
+from pcc_ros.types import Boxes
 
 IMAGE_SIZE = (1242, 375)  # KITTI colour camera, used for the 2D boxes
 EARTH_RADIUS = 6378137.0

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.bags.read import decode, iter_messages, open_bag
+from pcc_ros.data.bag import decode, iter_messages, open_bag
 from pcc_ros.errors import PccError
 from pcc_ros.files import write_json
 

@@ -5,7 +5,7 @@
 in :mod:`pcc_ros.runtime.local`), so live nodes, tests and replay run the very same code.
 
 Threading: subscription callbacks only pair messages and drop the pair into a
-:class:`~pcc_ros.sync.LatestSlot`; one worker thread runs the pipeline on the newest pair
+:class:`~pcc_ros.runtime.pairing.LatestSlot`; one worker thread runs the pipeline on the newest pair
 and publishes. A slow backend therefore drops frames (counted, reported on
 ``/diagnostics``) instead of building up latency. ``threaded=False`` processes each pair
 inside the callback instead (offline use: nothing may be dropped).
@@ -24,10 +24,10 @@ from pcc_ros.errors import ConfigError, PccError
 from pcc_ros.geometry.rotations import quaternion_product
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
 from pcc_ros.msg.typestore import new_message
-from pcc_ros.nodes.params import BACKEND_PARAMETERS, NODE_DEFAULTS, check_value, parameter_specs, parameter_table
-from pcc_ros.pipeline import FrameResult, Pipeline, PipelineConfig, build_outputs
+from pcc_ros.pipeline.config import BACKEND_PARAMETERS, NODE_DEFAULTS, check_value, parameter_specs, parameter_table
+from pcc_ros.pipeline.core import FrameResult, Pipeline, PipelineConfig, build_outputs
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime, Transform
-from pcc_ros.sync import LatestSlot, StampPairer
+from pcc_ros.runtime.pairing import LatestSlot, StampPairer
 
 MODES = ("completion", "filter")
 
@@ -321,7 +321,7 @@ class NodeCore:
             self.publishers[name].publish(msg)
         self.frames += 1
         if self.mode == "filter":
-            from pcc_ros.filter import decision_counts
+            from pcc_ros.pipeline.filter import decision_counts
 
             self.last_decisions = decision_counts(result.status)
             for k, v in self.last_decisions.items():

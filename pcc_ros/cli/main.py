@@ -20,19 +20,19 @@ from pcc_ros.errors import PccError
 
 # name -> (module, one-line help). Keep sorted by workflow order.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "synth": ("pcc_ros.data.synthetic.command", "generate a SynthCars LiDAR dataset (KITTI tracking layout)"),
-    "convert": ("pcc_ros.bags.convert_command", "convert KITTI / nuScenes / SynthCars to a ROS 2 bag"),
-    "info": ("pcc_ros.bags.info_command", "summarise a ROS 2 bag"),
-    "extract": ("pcc_ros.data.extract_command", "extract canonical car instances from bags or datasets"),
+    "synth": ("pcc_ros.cli.synth", "generate a SynthCars LiDAR dataset (KITTI tracking layout)"),
+    "convert": ("pcc_ros.cli.convert", "convert KITTI / nuScenes / SynthCars to a ROS 2 bag"),
+    "info": ("pcc_ros.cli.info", "summarise a ROS 2 bag"),
+    "extract": ("pcc_ros.cli.extract", "extract canonical car instances from bags or datasets"),
     "train": ("pcc_ros.train", "train a completion backend self-supervised"),
     "eval": ("pcc_ros.evaluate", "evaluate completion backends (`pcc eval detections`: the detection filter)"),
     "eval-detections": ("pcc_ros.detection_eval", "detection AP and the filter's operating curve vs baselines"),
     "calibrate-filter": ("pcc_ros.filter_calibration", "fit the detection filter's weights (SynthCars + real frames)"),
-    "replay": ("pcc_ros.bags.replay", "run the per-frame pipeline over a bag"),
+    "replay": ("pcc_ros.runtime.bag", "run the per-frame pipeline over a bag"),
     "demo": ("pcc_ros.demo", "end-to-end demo on SynthCars and real KITTI frames"),
     "play": ("pcc_ros.nodes.play", "publish a bag onto the ROS 2 graph with its recorded timing (rclpy)"),
     "echo": ("pcc_ros.nodes.echo", "print the messages of a ROS 2 topic (rclpy)"),
-    "bench": ("pcc_ros.bench", "run a benchmark and print a table"),
+    "bench": ("pcc_ros.cli.bench", "run a benchmark and print a table"),
 }
 
 

@@ -97,7 +97,7 @@ def _nuscenes(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from pcc_ros.bags.convert import write_bag
+    from pcc_ros.data.bag_writer import write_bag
 
     if args.out.exists() and not args.force:
         raise DataError(f"{args.out} exists; pass --force to replace it")

@@ -2,8 +2,8 @@
 
 One :class:`ParameterSpec` per ROS parameter — name, type, default, description, range or
 choices, and whether it can change while the node runs. Names and defaults come from
-:class:`pcc_ros.pipeline.PipelineConfig`, :class:`pcc_ros.filter.FilterConfig` and
-:data:`pcc_ros.pipeline.NODE_DEFAULTS`, so the nodes, ``pcc replay`` and the YAML files
+:class:`pcc_ros.pipeline.core.PipelineConfig`, :class:`pcc_ros.pipeline.filter.FilterConfig` and
+:data:`pcc_ros.pipeline.core.NODE_DEFAULTS`, so the nodes, ``pcc replay`` and the YAML files
 cannot disagree. The rclpy host turns each spec into a ``ParameterDescriptor`` (ranges
 included); :func:`check_value` applies the same rules in the node core, so every runtime
 refuses a bad value with the same reason.
@@ -15,8 +15,8 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
-from pcc_ros.pipeline import NODE_DEFAULTS, PipelineConfig
+from pcc_ros.pipeline.core import NODE_DEFAULTS, PipelineConfig
+from pcc_ros.pipeline.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
 
 RELIABILITIES = ("reliable", "best_effort")
 

@@ -20,11 +20,18 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes, class_mask
 from pcc_ros.errors import ConfigError
-from pcc_ros.filter import FilterConfig, false_probability, filter_terms, map_scores, mismatch_scores, reject_mask
 from pcc_ros.geometry.boxes import crop_canonical
 from pcc_ros.geometry.canonical import from_canonical
+from pcc_ros.pipeline.filter import (
+    FilterConfig,
+    false_probability,
+    filter_terms,
+    map_scores,
+    mismatch_scores,
+    reject_mask,
+)
+from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
 
@@ -268,7 +275,7 @@ class FrameResult:
         mine = (self.completed_instance == index) & (self.completed_source == SOURCE_COMPLETED)
         return self.completed_points[mine]
     #: evidence rule: probability that each detection is false (NaN: not judged) and the
-    #: terms behind it (``pcc_ros.filter.TERMS`` plus raw counts), one value per detection.
+    #: terms behind it (``pcc_ros.pipeline.filter.TERMS`` plus raw counts), one value per detection.
     filter_score: np.ndarray | None = None
     filter_terms: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -551,11 +558,11 @@ def build_outputs(
     (Detection3DArray: the original detection messages when given, so every hypothesis and
     id survives untouched, else re-encoded from the boxes).
     """
-    from pcc_ros.filter import annotate_detections
     from pcc_ros.msg.detections import detection_array_from_boxes, marker_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
     from pcc_ros.msg.stamps import make_header
     from pcc_ros.msg.typestore import new_message
+    from pcc_ros.pipeline.filter import annotate_detections
 
     outputs = {
         "completed": create_cloud(completed_cloud_array(result), None, result.frame_id, result.stamp_ns, classes),

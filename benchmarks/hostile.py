@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.bench.common import load_average, print_table
+from benchmarks.common import load_average, print_table
 from pcc_ros.paths import shared_data_dir
 
 DEFAULT_DATA = shared_data_dir() / "kitti_tracking"
@@ -32,10 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _frame(data: Path, boxes: int, size: float, seed: int):
-    from pcc_ros.boxes import Boxes
     from pcc_ros.data.kitti import KittiTracking
     from pcc_ros.msg.detections import detection_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
+    from pcc_ros.types import Boxes
 
     frame = next(KittiTracking(data).frames("0000", stop=1))
     rng = np.random.default_rng(seed)
@@ -59,8 +59,8 @@ def _peak_mb(fn) -> float:
 def run(args: argparse.Namespace) -> dict:
     import dataclasses
 
-    from pcc_ros.bags.replay import load_config
-    from pcc_ros.pipeline import Pipeline
+    from pcc_ros.pipeline.core import Pipeline
+    from pcc_ros.runtime.bag import load_config
 
     cloud, dets, n_points = _frame(args.data, args.boxes, args.size, args.seed)
     config, _ = load_config(None, with_filter=True)

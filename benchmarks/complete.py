@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.bench.common import interleaved, load_average, print_table, summary_ms
+from benchmarks.common import interleaved, load_average, print_table, summary_ms
 
 TARGET_SPEEDUP = 2.0
 TARGET_CEILING = 0.8
@@ -74,8 +74,8 @@ def car_clouds(count: int, points: int, seed: int) -> list[np.ndarray]:
 
 def frame_contexts(clouds: list[np.ndarray]) -> list[Any]:
     """Scene contexts of ``clouds`` placed as one frame of cars on an 8 m grid (4.5 m cars)."""
-    from pcc_ros.boxes import Boxes
     from pcc_ros.models.base import SceneContext
+    from pcc_ros.types import Boxes
 
     n = len(clouds)
     side = int(np.ceil(np.sqrt(n)))

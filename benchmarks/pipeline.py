@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.bench.common import load_average, print_table, summary_ms
-from pcc_ros.bench.complete import parse_threads, thread_label
+from benchmarks.common import load_average, print_table, summary_ms
+from benchmarks.complete import parse_threads, thread_label
 
 STAGES = ("decode_ms", "crop_ms", "complete_ms", "filter_ms", "uncanonical_ms", "encode_ms")
 TARGET_SPEEDUP = 1.8
@@ -90,7 +90,7 @@ def resize_scan(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndar
 
 def car_boxes(points: np.ndarray, vehicles, n: int, rng: np.random.Generator):
     """``n`` detections: the nearest labelled vehicles, then car-sized boxes on random returns."""
-    from pcc_ros.boxes import Boxes
+    from pcc_ros.types import Boxes
 
     take = vehicles[np.arange(min(n, len(vehicles)))]
     extra = n - len(take)
@@ -122,7 +122,7 @@ def frame_messages(base, cars: int, points: int, seed: int):
 
 def one_frame(pipeline, cloud, dets) -> tuple[dict[str, float], object]:
     """Run one frame as a node does; per-stage and total milliseconds."""
-    from pcc_ros.pipeline import build_outputs
+    from pcc_ros.pipeline.core import build_outputs
 
     tic = time.perf_counter()
     result, originals = pipeline.process_messages(cloud, dets)
@@ -137,7 +137,7 @@ def one_frame(pipeline, cloud, dets) -> tuple[dict[str, float], object]:
 
 def make_pipeline(backend: str, checkpoint: str | None):
     from pcc_ros.models.base import create, default_checkpoint, get_backend, load_completer
-    from pcc_ros.pipeline import Pipeline, PipelineConfig
+    from pcc_ros.pipeline.core import Pipeline, PipelineConfig
 
     config = PipelineConfig(backend=backend, device="cpu", min_points=5, max_instances=128)
     cls = get_backend(backend)

@@ -19,13 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.bench.common import interleaved, load_average, print_table, summary_ms
-from pcc_ros.boxes import Boxes
+from benchmarks.common import interleaved, load_average, print_table, summary_ms
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import crop_canonical
 from pcc_ros.geometry.canonical import to_canonical
 from pcc_ros.paths import shared_data_dir
+from pcc_ros.types import Boxes
 
 DEFAULT_SCAN = shared_data_dir() / "kitti_tracking"
 TARGET_SPEEDUP = 3.0

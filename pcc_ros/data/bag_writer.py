@@ -1,4 +1,4 @@
-"""Write :class:`~pcc_ros.frame.Frame` streams to a rosbag2 (version 9, MCAP or sqlite3).
+"""Write :class:`~pcc_ros.types.Sample` streams to a rosbag2 (version 9, MCAP or sqlite3).
 
 One frame becomes, all stamped with the frame's ``stamp_ns`` (header stamp and bag time):
 
@@ -46,13 +46,12 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, W
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import DataError, PccError
-from pcc_ros.frame import Frame
 from pcc_ros.msg.detections import detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud
 from pcc_ros.msg.stamps import make_header
 from pcc_ros.msg.typestore import get_typestore, new_message
+from pcc_ros.types import Boxes, Sample
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +161,7 @@ def _boxes_3d(boxes: Boxes) -> tuple[Boxes, int]:
     return (boxes, 0) if valid.all() else (boxes[valid], int(np.count_nonzero(~valid)))
 
 
-def write_frames(bag: BagWriter, frames: Iterable[Frame], runs: _FrameRuns, summary: BagSummary) -> None:
+def write_frames(bag: BagWriter, frames: Iterable[Sample], runs: _FrameRuns, summary: BagSummary) -> None:
     """Write every frame's messages (see the module docstring) and fill ``summary``."""
     last_stamp: int | None = None
     static: tuple[str, bytes] | None = None
@@ -252,7 +251,7 @@ def atomic_bag(
 
 
 def write_bag(
-    frames: Iterable[Frame],
+    frames: Iterable[Sample],
     out: str | Path,
     storage: str = "mcap",
     compress: bool = True,

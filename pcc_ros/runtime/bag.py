@@ -1,9 +1,9 @@
 """``pcc replay``: run exactly the pipeline the nodes run over a bag, and record what they publish.
 
 Scans and detections are paired by header stamp with the nodes' own
-:class:`~pcc_ros.sync.StampPairer`, each pair goes through
-:meth:`~pcc_ros.pipeline.Pipeline.process_messages` and
-:func:`~pcc_ros.pipeline.build_outputs`, and the outputs are written on the nodes'
+:class:`~pcc_ros.runtime.pairing.StampPairer`, each pair goes through
+:meth:`~pcc_ros.pipeline.core.Pipeline.process_messages` and
+:func:`~pcc_ros.pipeline.core.build_outputs`, and the outputs are written on the nodes'
 topics and types. Offline nothing is dropped for lack of time: every pair is processed.
 
 Failures: the output bag is written next to ``--out`` and renamed into place only after
@@ -70,7 +70,7 @@ class BagPairs:
         self, bag: str | Path, points_topic: str = "/points", detections_topic: str = "/detections",
         slop_s: float = 0.05,
     ) -> None:
-        from pcc_ros.sync import StampPairer, SyncStats
+        from pcc_ros.runtime.pairing import StampPairer, SyncStats
 
         self.bag, self.points_topic, self.detections_topic = Path(bag), points_topic, detections_topic
         # Bags are in time order, so a partner arrives within a few messages; a bounded queue
@@ -81,7 +81,7 @@ class BagPairs:
         self.first_problem = ""
 
     def __iter__(self) -> Iterator[tuple[object, object, int]]:
-        from pcc_ros.bags.read import DETECTION3DARRAY, POINTCLOUD2, check_topic_types, decode, iter_messages, open_bag
+        from pcc_ros.data.bag import DETECTION3DARRAY, POINTCLOUD2, check_topic_types, decode, iter_messages, open_bag
         from pcc_ros.msg.stamps import stamp_to_ns
 
         reader = open_bag(self.bag)
@@ -122,8 +122,8 @@ COPIED_TOPICS = {
 def copy_topics(bag: str | Path, writer, topics: dict[str, str]) -> int:
     """Copy the raw records of ``topics`` (name -> expected type) from ``bag`` into an open
     :class:`BagWriter`; messages that do not deserialize are left out. Returns how many were."""
-    from pcc_ros.bags.convert import TF_STATIC_QOS
-    from pcc_ros.bags.read import check_topic_types, decode, iter_messages, open_bag
+    from pcc_ros.data.bag import check_topic_types, decode, iter_messages, open_bag
+    from pcc_ros.data.bag_writer import TF_STATIC_QOS
 
     reader = open_bag(bag)
     left_out = 0
@@ -167,8 +167,8 @@ def replay_bag(
     """
     from contextlib import nullcontext
 
-    from pcc_ros.bags.convert import atomic_bag
-    from pcc_ros.pipeline import build_outputs
+    from pcc_ros.data.bag_writer import atomic_bag
+    from pcc_ros.pipeline.core import build_outputs
 
     summary = ReplaySummary()
     topics = dict(COMPLETION_TOPICS)
@@ -177,7 +177,7 @@ def replay_bag(
     context = atomic_bag(out, storage=storage, force=force) if out is not None else nullcontext(None)
     with context as writer:
         if writer is not None and copy_inputs:
-            from pcc_ros.bags.read import DETECTION3DARRAY, POINTCLOUD2
+            from pcc_ros.data.bag import DETECTION3DARRAY, POINTCLOUD2
 
             copied = {points_topic: POINTCLOUD2, detections_topic: DETECTION3DARRAY, **COPIED_TOPICS}
             copy_topics(bag, writer, copied)
@@ -248,8 +248,8 @@ def load_config(config: Path | None, with_filter: bool, **overrides):
     (unknown key, wrong type, value out of range) is refused here with the same message.
     """
     from pcc_ros.errors import ConfigError
-    from pcc_ros.node_core import node_parameters, pipeline_config
-    from pcc_ros.pipeline import read_parameters
+    from pcc_ros.pipeline.core import read_parameters
+    from pcc_ros.runtime.node import node_parameters, pipeline_config
 
     if config is None:
         name = "detection_filter.yaml" if with_filter else "completion.yaml"
@@ -274,7 +274,7 @@ def shipped_config_dir() -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pcc_ros.pipeline import Pipeline
+    from pcc_ros.pipeline.core import Pipeline
     from pcc_ros.tables import print_table
 
     config, slop = load_config(

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 from numpy.lib import recfunctions
 
-from pcc_ros.bench.common import load_average, median_ms, print_table
+from benchmarks.common import load_average, median_ms, print_table
 from pcc_ros.errors import DataError
 from pcc_ros.msg.pointcloud2 import DATATYPES, create_cloud, read_xyz, structured_view
 from pcc_ros.msg.typestore import get_typestore

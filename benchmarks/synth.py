@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from pcc_ros.bench.common import print_table
+from benchmarks.common import print_table
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

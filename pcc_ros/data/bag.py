@@ -1,4 +1,4 @@
-"""Read a rosbag2 (MCAP or sqlite3) back into :class:`~pcc_ros.frame.Frame` objects.
+"""Read a rosbag2 (MCAP or sqlite3) back into :class:`~pcc_ros.types.Sample` objects.
 
 The offline tools (extraction, replay, evaluation) consume bags through this one function,
 whether the bag came from ``pcc convert`` or from ``ros2 bag record``:
@@ -12,7 +12,7 @@ whether the bag came from ``pcc convert`` or from ``ros2 bag record``:
   one within ``window_ns`` before) and ``/tf_static``; ``extras["sensor_to_base"]`` is the
   static ``base_link <- sensor`` when the bag has one;
 - ``sequence`` / ``index`` come from the ``pcc_ros.frames`` custom data that
-  :func:`pcc_ros.bags.convert.write_bag` stores, else ``""`` / the frame's ordinal.
+  :func:`pcc_ros.data.bag_writer.write_bag` stores, else ``""`` / the frame's ordinal.
 
 Messages are grouped by header stamp while reading in bag-time order; a group is complete
 once the bag time has moved ``window_ns`` past its first message (recorded bags stamp
@@ -42,7 +42,7 @@ from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag2 import ReaderError
 from scipy.spatial.transform import Rotation
 
-from pcc_ros.bags.convert import (
+from pcc_ros.data.bag_writer import (
     BASE_FRAME,
     DETECTIONS_TOPIC,
     FRAMES_KEY,
@@ -53,11 +53,11 @@ from pcc_ros.bags.convert import (
     TF_TOPIC,
 )
 from pcc_ros.errors import BagError, DataError, PccError
-from pcc_ros.frame import Frame
 from pcc_ros.msg.detections import boxes_from_detection_array
 from pcc_ros.msg.pointcloud2 import read_xyz
 from pcc_ros.msg.stamps import stamp_to_ns
 from pcc_ros.msg.typestore import get_typestore
+from pcc_ros.types import Sample
 
 log = logging.getLogger(__name__)
 
@@ -341,7 +341,7 @@ def read_frames(
     ground_truth_topic: str = GROUND_TRUTH_TOPIC,
     window_ns: int = 200_000_000,
     stats: ReadStats | None = None,
-) -> Iterator[Frame]:
+) -> Iterator[Sample]:
     """Frames of a rosbag2 directory, ``.mcap`` or ``.db3`` (see the module docstring).
 
     Undecodable messages and malformed frames are skipped, logged and counted in
@@ -360,7 +360,7 @@ def read_frames(
         groups: dict[int, _Group] = {}
         orphans = 0
 
-        def flush(before: int | None) -> Iterator[Frame]:
+        def flush(before: int | None) -> Iterator[Sample]:
             nonlocal orphans, yielded
             for stamp in sorted(groups):
                 group = groups[stamp]
@@ -418,7 +418,7 @@ def read_frames(
             )
 
 
-def _frame(group: _Group, stamp: int, tf: _Tf, window_ns: int, sequence: str, index: int, path: Path) -> Frame:
+def _frame(group: _Group, stamp: int, tf: _Tf, window_ns: int, sequence: str, index: int, path: Path) -> Sample:
     cloud = group.cloud
     frame_id = str(cloud.header.frame_id)
     try:
@@ -431,7 +431,7 @@ def _frame(group: _Group, stamp: int, tf: _Tf, window_ns: int, sequence: str, in
     extras: dict = {}
     if frame_id in tf.static and tf.static[frame_id][0] == BASE_FRAME:
         extras["sensor_to_base"] = tf.static[frame_id][1]
-    return Frame(
+    return Sample(
         stamp_ns=stamp,
         frame_id=frame_id,
         points=points,

@@ -1,4 +1,7 @@
-"""Oriented 3D boxes as a struct of arrays.
+"""The shared nouns: oriented 3D boxes (:class:`Boxes`), one dataset sample (:class:`Sample`)
+and the class-name rule (:func:`class_mask`).
+
+:class:`Boxes` -- oriented 3D boxes as a struct of arrays.
 
 A box is its geometric centre (x, y, z), its size (length along the heading, width,
 height) and its yaw about +z, in metres and radians in a REP 103 frame (x forward,
@@ -138,3 +141,42 @@ class Boxes:
             and np.allclose(self.score, other.score, atol=atol)
             and np.array_equal(self.track_id, other.track_id)
         )
+
+
+@dataclass
+class Sample:
+    """One LiDAR scan with its boxes: the unit every reader yields and every tool consumes.
+
+    KITTI, nuScenes and SynthCars readers, and the bag reader, all produce samples, so
+    conversion, instance extraction, replay and evaluation are written once against this
+    type. (Called ``Sample``, not ``Frame``: "frame" here means a coordinate frame, ``frame_id``.)
+
+    All in the sensor frame ``frame_id``.
+
+    Attributes:
+        stamp_ns: acquisition time, integer nanoseconds.
+        frame_id: the sensor frame of ``points`` and of every box.
+        points: ``(N, C)`` float32; columns named by ``fields``, starting x, y, z.
+        fields: column names of ``points`` (e.g. ``("x", "y", "z", "intensity")``).
+        detections: detector output, or ``None`` when the source has none.
+        ground_truth: annotated boxes (``track_id`` filled when tracks exist), or ``None``.
+        pose: ``4x4`` float64 transform odom <- sensor frame, or ``None`` without poses.
+        sequence: sequence / scene name ("0000", a nuScenes scene token, ...).
+        index: frame index inside the sequence.
+    """
+
+    stamp_ns: int
+    frame_id: str
+    points: np.ndarray
+    fields: tuple[str, ...] = ("x", "y", "z", "intensity")
+    detections: Boxes | None = None
+    ground_truth: Boxes | None = None
+    pose: np.ndarray | None = None
+    sequence: str = ""
+    index: int = 0
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def xyz(self) -> np.ndarray:
+        """``(N, 3)`` view of the coordinates."""
+        return self.points[:, :3]

@@ -44,10 +44,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import box_corners, points_in_boxes
 from pcc_ros.metrics.chamfer import nearest_distances_batch
+from pcc_ros.types import Boxes
 
 SCORE_MAPPINGS = ("identity", "sigmoid")
 RULES = ("evidence", "trapcc")

@@ -4,7 +4,7 @@ Frames are real KITTI tracking scans with their labels and PointRCNN detections 
 ``../shared/data/kitti_tracking`` (or ``--kitti``) exists, else seeded random scans of
 ``--points`` points with random boxes. They are loaded into memory first, so the write
 rate is the bag writer's own (PointCloud2 + Detection3DArray + CDR + compression + disk)
-and the read rate is :func:`pcc_ros.bags.read.read_frames` decoding complete frames.
+and the read rate is :func:`pcc_ros.data.bag.read_frames` decoding complete frames.
 Each configuration is timed ``--repeat`` times; the median is reported, with ratios
 against uncompressed MCAP measured in the same process. The headline
 ``write_frames_per_s`` / ``read_frames_per_s`` are the default configuration
@@ -23,12 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.bags.convert import write_bag
-from pcc_ros.bags.read import read_frames
-from pcc_ros.bench.common import print_table
-from pcc_ros.boxes import Boxes
-from pcc_ros.frame import Frame
+from benchmarks.common import print_table
+from pcc_ros.data.bag import read_frames
+from pcc_ros.data.bag_writer import write_bag
 from pcc_ros.paths import shared_data_dir
+from pcc_ros.types import Boxes, Sample
 
 _DEFAULT_KITTI = shared_data_dir() / "kitti_tracking"
 # (name, storage, compress, zstd level)
@@ -50,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tmp", type=Path, default=None, help="directory for the bags (default: system temp)")
 
 
-def _frames(args: argparse.Namespace) -> tuple[list[Frame], str]:
+def _frames(args: argparse.Namespace) -> tuple[list[Sample], str]:
     n = args.frames
     if args.kitti and (args.kitti / "training" / "velodyne" / "0000").is_dir():
         from pcc_ros.data.kitti import KittiTracking
@@ -68,12 +67,12 @@ def _frames(args: argparse.Namespace) -> tuple[list[Frame], str]:
         intensity = rng.random((args.points, 1), dtype=np.float32)
         boxes = Boxes(rng.uniform(-30, 30, (10, 3)), rng.uniform(1, 5, (10, 3)), rng.uniform(-3, 3, 10),
                       track_id=[str(k) for k in range(10)])
-        frames.append(Frame(i * 100_000_000, "velodyne", np.hstack([xyz, intensity]), ground_truth=boxes,
+        frames.append(Sample(i * 100_000_000, "velodyne", np.hstack([xyz, intensity]), ground_truth=boxes,
                             detections=boxes, sequence="random", index=i))
     return frames, f"random scans, seed {args.seed}"
 
 
-def _time_config(frames: list[Frame], tmp: Path, storage: str, compress: bool, level: int | None, repeat: int) -> dict:
+def _time_config(frames: list[Sample], tmp: Path, storage: str, compress: bool, level: int | None, repeat: int) -> dict:
     write_s, read_s, size = [], [], 0
     for k in range(repeat):
         out = tmp / f"bag_{storage}_{compress}_{level}_{k}"
@@ -99,7 +98,7 @@ def run(args: argparse.Namespace) -> dict:
     frames, source = _frames(args)
     raw_mb = float(np.mean([f.points.nbytes for f in frames])) / 1e6
     tmp = Path(tempfile.mkdtemp(prefix="pcc_bench_convert_", dir=args.tmp))
-    logging.getLogger("pcc_ros.bags.convert").setLevel(logging.WARNING)  # one DontCare note per run is noise here
+    logging.getLogger("pcc_ros.data.bag_writer").setLevel(logging.WARNING)  # one DontCare note per run is noise here
     try:
         results = {name: _time_config(frames, tmp, *cfg, args.repeat) for name, *cfg in CONFIGS}
     finally:
