@@ -9,6 +9,7 @@ import torch
 from pcc_ros.geometry.partitions import grid_bounds, voxelize
 from pcc_ros.geometry.voxels import (
     AML_GRID,
+    BOX_GRID,
     GridSpec,
     estimate_origin,
     observation_grids,
@@ -18,6 +19,7 @@ from pcc_ros.geometry.voxels import (
 )
 from pcc_ros.models.aml import (
     AML,
+    DEFAULT_ASPECT,
     AMLRecipe,
     ObservationBatch,
     PriorBatch,
@@ -29,6 +31,8 @@ from pcc_ros.models.aml import (
     sample_meshes,
     space_to_depth,
 )
+from pcc_ros.models.base import SceneContext
+from pcc_ros.types import Boxes
 
 
 def _centre(h: int, l: int, w: int) -> np.ndarray:  # noqa: E741 - the grid's own axis names
@@ -350,11 +354,17 @@ def test_completer_contract_and_checkpoint(tmp_path):
             out.bias[8:] = -1.0  # SDF channel: -1 everywhere -> no zero crossing inside the grid...
     clouds = [rng.uniform(-0.4, 0.4, (n, 3)).astype(np.float32) * [1, 0.5, 0.4] for n in (20, 300)]
     res = loaded.complete(clouds)
-    # ...so the border layer closes it: the surface is the grid box (halfway to the outside layer)
+    # ...so the border layer closes it: the surface is the grid box (halfway to the outside layer),
+    # in the box frame, stretched by the default box aspect when no box (context) is given
     assert all(r.shape == (2048, 3) and np.isfinite(r).all() for r in res)
-    assert np.abs(res[0]).max(axis=0) == pytest.approx(AML_GRID.upper, abs=1e-4)
+    assert np.abs(res[0]).max(axis=0) == pytest.approx(np.multiply(BOX_GRID.upper, DEFAULT_ASPECT), abs=1e-4)
     np.testing.assert_array_equal(loaded.complete(clouds[1:])[0], res[1])  # batch-independent
     assert all(r.shape == (2048, 3) for r in ml.complete(clouds))
+    # with a box the completion takes the box's proportions: a tall, narrow 4 x 1.6 x 2.4 m box
+    box = Boxes(np.array([[10.0, 0.0, 0.0]]), np.array([[4.0, 1.6, 2.4]]), np.array([0.3]), np.array(["Car"], object))
+    ctx = SceneContext(box=box, neighbour_boxes=box[np.array([], int)])
+    tall = loaded.complete(clouds[:1], [ctx])[0]
+    assert np.abs(tall).max(axis=0) == pytest.approx([0.6, 0.6 * 0.4, 0.6 * 0.6], abs=1e-4)
 
 
 def test_latent_whitening_keeps_the_decoder_function():
@@ -379,3 +389,76 @@ def test_latent_whitening_keeps_the_decoder_function():
     assert mu_after.mean(0).abs().max() < 1e-3
     cov = torch.cov(mu_after.T.double())
     torch.testing.assert_close(cov, torch.eye(10, dtype=torch.float64), atol=2e-2, rtol=0)
+
+
+# --------------------------------------------------------------------------- box frame (issue 18)
+
+
+def test_box_frame_maps_every_box_to_the_unit_cube():
+    from pcc_ros.geometry.voxels import box_aspect, from_box_frame, to_box_frame
+    from pcc_ros.models.aml import shape_to_grid_frame
+
+    aspect = box_aspect(np.array([4.4, 1.8, 1.5]))
+    np.testing.assert_allclose(aspect, [1.0, 1.8 / 4.4, 1.5 / 4.4])
+    corner = np.array([[0.5, 0.9 / 4.4, 0.75 / 4.4]])  # the box's front-left-top corner, canonical
+    np.testing.assert_allclose(to_box_frame(corner, aspect), [[0.5, 0.5, 0.5]])
+    np.testing.assert_allclose(from_box_frame(to_box_frame(corner, aspect), aspect), corner)
+    # a reference shape fills the box frame's cube whatever its proportions (SynthCars: box = bounds)
+    rng = np.random.default_rng(0)
+    van = rng.uniform(-1, 1, (500, 3)) * [0.5, 0.2, 0.23] + [0.0, 0.0, 0.01]
+    cube = shape_to_grid_frame(van, "box")
+    np.testing.assert_allclose(cube.min(0), -0.5, atol=1e-9)
+    np.testing.assert_allclose(cube.max(0), 0.5, atol=1e-9)
+    np.testing.assert_array_equal(shape_to_grid_frame(van, "canonical"), van)
+    with pytest.raises(Exception, match="positive"):
+        box_aspect(np.array([4.0, 0.0, 1.5]))
+
+
+def test_fused_surface_sampling_equals_meshes_then_sampling():
+    from pcc_ros.geometry.voxels import from_box_frame
+    from pcc_ros.models.aml import surface_samples
+
+    sdfs = np.stack([_sphere_sdf(0.2), np.full(AML_GRID.resolution, 2.0, np.float32), _sphere_sdf(0.15, (0.2, 0, 0))])
+    aspects = np.array([[1.0, 0.4, 0.35], [1.0, 0.5, 0.5], [1.0, 0.3, 0.45]])
+    fused = surface_samples(sdfs, AML_GRID, aspects, 1000, [3, 4, 5])
+    meshes = [(from_box_frame(v, a), f) for (v, f), a in zip(marching_cubes_batch(sdfs, AML_GRID), aspects)]
+    split = sample_meshes(meshes, 1000, [3, 4, 5])
+    assert len(fused[1]) == 0 and len(split[1]) == 0  # no surface
+    for a, b in zip(fused, split):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    # the sphere, stretched by its aspect: an ellipsoid with semi-axes 0.2 * aspect
+    assert np.abs(np.linalg.norm(fused[0] / (0.2 * aspects[0]), axis=1) - 1).max() < 0.08
+
+
+def test_box_jitter_off_gives_the_completer_observation(tmp_path):
+    from pcc_ros.models.aml import Observations
+
+    rng = np.random.default_rng(1)
+    clouds = [(rng.uniform(-0.4, 0.4, (80, 3)) * [1, 0.5, 0.4]).astype(np.float32) for _ in range(3)]
+    origins = np.array([[2.0, 3.0, 0.3], [-3.0, 1.0, 0.2], [0.0, -4.0, 0.5]])
+    aspects = np.array([[1.0, 0.4, 0.35], [1.0, 0.45, 0.5], [1.0, 0.38, 0.3]])
+    data = Observations(clouds, origins, {}, aspects)
+    recipe = AMLRecipe(stage="prior", augment=False)
+    aml = AML(device="cpu")
+    batch = recipe.observation_batch(data, np.arange(3), aml.config, rng)
+    expected = aml.observe_frame(clouds, origins, aspects)
+    torch.testing.assert_close(batch.grids(), expected)
+    jittered = AMLRecipe(stage="prior", augment=True, box_jitter=0.1).observation_batch(
+        data, np.arange(3), aml.config, np.random.default_rng(0))
+    assert not torch.equal(jittered.occupied, batch.occupied)
+    assert jittered.occupied.flatten(1).sum(1).tolist() != [0, 0, 0]
+
+
+def test_lambda_selection_scores_real_crops_by_held_out_points():
+    from pcc_ros.models.aml import RealCrops, holdout_fidelity
+
+    torch.manual_seed(0)
+    aml = AML(device="cpu")
+    rng = np.random.default_rng(2)
+    clouds = [(rng.uniform(-0.45, 0.45, (60, 3)) * [1, 0.4, 0.3]).astype(np.float32) for _ in range(2)]
+    crops = RealCrops(clouds, np.array([[2.0, 3.0, 0.3], [-3.0, 1.0, 0.2]]), np.array([[4.2, 1.7, 1.5]] * 2))
+    table = holdout_fidelity(aml, crops, [1.0, 100.0], steps=2, holdout=0.3, seed=0)
+    assert set(table) == {"1.0", "100.0"}
+    # metres: the held-out points of a ~4 m car lie within a few metres of any completion
+    assert all(0 < v < 3.0 for v in table.values())
+    assert holdout_fidelity(aml, crops, [1.0], steps=2, holdout=0.3, seed=0)["1.0"] == table["1.0"]  # seeded

@@ -1,17 +1,19 @@
 """AML's voxel grids: reference occupancy + SDF from complete surfaces, observations with
 ray-cast free space, batched and exact.
 
-The grid (:data:`AML_GRID`) is fixed in the *canonical* car frame (box centre, x forward,
-y left, z up, box length = 1), so every box maps onto it the same way and the network
-needs no box size. Array axes follow AML's ``H x W x D = 24 x 54 x 24``:
+Two grids, both with AML's array axes ``H x W x D = 24 x 54 x 24`` (axis 0 = height z,
+index 0 at the bottom; axis 1 = length x, index 0 at the rear; axis 2 = width y, index 0
+on the right):
 
-* axis 0 = height, canonical z, index 0 at the bottom (``z = -0.3``);
-* axis 1 = length, canonical x, index 0 at the rear (``x = -0.6``), 53 at the front;
-* axis 2 = width, canonical y, index 0 on the right (``y = -0.3``), 23 on the left.
-
-Voxel edges are 1.2 / 54 = 0.0222 (x) and 0.6 / 24 = 0.025 (y, z) canonical units
-(8.9 cm and 10 cm for a 4 m car): the car (about +-0.5 x +-0.21 x +-0.19) sits inside with
-about 0.1 of padding on every side.
+* :data:`BOX_GRID` (what AML uses): the *box frame*, the canonical frame divided per axis
+  by the box's aspect ``(1, w / l, h / l)``, so every box is the cube ``[-0.5, 0.5]^3``
+  (:func:`to_box_frame`). The grid spans ``[-0.6, 0.6]^3``: 0.1 of the box on every side.
+  Voxel edges are 1.2 / 54 = 0.0222 box lengths and 1.2 / 24 = 0.05 box widths / heights
+  (9.8 x 9 x 7.5 cm for a 4.4 x 1.8 x 1.5 m car). A decoded shape is stretched back by the
+  box, so a tall van box gets a tall completion.
+* :data:`AML_GRID`: the fixed *canonical* frame (box centre, box length = 1,
+  ``x in [-0.6, 0.6]``, ``y, z in [-0.3, 0.3]``), where the box's width and height are
+  not used. AML's first shipped weights used it (``frame: canonical``).
 
 Observations (:func:`observation_grids`): ``occupied`` voxels hold a point; ``free`` voxels
 are crossed by a LiDAR ray between the sensor origin and a point (stopping ``stop`` voxels
@@ -87,8 +89,28 @@ class GridSpec:
         return (ixyz[..., 2] * length + ixyz[..., 0]) * w + ixyz[..., 1]
 
 
-#: AML's grid (paper: 24 x 54 x 24).
+#: AML's grid in the canonical frame (paper: 24 x 54 x 24); the first shipped weights' frame.
 AML_GRID = GridSpec()
+#: AML's grid in the box frame (:func:`to_box_frame`): the box is [-0.5, 0.5]^3, 0.1 of padding.
+BOX_GRID = GridSpec((24, 54, 24), (-0.6, -0.6, -0.6), (0.6, 0.6, 0.6))
+
+
+def box_aspect(size: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` box sizes (l, w, h) -> aspects ``(1, w / l, h / l)``: the canonical extent of the box."""
+    size = np.asarray(size, np.float64)
+    if not (np.isfinite(size).all() and (size > 0).all()):
+        raise DataError(f"box size must be positive and finite, got {size.tolist()}")
+    return size / size[..., :1]
+
+
+def to_box_frame(canonical: np.ndarray, aspect: np.ndarray) -> np.ndarray:
+    """Canonical ``(N, 3)`` points -> the box frame, where the box is ``[-0.5, 0.5]^3``."""
+    return np.asarray(canonical, np.float64)[..., :3] / np.asarray(aspect, np.float64)
+
+
+def from_box_frame(points: np.ndarray, aspect: np.ndarray) -> np.ndarray:
+    """Exact inverse of :func:`to_box_frame`."""
+    return np.asarray(points, np.float64)[..., :3] * np.asarray(aspect, np.float64)
 
 
 def _cloud(points: np.ndarray, what: str) -> np.ndarray:
@@ -110,8 +132,15 @@ def occupancy_grid(points: np.ndarray, spec: GridSpec = AML_GRID) -> np.ndarray:
 # --------------------------------------------------------------------------- ray casting
 
 
+def _inside(ixyz: np.ndarray, spec: GridSpec) -> np.ndarray:
+    """Rows of integer voxel indices inside the grid (negatives wrap to huge unsigned values)."""
+    u = ixyz.view(np.uint64)  # int64 rows, C-contiguous
+    dims = spec.dims_xyz
+    return (u[:, 0] < dims[0]) & (u[:, 1] < dims[1]) & (u[:, 2] < dims[2])
+
+
 def _mark(flat: np.ndarray, spec: GridSpec, instance: np.ndarray, ixyz: np.ndarray) -> None:
-    inside = ((ixyz >= 0) & (ixyz < spec.dims_xyz)).all(axis=1)
+    inside = _inside(np.ascontiguousarray(ixyz, dtype=np.int64), spec)
     n = int(np.prod(spec.resolution))
     flat[instance[inside] * n + spec.flat_index(ixyz[inside])] = True
 
@@ -265,7 +294,7 @@ def reference_grids(
 
     Returns:
         ``occupancy`` bool ``(H, L, W)`` (on or inside) and ``sdf`` float32 ``(H, L, W)``
-        (voxel units, negative inside). The SDF's magnitude is the distance from the voxel
+        (voxel steps, negative inside). The SDF's magnitude is the distance from the voxel
         centre to the nearest surface sample; its sign is ``-`` for enclosed voxels, ``+``
         for voxels reachable from outside, and, for voxels holding the surface, the side
         whose region (enclosed interior or outside) is nearer.
@@ -284,8 +313,10 @@ def reference_grids(
     interior = filled & ~shell
     exterior = ~filled
     vox = spec.voxel_size[[2, 0, 1]]  # (h, l, w) spacing
-    distance, _ = cKDTree(pts).query(spec.centers().reshape(-1, 3), workers=1)
-    distance = (distance / spec.mean_voxel).reshape(spec.resolution)
+    # distances in voxel steps along each axis (the box grid's voxels are ~cubic in metres,
+    # not in box units); for a grid of near-cubic voxels this is the distance / voxel edge
+    distance, _ = cKDTree(spec.to_voxel(pts)).query(spec.to_voxel(spec.centers().reshape(-1, 3)), workers=1)
+    distance = distance.reshape(spec.resolution)
     d_out = ndimage.distance_transform_edt(~exterior, sampling=vox) if exterior.any() else np.full(shell.shape, np.inf)
     d_in = ndimage.distance_transform_edt(~interior, sampling=vox) if interior.any() else np.full(shell.shape, np.inf)
     inside = interior | (shell & (d_in <= d_out))
