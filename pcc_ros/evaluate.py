@@ -71,6 +71,8 @@ class EvalInstance:
     context: Any = None
     #: TraPCC's retrieved pseudo GT (``whole`` / ``front`` / ``back`` clouds) for L-G / L-S / meanCD
     pseudo_gt: dict[str, Any] | None = None
+    #: box length, width, height in metres (``None``: unknown; backends then get no ``sizes``)
+    size: np.ndarray | None = None
 
     @property
     def num_points(self) -> int:
@@ -229,7 +231,16 @@ def _eval_instance(cache: Any, keys: np.ndarray, i: int, reference: np.ndarray, 
         distance=float(meta["distance"][i]),
         has_ground_truth=has_gt,
         meta={"index": i, "sequence": str(meta["sequence"][i]), "frame": int(meta["frame"][i])},
+        size=np.asarray(meta["box_size"][i], dtype=np.float64),
     )
+
+
+def instance_sizes(instances: Sequence[EvalInstance]) -> np.ndarray | None:
+    """``(B, 3)`` box sizes of ``instances`` for ``Completer.complete(sizes=...)``, or ``None``
+    when any is unknown."""
+    if not instances or any(inst.size is None for inst in instances):
+        return None
+    return np.stack([np.asarray(inst.size, dtype=np.float64) for inst in instances])
 
 
 # --------------------------------------------------------------------------- scoring
@@ -245,8 +256,13 @@ def score_backend(
     emd_points: int = 1024,
     with_emd: bool = True,
     progress: bool = True,
+    keep_input: bool = False,
 ) -> tuple[list[np.ndarray], list[dict[str, float]], float]:
     """Complete all instances with one backend and score each (canonical units).
+
+    The boxes' sizes go with the clouds (a backend with a ``box_aspect`` uses them);
+    ``keep_input`` scores the partial-preserving output (``Completer.complete(keep_input=True)``,
+    what ``completion_node`` publishes) instead of the generated points alone.
 
     Returns the completions, one metric dict per instance, and the completion wall time.
     The EMD subsample seed depends on the instance index only, so every backend is
@@ -265,7 +281,8 @@ def score_backend(
             part = instances[start : start + chunk]
             t0 = time.perf_counter()
             contexts = [inst.context for inst in part] if use_context else None
-            completions.extend(completer.complete([inst.partial for inst in part], contexts))
+            completions.extend(completer.complete([inst.partial for inst in part], contexts,
+                                                  sizes=instance_sizes(part), keep_input=keep_input))
             seconds += time.perf_counter() - t0
             bar.update(len(part))
     rows = []
@@ -445,7 +462,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="--real: comma-separated KITTI tracking / object or nuScenes roots (default: the shared samples)",
     )
     parser.add_argument("--real-voxel", type=float, default=0.03, help="--real: reference voxel size, metres")
-    parser.add_argument("--real-min-points", type=int, default=3, help="--real: inputs with fewer points are skipped")
+    parser.add_argument(
+        "--real-min-points", type=int, default=None,
+        help="--real: inputs with fewer points are skipped (default: completion_node's min_points)",
+    )
+    parser.add_argument(
+        "--real-detections", default=None, metavar="DIR",
+        help="--real: crop the inputs from these detector results (KITTI label format with scores), each matched "
+        "to a labelled track by 3D IoU >= 0.5, instead of the labelled boxes",
+    )
+    parser.add_argument(
+        "--real-generated-only", action="store_true",
+        help="--real: score learned backends' generated points only (default: the published, partial-preserving "
+        "output, plus a NAME/generated row)",
+    )
+    parser.add_argument(
+        "--plot-backends", default=None,
+        help="--real: comma-separated completion columns of the PNG (default: every evaluated backend)",
+    )
     parser.add_argument("--split", default="test", help="split to evaluate (default: test)")
     parser.add_argument(
         "--backends", default=None,
@@ -472,6 +506,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fixed-threshold", type=float, default=0.05, help="fixed F-score threshold, metres")
     parser.add_argument("--emd-points", type=int, default=1024, help="EMD subsample size (exact assignment)")
     parser.add_argument("--no-emd", action="store_true", help="skip EMD (the slowest metric)")
+    parser.add_argument(
+        "--keep-input", action="store_true",
+        help="score the partial-preserving output (observed crop + generated points, what completion_node "
+        "publishes) instead of the generated points alone",
+    )
     parser.add_argument("--examples", type=int, default=4, help="rows in the example grid")
     parser.add_argument(
         "--no-gt-free", action="store_true",
@@ -502,7 +541,11 @@ def _checkpoint_stamp(name: str, path: Path | None) -> str | None:
     from pcc_ros.models.checkpoint import load_config
 
     path = path or default_checkpoint(name)
-    return None if path is None else str(load_config(path).get("sha256"))
+    if path is None:
+        return None
+    config = load_config(path)
+    aspect = config.get("box_aspect")
+    return str(config.get("sha256")) + ("" if aspect is None else f":{json.dumps(aspect, sort_keys=True)}")
 
 
 def evaluate(
@@ -521,6 +564,7 @@ def evaluate(
     previous: dict[str, Any] | None = None,
     keep: Sequence[int] = (),
     on_backend_done: Callable[[dict[str, Any]], None] | None = None,
+    keep_input: bool = False,
 ) -> tuple[dict[str, Any], dict[str, dict[int, np.ndarray]]]:
     """Score every backend on ``instances``.
 
@@ -543,6 +587,7 @@ def evaluate(
         "seed": seed,
         "fixed_threshold_m": fixed_threshold_m,
         "emd_points": emd_points if with_emd else None,
+        "keep_input": bool(keep_input),
     }
     results: dict[str, Any] = {
         **settings,
@@ -571,12 +616,14 @@ def evaluate(
             results["backends"][name] = old
             picks = list(keep)
             contexts = [instances[i].context for i in picks] if getattr(completer, "uses_context", False) else None
-            outs = completer.complete([instances[i].partial for i in picks], contexts) if picks else []
+            chosen = [instances[i] for i in picks]
+            outs = completer.complete([inst.partial for inst in chosen], contexts, sizes=instance_sizes(chosen),
+                                      keep_input=keep_input) if picks else []
             kept[name] = dict(zip(picks, outs))
         else:
             completions, rows, seconds = score_backend(
                 completer, instances, seed=seed, fixed_threshold_m=fixed_threshold_m,
-                emd_points=emd_points, with_emd=with_emd, progress=progress,
+                emd_points=emd_points, with_emd=with_emd, progress=progress, keep_input=keep_input,
             )
             summary = summarise(instances, rows)
             summary["completion_ms_per_instance"] = 1e3 * seconds / max(len(instances), 1)
@@ -654,6 +701,7 @@ def run(args: argparse.Namespace) -> int:
         device=args.device, batch_size=args.batch_size, seed=args.seed,
         fixed_threshold_m=args.fixed_threshold, emd_points=args.emd_points, with_emd=not args.no_emd,
         previous=None if args.no_resume else _previous_results(args.json), keep=picks, on_backend_done=save,
+        keep_input=args.keep_input,
     )
     results = {**header, **results}
     print_tables(results, reference)

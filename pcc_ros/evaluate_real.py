@@ -42,45 +42,115 @@ TABLE_METRICS = ("completeness", "fidelity", "fidelity_generated", "side_cd", "i
 REFERENCE_ROW = "aggregated GT"
 
 
+def node_crop() -> tuple[float, float, int]:
+    """``(box_margin, ground_margin, min_points)`` of ``completion_node`` (the pipeline defaults):
+    inputs are cropped as the node crops them, so the scored union is what it publishes."""
+    from pcc_ros.pipeline.core import PipelineConfig
+
+    cfg = PipelineConfig()
+    return float(cfg.box_margin), float(cfg.ground_margin), int(cfg.min_points)
+
+
 def real_instances(
-    sources: list[Path], min_track_frames: int = 2, min_points: int = 3, voxel_m: float = 0.03,
-    classes: tuple[str, ...] = ("Car", "Van"),
+    sources: list[Path], min_track_frames: int = 2, min_points: int | None = None, voxel_m: float = 0.03,
+    classes: tuple[str, ...] = ("Car", "Van"), boxes: str = "ground_truth", detections_dir: Path | None = None,
+    match_iou: float = 0.5,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Evaluation instances of the labelled real ``sources`` and a report of what was skipped.
 
-    Each instance: ``key``, ``partial`` (canonical), ``reference`` (the track's voxel-thinned
-    aggregate), ``size`` (box l, w, h), ``distance``, ``track_frames``.
+    The reference of a track is the voxel-thinned aggregate of its *labelled* boxes' tight crops
+    (no margin, the lowest 0.1 m dropped as ground). The inputs are cropped as
+    ``completion_node`` crops (its ``box_margin`` / ``ground_margin``; fewer than its
+    ``min_points`` points: not completed, skipped) from ``boxes``:
+
+    * ``ground_truth``: the labelled boxes;
+    * ``detections``: the detector's boxes (``detections_dir`` for KITTI, a bag's own). Each is
+      matched to the labelled box of its frame with the highest 3D IoU (>= ``match_iou``); its
+      crop, completion and box metrics are in the *detection's* canonical frame, and the track's
+      reference is moved there (through the sensor frame, with the matched label's box).
+      Unmatched detections (false positives) have no reference and are counted as skipped.
+
+    Each instance: ``key``, ``partial`` (canonical), ``reference`` (canonical, same frame),
+    ``size`` (box l, w, h), ``distance``, ``track_frames``, ``label``, ``frame_key``, ``center``, ``yaw``.
     """
     from pcc_ros.data.sources import open_frames
     from pcc_ros.data.track_aggregate import collect_tracks
+    from pcc_ros.geometry.boxes import crop_canonical, iou_3d
+    from pcc_ros.geometry.canonical import from_canonical, to_canonical
+    from pcc_ros.types import class_mask
 
+    if boxes not in ("ground_truth", "detections"):
+        raise ConfigError(f"real-data boxes must be ground_truth or detections, got {boxes!r}")
+    margin, ground_margin, node_min = node_crop()
+    min_points = node_min if min_points is None else int(min_points)
     instances: list[dict[str, Any]] = []
     report: dict[str, Any] = {}
     for source in sources:
         if not source.exists():
             raise DataError(f"{source}: real dataset not found (pass --real-sources)")
         skipped: Counter = Counter()
-        tracks = collect_tracks(open_frames(source), classes=classes, skipped=skipped)
-        used = 0
-        for track in tracks.values():  # loop over tracks; points are vectorised inside
+        frames = list(open_frames(source, detections_dir=detections_dir) if detections_dir else open_frames(source))
+        tracks = collect_tracks(frames, classes=classes, skipped=skipped)
+        references = {}
+        for key, track in tracks.items():  # loop over tracks; points are vectorised inside
             if len(track) < min_track_frames:
                 skipped["track_too_short"] += len(track)
                 continue
-            reference = track.aggregate(voxel_m=voxel_m)
-            for obs in track.observations:
-                if obs.num_points < min_points:
+            references[key] = (track.aggregate(voxel_m=voxel_m), len(track))
+        used = 0
+        for frame in frames:  # tens of frames; the boxes of a frame are cropped at once
+            gt = frame.ground_truth
+            if gt is None or len(gt) == 0:
+                continue
+            gt = gt[class_mask(gt.label, classes)]
+            gt = gt[gt.valid_mask()]
+            if boxes == "ground_truth":
+                chosen, match = gt, np.arange(len(gt))
+            else:
+                det = frame.detections
+                if det is None:
+                    raise DataError(f"{source}: frame {frame.index} has no detections (pass --real-detections)")
+                det = det[class_mask(det.label, classes)]
+                chosen = det[det.valid_mask()]
+                if len(chosen) == 0:
+                    continue
+                iou = iou_3d(chosen, gt) if len(gt) else np.zeros((len(chosen), 0))
+                match = iou.argmax(axis=1) if len(gt) else np.full(len(chosen), -1)
+                if len(gt):
+                    match[iou.max(axis=1) < match_iou] = -1
+                skipped["detection_unmatched"] += int((match < 0).sum())
+            if len(chosen) == 0:
+                continue
+            _, crops = crop_canonical(np.asarray(frame.points), chosen, margin=margin, ground_margin=ground_margin)
+            for i, crop in enumerate(crops):  # boxes of one frame
+                g = int(match[i])
+                if g < 0:
+                    continue
+                key = f"{frame.sequence}/{gt.track_id[g]}"
+                if key not in references:
+                    skipped["no_multiview_reference"] += 1
+                    continue
+                if len(crop) < max(min_points, 1):
                     skipped["input_too_few_points"] += 1
                     continue
-                instances.append({"key": f"{source.name}:{obs.key}", "partial": obs.points, "reference": reference,
-                                  "size": np.asarray(obs.size, dtype=np.float64), "distance": obs.distance,
-                                  "track_frames": len(track), "label": obs.label,
-                                  "frame_key": f"{source}:{obs.sequence}:{obs.frame}",
-                                  "center": np.asarray(obs.center, dtype=np.float64), "yaw": obs.yaw})
+                reference, n_frames = references[key]
+                if boxes == "detections":  # the label's canonical frame -> the detection's
+                    sensor = from_canonical(reference, gt.center[g], float(gt.yaw[g]), float(gt.size[g, 0]))
+                    reference = to_canonical(sensor, chosen.center[i], float(chosen.yaw[i]),
+                                             float(chosen.size[i, 0])).astype(np.float32)
+                center = np.asarray(chosen.center[i], dtype=np.float64)
+                suffix = "/det" if boxes == "detections" else ""
+                instances.append({"key": f"{source.name}:{key}@{frame.index}{suffix}",
+                                  "partial": np.ascontiguousarray(crop, dtype=np.float32), "reference": reference,
+                                  "size": np.asarray(chosen.size[i], dtype=np.float64),
+                                  "distance": float(np.linalg.norm(center)), "track_frames": n_frames,
+                                  "label": str(gt.label[g]), "frame_key": f"{source}:{frame.sequence}:{frame.index}",
+                                  "center": center, "yaw": float(chosen.yaw[i])})
                 used += 1
-        report[str(source)] = {"tracks": len(tracks), "instances": used, "skipped": dict(skipped)}
+        report[str(source)] = {"tracks": len(tracks), "instances": used, "boxes": boxes, "skipped": dict(skipped)}
         if used == 0:
-            log.info("%s: no track with >= %d observations (a single-frame dataset has no multi-view "
-                     "reference): skipped %s", source, min_track_frames, dict(skipped))
+            log.info("%s: no usable observation with a multi-view reference (a single-frame dataset has none): "
+                     "skipped %s", source, dict(skipped))
         elif skipped:
             log.info("%s: %d instances; skipped %s", source, used, dict(skipped))
     return instances, report
@@ -119,15 +189,23 @@ def scene_contexts(instances: list[dict[str, Any]]) -> list[Any]:
     return contexts
 
 
+#: Suffix of the rows that score only the points a learned backend generated (its own shape).
+GENERATED_SUFFIX = "/generated"
+
+
 def evaluate_real(
     instances: list[dict[str, Any]], backends: list[str], checkpoints: dict[str, Path], device: str = "cpu",
-    batch_size: int = 32, progress: bool = True, with_input: bool = True,
+    batch_size: int = 32, progress: bool = True, keep_input: bool = True,
 ) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
-    """Complete every instance with every backend (batched) and score it.
+    """Complete every instance with every backend (batched, with the boxes' sizes) and score it.
 
-    ``with_input``: also score each learned backend's completion united with the input crop
-    (row ``NAME+input``), since a consumer of the node's output gets both. Backends that read
-    scene context (TraPCC) get the other evaluated cars of the frame as neighbours."""
+    Row ``NAME`` of a learned backend is what ``completion_node`` publishes for each car with its
+    default ``include_observed_points: true``: the partial-preserving completion
+    ``Completer.complete(..., keep_input=True)`` (the observed crop plus the generated points).
+    Row ``NAME/generated`` scores the generated points alone (the network's own shape, what the
+    filter's mismatch term reads). ``keep_input=False`` scores only the generated points, as
+    ``NAME``. Backends that read scene context (TraPCC) get the other evaluated cars of the
+    frame as neighbours."""
     from tqdm import tqdm
 
     from pcc_ros.metrics.realdata import real_instance_metrics
@@ -136,6 +214,7 @@ def evaluate_real(
     results: dict[str, Any] = {}
     completions: dict[str, list[np.ndarray]] = {}
     partials = [i["partial"] for i in instances]
+    sizes = np.stack([i["size"] for i in instances]) if instances else np.zeros((0, 3))
     ref_rows = [real_instance_metrics(i["reference"], i["partial"], i["reference"], i["size"]) for i in instances]
     for name in backends:
         try:
@@ -147,26 +226,27 @@ def evaluate_real(
             results[name] = {"skipped": str(exc)}
             continue
         contexts = scene_contexts(instances) if getattr(completer, "uses_context", False) else None
+        keep = keep_input and cls.learned
         outs: list[np.ndarray] = []
         for start in tqdm(range(0, len(partials), 64), desc=f"complete {name}", disable=not progress, leave=False):
             chunk = None if contexts is None else contexts[start : start + 64]
-            outs.extend(completer.complete(partials[start : start + 64], chunk))
-        rows = [real_instance_metrics(o, i["partial"], i["reference"], i["size"]) for o, i in zip(outs, instances)]
-        results[name] = {**_bands(instances, rows), "learned": bool(cls.learned)}
-        if cls.learned:
-            ck = getattr(completer, "checkpoint_config", None) or {}
-            results[name]["checkpoint"] = str(checkpoints.get(name, "shipped default"))
-            results[name]["checkpoint_sha256"] = ck.get("sha256")
-        completions[name] = outs
-        if cls.learned and with_input:
-            # The completion together with the car's own crop: what completion_node publishes
-            # with include_input_points (raw scan, instance -1, plus the completion).
-            union = [np.concatenate([o, i["partial"].astype(np.float32)]) for o, i in zip(outs, instances)]
+            outs.extend(completer.complete(partials[start : start + 64], chunk, sizes=sizes[start : start + 64],
+                                           keep_input=keep))
+        variants = {name: outs}
+        if keep:  # the contract of keep_input: the partial first, then the generated points
+            variants[name + GENERATED_SUFFIX] = [o[len(p):] for o, p in zip(outs, partials)]
+        for row, clouds in variants.items():
             rows = [real_instance_metrics(o, i["partial"], i["reference"], i["size"])
-                    for o, i in zip(union, instances)]
-            results[f"{name}+input"] = {**_bands(instances, rows), "learned": True,
-                                        "variant": f"{name} completion plus the input crop"}
-            completions[f"{name}+input"] = union
+                    for o, i in zip(clouds, instances)]
+            results[row] = {**_bands(instances, rows), "learned": bool(cls.learned)}
+            if cls.learned:
+                ck = getattr(completer, "checkpoint_config", None) or {}
+                results[row]["checkpoint"] = str(checkpoints.get(name, "shipped default"))
+                results[row]["checkpoint_sha256"] = ck.get("sha256")
+                results[row]["box_aspect"] = getattr(completer, "box_aspect", None)
+                results[row]["variant"] = ("generated points only (the network's own shape)" if row != name else
+                                           "published: observed crop + generated points" if keep else "generated")
+            completions[row] = clouds
     results[REFERENCE_ROW] = {**_bands(instances, ref_rows), "learned": False}
     return results, completions
 
@@ -251,13 +331,17 @@ def run_real(args: argparse.Namespace) -> int:
     unused = sorted(set(checkpoints) - set(backends))
     if unused:
         raise ConfigError(f"--checkpoint given for backend(s) not evaluated: {unused}")
-    instances, report = real_instances(sources, max(args.min_track_frames, 2), args.real_min_points, args.real_voxel)
+    detections = Path(args.real_detections) if getattr(args, "real_detections", None) else None
+    boxes = "detections" if detections is not None else "ground_truth"
+    instances, report = real_instances(sources, max(args.min_track_frames, 2), args.real_min_points, args.real_voxel,
+                                       boxes=boxes, detections_dir=detections)
     if not instances:
         raise DataError(f"no real instance with a multi-view reference in {', '.join(map(str, sources))}")
     log.info("evaluating %d real instance(s) of %d track(s)", len(instances),
              len({i["key"].split("@")[0] for i in instances}))
     device = "cpu" if args.device == "auto" else args.device
-    results, completions = evaluate_real(instances, backends, checkpoints, device, args.batch_size)
+    results, completions = evaluate_real(instances, backends, checkpoints, device, args.batch_size,
+                                         keep_input=not getattr(args, "real_generated_only", False))
     print_real_tables(results)
     verdict = criteria(results)
     for name, v in verdict.items():
@@ -265,11 +349,16 @@ def run_real(args: argparse.Namespace) -> int:
               f"(bar 40 %: {'met' if v['completeness_ok'] else 'NOT met'}); fidelity "
               f"{v['fidelity_over_spacing']:.2f}x / generated points {v['fidelity_generated_over_spacing']:.2f}x "
               f"the input spacing (bar 2x: {'met' if v['fidelity_ok'] else 'NOT met'})")
-    out = {"mode": "real", "sources": report, "voxel_m": args.real_voxel, "instances": len(instances),
+    margin, ground_margin, _ = node_crop()
+    out = {"mode": "real", "sources": report, "voxel_m": args.real_voxel, "instances": len(instances), "boxes": boxes,
+           "input_crop": {"box_margin": margin, "ground_margin": ground_margin},
            "backends": results, "criteria": verdict}
     if args.plot:
         picks = pick_examples(instances, args.examples)
-        names = [n for n in completions if n != "input"]
+        names = [n for n in completions if n != "input" and not n.endswith(GENERATED_SUFFIX)]
+        if args.plot_backends:
+            wanted = [b.strip() for b in args.plot_backends.split(",") if b.strip()]
+            names = [n for n in wanted if n in completions]
         examples = []
         for p in picks:
             inst = instances[p]

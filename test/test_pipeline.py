@@ -9,7 +9,14 @@ from pcc_ros.errors import ConfigError, MessageError
 from pcc_ros.models.base import load_completer
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
-from pcc_ros.pipeline.core import RAW_POINT_INSTANCE, Pipeline, PipelineConfig, build_outputs, read_parameters
+from pcc_ros.pipeline.core import (
+    RAW_POINT_INSTANCE,
+    SOURCE_OBSERVED,
+    Pipeline,
+    PipelineConfig,
+    build_outputs,
+    read_parameters,
+)
 from pcc_ros.pipeline.filter import FilterConfig
 from pcc_ros.types import Boxes
 
@@ -80,7 +87,11 @@ def test_include_input_points_and_instance_cap():
     points, boxes = make_frame()
     cfg = PipelineConfig(backend="input", min_points=10, max_instances=1, include_input_points=True)
     result = Pipeline(cfg, completer=load_completer("input")).process(points, boxes)
-    assert (result.completed_instance == RAW_POINT_INSTANCE).sum() == len(points)
+    # every scan point once: the completed car's own crop under its instance (include_observed_points,
+    # the default), the rest as raw points
+    raw = (result.completed_instance == RAW_POINT_INSTANCE).sum()
+    observed = ((result.completed_instance == 0) & (result.completed_source == SOURCE_OBSERVED)).sum()
+    assert observed == len(result.crops[0]) > 0 and raw + observed == len(points)
     assert result.completed_index.tolist() == [0]  # highest score only
     assert result.skipped["over max_instances"] == 2
 

@@ -305,6 +305,33 @@ def as_cloud_list(partials: Sequence[np.ndarray] | np.ndarray, what: str = "part
     return clouds
 
 
+#: Bounds of the per-axis factor of :func:`aspect_scales`: a box more than twice as wide or tall
+#: (relative to its length) as the reference is not a car body the reference frame can represent.
+ASPECT_SCALE_RANGE = (0.5, 2.0)
+
+
+def aspect_scales(sizes: np.ndarray, box_aspect: Sequence[float], count: int) -> np.ndarray:
+    """Per-cloud factors ``(count, 3)`` that give each canonical box the reference aspect.
+
+    The canonical frame scales by the box *length* only, so a 2.2 m tall van sits in a taller
+    canonical box than the SynthCars sedans a network learned from (height / length 0.45 vs
+    0.36) and its completion keeps a sedan's height. Multiplying canonical y by
+    ``box_aspect[0] / (width / length)`` and z by ``box_aspect[1] / (height / length)`` maps
+    every box onto the reference proportions; dividing the output by the same factors maps the
+    completion back into the box (exact inverse). Factors are clipped to
+    :data:`ASPECT_SCALE_RANGE`. ``sizes``: ``(count, 3)`` length, width, height in metres.
+    """
+    size = np.asarray(sizes, dtype=np.float64)
+    if size.shape != (count, 3):
+        raise DataError(f"sizes: expected shape ({count}, 3) (length, width, height per cloud), got {size.shape}")
+    if not (np.isfinite(size).all() and (size > 0).all()):
+        raise DataError("sizes: box length, width and height must be finite and positive")
+    aspect = np.asarray(box_aspect, dtype=np.float64).reshape(2)
+    scales = np.ones((count, 3))
+    scales[:, 1:] = aspect[None, :] / (size[:, 1:] / size[:, :1])
+    return np.clip(scales, *ASPECT_SCALE_RANGE).astype(np.float32)
+
+
 def cloud_seed(cloud: np.ndarray, seed: int = 0) -> int:
     """A seed derived from a cloud's bytes: deterministic per cloud, independent of batching."""
     digest = hashlib.blake2b(np.ascontiguousarray(cloud, dtype=np.float32).tobytes(), digest_size=8).digest()
@@ -344,6 +371,11 @@ class Completer(abc.ABC):
     uses_context: ClassVar[bool] = False
     #: Loads the checkpoints of another backend (an inference variant of it); ``None``: its own.
     weights_name: ClassVar[str | None] = None
+    #: The output already holds every input point (``input``, ``mirror``): ``keep_input`` adds nothing.
+    contains_input: ClassVar[bool] = False
+    #: Reference box aspect ``(width / length, height / length)`` the network works in, or ``None``
+    #: (see :func:`aspect_scales`); learned backends take it from their checkpoint.
+    box_aspect: tuple[float, float] | None = None
 
     def __init__(self, device: str = "auto", **config: Any) -> None:
         self.device_request = device
@@ -353,8 +385,24 @@ class Completer(abc.ABC):
         self,
         partials: Sequence[np.ndarray] | np.ndarray,
         context: Sequence[SceneContext | None] | SceneContext | None = None,
+        *,
+        sizes: np.ndarray | None = None,
+        keep_input: bool = False,
     ) -> list[np.ndarray]:
-        """Complete a batch of canonical partial clouds; returns one float32 cloud each."""
+        """Complete a batch of canonical partial clouds; returns one float32 cloud each.
+
+        ``sizes``: ``(B, 3)`` box length, width, height in metres, one row per cloud. A backend
+        with a :attr:`box_aspect` then completes each cloud in a frame where its box has that
+        aspect (:func:`aspect_scales`) and its output is mapped back exactly; without ``sizes``,
+        or for backends without an aspect, the clouds go in as they are.
+
+        ``keep_input``: the *partial-preserving* completion, i.e. what ``completion_node``
+        publishes (``include_observed_points``): the observed points first, then the generated
+        ones (``out[:len(partial)]`` is the partial itself), as PoinTr concatenates its input
+        with the predicted missing part. ``False`` gives the network's own shape only (the
+        detection filter's shape-mismatch term needs that). Backends whose output already holds
+        the input (:attr:`contains_input`) return it unchanged.
+        """
         clouds = as_cloud_list(partials)
         if context is None:
             contexts: list[SceneContext | None] = [None] * len(clouds)
@@ -368,7 +416,13 @@ class Completer(abc.ABC):
                 raise DataError(f"{len(contexts)} scene contexts for {len(clouds)} clouds")
         if not clouds:
             return []
-        outputs = self._complete(clouds, contexts)
+        scales = None
+        if sizes is not None and self.box_aspect is not None:
+            scales = aspect_scales(sizes, self.box_aspect, len(clouds))
+            outputs = self._complete([np.ascontiguousarray(c * s, dtype=np.float32) for c, s in zip(clouds, scales)],
+                                     contexts)
+        else:
+            outputs = self._complete(clouds, contexts)
         if len(outputs) != len(clouds):
             raise BackendError(f"backend {self.name!r} returned {len(outputs)} clouds for {len(clouds)} inputs")
         result = []
@@ -383,7 +437,11 @@ class Completer(abc.ABC):
                 array = array[finite]
                 if len(array) == 0:
                     raise BackendError(f"backend {self.name!r} returned no finite point for cloud {i}")
-            result.append(np.ascontiguousarray(array))
+            if scales is not None:
+                array = array / scales[i]
+            if keep_input and not self.contains_input:
+                array = np.concatenate([clouds[i], array])
+            result.append(np.ascontiguousarray(array, dtype=np.float32))
         if dropped:
             log.warning("backend %r: dropped %d non-finite output points", self.name, dropped)
         return result
@@ -394,6 +452,36 @@ class Completer(abc.ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, config={self.config!r})"
+
+
+def parse_box_aspect(value: Any) -> tuple[float, float]:
+    """``(width / length, height / length)`` from a pair or a checkpoint's ``box_aspect`` record."""
+    if isinstance(value, dict):
+        value = (value.get("width_over_length"), value.get("height_over_length"))
+    try:
+        pair = tuple(float(v) for v in value)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"box_aspect must be (width/length, height/length), got {value!r}") from exc
+    if len(pair) != 2 or not all(np.isfinite(pair)) or not all(0.05 < v < 5.0 for v in pair):
+        raise ConfigError(f"box_aspect must be two ratios in (0.05, 5), got {value!r}")
+    return pair  # type: ignore[return-value]
+
+
+def box_aspect_record(aspect: Sequence[float], source: str = "") -> dict[str, Any]:
+    """The checkpoint JSON entry ``box_aspect`` (read back by :func:`parse_box_aspect`)."""
+    w, h = parse_box_aspect(aspect)
+    record: dict[str, Any] = {"width_over_length": round(w, 6), "height_over_length": round(h, 6)}
+    if source:
+        record["source"] = source
+    return record
+
+
+def median_box_aspect(sizes: np.ndarray) -> tuple[float, float]:
+    """The median ``(width / length, height / length)`` of ``(N, 3)`` box sizes (a training set's)."""
+    size = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
+    if not len(size):
+        raise DataError("median_box_aspect: no boxes")
+    return float(np.median(size[:, 1] / size[:, 0])), float(np.median(size[:, 2] / size[:, 0]))
 
 
 def _cast_floating_inputs(dtype):
@@ -432,7 +520,8 @@ class TorchCompleter(Completer):
     learned: ClassVar[bool] = True
 
     def __init__(
-        self, device: str = "auto", batch_size: int = 32, half_precision: bool = False, workers: int = 1, **config: Any
+        self, device: str = "auto", batch_size: int = 32, half_precision: bool = False, workers: int = 1,
+        box_aspect: Sequence[float] | None = None, **config: Any
     ) -> None:
         defaults = self.default_config()
         unknown = sorted(set(config) - set(defaults))
@@ -446,6 +535,7 @@ class TorchCompleter(Completer):
         self.batch_size = int(batch_size)
         self.half_precision = bool(half_precision)
         self.workers = int(workers)
+        self.box_aspect = None if box_aspect is None else parse_box_aspect(box_aspect)
         self._pool = None
         self.device = select_device(device)
         self.model = self.build_model().to(self.device)
@@ -527,6 +617,8 @@ class TorchCompleter(Completer):
         """Write ``path`` (.safetensors) and its ``.json`` config; returns the weights path."""
         from pcc_ros.models.checkpoint import make_config, save_checkpoint
 
+        if self.box_aspect is not None and not (extra and "box_aspect" in extra):
+            extra = {**(extra or {}), "box_aspect": box_aspect_record(self.box_aspect)}
         config = make_config(self.name, self.config, training=training, metrics=metrics, extra=extra)
         return save_checkpoint(path, self.model.state_dict(), config)
 
@@ -539,6 +631,11 @@ class TorchCompleter(Completer):
         if config["backend"] not in (cls.name, cls.weights_name):
             raise CheckpointError(f"{path}: checkpoint is for backend {config['backend']!r}, not {cls.name!r}")
         hyper = check_hyper_parameters(config, cls.default_config(), str(path))
+        if "box_aspect" not in overrides and config.get("box_aspect") is not None:
+            try:
+                overrides["box_aspect"] = parse_box_aspect(config["box_aspect"])
+            except (ConfigError, DataError) as exc:
+                raise CheckpointError(f"{path}: bad box_aspect entry: {exc}") from exc
         try:
             completer = cls(device=device, **hyper, **overrides)
         except ConfigError:

@@ -30,6 +30,8 @@ from pcc_ros.models.base import Completer, SceneContext, cloud_seed, register
 class InputCompleter(Completer):
     """Returns each partial cloud unchanged."""
 
+    contains_input = True
+
     def __init__(self, device: str = "auto") -> None:
         super().__init__(device=device)
 
@@ -40,6 +42,8 @@ class InputCompleter(Completer):
 @register("mirror")
 class MirrorCompleter(Completer):
     """Input plus its mirror image across the canonical x-z plane (y -> -y)."""
+
+    contains_input = True
 
     def __init__(self, device: str = "auto") -> None:
         super().__init__(device=device)

@@ -44,7 +44,7 @@ _REQUIRED_KEYS = ("format", "backend", "hyper_parameters", "tensors", "sha256")
 #: Every top-level key :func:`make_config` / :func:`save_checkpoint` / ``pcc train`` write.
 _KNOWN_KEYS = frozenset({
     *_REQUIRED_KEYS, "points", "training", "metrics", "git_revision", "pcc_ros_version", "created", "dtypes",
-    "size_bytes", "resume",
+    "size_bytes", "resume", "box_aspect",
 })
 #: Deepest JSON nesting a checkpoint config may have (real ones are about 4 levels deep).
 MAX_CONFIG_DEPTH = 32
@@ -181,6 +181,21 @@ def load_config(path: str | Path) -> dict[str, Any]:
     if not isinstance(config["tensors"], dict) or not isinstance(config["hyper_parameters"], dict):
         raise CheckpointError(f"{config_path}: 'tensors' and 'hyper_parameters' must be JSON objects")
     return config
+
+
+def set_box_aspect(path: str | Path, aspect: Any, source: str) -> Path:
+    """Record the reference box aspect (``Completer.box_aspect``) in an existing checkpoint's
+    JSON, e.g. the median aspect of the data weights were trained on; ``source`` says where it
+    comes from. The weights are untouched. Returns the JSON path."""
+    from pcc_ros.models.base import box_aspect_record
+
+    _, config_path = checkpoint_paths(path)
+    config = load_config(path)
+    config["box_aspect"] = box_aspect_record(aspect, source)
+    lines = config_path.read_text().splitlines()
+    indent = len(lines[1]) - len(lines[1].lstrip(" ")) if len(lines) > 1 else 2  # keep the file's own layout
+    files.write_json(config_path, config, indent=max(indent, 1), sort_keys=False)
+    return config_path
 
 
 def load_checkpoint(path: str | Path, verify_hash: bool = True) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:

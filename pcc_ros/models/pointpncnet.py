@@ -38,7 +38,14 @@ import torch
 from torch import nn
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.models.base import SceneContext, TorchCompleter, register, resample_cloud
+from pcc_ros.models.base import (
+    SceneContext,
+    TorchCompleter,
+    aspect_scales,
+    median_box_aspect,
+    register,
+    resample_cloud,
+)
 from pcc_ros.models.layers import (
     FoldingDecoder,
     PCNEncoder,
@@ -303,6 +310,9 @@ class TrainOptions:
     #: cap on training input points (``None``: the model's ``max_input_points``); a lower cap
     #: trades a little density for speed on a CPU, the max-pooled encoder does not care much.
     input_points: int | None = None
+    #: train in the box-aspect frame (``Completer.box_aspect``): every view's y / z scaled so its
+    #: box has the median aspect of the training split's boxes, recorded in the checkpoint
+    box_aspect: bool = False
 
 
 def region_subsets(
@@ -434,12 +444,22 @@ class PointPnCNetRecipe:
         if not inpainting:
             self.options.drop_prob = 0.0
         self.inpainting = inpainting
+        #: the reference aspect (width / length, height / length), from the first training data
+        self.aspect: tuple[float, float] | None = None
 
     def build_completer(self, device: str) -> PointPnCNet:
         return PointPnCNet(device=device, size=self.size)
 
     def describe(self) -> dict[str, Any]:
-        return {"size": self.size, "inpainting": self.inpainting, **self.options.__dict__}
+        out = {"size": self.size, "inpainting": self.inpainting, **self.options.__dict__}
+        if self.aspect is not None:
+            out["reference_aspect"] = list(self.aspect)
+        return out
+
+    def prepare(self, completer: PointPnCNet, data: Any, val_instances: Any, seed: int) -> None:
+        """The completer validates (and is saved) in the frame it is trained in."""
+        if self.options.box_aspect:
+            completer.box_aspect = self.aspect
 
     def training_data(self, cache: Any, split: str, min_points: int = 10) -> list[list[np.ndarray]]:
         """Groups of canonical partial views from an instance cache (``pcc_ros.data.instances``).
@@ -454,7 +474,15 @@ class PointPnCNetRecipe:
         for g in groups:
             grouped[g] = True
         singles = [np.array([i]) for i in indices[~grouped[indices]]]
-        return [[np.array(cache.points(int(i)), dtype=np.float32) for i in g] for g in [*groups, *singles]]
+        if not self.options.box_aspect:
+            return [[np.array(cache.points(int(i)), dtype=np.float32) for i in g] for g in [*groups, *singles]]
+        sizes = np.asarray(cache.meta["box_size"], dtype=np.float64)
+        if self.aspect is None:  # the first (main) training data fixes the reference for every cache mixed in
+            self.aspect = median_box_aspect(sizes[indices])
+        scales = np.ones((len(cache), 3), dtype=np.float32)
+        scales[indices] = aspect_scales(sizes[indices], self.aspect, len(indices))
+        return [[np.array(cache.points(int(i)), dtype=np.float32) * scales[int(i)] for i in g]
+                for g in [*groups, *singles]]
 
     def batches(
         self, groups: Sequence[Sequence[np.ndarray]], batch_size: int, cfg: dict[str, Any], rng: np.random.Generator

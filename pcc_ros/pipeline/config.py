@@ -33,7 +33,8 @@ DESCRIPTIONS = {
     "batch_size": "instances per backend batch (the GPU / CPU memory knob of learned backends)",
     "workers": "CPU threads completing shares of a frame's instances, one torch thread each (1: torch's threads)",
     "include_input_points": "also publish the raw scan points (instance -1, source observed) in the completed cloud",
-    "include_observed_points": "also publish each completed car's own LiDAR points (its instance, source = observed)",
+    "include_observed_points": "partial-preserving output: each completed car's own LiDAR points (its instance, "
+    "source = observed) with its generated points",
     "class_thresholds": "per-class detection_threshold, 'Class:threshold' entries separated by commas "
     "(e.g. 'Van:0.6, Truck:0.7'); other classes use detection_threshold",
     "max_box_size": "metres; detections with a longer side are skipped (logged with their id)",

@@ -79,7 +79,9 @@ class PipelineConfig:
     batch_size: int = 32
     workers: int = 2
     include_input_points: bool = False
-    include_observed_points: bool = False
+    #: partial-preserving output: each completed car's own crop points (source observed) with
+    #: its generated points, i.e. ``Completer.complete(..., keep_input=True)`` in the sensor frame
+    include_observed_points: bool = True
     class_thresholds: str = ""
     max_box_size: float = 40.0
     max_box_range: float = 1000.0
@@ -382,7 +384,8 @@ class Pipeline:
             from pcc_ros.models.base import SceneContext
 
             context = SceneContext.from_frame(detections[selected], crops)
-        completions = self.completer.complete(crops, context) if crops else []
+        sizes = detections.size[selected]
+        completions = self.completer.complete(crops, context, sizes=sizes) if crops else []
         timings["complete_ms"] = _ms(tic)
 
         tic = time.perf_counter()
@@ -391,7 +394,7 @@ class Pipeline:
         if crops and cfg.filter.uses_mismatch:
             shapes = completions
             if self.filter_completer is not None:
-                shapes = self.filter_completer.complete(crops, context)
+                shapes = self.filter_completer.complete(crops, context, sizes=sizes)
             mismatch[selected] = mismatch_scores(crops, shapes, cfg.filter)
         threshold = cfg.detection_thresholds(detections.label)
         if cfg.filter.rule == "evidence":
