@@ -14,11 +14,23 @@ from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from pcc_ros import files
+from pcc_ros.data.bag import read_frames
+from pcc_ros.data.bag_writer import write_bag
+from pcc_ros.data.kitti import KittiTracking
+from pcc_ros.geometry.boxes import box_corners, iou_bev
+from pcc_ros.geometry.canonical import to_canonical
+from pcc_ros.metrics.suite import instance_metrics, to_metres
+from pcc_ros.paths import shared_data_dir
+from pcc_ros.pipeline.core import Pipeline
+from pcc_ros.pipeline.filter import FilterConfig
+from pcc_ros.runtime.bag import load_config, replay_bag
+from pcc_ros.tables import print_table
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
@@ -67,8 +79,6 @@ class FilterTally:
 
 def truly_vehicle(detections: Boxes, truth: Boxes | None) -> np.ndarray:
     """Which detections overlap a labelled Car / Van (BEV IoU >= TRUE_IOU)."""
-    from pcc_ros.geometry.boxes import iou_bev
-
     if truth is None or len(truth) == 0 or len(detections) == 0:
         return np.zeros(len(detections), dtype=bool)
     vehicles = truth[class_mask(truth.label, VEHICLES) & truth.valid_mask()]
@@ -78,9 +88,6 @@ def truly_vehicle(detections: Boxes, truth: Boxes | None) -> np.ndarray:
 
 
 def _replay(bag: Path, out_bag: Path | None, config, frames_by_stamp: dict, on_frame) -> object:
-    from pcc_ros.pipeline.core import Pipeline
-    from pcc_ros.runtime.bag import replay_bag
-
     pipeline = Pipeline(config)
     return replay_bag(
         bag, out_bag, pipeline, with_filter=True, force=True, progress=False,
@@ -91,9 +98,6 @@ def _replay(bag: Path, out_bag: Path | None, config, frames_by_stamp: dict, on_f
 def completion_scores(result, frame, shapes_root: Path) -> list[dict[str, float]]:
     """Metrics (metres) of each completed detection that matches a labelled car with a true shape."""
     from pcc_ros.data.synthetic import load_shape
-    from pcc_ros.geometry.boxes import iou_bev
-    from pcc_ros.geometry.canonical import to_canonical
-    from pcc_ros.metrics.suite import instance_metrics, to_metres
 
     truth = frame.ground_truth
     if truth is None or len(truth) == 0 or len(result.completed_index) == 0:
@@ -117,13 +121,7 @@ def completion_scores(result, frame, shapes_root: Path) -> list[dict[str, float]
 
 
 def run_synthcars(args: argparse.Namespace, config) -> dict:
-    from dataclasses import replace
-
-    from pcc_ros.data.bag import read_frames
-    from pcc_ros.data.bag_writer import write_bag
-    from pcc_ros.data.kitti import KittiTracking
     from pcc_ros.data.synthetic import generate
-    from pcc_ros.tables import print_table
 
     root = args.out / "synthcars"
     meta = generate(root, sequences=2, frames=args.frames, seed=args.seed, test_fraction=0.5, progress=True)
@@ -162,15 +160,6 @@ def run_synthcars(args: argparse.Namespace, config) -> dict:
 
 
 def run_kitti(args: argparse.Namespace, config) -> dict | None:
-    from dataclasses import replace
-
-    from pcc_ros.data.bag import read_frames
-    from pcc_ros.data.bag_writer import write_bag
-    from pcc_ros.data.kitti import KittiTracking
-    from pcc_ros.paths import shared_data_dir
-    from pcc_ros.pipeline.filter import FilterConfig
-    from pcc_ros.tables import print_table
-
     root = args.kitti or shared_data_dir() / "kitti_tracking"
     if not (root / "training").is_dir():
         log.info("no KITTI tracking data at %s: real-data part skipped", root)
@@ -204,8 +193,6 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from pcc_ros.geometry.boxes import box_corners
 
     fig, ax = plt.subplots(figsize=(11, 9))
     pts = frame.points
@@ -246,9 +233,6 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pcc_ros import files
-    from pcc_ros.runtime.bag import load_config
-
     args.out.mkdir(parents=True, exist_ok=True)
     config, _ = load_config(None, with_filter=True, backend=args.backend, checkpoint=args.checkpoint)
     results = {"backend": config.backend, "synthcars": run_synthcars(args, config), "kitti": run_kitti(args, config)}

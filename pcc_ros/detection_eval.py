@@ -28,11 +28,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
+from pcc_ros import files
+from pcc_ros.data.kitti import _split_dir, read_velodyne
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.metrics.detection import DIFFICULTIES, NEIGHBOURS, FrameBoxes, ap_table
-from pcc_ros.types import Boxes
+from pcc_ros.pipeline.core import Pipeline, PipelineConfig
+from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +78,6 @@ def load_kitti(
     lines with a score column, ``DETECTIONS/FFFFFF.txt`` or ``DETECTIONS/SSSS/FFFFFF.txt``.
     A frame without a detection file reads as no detections (counted, logged).
     """
-    from pcc_ros.data.kitti import _split_dir, read_velodyne
-
     split = _split_dir(Path(root), "training")
     det_root = None if detections is None else Path(detections)
     if det_root is not None and not det_root.is_dir():
@@ -132,9 +135,6 @@ def detection_truth(
     frame: LabelledFrame, gt_classes: tuple[str, ...], true_iou: float
 ) -> np.ndarray:
     """Per detection: 1 true, 0 false, -1 unknown (in a DontCare region)."""
-    from pcc_ros.geometry.boxes import iou_bev
-    from pcc_ros.types import class_mask
-
     names = {c.lower() for c in gt_classes}
     for c in list(names):
         names |= set(NEIGHBOURS.get(c, ()))
@@ -196,10 +196,6 @@ def auc(false_score: np.ndarray, is_true: np.ndarray) -> float:
 
 def run_filter(frames: list[LabelledFrame], pipeline, progress: bool = True) -> list[dict[str, Any]]:
     """The pipeline's per-detection outputs for every frame (status, p_false, terms, points in box)."""
-    from tqdm import tqdm
-
-    from pcc_ros.geometry.boxes import points_in_boxes
-
     out = []
     for frame in tqdm(frames, desc="filter", unit="frame", disable=not progress):
         result = pipeline.process(frame.points, frame.dt.boxes, frame_id="velodyne")
@@ -403,8 +399,6 @@ def _json_default(value):
 
 def write_json(path: Path, payload: dict[str, Any]) -> None:
     """``payload`` as JSON (NaN / inf as ``null``), atomically through :mod:`pcc_ros.files`."""
-    from pcc_ros import files
-
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(payload, indent=1, default=_json_default, allow_nan=True)
     files.write_text(path, text.replace("NaN", "null").replace("Infinity", "null"))
@@ -424,8 +418,6 @@ def parse_frames(text: str | None) -> slice:
 
 
 def build_pipeline(config_path: Path | None, overrides: dict[str, Any]):
-    from pcc_ros.pipeline.core import Pipeline, PipelineConfig
-
     config = PipelineConfig.from_yaml(config_path or DEFAULT_CONFIG)
     main = {k: v for k, v in overrides.items() if k in ("backend", "checkpoint", "device") and v is not None}
     filt = {k: v for k, v in overrides.items() if k not in main and v is not None}

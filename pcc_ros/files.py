@@ -17,6 +17,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
+
 TMP_MARK = ".tmp"
 
 
@@ -82,16 +84,12 @@ def write_json(path: str | Path, value: Any, **dumps_options: Any) -> None:
 
 def save_npy(path: str | Path, array) -> None:
     """``np.save`` (never pickled) atomically; ``path`` is used exactly as given."""
-    import numpy as np
-
     with atomic_write(path, "wb") as stream:
         np.save(stream, np.asarray(array), allow_pickle=False)
 
 
 def save_npz(path: str | Path, **arrays) -> None:
     """``np.savez`` (uncompressed, never pickled) atomically; ``path`` is used exactly as given."""
-    import numpy as np
-
     with atomic_write(path, "wb") as stream:
         np.savez(stream, **arrays)
 

@@ -29,15 +29,27 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pcc_ros.detection_eval import (
+    DEFAULT_CONFIG,
+    auc,
+    detection_truth,
+    load_kitti,
+    operating_curve,
+    parse_frames,
+    removed_at,
+    write_json,
+)
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.pipeline.filter import EVIDENCE_GROUND, TERMS, FilterConfig, _local_ground, filter_terms, term_matrix
-from pcc_ros.types import Boxes
+from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
 
@@ -137,8 +149,6 @@ def _columns(terms: dict[str, np.ndarray]) -> np.ndarray:
 
 def real_table(frames, config: FilterConfig, gt_classes, true_iou: float) -> tuple[Table, FalseTemplates]:
     """Evidence rows of real detections, and the false ones as simulator templates."""
-    from pcc_ros.detection_eval import detection_truth
-
     xs, labels, groups, sizes, ranges, points, gaps, scores, true_scores = [], [], [], [], [], [], [], [], []
     for f in frames:
         truth = detection_truth(f, gt_classes, true_iou)
@@ -174,8 +184,6 @@ def real_table(frames, config: FilterConfig, gt_classes, true_iou: float) -> tup
 def simulate_false(points: np.ndarray, gt: Boxes, templates: FalseTemplates, rng: np.random.Generator,
                    count: int) -> Boxes:
     """``count`` false detections that look like the real ones (see the module docstring)."""
-    from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
-
     if count == 0:
         return Boxes.empty()
     k = len(templates.range)
@@ -212,9 +220,6 @@ def simulated_table(frames, templates: FalseTemplates, config: FilterConfig, rng
                     source: str, true_iou: float, jitter: bool) -> Table:
     """SynthCars (``jitter=False``: its detector's true detections) or real object frames
     (``jitter=True``: labelled cars with detector-like noise) plus simulated false detections."""
-    from pcc_ros.detection_eval import detection_truth
-    from pcc_ros.types import class_mask
-
     tables = []
     for f in frames:
         cars = f.gt.boxes[class_mask(f.gt.boxes.label, ("Car", "Van"))]
@@ -284,8 +289,6 @@ def calibrate(real_frames, synth_frames, object_frames, config: FilterConfig, se
 
 
 def _figures(p: np.ndarray, false: np.ndarray, threshold: float, max_lost: float) -> dict[str, Any]:
-    from pcc_ros.detection_eval import auc, operating_curve, removed_at
-
     curve = operating_curve(p, ~false)
     best, _ = removed_at(curve, 0.02)
     reject = p > threshold
@@ -336,8 +339,6 @@ def _real_rows(frames, config, gt_classes, true_iou):
     try:
         table, _ = real_table(frames, config, gt_classes, true_iou)
     except DataError:
-        from pcc_ros.detection_eval import detection_truth
-
         xs, labels = [], []
         for f in frames:
             truth = detection_truth(f, gt_classes, true_iou)
@@ -359,8 +360,6 @@ def preset_yaml(base: Path, bias: float, weights: np.ndarray, threshold: float, 
     """The node YAML ``base`` with the calibrated filter parameters put in: each key's line is
     rewritten in place (indentation and trailing comment kept), missing keys are appended to
     the ``ros__parameters`` block; everything else of the file stays as it was."""
-    import re
-
     try:
         lines = base.read_text().splitlines()
     except OSError as exc:
@@ -426,8 +425,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _synth_frames(root: Path, per_sequence: int):
-    from pcc_ros.detection_eval import load_kitti
-
     split = root / "training" if (root / "training").is_dir() else root
     frames = []
     for seq in sorted(p.name for p in (split / "velodyne").iterdir() if p.is_dir()):
@@ -436,8 +433,6 @@ def _synth_frames(root: Path, per_sequence: int):
 
 
 def run(args: argparse.Namespace) -> int:
-    from pcc_ros.detection_eval import DEFAULT_CONFIG, load_kitti, parse_frames, write_json
-
     config = FilterConfig(rule="evidence", score_mapping=args.score_mapping, sensor=args.sensor)
     gt_classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
     sequences = [q.strip() for q in args.real_sequence.split(",")] if args.real_sequence else [None]

@@ -75,11 +75,9 @@ IN_FLIGHT = {
     # (as PointPnCNet's takes the cache and calls cache.multiview_groups).
     ("pcc_ros.models.trapcc", "pcc_ros.data.gt_pools"),
     ("pcc_ros.models.trapcc", "pcc_ros.data.instances"),
-    # AML (models/aml.py, geometry/voxels.py, merged this round): the recipe opens the instance
-    # cache and validates through train; voxels seeds its sampling with models.base.cloud_seed.
-    # Next round: cloud_seed moves to geometry/sampling, the recipe receives the cache and a
-    # validation callback instead of importing the doors.
-    ("pcc_ros.geometry.voxels", "pcc_ros.models.base"),
+    # AML (models/aml.py): the recipe opens the instance cache and validates through train.
+    # Next round: the recipe receives the cache and a validation callback instead of
+    # importing the doors.
     ("pcc_ros.models.aml", "pcc_ros.data.instances"),
     ("pcc_ros.models.aml", "pcc_ros.train"),
 }

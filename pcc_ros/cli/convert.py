@@ -16,6 +16,9 @@ import logging
 from itertools import islice
 from pathlib import Path
 
+from pcc_ros.data.bag_writer import write_bag
+from pcc_ros.data.kitti import KittiObject, KittiTracking
+from pcc_ros.data.nuscenes import NuScenes
 from pcc_ros.errors import DataError
 
 log = logging.getLogger("pcc.convert")
@@ -53,8 +56,6 @@ def _stop(args: argparse.Namespace) -> int | None:
 
 
 def _tracking(args: argparse.Namespace, synth: bool):
-    from pcc_ros.data.kitti import KittiTracking
-
     reader = KittiTracking(args.src)
     sequences = reader.sequences()
     sequence = args.sequence
@@ -71,16 +72,12 @@ def _tracking(args: argparse.Namespace, synth: bool):
 
 
 def _object(args: argparse.Namespace):
-    from pcc_ros.data.kitti import KittiObject
-
     reader = KittiObject(args.src)
     total = len(sorted((reader.root / "velodyne").glob("*.bin"))[args.first : _stop(args)])
     return reader.frames(args.detections, start=args.first, stop=_stop(args)), total, f"kitti-object {args.src}"
 
 
 def _nuscenes(args: argparse.Namespace):
-    from pcc_ros.data.nuscenes import NuScenes
-
     reader = NuScenes(args.src, args.version)
     if args.scene is None:  # every scene, in time order, so the bag's stamps increase
         first_stamp = {s["token"]: reader.samples[s["first_sample_token"]]["timestamp"] for s in reader.tables["scene"]}
@@ -97,8 +94,6 @@ def _nuscenes(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from pcc_ros.data.bag_writer import write_bag
-
     if args.out.exists() and not args.force:
         raise DataError(f"{args.out} exists; pass --force to replace it")
     if args.source in ("kitti-tracking", "synth"):

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pcc_ros.data.instances import ExtractConfig, InstanceCache, extract_instances
+from pcc_ros.data.sources import open_frames
 from pcc_ros.errors import ConfigError
 
 log = logging.getLogger("pcc.extract")
@@ -58,8 +60,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--val-fraction + --test-fraction must be < 1")
     if args.min_points < 1:
         raise ConfigError("--min-points must be >= 1")
-    from pcc_ros.data.instances import ExtractConfig, extract_instances
-    from pcc_ros.data.sources import open_frames
 
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
     if not classes:
@@ -78,8 +78,6 @@ def run(args: argparse.Namespace) -> int:
 
 def show_info(path: Path) -> int:
     """Print the cache summary as JSON and write ``info.png`` next to the index."""
-    from pcc_ros.data.instances import InstanceCache
-
     cache = InstanceCache.load(path)
     info = cache.info()
     print(json.dumps(info, indent=1, sort_keys=True))

@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import argparse
 import logging
+import struct
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+from mcap.reader import make_reader
 
 from pcc_ros.data.bag import decode, iter_messages, open_bag
 from pcc_ros.errors import PccError
@@ -102,7 +104,6 @@ def _compression(path: Path, meta) -> str:
     files = [path] if path.suffix == ".mcap" else sorted(path.glob("*.mcap")) if path.is_dir() else []
     if not files:
         return "none"
-    from mcap.reader import make_reader
 
     with files[0].open("rb") as stream:
         summary = make_reader(stream).get_summary()
@@ -115,10 +116,6 @@ def chunk_crcs(path: Path) -> str:
 
     Without them a bit flip inside a chunk is undetectable (rosbags < 0.12 writes none;
     ``pcc convert`` and ``pcc replay`` fill them in)."""
-    import struct
-
-    from mcap.reader import make_reader
-
     files = [path] if path.suffix == ".mcap" else sorted(path.glob("*.mcap")) if path.is_dir() else []
     if not files:
         return "n/a"

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from pathlib import Path
 
+from pcc_ros.data.synthetic.detector import DetectorParams
 from pcc_ros.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -49,9 +51,6 @@ def run(args: argparse.Namespace) -> int:
 
 def write_preview(root: Path, sequence: int = 0, frame: int | None = None) -> Path:
     """Re-simulate one frame of a generated dataset (deterministic) and draw it to ``root/preview.png``."""
-    import json
-
-    from pcc_ros.data.synthetic.detector import DetectorParams
     from pcc_ros.data.synthetic.generator import (
         FRAME_STREAM,
         SPLIT_CODES,

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sqlite3
 import struct
 from collections import Counter
 from collections.abc import Iterable, Iterator
@@ -38,8 +39,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader, get_chunk_data_stream
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag2 import ReaderError
+from rosbags.typesys.base import TypesysError
 from scipy.spatial.transform import Rotation
 
 from pcc_ros.data.bag_writer import (
@@ -145,8 +149,6 @@ class _Tf:
 
 def _storage_errors() -> tuple[type[BaseException], ...]:
     """Exceptions the storage layers raise on damaged bytes (rosbags, zstd, lz4, sqlite)."""
-    from rosbags.typesys.base import TypesysError
-
     errors: list[type[BaseException]] = [
         AnyReaderError, ReaderError, TypesysError, OSError, EOFError, struct.error, ValueError, KeyError,
         IndexError, TypeError, RuntimeError,  # lz4 raises RuntimeError on a damaged frame
@@ -163,7 +165,6 @@ def _storage_errors() -> tuple[type[BaseException], ...]:
         errors.append(apsw.Error)
     except ImportError:
         pass
-    import sqlite3
 
     errors.append(sqlite3.Error)
     return tuple(errors)
@@ -181,9 +182,6 @@ def mcap_chunk_damage(file: str | Path) -> str | None:
 
     Chunks written without a CRC (``uncompressed_crc == 0``) are only decompressed.
     """
-    from mcap.reader import make_reader
-    from mcap.stream_reader import StreamReader, get_chunk_data_stream
-
     file = Path(file)
     try:
         with file.open("rb") as stream:
@@ -203,8 +201,6 @@ def mcap_chunk_damage(file: str | Path) -> str | None:
 
 
 def _is_sqlite_error(exc: BaseException) -> bool:
-    import sqlite3
-
     try:
         import apsw
     except ImportError:  # pragma: no cover - rosbags depends on apsw

@@ -41,8 +41,9 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from mcap.reader import make_reader
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer, storage_mcap
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
@@ -320,8 +321,6 @@ def _record_chunk_crcs(writer: Writer) -> list[int]:
 
 def _write_chunk_crcs(bag: Path, crcs: list[int]) -> None:
     """Write the CRCs recorded by :func:`_record_chunk_crcs` into the bag's chunk records."""
-    from mcap.reader import make_reader
-
     files = sorted(bag.glob("*.mcap"))
     if len(files) != 1:
         raise DataError(f"{bag}: expected one .mcap file after writing, found {len(files)}")
@@ -339,8 +338,6 @@ def _write_chunk_crcs(bag: Path, crcs: list[int]) -> None:
 
 def _set_mcap_zstd_level(writer: Writer, level: int) -> None:
     """Set the zstd level of rosbags' MCAP chunk compressor (its writer exposes no option)."""
-    from rosbags.rosbag2 import storage_mcap
-
     storage = writer.storage
     if not hasattr(storage, "compressor"):
         raise DataError("this rosbags version's MCAP writer has no compressor to configure")

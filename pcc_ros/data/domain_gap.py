@@ -24,6 +24,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
+
+from pcc_ros.data.instances import InstanceCache
+from pcc_ros.files import write_json
+from pcc_ros.geometry.canonical import from_canonical
 
 log = logging.getLogger("pcc.gap")
 
@@ -33,10 +38,6 @@ RING_GAP_DEG = 0.15
 
 def crop_stats(cache: Any, max_instances: int = 2000, seed: int = 0) -> dict[str, np.ndarray]:
     """Per-crop statistics of an instance cache (a seeded subset of at most ``max_instances``)."""
-    from scipy.spatial import cKDTree
-
-    from pcc_ros.geometry.canonical import from_canonical
-
     n = len(cache)
     idx = np.arange(n) if n <= max_instances else np.sort(np.random.default_rng(seed).choice(n, max_instances, False))
     meta = cache.meta
@@ -113,8 +114,6 @@ def plot(named: dict[str, dict[str, np.ndarray]], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from pcc_ros.data.instances import InstanceCache
-
     parser = argparse.ArgumentParser(prog="python -m pcc_ros.data.domain_gap", description=__doc__.splitlines()[0])
     parser.add_argument("--real", type=Path, nargs="+", required=True, help="instance caches of real scans")
     parser.add_argument("--sim", type=Path, required=True, help="instance cache of SynthCars (before)")
@@ -130,7 +129,6 @@ def main(argv: list[str] | None = None) -> int:
         named["sim (after)"] = crop_stats(InstanceCache.load(args.sim_after), args.max_instances)
     plot(named, args.out)
     report = {name: summary(s) for name, s in named.items()}
-    from pcc_ros.files import write_json
 
     write_json(args.out.with_suffix(".json"), report, indent=1)
     print(json.dumps(report, indent=1))

@@ -52,9 +52,12 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
+from tqdm import tqdm
 
 from pcc_ros import files
+from pcc_ros.data.instances import VIEWS, aggregate_track
 from pcc_ros.errors import DataError
+from pcc_ros.geometry.partitions import front_back_masks
 
 log = logging.getLogger("pcc.gt_pools")
 
@@ -135,8 +138,6 @@ def candidate_score(cloud: np.ndarray, cell: float, part: str = "whole") -> tupl
     Same definition as :func:`pcc_ros.data.instances.evenness` (quadrant counts of the
     occupied cells of each projection, ``min / max``), computed on 1-D cell keys.
     """
-    from pcc_ros.data.instances import VIEWS
-
     center = (HALF_CENTRE.get(part, 0.0), 0.0, 0.0)
     pts = np.asarray(cloud, dtype=np.float64)
     views = {}
@@ -230,10 +231,6 @@ class Pools:
 def track_candidates(cache: Any, split: str | None, config: PoolConfig, source: str = "0",
                      progress: bool = False) -> list[dict[str, Any]]:
     """Aggregated tracks of one cache with their box sizes (before any admission test)."""
-    from tqdm import tqdm
-
-    from pcc_ros.data.instances import aggregate_track
-
     out = []
     tracks = cache.tracks(cache.indices(split))
     for key, obs in tqdm(list(tracks.items()), desc="aggregate tracks", unit="track", disable=not progress,
@@ -352,8 +349,6 @@ def retrieve(pool: Pool, clouds: Sequence[np.ndarray], sizes: np.ndarray, k: int
 
 def halves(cloud: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """TraPCC's split of a canonical cloud: front (x >= 0) and back (x < 0)."""
-    from pcc_ros.geometry.partitions import front_back_masks
-
     front, back = front_back_masks(cloud)
     return cloud[front], cloud[back]
 
@@ -407,8 +402,6 @@ def load_or_assign(pools: Pools, folder: Path, cache: Any, indices: np.ndarray, 
     its points (the mean over 128 points is a tight estimate; a dense 5000-point crop would
     otherwise cost 40x more for the same choice).
     """
-    from tqdm import tqdm
-
     indices = np.asarray(indices, dtype=np.int64)
     digest = hashlib.sha256(indices.tobytes()).hexdigest()[:8]
     stem = f"assign-{cache.index.get('fingerprint', 'nofp')}-{name}-{digest}-q{max_query_points}"

@@ -40,6 +40,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from pcc_ros import files
 from pcc_ros.errors import DataError
@@ -355,8 +356,6 @@ def extract_instances(
         synthcars: a SynthCars root: its splits and ground-truth shapes are used
             (default: ``source`` when it is one).
     """
-    from tqdm import tqdm
-
     config = config or ExtractConfig()
     out = Path(out)
     synth = SynthCarsInfo.detect(synthcars if synthcars is not None else source)

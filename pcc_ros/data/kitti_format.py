@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pcc_ros import files
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.transforms import wrap_angle
 from pcc_ros.types import Boxes
@@ -126,7 +127,6 @@ class Calibration:
         if self.Tr_imu_to_velo is not None:
             lines.append(("Tr_imu_to_velo", self.Tr_imu_to_velo.ravel()))
         lines.extend(extra.items())
-        from pcc_ros import files
 
         files.write_text(path, "".join(f"{k}: {' '.join(f'{v:.12e}' for v in vals)}\n" for k, vals in lines))
 

@@ -9,6 +9,9 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+from pcc_ros.data.bag import read_frames
+from pcc_ros.data.kitti import KittiObject, KittiTracking
+from pcc_ros.data.nuscenes import NuScenes
 from pcc_ros.errors import DataError
 from pcc_ros.types import Sample
 
@@ -52,20 +55,13 @@ def open_frames(
     path = Path(path)
     kind = kind_of(path)
     if kind == "bag":
-        from pcc_ros.data.bag import read_frames
-
         return read_frames(path)
     if kind == "kitti-tracking":
-        from pcc_ros.data.kitti import KittiTracking
-
         reader = KittiTracking(path)
         sequences = [sequence] if sequence else reader.sequences()
         return (f for s in sequences for f in reader.frames(s, detections_dir))
     if kind == "kitti-object":
-        from pcc_ros.data.kitti import KittiObject
-
         return KittiObject(path).frames(detections_dir)
-    from pcc_ros.data.nuscenes import NuScenes
 
     if version is None:
         versions = sorted(v.name for v in path.glob("v1.0-*") if (v / "scene.json").exists())

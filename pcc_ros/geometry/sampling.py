@@ -8,9 +8,17 @@ Seeds are always explicit (a ``numpy.random.Generator``), so datasets are reprod
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
 from pcc_ros.errors import DataError
+
+
+def cloud_seed(cloud: np.ndarray, seed: int = 0) -> int:
+    """A seed derived from a cloud's bytes: deterministic per cloud, independent of batching."""
+    digest = hashlib.blake2b(np.ascontiguousarray(cloud, dtype=np.float32).tobytes(), digest_size=8).digest()
+    return (int.from_bytes(digest, "little") ^ (seed * 0x9E3779B97F4A7C15)) & 0xFFFF_FFFF_FFFF_FFFF
 
 
 def resample_indices(count: int, n: int, rng: np.random.Generator, replace: bool | None = None) -> np.ndarray:

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pcc_ros.errors import DataError
+from pcc_ros.geometry.sampling import cloud_seed
 
 
 @dataclass(frozen=True)
@@ -230,8 +231,6 @@ def observation_grids(
     Returns:
         ``occupied``, ``free``: bool ``(B, H, L, W)``; ``free`` never overlaps ``occupied``.
     """
-    from pcc_ros.models.base import cloud_seed
-
     b = len(clouds)
     origins = np.asarray(origins, np.float64).reshape(b, 3) if b else np.zeros((0, 3))
     if not np.isfinite(origins).all():

@@ -24,7 +24,6 @@ Contract of :meth:`Completer.complete` (why it is shaped like this):
 from __future__ import annotations
 
 import abc
-import hashlib
 import importlib
 import itertools
 import logging
@@ -37,6 +36,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
+from pcc_ros.geometry.sampling import cloud_seed  # re-exported: backends seed per cloud through models.base
 from pcc_ros.types import Boxes
 
 if TYPE_CHECKING:  # torch is imported lazily so baselines and metrics stay torch-free
@@ -330,12 +330,6 @@ def aspect_scales(sizes: np.ndarray, box_aspect: Sequence[float], count: int) ->
     scales = np.ones((count, 3))
     scales[:, 1:] = aspect[None, :] / (size[:, 1:] / size[:, :1])
     return np.clip(scales, *ASPECT_SCALE_RANGE).astype(np.float32)
-
-
-def cloud_seed(cloud: np.ndarray, seed: int = 0) -> int:
-    """A seed derived from a cloud's bytes: deterministic per cloud, independent of batching."""
-    digest = hashlib.blake2b(np.ascontiguousarray(cloud, dtype=np.float32).tobytes(), digest_size=8).digest()
-    return (int.from_bytes(digest, "little") ^ (seed * 0x9E3779B97F4A7C15)) & 0xFFFF_FFFF_FFFF_FFFF
 
 
 def resample_cloud(cloud: np.ndarray, n: int, seed: int = 0) -> np.ndarray:

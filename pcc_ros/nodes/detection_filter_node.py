@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import sys
 
+from pcc_ros.nodes.entry import node_main
+
 NODE_NAME = "detection_filter_node"
 MODE = "filter"
 
 
 def main(args: list[str] | None = None) -> int:
-    from pcc_ros.nodes.entry import node_main  # --help and a clear message without ROS; rclpy after
-
     return node_main(NODE_NAME, MODE, args)
 
 

@@ -14,6 +14,8 @@ import argparse
 import time
 
 from pcc_ros.errors import DataError
+from pcc_ros.msg.stamps import stamp_to_ns
+from pcc_ros.nodes.tools import import_rclpy, wait_for
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,8 +28,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def summarize(msgtype: str, msg) -> str:
     """One human-readable block per message (rclpy or rosbags flavour)."""
-    from pcc_ros.msg.stamps import stamp_to_ns
-
     header = getattr(msg, "header", None)
     head = f"[{stamp_to_ns(header.stamp) / 1e9:.3f} {header.frame_id}] " if header is not None else ""
     if msgtype == "sensor_msgs/msg/PointCloud2":
@@ -56,14 +56,11 @@ def summarize(msgtype: str, msg) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pcc_ros.nodes.tools import import_rclpy
-
     rclpy = import_rclpy("echo")
     from rclpy.executors import ExternalShutdownException
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     from pcc_ros.nodes.ros_node import rclpy_classes
-    from pcc_ros.nodes.tools import wait_for
 
     rclpy.init()
     node = rclpy.create_node("pcc_echo")

@@ -9,6 +9,8 @@ from __future__ import annotations
 import importlib
 import sys
 
+from pcc_ros.pipeline.config import parameter_table
+
 TOPICS = {
     "completion": "in: points (PointCloud2), detections (vision_msgs/Detection3DArray)\n"
     "  out: completed (PointCloud2 x y z instance rgb score source), completed_markers (MarkerArray), /diagnostics",
@@ -21,8 +23,6 @@ CONFIG = {"completion": "completion.yaml", "filter": "detection_filter.yaml"}
 
 
 def usage(node_name: str, mode: str) -> str:
-    from pcc_ros.pipeline.config import parameter_table
-
     lines = [
         f"usage: ros2 run pcc_ros {node_name} [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]",
         "",

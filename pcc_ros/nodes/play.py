@@ -17,7 +17,9 @@ import logging
 import time
 from pathlib import Path
 
+from pcc_ros.data.bag import decode, iter_messages, open_bag
 from pcc_ros.errors import DataError
+from pcc_ros.nodes.tools import import_rclpy, topic_qos, wait_for
 
 log = logging.getLogger(__name__)
 
@@ -37,16 +39,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pcc_ros.nodes.tools import import_rclpy
-
     rclpy = import_rclpy("play")
     if args.rate <= 0:
         raise DataError("--rate must be > 0")
     from rclpy.executors import ExternalShutdownException
 
-    from pcc_ros.data.bag import decode, iter_messages, open_bag
     from pcc_ros.nodes.ros_node import rclpy_classes
-    from pcc_ros.nodes.tools import topic_qos, wait_for
 
     rclpy.init()
     node = rclpy.create_node("pcc_play")

@@ -20,6 +20,7 @@ from rcl_interfaces.msg import (
 )
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
@@ -162,8 +163,6 @@ class PipelineNode(Node):
 
 def run(node_name: str, mode: str, args: list[str] | None = None) -> int:
     """``main()`` of both nodes: init, spin, clean shutdown on Ctrl-C / external shutdown."""
-    from rclpy.executors import ExternalShutdownException
-
     rclpy.init(args=args)
     node = None
     try:
