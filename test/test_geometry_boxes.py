@@ -11,6 +11,7 @@ from pcc_ros.geometry.boxes import (
     crop_canonical,
     iou_3d,
     iou_bev,
+    pairs_in_boxes,
     points_in_boxes,
     polygon_intersection_area,
 )
@@ -68,6 +69,26 @@ def test_overlapping_boxes_share_points_and_cell_size_does_not_matter():
     for cell in (0.1, 0.7, 5.0):
         for f, s in zip(points_in_boxes(points, boxes, cell=cell), ref):
             np.testing.assert_array_equal(f, s)
+
+
+def test_margin_reaches_the_corners_of_a_yawed_box():
+    # The margin-enlarged box of a 45-degree box reaches margin * sqrt(2) beyond the extent
+    # of its corners: points there (the enlarged corners, every side) are inside it.
+    box = Boxes([[10.0, -3.0, 0.0]], [[4.0, 2.0, 2.0]], [np.pi / 4])
+    local = np.array([[2.48, 1.48, 0.0], [-2.48, 1.48, 0.0], [-2.48, -1.48, 0.0], [2.48, -1.48, 0.0]])
+    points = from_canonical(local / 4.0, box.center[0], box.yaw[0], 4.0).astype(np.float32)
+    for cell in (None, 0.1, 0.45, 3.0):
+        np.testing.assert_array_equal(points_in_boxes(points, box, margin=0.5, cell=cell)[0], [0, 1, 2, 3])
+        assert len(points_in_boxes(points, box, margin=0.45, cell=cell)[0]) == 0
+
+
+def test_pairs_in_boxes_are_the_split_pairs():
+    rng = np.random.default_rng(4)
+    points, boxes = random_scene(rng, n_points=3000)
+    point, box = pairs_in_boxes(points, boxes, margin=0.1, ground_margin=0.05)
+    assert (np.diff(point) >= 0).all()  # point order
+    for b, expected in enumerate(slow_points_in_boxes(points, boxes, 0.1, 0.05)):
+        np.testing.assert_array_equal(point[box == b], expected)
 
 
 def test_ground_margin_removes_ground_returns():

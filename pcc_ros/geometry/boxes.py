@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from pcc_ros.errors import DataError
+from pcc_ros.geometry.canonical import to_box_frame
 from pcc_ros.types import Boxes
 
 # Unit-cube corner signs in the order :func:`box_corners` documents.
@@ -72,31 +73,44 @@ def _check_boxes(boxes: Boxes) -> None:
         boxes.validate()
 
 
+def _cell_size(boxes: Boxes, cell: float | None) -> float:
+    if cell is None:
+        # Cells about a quarter of a car's width keep the table small and the candidate
+        # overhead (points in cells but outside boxes) low.
+        cell = float(np.clip(CELL_FRACTION * np.median(np.minimum(boxes.size[:, 0], boxes.size[:, 1])), 0.25, 4.0))
+    return float(cell)
+
+
 def _candidate_pairs(
     xy: np.ndarray, boxes: Boxes, margin: float, cell: float | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(point index, box index) pairs whose BEV grid cell overlaps the box's BEV extent.
+    """(point index, box index) pairs whose BEV grid cell may overlap the box (a superset of
+    the pairs inside), in point order.
 
-    Cost: a handful of vector operations over the scan plus work proportional to the
-    candidate count; boxes are only touched to build a small cell -> boxes table.
+    Cost: about a dozen contiguous float32 / int32 passes over the scan (no fancy indexing
+    of the whole scan: a table lookup in a small uint8 grid), then work proportional to the
+    candidates; boxes are only touched to build the cell -> boxes table.
     """
-    corners = _bev_corners(boxes)
-    lo = corners.min(axis=1) - margin  # (B, 2) axis-aligned BEV extents
-    hi = corners.max(axis=1) + margin
-    if cell is None:
-        # Cells about the size of a car's width keep the table small and the
-        # candidate overhead (points in cells but outside boxes) low.
-        cell = float(np.clip(CELL_FRACTION * np.median(np.minimum(boxes.size[:, 0], boxes.size[:, 1])), 0.25, 4.0))
+    # (B, 2) axis-aligned BEV extents of the margin-enlarged boxes (their corners: a yawed
+    # box grown by ``margin`` reaches further than its corners' extent plus ``margin``)
+    corners = _bev_corners(Boxes(boxes.center, boxes.size + 2.0 * margin, boxes.yaw))
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    cell = _cell_size(boxes, cell)
     origin = lo.min(axis=0)
     n_cells = np.floor((hi.max(axis=0) - origin) / cell).astype(np.int64) + 1
     if n_cells[0] * n_cells[1] > 1_000_000:  # boxes spread very far apart: coarser cells
         cell *= float(np.sqrt(n_cells[0] * n_cells[1] / 1_000_000.0)) * 1.01
         n_cells = np.floor((hi.max(axis=0) - origin) / cell).astype(np.int64) + 1
-    nx, ny = int(n_cells[0]), int(n_cells[1])
+    # The grid has a border of one empty cell on every side: scan points outside the boxes'
+    # extent (and NaN points) clamp into it, so the scan pass needs no bounds mask.
+    nx, ny = int(n_cells[0]) + 2, int(n_cells[1]) + 2
+    origin = origin - cell
 
-    # Cell -> boxes table in CSR form (loops over boxes are replaced by repeat/arange).
-    c0 = np.floor((lo - origin) / cell).astype(np.int64)
-    c1 = np.floor((hi - origin) / cell).astype(np.int64)
+    # Cell -> boxes table in CSR form (loops over boxes are replaced by repeat/arange). The
+    # cell range of each box is widened by one cell each way and the touch test below by a
+    # hair, so a point on a cell boundary (float32 rounding) still finds its boxes.
+    c0 = np.floor((lo - origin) / cell).astype(np.int64) - 1
+    c1 = np.floor((hi - origin) / cell).astype(np.int64) + 1
     span = c1 - c0 + 1  # (B, 2)
     per_box = span[:, 0] * span[:, 1]
     box_of = np.repeat(np.arange(len(boxes)), per_box)
@@ -106,43 +120,48 @@ def _candidate_pairs(
     # Keep only the cells that can touch the rotated box: the cell centre within the
     # (margin-enlarged) box grown by half a cell diagonal. Trims the AABB corners that a
     # yawed box leaves empty, which would otherwise become candidate points.
-    ccx = origin[0] + (cx + 0.5) * cell - boxes.center[box_of, 0]
-    ccy = origin[1] + (cy + 0.5) * cell - boxes.center[box_of, 1]
-    cos, sin = np.cos(boxes.yaw[box_of]), np.sin(boxes.yaw[box_of])
-    reach = cell * np.sqrt(0.5) + margin
-    touch = (np.abs(cos * ccx + sin * ccy) <= boxes.size[box_of, 0] / 2 + reach) & (
-        np.abs(-sin * ccx + cos * ccy) <= boxes.size[box_of, 1] / 2 + reach
-    )
-    box_of, cx, cy = box_of[touch], cx[touch], cy[touch]
-    key = cx * ny + cy
+    ccx, ccy, _ = to_box_frame(origin[0] + (cx + 0.5) * cell, origin[1] + (cy + 0.5) * cell, 0.0,
+                               boxes.center[box_of, 0], boxes.center[box_of, 1], 0.0,
+                               np.cos(boxes.yaw[box_of]), np.sin(boxes.yaw[box_of]))
+    reach = cell * np.sqrt(0.5) * 1.001 + margin
+    touch = (np.abs(ccx) <= boxes.size[box_of, 0] / 2 + reach) & (np.abs(ccy) <= boxes.size[box_of, 1] / 2 + reach)
+    touch &= (cx >= 1) & (cx < nx - 1) & (cy >= 1) & (cy < ny - 1)  # the border stays empty
+    box_of, key = box_of[touch], cx[touch] * ny + cy[touch]
     order = np.argsort(key, kind="stable")
     table_boxes = box_of[order]
     counts = np.bincount(key, minlength=nx * ny)
     starts = np.concatenate([[0], np.cumsum(counts)])
-    # One pass over the scan: the cell of every point. float32, contiguous temporaries
-    # and np.take (several times faster than fancy indexing) keep each step at tens of
-    # microseconds for a 120k-point scan.
+    small = counts.max(initial=0) < 256
+    counts_table = counts.astype(np.uint8 if small else np.int64)  # uint8: the lookups stay in cache
+    # One pass over the scan: the cell of every point, clamped into the border (fmax maps
+    # NaN to the low border).
     inv = np.float32(1.0 / cell)
     with np.errstate(invalid="ignore"):
         gx = np.subtract(xy[:, 0], np.float32(origin[0]), dtype=np.float32)
         gx *= inv
+        np.fmax(gx, np.float32(0.0), out=gx)
+        np.fmin(gx, np.float32(nx - 1), out=gx)
         gy = np.subtract(xy[:, 1], np.float32(origin[1]), dtype=np.float32)
         gy *= inv
-        inside = (gx >= 0) & (gx < nx) & (gy >= 0) & (gy < ny)  # NaN compares False
-    pts = np.flatnonzero(inside)
-    pkey = np.take(gx, pts).astype(np.int32) * np.int32(ny) + np.take(gy, pts).astype(np.int32)
-    n_per_point = np.take(counts, pkey)
-    hit = np.flatnonzero(n_per_point)
-    pts, pkey, n_per_point = np.take(pts, hit), np.take(pkey, hit), np.take(n_per_point, hit)
+        np.fmax(gy, np.float32(0.0), out=gy)
+        np.fmin(gy, np.float32(ny - 1), out=gy)
+    pkey = gx.astype(np.int32)  # >= 0: truncation is the floor
+    pkey *= np.int32(ny)
+    pkey += gy.astype(np.int32)
+    n_per_point = np.take(counts_table, pkey)
+    pts = np.flatnonzero(n_per_point)
+    pkey = np.take(pkey, pts)
+    n_per_point = np.take(n_per_point, pts).astype(np.int64)
     # Expand to (point, box) pairs in point order (CSR walk without a Python loop).
+    if small and counts.max(initial=0) <= 1:  # no cell shared by two boxes: one box per point
+        return pts, np.take(table_boxes, np.take(starts, pkey))
     pair_point = np.repeat(pts, n_per_point)
-    if len(pair_point) == len(pts):  # no cell shared by two boxes: one box per point
+    if len(pair_point) == len(pts):
         slot = np.take(starts, pkey)
     else:
         ends = np.cumsum(n_per_point)
         slot = np.repeat(np.take(starts, pkey) - ends + n_per_point, n_per_point) + np.arange(ends[-1])
-    pair_box = np.take(table_boxes, slot)
-    return pair_point, pair_box
+    return pair_point, np.take(table_boxes, slot)
 
 
 def _pairs_in_boxes(
@@ -151,14 +170,16 @@ def _pairs_in_boxes(
     margin: float,
     ground_margin: float,
     cell: float | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Exact (point, box) pairs plus the points' box-frame coordinates (metres)."""
+    local: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Exact (point, box) pairs in point order, plus (``local``) the points' box-frame
+    coordinates (metres, the scan's precision)."""
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise DataError(f"points must be (N, >=3), got shape {pts.shape}")
     _check_boxes(boxes)
     if len(boxes) == 0 or len(pts) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)) if local else None
     pair_point, pair_box = _candidate_pairs(pts[:, :2], boxes, margin, cell)
     # Per-box parameters gathered per pair with np.take; the test runs in the scan's
     # precision (float32 for sensor data) on box-relative x/y. The z bounds are rounded
@@ -177,17 +198,19 @@ def _pairs_in_boxes(
         axis=0,
     ).astype(dt)
     cx, cy, cz, c, s, hl, hw = (np.take(col, pair_box) for col in table)
-    pt = pts.T
-    pz = np.take(pt[2], pair_point).astype(dt, copy=False)
-    dx = np.take(pt[0], pair_point).astype(dt, copy=False) - cx
-    dy = np.take(pt[1], pair_point).astype(dt, copy=False) - cy
-    lx = c * dx + s * dy
-    ly = c * dy - s * dx
-    keep = (np.abs(lx) <= hl) & (np.abs(ly) <= hw) & (pz >= np.take(zlo, pair_box)) & (pz <= np.take(zhi, pair_box))
+    pz = np.take(pts[:, 2], pair_point).astype(dt, copy=False)
+    # z first: a cheap test that drops most of the ground and everything above the boxes.
+    keep = pz >= np.take(zlo, pair_box)
+    keep &= pz <= np.take(zhi, pair_box)
+    lx, ly, dz = to_box_frame(np.take(pts[:, 0], pair_point).astype(dt, copy=False),
+                              np.take(pts[:, 1], pair_point).astype(dt, copy=False), pz, cx, cy, cz, c, s)
+    keep &= np.abs(lx) <= hl
+    keep &= np.abs(ly) <= hw
     keep = np.flatnonzero(keep)
-    lx, ly = np.take(lx, keep), np.take(ly, keep)
-    dz = np.take(pz, keep) - np.take(cz, keep)
-    return np.take(pair_point, keep), np.take(pair_box, keep), np.stack([lx, ly, dz], axis=1)
+    if not local:
+        return np.take(pair_point, keep), np.take(pair_box, keep), None
+    out = np.stack([np.take(lx, keep), np.take(ly, keep), np.take(dz, keep)], axis=1)
+    return np.take(pair_point, keep), np.take(pair_box, keep), out
 
 
 def _group_by_box(pair_point: np.ndarray, pair_box: np.ndarray, n_boxes: int, *values: np.ndarray) -> list:
@@ -203,6 +226,16 @@ def _group_by_box(pair_point: np.ndarray, pair_box: np.ndarray, n_boxes: int, *v
     out = [split(np.take(pair_point, order))]
     out.extend(split(np.take(v, order, axis=0)) for v in values)
     return out
+
+
+def pairs_in_boxes(
+    points: np.ndarray, boxes: Boxes, margin: float = 0.0, ground_margin: float = 0.0, cell: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every (point index, box index) pair with the point inside the box, in point order:
+    :func:`points_in_boxes` without the split per box (for per-box reductions with
+    ``np.bincount`` and the like). Same arguments and errors."""
+    pair_point, pair_box, _ = _pairs_in_boxes(points, boxes, margin, ground_margin, cell, local=False)
+    return pair_point, pair_box
 
 
 def points_in_boxes(

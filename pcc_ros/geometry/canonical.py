@@ -4,6 +4,11 @@ Canonical frame (see DESIGN.md): origin at the box centre, x toward the car's fr
 y left, z up, scaled isotropically by ``1 / box length`` so the car spans about
 [-0.5, 0.5] in x. Every completion backend consumes and produces canonical clouds;
 this module is the only place that converts, so the two directions cannot drift.
+
+:func:`to_box_frame` is the package's one box-frame transform (points relative to a box
+centre, rotated by minus its yaw): the canonical frame is it scaled by ``1 / length``, the
+points-in-boxes test (``geometry/boxes``) and the filter's ray geometry (``filter.py``) call
+it on per-pair columns.
 """
 
 from __future__ import annotations
@@ -13,14 +18,25 @@ import numpy as np
 from pcc_ros.geometry.rotations import rotation_z
 
 
+def to_box_frame(x, y, z, cx, cy, cz, cos, sin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points given as coordinate columns in the frame of a box: origin at its centre
+    ``(cx, cy, cz)``, x along its heading (``cos``, ``sin`` of its yaw), z up; metres.
+
+    Every argument is an array (one value per point: a per-pair gather of the box's values)
+    or anything that broadcasts against the points. Computed in the arrays' own dtype
+    (float32 columns stay float32) as ``(cos dx + sin dy, cos dy - sin dx, dz)``.
+    """
+    dx = x - cx
+    dy = y - cy
+    return cos * dx + sin * dy, cos * dy - sin * dx, z - cz
+
+
 def to_canonical(points: np.ndarray, center: np.ndarray, yaw: float, length: float) -> np.ndarray:
     """Sensor-frame ``(N, 3)`` points of one box into its canonical frame."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    d = np.asarray(points, dtype=np.float64)[:, :3] - np.asarray(center, dtype=np.float64)
-    x = (c * d[:, 0] + s * d[:, 1]) / length
-    y = (-s * d[:, 0] + c * d[:, 1]) / length
-    z = d[:, 2] / length
-    return np.stack([x, y, z], axis=1)
+    p = np.asarray(points, dtype=np.float64)[:, :3]
+    center = np.asarray(center, dtype=np.float64)
+    local = to_box_frame(p[:, 0], p[:, 1], p[:, 2], *center, np.cos(yaw), np.sin(yaw))
+    return np.stack(local, axis=1) / length
 
 
 def from_canonical(points: np.ndarray, center: np.ndarray, yaw: float, length: float) -> np.ndarray:
@@ -34,9 +50,11 @@ def from_canonical(points: np.ndarray, center: np.ndarray, yaw: float, length: f
 
 def to_canonical_batch(points: np.ndarray, center: np.ndarray, yaw: np.ndarray, length: np.ndarray) -> np.ndarray:
     """``(B, N, 3)`` sensor points, one box per batch row, into canonical frames."""
-    rot = rotation_z(np.asarray(yaw, dtype=np.float64))  # (B, 3, 3) box -> sensor
-    d = np.asarray(points, dtype=np.float64)[..., :3] - np.asarray(center, dtype=np.float64)[:, None, :]
-    return np.einsum("bnj,bjk->bnk", d, rot) / np.asarray(length, dtype=np.float64)[:, None, None]
+    p = np.asarray(points, dtype=np.float64)[..., :3]
+    center = np.asarray(center, dtype=np.float64)[:, None, :]
+    yaw = np.asarray(yaw, dtype=np.float64)[:, None]
+    local = to_box_frame(p[..., 0], p[..., 1], p[..., 2], *np.moveaxis(center, -1, 0), np.cos(yaw), np.sin(yaw))
+    return np.stack(local, axis=-1) / np.asarray(length, dtype=np.float64)[:, None, None]
 
 
 def from_canonical_batch(points: np.ndarray, center: np.ndarray, yaw: np.ndarray, length: np.ndarray) -> np.ndarray:

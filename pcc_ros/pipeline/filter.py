@@ -45,7 +45,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pcc_ros.errors import ConfigError, DataError
-from pcc_ros.geometry.boxes import box_corners, points_in_boxes
+from pcc_ros.geometry.boxes import box_corners, pairs_in_boxes
+from pcc_ros.geometry.canonical import to_box_frame
 from pcc_ros.metrics.chamfer import nearest_distances_batch
 from pcc_ros.types import Boxes
 
@@ -257,6 +258,9 @@ EVIDENCE_GROUND = 0.3
 #: The local ground is the 5 % quantile of the heights of the returns within this many metres
 #: of the box footprint (all around it: the returns beside a car reach the ground it hides).
 GROUND_REACH = 3.0
+#: BEV hash cell (metres) of the ground query: its boxes are 6 m wider than the cars, and the
+#: default cell (a quarter of the median box width) would make most candidates false.
+_GROUND_CELL = 1.0
 #: Most beam columns sampled per box for the expected return count.
 EXPECTED_COLUMNS = 64
 #: Azimuth bins of the ray index (0.1 deg).
@@ -282,22 +286,41 @@ class Evidence:
         return {**raw, **self.terms}
 
 
-def _box_frame(boxes: Boxes, index: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """Points ``xyz (P, 3)`` in the frame of box ``index (P,)`` (origin at its centre)."""
-    c, s = np.cos(boxes.yaw[index]), np.sin(boxes.yaw[index])
-    d = xyz - boxes.center[index]
-    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
+class _BoxTable:
+    """Per-box values of the ray geometry, computed once per frame and gathered per pair
+    (every value is the one a per-pair computation would give: same operands, same order)."""
+
+    def __init__(self, boxes: Boxes) -> None:
+        self.cos, self.sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
+        cx, cy, cz = boxes.center.T
+        # the sensor (the scan frame's origin) in each box's frame
+        self.origin = np.stack(to_box_frame(0.0, 0.0, 0.0, cx, cy, cz, self.cos, self.sin), axis=1)
+        half = boxes.size / 2
+        body_lo, body_hi = -half.copy(), half.copy()
+        body_lo[:, 2] += EVIDENCE_GROUND
+        scale = np.array([CORE_FRACTION[0], CORE_FRACTION[1], 1.0])
+        core_lo, core_hi = -half * scale, half * scale
+        core_lo[:, 2] = -half[:, 2] + CORE_Z[0] * 2 * half[:, 2]
+        core_hi[:, 2] = -half[:, 2] + CORE_Z[1] * 2 * half[:, 2]
+        # slab bounds relative to the ray origin: (lo - origin), (hi - origin), per axis
+        self.body = (body_lo - self.origin, body_hi - self.origin)
+        self.core = (core_lo - self.origin, core_hi - self.origin)
 
 
-def _slab(origin: np.ndarray, direction: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Entry and exit ray parameters of ``origin + t * direction`` through boxes ``[lo, hi]`` (rows)."""
+def _slab(direction: tuple, lo: np.ndarray, hi: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Entry and exit parameters of the rays ``origin + t * direction`` (``direction``: three
+    columns) through the boxes ``index`` whose bounds relative to the ray origin are ``lo``,
+    ``hi`` (``(B, 3)``), axis by axis on columns."""
+    tmin = tmax = None
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / direction
-        t1 = (lo - origin) * inv
-        t2 = (hi - origin) * inv
-        # fmax / fmin skip the NaN of a ray parallel to a slab starting on its plane
-        tmin = np.fmax.reduce(np.minimum(t1, t2), axis=1)
-        tmax = np.fmin.reduce(np.maximum(t1, t2), axis=1)
+        for axis in range(3):
+            inv = 1.0 / direction[axis]
+            t1 = np.take(lo[:, axis], index) * inv
+            t2 = np.take(hi[:, axis], index) * inv
+            near, far = np.minimum(t1, t2), np.maximum(t1, t2)
+            # fmax / fmin skip the NaN of a ray parallel to a slab starting on its plane
+            tmin = near if tmin is None else np.fmax(tmin, near)
+            tmax = far if tmax is None else np.fmin(tmax, far)
     return tmin, tmax
 
 
@@ -320,19 +343,29 @@ def _angular_window(boxes: Boxes) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     return az_lo, az_hi, el_lo, el_hi, outside
 
 
-def _rays_towards(xyz: np.ndarray, az_lo, az_hi, el_lo, el_hi, judged) -> tuple[np.ndarray, np.ndarray]:
-    """(point, box) pairs whose ray from the sensor lies in the box's angular window.
+#: Slack (radians) of the elevation prefilter of :func:`_rays_towards`: it runs in the scan's
+#: precision (float32 for sensor data) and must stay a superset of the rays that reach a box
+#: (the exact box test comes after); a few float32 ulps of an angle.
+_ELEVATION_SLACK = 1e-5
 
-    One pass over the scan (the azimuth of each point in the scan's precision, a radix sort
-    into 0.1 deg bins); the boxes' bins expand into candidate pairs without a Python loop;
-    elevations are computed for the candidates only. Non-finite points never pair."""
-    az = np.arctan2(xyz[:, 1], xyz[:, 0])
+
+def _rays_towards(x, y, z, az_lo, az_hi, el_lo, el_hi, judged) -> tuple[np.ndarray, np.ndarray]:
+    """(point, box) pairs whose ray from the sensor lies in the box's angular window (a
+    superset of the rays that cross the box; :func:`evidence` tests them exactly).
+
+    One pass over the scan in its own precision: the azimuth and elevation of every point,
+    a radix sort into 0.1 deg azimuth bins; the boxes' bins expand into candidate pairs
+    without a Python loop, and the elevation window is tested on the pairs by a gather of the
+    points' elevations. Non-finite points never pair."""
     with np.errstate(invalid="ignore"):
+        az = np.arctan2(y, x)
         scaled = (az + np.float32(np.pi)) * np.float32(_AZ_BINS / (2 * np.pi))
         key = np.where(np.isfinite(scaled), scaled, 0).astype(np.int16)
-    np.clip(key, 0, _AZ_BINS - 1, out=key)
+        np.clip(key, 0, _AZ_BINS - 1, out=key)
+        elevation = np.arctan2(z, np.sqrt(x * x + y * y))
     order = np.argsort(key, kind="stable")
-    starts = np.searchsorted(key[order], np.arange(_AZ_BINS + 1))
+    starts = np.zeros(_AZ_BINS + 1, dtype=np.int64)
+    np.cumsum(np.bincount(key, minlength=_AZ_BINS), out=starts[1:])
     boxes_idx = np.flatnonzero(judged)
     b0 = np.floor((az_lo[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64)
     b1 = np.floor((az_hi[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64)
@@ -344,15 +377,18 @@ def _rays_towards(xyz: np.ndarray, az_lo, az_hi, el_lo, el_hi, judged) -> tuple[
     count = hi - lo
     pair_box = np.repeat(box_of_bin, count)
     offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    pair_point = order[np.repeat(lo, count) + offset]
-    p = xyz[pair_point].astype(np.float64)
+    pair_point = np.take(order, np.repeat(lo, count) + offset)
+    e = np.take(elevation, pair_point)
+    dt = elevation.dtype
     with np.errstate(invalid="ignore"):
-        e = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
-        keep = (e >= el_lo[pair_box]) & (e <= el_hi[pair_box])
-    return pair_point[keep], pair_box[keep]
+        keep = e >= np.take((el_lo - _ELEVATION_SLACK).astype(dt), pair_box)
+        keep &= e <= np.take((el_hi + _ELEVATION_SLACK).astype(dt), pair_box)
+    keep = np.flatnonzero(keep)
+    return np.take(pair_point, keep), np.take(pair_box, keep)
 
 
-def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_hi, judged) -> np.ndarray:
+def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_hi, judged,
+                    table: _BoxTable | None = None) -> np.ndarray:
     """Beams of the sensor model (rings x azimuth steps) whose rays hit each box."""
     out = np.zeros(len(boxes))
     rings = sensor.ring_elevations()
@@ -360,6 +396,7 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     idx = np.flatnonzero(judged)
     if not len(idx):
         return out
+    table = table or _BoxTable(boxes)
     n_az_full = np.floor((az_hi[idx] - az_lo[idx]) / step).astype(np.int64) + 1
     # A near box spans hundreds of columns: sample at most EXPECTED_COLUMNS of them, evenly,
     # and scale the count back (an unbiased estimate; exact for far boxes).
@@ -368,23 +405,23 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     r_lo = np.searchsorted(rings, el_lo[idx])
     r_hi = np.searchsorted(rings, el_hi[idx], side="right")
     n_ring = np.maximum(r_hi - r_lo, 0)
+    # Trigonometry once per (box, column) and per ring; the beams gather it.
+    column_box = np.repeat(np.arange(len(idx)), n_az)
+    column = np.arange(n_az.sum()) - np.repeat(np.cumsum(n_az) - n_az, n_az)
+    azimuth = az_lo[idx][column_box] + (column + 0.5) * step * stretch[column_box]
+    cos_az, sin_az = np.cos(azimuth), np.sin(azimuth)
+    cos_el, sin_el = np.cos(rings), np.sin(rings)
     per = n_az * n_ring
-    box = np.repeat(idx, per)
+    beam_box = np.repeat(np.arange(len(idx)), per)  # position in idx
     local = np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per)
-    n_az_b = np.repeat(n_az, per)
-    azimuth = np.repeat(az_lo[idx], per) + (local % n_az_b + 0.5) * step * np.repeat(stretch, per)
-    elevation = rings[np.repeat(r_lo, per) + local // n_az_b]
-    direction = np.stack(
-        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
-    )
-    origin = _box_frame(boxes, box, np.zeros((len(box), 3)))
-    c, s = np.cos(boxes.yaw[box]), np.sin(boxes.yaw[box])
-    dx, dy = direction[:, 0], direction[:, 1]
-    d_local = np.stack([c * dx + s * dy, -s * dx + c * dy, direction[:, 2]], 1)
-    half = boxes.size[box] / 2
-    lo, hi = -half.copy(), half.copy()
-    lo[:, 2] += EVIDENCE_GROUND
-    tmin, tmax = _slab(origin, d_local, lo, hi)
+    n_az_b = np.take(n_az, beam_box)
+    col = np.take(np.cumsum(n_az) - n_az, beam_box) + local % n_az_b
+    ring = np.take(r_lo, beam_box) + local // n_az_b
+    ce = np.take(cos_el, ring)
+    box = np.take(idx, beam_box)
+    direction = to_box_frame(ce * np.take(cos_az, col), ce * np.take(sin_az, col), np.take(sin_el, ring),
+                             0.0, 0.0, 0.0, np.take(table.cos, box), np.take(table.sin, box))
+    tmin, tmax = _slab(direction, *table.body, box)
     hit = tmax >= np.maximum(tmin, 0.0)
     weight = np.zeros(len(boxes))
     weight[idx] = stretch
@@ -401,12 +438,16 @@ def _local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH,
     bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
     centre = np.c_[boxes.center[:, :2], bottom - 1.0]
     wide = Boxes(centre, np.c_[boxes.size[:, :2] + 2 * reach, np.full(n, 4.0)], boxes.yaw)
-    z = np.asarray(points)[:, 2]
+    points = np.asarray(points)
+    pair_point, pair_box = pairs_in_boxes(points, wide, cell=_GROUND_CELL)
+    z = np.take(points[:, 2], pair_point)
+    z = np.take(z, np.argsort(pair_box.astype(np.int16 if n < 32767 else np.int64), kind="stable"))  # by box
+    ends = np.cumsum(np.bincount(pair_box, minlength=n)).tolist()
     out = np.full(n, np.nan)
-    for b, idx in enumerate(points_in_boxes(points, wide)):  # one partial sort per box (boxes, not points)
-        if len(idx):
-            k = int(quantile * (len(idx) - 1))
-            out[b] = np.partition(z[idx], k)[k]
+    for b, (start, end) in enumerate(zip([0, *ends[:-1]], ends)):  # one partial sort per box (boxes, not points)
+        if end > start:
+            k = int(quantile * (end - start - 1))
+            out[b] = np.partition(z[start:end], k)[k]
     return out
 
 
@@ -414,7 +455,8 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
-    Vectorised over (ray, box) pairs: one pass over the scan, no loop over points or boxes.
+    Vectorised over (ray, box) pairs: one pass over the scan, no loop over points or boxes;
+    the pairs' geometry runs column by column in float64 on per-box values gathered once.
     """
     sensor = sensor or SensorModel()
     points = np.asarray(points)
@@ -425,24 +467,23 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     if points.ndim != 2 or points.shape[1] < 3:
         raise DataError(f"points must be (N, >=3), got shape {points.shape}")
     az_lo, az_hi, el_lo, el_hi, judged = _angular_window(boxes)
-    xyz = points[:, :3]
-    pair_point, pair_box = _rays_towards(xyz, az_lo, az_hi, el_lo, el_hi, judged)
+    # contiguous columns: numpy's SIMD loops (arctan2 among them) skip strided arrays
+    x, y, z = (np.ascontiguousarray(points[:, k]) for k in range(3))
+    pair_point, pair_box = _rays_towards(x, y, z, az_lo, az_hi, el_lo, el_hi, judged)
+    table = _BoxTable(boxes)
     # Box-frame ray: origin (the sensor, one per box) + t * (point - origin); t = 1 at the return.
-    origin_box = _box_frame(boxes, np.arange(n), np.zeros((n, 3)))
-    o_local = origin_box[pair_box]
-    direction = _box_frame(boxes, pair_box, xyz[pair_point].astype(np.float64)) - o_local
-    half = boxes.size / 2
-    body_lo, body_hi = -half.copy(), half.copy()
-    body_lo[:, 2] += EVIDENCE_GROUND
-    tin, tout = _slab(o_local, direction, body_lo[pair_box], body_hi[pair_box])
+    local = to_box_frame(
+        np.take(x, pair_point).astype(np.float64), np.take(y, pair_point).astype(np.float64),
+        np.take(z, pair_point).astype(np.float64), np.take(boxes.center[:, 0], pair_box),
+        np.take(boxes.center[:, 1], pair_box), np.take(boxes.center[:, 2], pair_box),
+        np.take(table.cos, pair_box), np.take(table.sin, pair_box),
+    )
+    direction = tuple(local[a] - np.take(table.origin[:, a], pair_box) for a in range(3))
+    tin, tout = _slab(direction, *table.body, pair_box)
     through = np.flatnonzero(tout >= np.maximum(tin, 0.0))  # rays that cross the box at all
-    pair_box, o_local, direction = pair_box[through], o_local[through], direction[through]
-    tin, tout = tin[through], tout[through]
-    scale = np.array([CORE_FRACTION[0], CORE_FRACTION[1], 1.0])
-    core_lo, core_hi = -half * scale, half * scale
-    core_lo[:, 2] = -half[:, 2] + CORE_Z[0] * 2 * half[:, 2]
-    core_hi[:, 2] = -half[:, 2] + CORE_Z[1] * 2 * half[:, 2]
-    cin, cout = _slab(o_local, direction, core_lo[pair_box], core_hi[pair_box])
+    pair_box, tin, tout = np.take(pair_box, through), np.take(tin, through), np.take(tout, through)
+    direction = tuple(np.take(d, through) for d in direction)
+    cin, cout = _slab(direction, *table.core, pair_box)
     through_core = cout >= np.maximum(cin, 0.0)
     inside = (tin <= 1.0) & (1.0 <= tout)
     occluded = 1.0 < tin
@@ -454,8 +495,8 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
 
     n_in, n_occ, n_stop = count(inside), count(occluded), count(stop)
     n_pass, n_rays = count(passed), np.bincount(pair_box, minlength=n).astype(np.float64)
-    expected = _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged)
-    ground = _local_ground(xyz, boxes)
+    expected = _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged, table)
+    ground = _local_ground(points, boxes)
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
         _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),
