@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import array
 import dataclasses
+import functools
 from collections.abc import Callable
 from functools import cache, lru_cache
+from typing import Any
 
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg
@@ -163,6 +165,29 @@ def _rosbags_field_specs(cls: type) -> tuple[tuple[str, tuple], ...] | None:
     return tuple((f.name, desc) for f, (_, desc) in zip(dataclasses.fields(cls), defs[1]))
 
 
+def _constant(value):
+    return lambda: value
+
+
+@lru_cache(maxsize=512)  # bounded: a caller may pass a fresh resolver (a lambda) per call
+def _default_makers(cls: type, resolver: ClassResolver) -> tuple[tuple[str, Callable[[], Any]], ...]:
+    """``(field name, zero-argument maker of its zero value)`` of a rosbags class, once per
+    class: a frame's markers and detections fill thousands of default fields (a ``Marker``
+    has a texture, a mesh file and a lifetime no one sets), and reading the field
+    descriptions again for each was most of the encode cost. Every call of a maker returns a
+    fresh value (immutable constants, new arrays and messages), as :func:`_default_value` does."""
+    makers = []
+    for name, desc in _rosbags_field_specs(cls):
+        kind, rest = int(desc[0]), desc[1]
+        if kind == 1:  # BASE: an immutable constant
+            makers.append((name, _constant(_default_value(desc, resolver))))
+        elif kind == 2:  # NAME: a nested message, made fresh
+            makers.append((name, functools.partial(new_message, rest, resolver)))
+        else:
+            makers.append((name, functools.partial(_default_value, desc, resolver)))
+    return tuple(makers)
+
+
 def new_message(typename: str, classes: ClassResolver | None = None, **fields):
     """Construct ``typename`` with keyword ``fields`` using the resolved class.
 
@@ -173,9 +198,13 @@ def new_message(typename: str, classes: ClassResolver | None = None, **fields):
     cls = resolver(typename)
     specs = _rosbags_field_specs(cls)
     if specs is not None and len(fields) < len(specs):
-        for name, desc in specs:
+        try:
+            makers = _default_makers(cls, resolver)
+        except TypeError:  # an unhashable resolver: no cache
+            makers = _default_makers.__wrapped__(cls, resolver)
+        for name, make in makers:
             if name not in fields:
-                fields[name] = _default_value(desc, resolver)
+                fields[name] = make()
     return cls(**fields)
 
 

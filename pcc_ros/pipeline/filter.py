@@ -263,8 +263,11 @@ GROUND_REACH = 3.0
 _GROUND_CELL = 1.0
 #: Most beam columns sampled per box for the expected return count.
 EXPECTED_COLUMNS = 64
-#: Azimuth bins of the ray index (0.1 deg).
-_AZ_BINS = 3600
+#: Bins of the ray index: 0.2 deg of azimuth times 16 bands of elevation spanning the boxes'
+#: elevation windows, plus one band below and one above them (rays no box can meet); the
+#: product stays below 2^15 so the bin key is an int16 (numpy's radix sort).
+_AZ_BINS = 1800
+_EL_BANDS = 16
 
 
 @dataclass
@@ -354,28 +357,42 @@ def _rays_towards(x, y, z, az_lo, az_hi, el_lo, el_hi, judged) -> tuple[np.ndarr
     superset of the rays that cross the box; :func:`evidence` tests them exactly).
 
     One pass over the scan in its own precision: the azimuth and elevation of every point,
-    a radix sort into 0.1 deg azimuth bins; the boxes' bins expand into candidate pairs
-    without a Python loop, and the elevation window is tested on the pairs by a gather of the
-    points' elevations. Non-finite points never pair."""
+    a radix sort into (azimuth, elevation band) bins; each box's azimuth bins expand into
+    the contiguous run of its elevation bands without a Python loop, and the elevation window
+    is tested on the pairs by a gather of the points' elevations. Bins are widened by one on
+    every side (float32 rounding at a bin edge loses no ray). Non-finite points never pair."""
+    boxes_idx = np.flatnonzero(judged)
+    if not len(boxes_idx):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    lo_el = el_lo[boxes_idx] - _ELEVATION_SLACK
+    hi_el = el_hi[boxes_idx] + _ELEVATION_SLACK
+    e0 = float(lo_el.min())
+    width = max(float(hi_el.max()) - e0, 1e-6) / _EL_BANDS
     with np.errstate(invalid="ignore"):
         az = np.arctan2(y, x)
         scaled = (az + np.float32(np.pi)) * np.float32(_AZ_BINS / (2 * np.pi))
         key = np.where(np.isfinite(scaled), scaled, 0).astype(np.int16)
         np.clip(key, 0, _AZ_BINS - 1, out=key)
         elevation = np.arctan2(z, np.sqrt(x * x + y * y))
+        band = (elevation - elevation.dtype.type(e0)) * elevation.dtype.type(1.0 / width) + 1
+        band = np.fmin(np.fmax(band, 0), _EL_BANDS + 1).astype(np.int16)  # NaN -> band 0: no box
+    key *= np.int16(_EL_BANDS + 2)
+    key += band
+    n_bins = _AZ_BINS * (_EL_BANDS + 2)
     order = np.argsort(key, kind="stable")
-    starts = np.zeros(_AZ_BINS + 1, dtype=np.int64)
-    np.cumsum(np.bincount(key, minlength=_AZ_BINS), out=starts[1:])
-    boxes_idx = np.flatnonzero(judged)
-    b0 = np.floor((az_lo[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64)
-    b1 = np.floor((az_hi[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64)
-    nbins = b1 - b0 + 1
-    box_of_bin = np.repeat(boxes_idx, nbins)
+    starts = np.zeros(n_bins + 1, dtype=np.int64)
+    np.cumsum(np.bincount(key, minlength=n_bins), out=starts[1:])
+    b0 = np.floor((az_lo[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) - 1
+    b1 = np.floor((az_hi[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) + 1
+    band_lo = np.clip(np.floor((lo_el - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
+    band_hi = np.clip(np.floor((hi_el - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
+    nbins = np.minimum(b1 - b0 + 1, _AZ_BINS)
+    box_of_bin = np.repeat(np.arange(len(boxes_idx)), nbins)
     local = np.arange(nbins.sum()) - np.repeat(np.cumsum(nbins) - nbins, nbins)
-    bins = (np.repeat(b0, nbins) + local) % _AZ_BINS
-    lo, hi = starts[bins], starts[bins + 1]
-    count = hi - lo
-    pair_box = np.repeat(box_of_bin, count)
+    bins = (np.repeat(b0, nbins) + local) % _AZ_BINS * (_EL_BANDS + 2)
+    lo = starts[bins + np.take(band_lo, box_of_bin)]
+    count = starts[bins + np.take(band_hi, box_of_bin) + 1] - lo
+    pair_box = np.repeat(np.take(boxes_idx, box_of_bin), count)
     offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
     pair_point = np.take(order, np.repeat(lo, count) + offset)
     e = np.take(elevation, pair_point)

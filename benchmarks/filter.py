@@ -1,0 +1,80 @@
+"""The evidence filter's measurements per frame against those of main at 93cd59e, interleaved.
+
+The filter's scan-side work (:func:`pcc_ros.filter.evidence`: the rays towards every box and
+their free-space / occlusion counts, the sensor model's expected returns, the local ground
+under each box) on the frames of ``pcc bench pipeline`` (a SynthCars scan resized to
+``--points``, cars 1 / 5 / 20 / 50 / 100) and on a real KITTI scan (its labelled boxes, then
+car-sized boxes on random returns, as ``pcc bench crop``), against the same function as it
+was at 93cd59e (``pcc_ros.bench._reference.evidence``), timed call by call, interleaved, after
+a warm-up (min / median / max of ``--repeat`` calls each). Every output (raw counts, expected
+returns, ground heights, the derived terms) is checked bit-identical first. The machine's load
+average is recorded before and after. The filter's share of the completion stage (target
+<= 25 % at 20 cars, issue #19) is measured by ``pcc bench pipeline``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import numpy as np
+
+from pcc_ros.bench.common import interleaved, load_average, print_table, summary_ms
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cars", default="1,5,20,50,100", help="car counts of the SynthCars frames")
+    parser.add_argument("--points", type=int, default=120_000, help="points of the SynthCars frames (default 120000)")
+    parser.add_argument("--kitti-boxes", default="5,30", help="box counts on the real KITTI scan ('' = none)")
+    parser.add_argument("--repeat", type=int, default=30, help="timed calls of each (interleaved)")
+
+
+def _frames(args: argparse.Namespace):
+    from pcc_ros.bench.crop import DEFAULT_SCAN, box_set, load_scan
+    from pcc_ros.bench.pipeline import base_frame, frame_messages
+    from pcc_ros.msg.detections import decode_detection_array
+    from pcc_ros.msg.pointcloud2 import read_xyz
+
+    base = base_frame(args.seed)
+    for cars in [int(c) for c in args.cars.split(",") if c.strip()]:
+        cloud, dets = frame_messages(base, cars, args.points, args.seed)[:2]
+        yield "synthcars", read_xyz(cloud), decode_detection_array(dets, skip_invalid=True)[0]
+    counts = [int(c) for c in args.kitti_boxes.split(",") if c.strip()]
+    if counts:
+        points, labelled = load_scan(DEFAULT_SCAN, 0)
+        rng = np.random.default_rng(args.seed)
+        for n in counts:
+            yield "kitti 0000/0", points[:, :3], box_set(points, labelled, n, rng)
+
+
+def check_equal(ours: dict[str, np.ndarray], theirs: dict[str, np.ndarray]) -> None:
+    """Every measurement and term bit-identical (NaN where NaN); raises SystemExit otherwise."""
+    for key in theirs:
+        if not np.array_equal(ours[key], theirs[key], equal_nan=True):
+            worst = float(np.nanmax(np.abs(ours[key] - theirs[key])))
+            raise SystemExit(f"evidence differs from the 93cd59e reference in {key!r} (max |diff| {worst:.3g})")
+
+
+def run(args: argparse.Namespace) -> dict:
+    from pcc_ros.bench._reference import evidence as reference_evidence
+    from pcc_ros.filter import SENSOR_PRESETS, evidence
+
+    load_before = load_average()
+    sensor = SENSOR_PRESETS["hdl64"]
+    rows = []
+    for scan, points, boxes in _frames(args):
+        check_equal(evidence(points, boxes, sensor).as_dict(), reference_evidence(points, boxes, sensor).as_dict())
+        times = interleaved({"ours": lambda p=points, b=boxes: evidence(p, b, sensor),
+                             "93cd59e": lambda p=points, b=boxes: reference_evidence(p, b, sensor)},
+                            repeat=args.repeat, warmup=3)
+        ours, ref = summary_ms(times["ours"]), summary_ms(times["93cd59e"])
+        rows.append({"scan": scan, "points": len(points), "boxes": len(boxes),
+                     "ours_min": ours["min_ms"], "ours_ms": ours["median_ms"], "ours_max": ours["max_ms"],
+                     "ref_min": ref["min_ms"], "ref_ms": ref["median_ms"], "ref_max": ref["max_ms"],
+                     "speedup": ref["median_ms"] / ours["median_ms"], "outputs": "identical"})
+    print_table(f"evidence filter measurements, ms ({args.repeat} interleaved calls each: min / median / max); "
+                "ref = main at 93cd59e", rows)
+    load_after = load_average()
+    print(f"load average (1 min) before / after: {load_before[0]:.2f} / {load_after[0]:.2f} on {os.cpu_count()} cores")
+    return {"rows": rows, "cpu_count": os.cpu_count(), "load_average_before": load_before,
+            "load_average_after": load_after}
