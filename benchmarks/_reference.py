@@ -14,9 +14,9 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from pcc_ros.boxes import Boxes
 from pcc_ros.errors import DataError
-from pcc_ros.filter import (
+from pcc_ros.geometry.boxes import _bev_corners, _check_boxes, _group_by_box, _round_down, _round_up, box_corners
+from pcc_ros.pipeline.filter import (
     CORE_FRACTION,
     CORE_Z,
     EVIDENCE_GROUND,
@@ -26,7 +26,7 @@ from pcc_ros.filter import (
     SensorModel,
     _derive,
 )
-from pcc_ros.geometry.boxes import _bev_corners, _check_boxes, _group_by_box, _round_down, _round_up, box_corners
+from pcc_ros.types import Boxes
 
 CELL_FRACTION = 0.25
 _AZ_BINS = 3600
@@ -35,8 +35,8 @@ _AZ_BINS = 3600
 @contextlib.contextmanager
 def original_geometry() -> Iterator[None]:
     """Run the pipeline's crop, work estimate and evidence measurements as of 93cd59e."""
-    import pcc_ros.filter as filter_module
-    import pcc_ros.pipeline as pipeline_module
+    import pcc_ros.pipeline.core as pipeline_module
+    import pcc_ros.pipeline.filter as filter_module
 
     saved = (pipeline_module.crop_canonical, pipeline_module.estimated_crop_pairs, filter_module.evidence)
     pipeline_module.crop_canonical = crop_canonical

@@ -1,11 +1,11 @@
 """The evidence filter's measurements per frame against those of main at 93cd59e, interleaved.
 
-The filter's scan-side work (:func:`pcc_ros.filter.evidence`: the rays towards every box and
+The filter's scan-side work (:func:`pcc_ros.pipeline.filter.evidence`: the rays towards every box and
 their free-space / occlusion counts, the sensor model's expected returns, the local ground
 under each box) on the frames of ``pcc bench pipeline`` (a SynthCars scan resized to
 ``--points``, cars 1 / 5 / 20 / 50 / 100) and on a real KITTI scan (its labelled boxes, then
 car-sized boxes on random returns, as ``pcc bench crop``), against the same function as it
-was at 93cd59e (``pcc_ros.bench._reference.evidence``), timed call by call, interleaved, after
+was at 93cd59e (``benchmarks._reference.evidence``), timed call by call, interleaved, after
 a warm-up (min / median / max of ``--repeat`` calls each). Every output (raw counts, expected
 returns, ground heights, the derived terms) is checked bit-identical first. The machine's load
 average is recorded before and after. The filter's share of the completion stage (target
@@ -19,7 +19,7 @@ import os
 
 import numpy as np
 
-from pcc_ros.bench.common import interleaved, load_average, print_table, summary_ms
+from benchmarks.common import interleaved, load_average, print_table, summary_ms
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,8 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _frames(args: argparse.Namespace):
-    from pcc_ros.bench.crop import DEFAULT_SCAN, box_set, load_scan
-    from pcc_ros.bench.pipeline import base_frame, frame_messages
+    from benchmarks.crop import DEFAULT_SCAN, box_set, load_scan
+    from benchmarks.pipeline import base_frame, frame_messages
     from pcc_ros.msg.detections import decode_detection_array
     from pcc_ros.msg.pointcloud2 import read_xyz
 
@@ -56,8 +56,8 @@ def check_equal(ours: dict[str, np.ndarray], theirs: dict[str, np.ndarray]) -> N
 
 
 def run(args: argparse.Namespace) -> dict:
-    from pcc_ros.bench._reference import evidence as reference_evidence
-    from pcc_ros.filter import SENSOR_PRESETS, evidence
+    from benchmarks._reference import evidence as reference_evidence
+    from pcc_ros.pipeline.filter import SENSOR_PRESETS, evidence
 
     load_before = load_average()
     sensor = SENSOR_PRESETS["hdl64"]

@@ -14,7 +14,7 @@ arrays), frame after frame.
 
    * ``original`` -- today's pipeline: the network's original path
      (``pcc_ros.models.layers.reference_path``) and the crop, work estimate and evidence
-     measurements of main at 93cd59e (``pcc_ros.bench._reference.original_geometry``);
+     measurements of main at 93cd59e (``benchmarks._reference.original_geometry``);
    * ``orig_net`` -- the network's original path only, everything else fast (the
      conservative reference: the geometry gains count for both sides);
    * ``fast`` -- the pipeline as it ships.
@@ -71,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def original_paths(geometry: bool = True) -> Iterator[None]:
     """Today's code paths, kept selectable for this comparison: the network's original path
     and (``geometry``) the crop, work estimate and evidence measurements of main at 93cd59e."""
-    from pcc_ros.bench._reference import original_geometry
+    from benchmarks._reference import original_geometry
     from pcc_ros.models.layers import reference_path
 
     with reference_path(), original_geometry() if geometry else contextlib.nullcontext():
