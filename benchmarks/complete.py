@@ -22,6 +22,15 @@ is recorded):
    placed as a frame of cars 8 m apart on a grid, so every car has its ``k = 3`` neighbours
    within the radius and their encoding is part of the timed work.
 
+5. Where the time goes (``--no-breakdown`` skips it), one intra-op thread: the matrix
+   products the fast path runs for a batch of 32 (every ``mm`` / ``addmm`` with its shapes,
+   recorded once by ``torch.profiler``) are replayed alone -- the same shapes in the same order,
+   nothing else -- interleaved with the network. The replay's rate is what the network's own
+   matrix shapes allow (thin layers: few columns or rows per call run far below the square
+   ceiling); ``1 - replay / network`` is the share of the network's time outside matrix
+   products (max-pooling scatters, gathers, ReLUs, bias broadcasts, the folding adds). Per
+   shape: calls, its rate replayed alone (a separate interleaved run) against that ceiling.
+
 Targets (issue #19): fast >= 2x the original path's instances/s at batch 32, and >= 80 % of
 the matmul ceiling.
 """
@@ -56,6 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="thread settings: N intra-op threads, or WxN worker threads x intra-op (default 1,2,2x1)")
     parser.add_argument("--repeat", type=int, default=15, help="timed rounds (default 15)")
     parser.add_argument("--batches", default=",".join(map(str, BATCHES)), help="batch sizes of the sweep")
+    parser.add_argument("--no-breakdown", action="store_true", help="skip the time breakdown (section 5)")
     parser.add_argument("--backends", default=None,
                         help="other backends to time (default: every registered learned backend, plus mirror)")
 
@@ -145,6 +155,84 @@ def linear_flops(model, call: Callable[[], object]) -> int:
         for h in handles:
             h.remove()
     return total[0]
+
+
+def recorded_matmuls(call: Callable[[], object]) -> list[tuple[int, int, int]]:
+    """``(M, K, N)`` of every ``mm`` / ``addmm`` / ``addmm_`` that ``call()`` runs, in order."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        call()
+    shapes = []
+    for event in prof.events():
+        dims = [list(d) for d in event.input_shapes if isinstance(d, list | tuple)]
+        if event.name == "aten::mm" and len(dims) >= 2:
+            (m, k), (_, n) = dims[0], dims[1]
+        elif event.name in ("aten::addmm", "aten::addmm_") and len(dims) >= 3:
+            (m, k), (_, n) = dims[1], dims[2]
+        else:
+            continue
+        shapes.append((int(m), int(k), int(n)))
+    return shapes
+
+
+def matmul_replay(shapes: list[tuple[int, int, int]]) -> Callable[[], None]:
+    """A callable running ``torch.mm`` at each shape in order (inputs allocated once)."""
+    import torch
+
+    operands = [(torch.randn(m, k), torch.randn(k, n), torch.empty(m, n)) for m, k, n in shapes]
+
+    def replay() -> None:
+        for a, b, out in operands:
+            torch.mm(a, b, out=out)
+
+    return replay
+
+
+def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) -> dict[str, Any]:
+    """Section 5: the network against a replay of its own matrix products, one thread."""
+    import torch
+
+    torch.set_num_threads(1)
+    shapes = recorded_matmuls(lambda: completer.complete(batch))
+    replay = matmul_replay(shapes)
+    alts: dict[str, Callable[[], object]] = {"network": lambda: completer.complete(batch), "matmul_replay": replay}
+    reps = {shape: max(1, int(2e9 // (2 * np.prod(shape)))) for shape in CEILING_SHAPES}
+    for shape in CEILING_SHAPES:  # the ceiling as in section 2: the faster of the two shapes
+        alts[f"mm{shape}"] = matmul_replay([shape] * reps[shape])
+    times = interleaved(alts, repeat)
+    network, replayed = float(np.median(times["network"])), float(np.median(times["matmul_replay"]))
+    ceiling = max(2 * np.prod(shape) * reps[shape] / float(np.median(times[f"mm{shape}"])) / 1e9
+                  for shape in CEILING_SHAPES)
+    replay_flops = sum(2 * m * k * n for m, k, n in shapes)
+    # per shape: its share of the replayed FLOPs and its own rate (timed alone, same rounds)
+    groups: dict[tuple[int, int, int], int] = {}
+    for shape in shapes:
+        groups[shape] = groups.get(shape, 0) + 1
+    per_shape_alts = {f"{m}x{k}x{n}": matmul_replay([(m, k, n)] * count) for (m, k, n), count in groups.items()}
+    shape_times = interleaved(per_shape_alts, max(5, repeat // 2))
+    rows = []
+    for (m, k, n), count in sorted(groups.items(), key=lambda kv: -kv[1] * np.prod(kv[0])):
+        t = float(np.median(shape_times[f"{m}x{k}x{n}"]))
+        gflops = 2 * m * k * n * count / t / 1e9
+        rows.append({"m_k_n": f"{m}x{k}x{n}", "calls": count, "flop_share": 2 * m * k * n * count / replay_flops,
+                     "ms": t * 1e3, "gflop_s": gflops, "of_ceiling": gflops / ceiling})
+    print_table("where the time goes (1 thread, batch 32): the network's matrix products replayed alone, by shape",
+                rows)
+    out = {
+        "network_ms": network * 1e3, "matmul_replay_ms": replayed * 1e3, "ceiling_gflop_s": ceiling,
+        "network_gflop_s": flops_per_batch / network / 1e9,
+        "replay_gflop_s": replay_flops / replayed / 1e9, "replay_flops": replay_flops,
+        "outside_matmul_share": 1.0 - replayed / network, "shapes": rows,
+    }
+    out["network_of_ceiling"] = out["network_gflop_s"] / ceiling
+    out["replay_of_ceiling"] = out["replay_gflop_s"] / ceiling
+    print(f"network {out['network_ms']:.1f} ms per batch = {out['network_gflop_s']:.1f} GFLOP/s "
+          f"({out['network_of_ceiling']:.0%} of the ceiling {ceiling:.1f} GFLOP/s); its matrix products replayed "
+          f"alone: {out['matmul_replay_ms']:.1f} ms = {out['replay_gflop_s']:.1f} GFLOP/s "
+          f"({out['replay_of_ceiling']:.0%} of the ceiling: the most these shapes allow); time outside matrix "
+          f"products: {out['outside_matmul_share']:.0%} of the network's.")
+    return out
 
 
 def _load_pointpncnet(checkpoint: Path | None, batch_size: int):
@@ -290,6 +378,9 @@ def run(args: argparse.Namespace) -> dict:
             print(f"aml: {row['ms_per_instance']:.2f} ms per car at batch 32 incl. marching cubes and sampling "
                   f"(target <= {TARGET_AML_MS:.0f} ms): {'met' if met else 'NOT met'}")
 
+    breakdown = None if args.no_breakdown else time_breakdown(completer, batch32, args.repeat,
+                                                              flops * len(batch32))
+
     at1 = next((r for r in rows if r["threads"] == "1"), rows[0])  # --threads without 1: the first
     results: dict[str, Any] = {
         "weights": weights,
@@ -301,6 +392,7 @@ def run(args: argparse.Namespace) -> dict:
         "batch_sweep": sweep,
         "best_batch": best_batch,
         "backends": others,
+        "breakdown": breakdown,
         "instances_per_s_b32": best["fast_inst_s"],
         "original_instances_per_s_b32": best["original_inst_s"],
         "speedup_b32": at1["speedup"],

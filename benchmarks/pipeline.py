@@ -10,7 +10,7 @@ arrays), frame after frame.
 1. Headline, 20 cars / 120k points, three alternatives interleaved frame by frame in one
    process on the same messages, for each thread setting (torch intra-op threads, and
    ``WxN``: ``W`` completion workers with ``N`` intra-op threads each, the pipeline's
-   ``workers`` parameter):
+   ``workers`` parameter, which also runs the filter's ground query on a second thread):
 
    * ``original`` -- today's pipeline: the network's original path
      (``pcc_ros.models.layers.reference_path``) and the crop, work estimate and evidence
@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import os
 import tempfile
 import time
@@ -220,6 +221,7 @@ def run(args: argparse.Namespace) -> dict:
         torch.set_num_threads(threads)
         if hasattr(pipeline.completer, "workers"):
             pipeline.completer.workers = workers
+        pipeline.config = dataclasses.replace(pipeline.config, workers=workers)  # the filter's threads too
         samples: dict[str, list[dict[str, float]]] = {name: [] for name in ALTERNATIVES}
         for i in range(args.repeat + 3):  # 3 warm-up frames each
             for name in ALTERNATIVES if i % 2 == 0 else ALTERNATIVES[::-1]:
@@ -258,6 +260,7 @@ def run(args: argparse.Namespace) -> dict:
     torch.set_num_threads(threads)
     if hasattr(pipeline.completer, "workers"):
         pipeline.completer.workers = workers
+    pipeline.config = dataclasses.replace(pipeline.config, workers=workers)
     configs = [(int(c), args.points) for c in args.scale_cars.split(",") if c.strip()]
     configs += [(args.cars, int(p)) for p in args.scale_points.split(",") if p.strip() and int(p) != args.points]
     scaling = []

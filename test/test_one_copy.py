@@ -1,8 +1,8 @@
 """One copy of each idea (docs/ARCHITECTURE.md): the helpers that had copies stay single.
 
 Read from the source with ``ast``: quaternion helpers are defined only in
-``geometry/rotations.py``, box-corner functions only in ``geometry/boxes.py``, box-frame transforms only in
-``geometry/canonical.py``, and files are
+``geometry/rotations.py``, box-corner functions only in ``geometry/boxes.py``, box-local transforms (a box's centre
+and yaw: ``to_box_local``) only in ``geometry/canonical.py``, and files are
 renamed into place (``os.replace`` / ``os.rename`` / ``Path.rename``) only by
 ``pcc_ros/files.py`` (files) and ``data/bag_writer.atomic_bag`` (bag directories).
 """
@@ -14,7 +14,7 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "pcc_ros"
 
-HOMES = {"quaternion": "geometry/rotations.py", "corners": "geometry/boxes.py", "box_frame": "geometry/canonical.py"}
+HOMES = {"quaternion": "geometry/rotations.py", "corners": "geometry/boxes.py", "box_local": "geometry/canonical.py"}
 RENAMERS = {"files.py", "data/bag_writer.py"}
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from pcc_ros.errors import DataError
-from pcc_ros.geometry.canonical import to_box_frame
+from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.types import Boxes
 
 # Unit-cube corner signs in the order :func:`box_corners` documents.
@@ -121,19 +121,13 @@ def _candidate_pairs(
     # Keep only the cells that can touch the rotated box: the cell centre within the
     # (margin-enlarged) box grown by half a cell diagonal. Trims the AABB corners that a
     # yawed box leaves empty, which would otherwise become candidate points.
-    ccx, ccy, _ = to_box_frame(origin[0] + (cx + 0.5) * cell, origin[1] + (cy + 0.5) * cell, 0.0,
+    ccx, ccy, _ = to_box_local(origin[0] + (cx + 0.5) * cell, origin[1] + (cy + 0.5) * cell, 0.0,
                                boxes.center[box_of, 0], boxes.center[box_of, 1], 0.0,
                                np.cos(boxes.yaw[box_of]), np.sin(boxes.yaw[box_of]))
     reach = cell * np.sqrt(0.5) * 1.001 + margin
     touch = (np.abs(ccx) <= boxes.size[box_of, 0] / 2 + reach) & (np.abs(ccy) <= boxes.size[box_of, 1] / 2 + reach)
     touch &= (cx >= 1) & (cx < nx - 1) & (cy >= 1) & (cy < ny - 1)  # the border stays empty
     box_of, key = box_of[touch], cx[touch] * ny + cy[touch]
-    order = np.argsort(key, kind="stable")
-    table_boxes = box_of[order]
-    counts = np.bincount(key, minlength=nx * ny)
-    starts = np.concatenate([[0], np.cumsum(counts)])
-    small = counts.max(initial=0) < 256
-    counts_table = counts.astype(np.uint8 if small else np.int64)  # uint8: the lookups stay in cache
     # One pass over the scan: the cell of every point, in float32 with contiguous
     # temporaries; comparisons (NaN compares False) keep the points on the grid (and, with
     # ``z``, within the boxes' heights), and only those are touched again (np.take is several
@@ -155,20 +149,54 @@ def _candidate_pairs(
     pkey = np.take(gx, pts).astype(np.int32)  # >= 0: truncation is the floor
     pkey *= np.int32(ny)
     pkey += np.take(gy, pts).astype(np.int32)
-    n_per_point = np.take(counts_table, pkey)
+    return pairs_from_cells(pts, pkey, key, box_of, nx * ny)
+
+
+def pairs_from_cells(
+    point: np.ndarray, point_cell: np.ndarray, entry_cell: np.ndarray, entry_box: np.ndarray, n_cells: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points hashed into cells meet the boxes listed per cell: every (point, box) pair with
+    the box listed in the point's cell.
+
+    Args:
+        point: ``(P,)`` point indices, ascending; ``point_cell``: their cells in ``[0, n_cells)``.
+        entry_cell, entry_box: ``(E,)`` the (cell, box) entries of the table, any order.
+
+    Returns ``(pair_point, pair_box)`` in point order, boxes ascending within a point (for
+    boxes listed in ascending order per cell). No Python loop: a lookup of each point's box
+    count in a small table, then a padded (cell, slot) table when a cell holds a few boxes
+    (one gather per candidate), or a CSR walk when it holds many.
+    """
+    order = np.argsort(entry_cell, kind="stable")
+    cell_sorted = entry_cell[order]
+    table_boxes = entry_box[order]
+    counts = np.bincount(entry_cell, minlength=n_cells)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    most = int(counts.max(initial=0))
+    counts_table = counts.astype(np.uint8 if most < 256 else np.int64)  # uint8: the lookups stay in cache
+    n_per_point = np.take(counts_table, point_cell)
     hit = np.flatnonzero(n_per_point)
-    pts, pkey = np.take(pts, hit), np.take(pkey, hit)
-    n_per_point = np.take(n_per_point, hit).astype(np.int64)
-    # Expand to (point, box) pairs in point order (CSR walk without a Python loop).
-    if small and counts.max(initial=0) <= 1:  # no cell shared by two boxes: one box per point
-        return pts, np.take(table_boxes, np.take(starts, pkey))
+    pts, pkey, n_per_point = np.take(point, hit), np.take(point_cell, hit), np.take(n_per_point, hit)
+    if most <= 1:  # no cell shared by two boxes: one box per point
+        return pts, np.take(table_boxes, np.take(starts, pkey)).astype(np.int64)
+    if most <= 8:
+        # A few boxes per cell at most: a padded (occupied cell, slot) -> box table; one
+        # gather of each candidate's row, the valid slots found in one pass.
+        width = 1 << (most - 1).bit_length()  # a power of two: the point is a shift away
+        occupied = np.flatnonzero(counts)
+        row_of = np.zeros(n_cells, dtype=np.int32)
+        row_of[occupied] = np.arange(len(occupied), dtype=np.int32)
+        padded = np.full((len(occupied), width), -1, dtype=np.int32)
+        padded[row_of[cell_sorted], np.arange(len(cell_sorted)) - starts[cell_sorted]] = table_boxes
+        boxes_of = np.take(padded, np.take(row_of, pkey), axis=0).reshape(-1)
+        slot = np.flatnonzero(boxes_of >= 0)
+        return np.take(pts, slot >> (width.bit_length() - 1)), np.take(boxes_of, slot).astype(np.int64)
+    # CSR walk without a Python loop (many boxes share cells).
+    n_per_point = n_per_point.astype(np.int64)
     pair_point = np.repeat(pts, n_per_point)
-    if len(pair_point) == len(pts):
-        slot = np.take(starts, pkey)
-    else:
-        ends = np.cumsum(n_per_point)
-        slot = np.repeat(np.take(starts, pkey) - ends + n_per_point, n_per_point) + np.arange(ends[-1])
-    return pair_point, np.take(table_boxes, slot)
+    ends = np.cumsum(n_per_point)
+    slot = np.repeat(np.take(starts, pkey) - ends + n_per_point, n_per_point) + np.arange(ends[-1])
+    return pair_point, np.take(table_boxes, slot).astype(np.int64)
 
 
 def _pairs_in_boxes(
@@ -209,7 +237,7 @@ def _pairs_in_boxes(
     # z first: a cheap test that drops most of the ground and everything above the boxes.
     keep = pz >= np.take(zlo, pair_box)
     keep &= pz <= np.take(zhi, pair_box)
-    lx, ly, dz = to_box_frame(np.take(pts[:, 0], pair_point).astype(dt, copy=False),
+    lx, ly, dz = to_box_local(np.take(pts[:, 0], pair_point).astype(dt, copy=False),
                               np.take(pts[:, 1], pair_point).astype(dt, copy=False), pz, cx, cy, cz, c, s)
     keep &= np.abs(lx) <= hl
     keep &= np.abs(ly) <= hw

@@ -5,7 +5,7 @@ y left, z up, scaled isotropically by ``1 / box length`` so the car spans about
 [-0.5, 0.5] in x. Every completion backend consumes and produces canonical clouds;
 this module is the only place that converts, so the two directions cannot drift.
 
-:func:`to_box_frame` is the package's one box-frame transform (points relative to a box
+:func:`to_box_local` is the package's one box-frame transform (points relative to a box
 centre, rotated by minus its yaw): the canonical frame is it scaled by ``1 / length``, the
 points-in-boxes test (``geometry/boxes``) and the filter's ray geometry (``filter.py``) call
 it on per-pair columns.
@@ -18,7 +18,7 @@ import numpy as np
 from pcc_ros.geometry.rotations import rotation_z
 
 
-def to_box_frame(x, y, z, cx, cy, cz, cos, sin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def to_box_local(x, y, z, cx, cy, cz, cos, sin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points given as coordinate columns in the frame of a box: origin at its centre
     ``(cx, cy, cz)``, x along its heading (``cos``, ``sin`` of its yaw), z up; metres.
 
@@ -35,7 +35,7 @@ def to_canonical(points: np.ndarray, center: np.ndarray, yaw: float, length: flo
     """Sensor-frame ``(N, 3)`` points of one box into its canonical frame."""
     p = np.asarray(points, dtype=np.float64)[:, :3]
     center = np.asarray(center, dtype=np.float64)
-    local = to_box_frame(p[:, 0], p[:, 1], p[:, 2], *center, np.cos(yaw), np.sin(yaw))
+    local = to_box_local(p[:, 0], p[:, 1], p[:, 2], *center, np.cos(yaw), np.sin(yaw))
     return np.stack(local, axis=1) / length
 
 
@@ -53,7 +53,7 @@ def to_canonical_batch(points: np.ndarray, center: np.ndarray, yaw: np.ndarray, 
     p = np.asarray(points, dtype=np.float64)[..., :3]
     center = np.asarray(center, dtype=np.float64)[:, None, :]
     yaw = np.asarray(yaw, dtype=np.float64)[:, None]
-    local = to_box_frame(p[..., 0], p[..., 1], p[..., 2], *np.moveaxis(center, -1, 0), np.cos(yaw), np.sin(yaw))
+    local = to_box_local(p[..., 0], p[..., 1], p[..., 2], *np.moveaxis(center, -1, 0), np.cos(yaw), np.sin(yaw))
     return np.stack(local, axis=-1) / np.asarray(length, dtype=np.float64)[:, None, None]
 
 

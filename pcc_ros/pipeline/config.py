@@ -31,7 +31,8 @@ DESCRIPTIONS = {
     "box_margin": "metres added to every box side when cropping",
     "ground_margin": "points lower than this many metres above the box bottom are ground",
     "batch_size": "instances per backend batch (the GPU / CPU memory knob of learned backends)",
-    "workers": "CPU threads completing shares of a frame's instances, one torch thread each (1: torch's threads)",
+    "workers": "CPU threads completing shares of a frame's instances, one torch thread each (1: torch's threads); "
+               ">= 2 also measures the filter's ground term beside its rays",
     "include_input_points": "also publish the raw scan points (instance -1, source observed) in the completed cloud",
     "include_observed_points": "partial-preserving output: each completed car's own LiDAR points (its instance, "
     "source = observed) with its generated points",

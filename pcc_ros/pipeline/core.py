@@ -402,7 +402,8 @@ class Pipeline:
             # over max_instances or the work bound stay skipped (the terms cost per ray and box).
             judged_idx = candidates
             if len(judged_idx):
-                part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx])
+                part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
+                                    workers=cfg.workers)
                 terms = {k: np.full(n, np.nan) for k in part}
                 for k, v in part.items():
                     terms[k][judged_idx] = v

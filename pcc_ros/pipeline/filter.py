@@ -40,13 +40,14 @@ makes the conversion explicit.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import box_corners, pairs_in_boxes
-from pcc_ros.geometry.canonical import to_box_frame
+from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.metrics.chamfer import nearest_distances_batch
 from pcc_ros.types import Boxes
 
@@ -297,7 +298,7 @@ class _BoxTable:
         self.cos, self.sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
         cx, cy, cz = boxes.center.T
         # the sensor (the scan frame's origin) in each box's frame
-        self.origin = np.stack(to_box_frame(0.0, 0.0, 0.0, cx, cy, cz, self.cos, self.sin), axis=1)
+        self.origin = np.stack(to_box_local(0.0, 0.0, 0.0, cx, cy, cz, self.cos, self.sin), axis=1)
         half = boxes.size / 2
         body_lo, body_hi = -half.copy(), half.copy()
         body_lo[:, 2] += EVIDENCE_GROUND
@@ -436,7 +437,7 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     ring = np.take(r_lo, beam_box) + local // n_az_b
     ce = np.take(cos_el, ring)
     box = np.take(idx, beam_box)
-    direction = to_box_frame(ce * np.take(cos_az, col), ce * np.take(sin_az, col), np.take(sin_el, ring),
+    direction = to_box_local(ce * np.take(cos_az, col), ce * np.take(sin_az, col), np.take(sin_el, ring),
                              0.0, 0.0, 0.0, np.take(table.cos, box), np.take(table.sin, box))
     tmin, tmax = _slab(direction, *table.body, box)
     hit = tmax >= np.maximum(tmin, 0.0)
@@ -468,12 +469,25 @@ def _local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH,
     return out
 
 
-def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None) -> Evidence:
+_GROUND_POOL: ThreadPoolExecutor | None = None
+
+
+def _ground_pool() -> ThreadPoolExecutor:
+    global _GROUND_POOL
+    if _GROUND_POOL is None:
+        _GROUND_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pcc-filter-ground")
+    return _GROUND_POOL
+
+
+def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1) -> Evidence:
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
     Vectorised over (ray, box) pairs: one pass over the scan, no loop over points or boxes;
     the pairs' geometry runs column by column in float64 on per-box values gathered once.
+    ``workers`` >= 2: the local ground (a query of its own over the scan) is measured on a
+    second thread while this one follows the rays (numpy releases the GIL in its loops);
+    the values are the same either way.
     """
     sensor = sensor or SensorModel()
     points = np.asarray(points)
@@ -483,13 +497,14 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
         return Evidence(*([zero] * 7), _derive(*([zero] * 7), boxes))
     if points.ndim != 2 or points.shape[1] < 3:
         raise DataError(f"points must be (N, >=3), got shape {points.shape}")
+    ground_job = _ground_pool().submit(_local_ground, points, boxes) if workers > 1 else None
     az_lo, az_hi, el_lo, el_hi, judged = _angular_window(boxes)
     # contiguous columns: numpy's SIMD loops (arctan2 among them) skip strided arrays
     x, y, z = (np.ascontiguousarray(points[:, k]) for k in range(3))
     pair_point, pair_box = _rays_towards(x, y, z, az_lo, az_hi, el_lo, el_hi, judged)
     table = _BoxTable(boxes)
     # Box-frame ray: origin (the sensor, one per box) + t * (point - origin); t = 1 at the return.
-    local = to_box_frame(
+    local = to_box_local(
         np.take(x, pair_point).astype(np.float64), np.take(y, pair_point).astype(np.float64),
         np.take(z, pair_point).astype(np.float64), np.take(boxes.center[:, 0], pair_box),
         np.take(boxes.center[:, 1], pair_box), np.take(boxes.center[:, 2], pair_box),
@@ -513,7 +528,7 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     n_in, n_occ, n_stop = count(inside), count(occluded), count(stop)
     n_pass, n_rays = count(passed), np.bincount(pair_box, minlength=n).astype(np.float64)
     expected = _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged, table)
-    ground = _local_ground(points, boxes)
+    ground = ground_job.result() if ground_job is not None else _local_ground(points, boxes)
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
         _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),
@@ -556,10 +571,11 @@ def false_probability(terms: dict[str, np.ndarray], config: FilterConfig) -> np.
 
 
 def filter_terms(
-    points: np.ndarray, boxes: Boxes, config: FilterConfig, mismatch: np.ndarray | None = None
+    points: np.ndarray, boxes: Boxes, config: FilterConfig, mismatch: np.ndarray | None = None, workers: int = 1
 ) -> dict[str, np.ndarray]:
-    """Every term of the evidence rule for ``boxes`` in ``points`` (plus the raw counts)."""
-    ev = evidence(points, boxes, SENSOR_PRESETS[config.sensor])
+    """Every term of the evidence rule for ``boxes`` in ``points`` (plus the raw counts);
+    ``workers``: CPU threads measuring them (:func:`evidence`)."""
+    ev = evidence(points, boxes, SENSOR_PRESETS[config.sensor], workers=workers)
     out = ev.as_dict()
     out["score"] = score_logit(boxes.score, config.score_mapping)
     out["mismatch"] = np.full(len(boxes), np.nan) if mismatch is None else np.asarray(mismatch, dtype=np.float64)
