@@ -1,15 +1,23 @@
-"""Shared fixtures: paths to the real sample data beside the repository; an isolated ROS 2 graph."""
+"""Shared fixtures: paths to the real sample data beside the repository; an isolated ROS 2 graph;
+one tiny instance cache (``tiny_cache``) for the eval and train command tests."""
 
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from shapes import car_with_cabin
+
+from pcc_ros.data.instances import ExtractConfig, extract_instances
+from pcc_ros.geometry.canonical import from_canonical
+from pcc_ros.types import Boxes, Sample
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -27,6 +35,48 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip("../shared/data is not present")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def tiny_cache(tmp_path_factory) -> Path:
+    """A SynthCars-like instance cache: 2 sequences (train ``0000`` / test ``0001``) x 3 frames
+    x 3 tracked cars at about 8, 25 and 45 m, each seen from the sensor's side only and thinned
+    (30 %, 10 %, 3 % of the shape's points), with the complete shapes as ground truth.
+    9 test instances (3 per distance band), 9 train instances, no validation carve-out."""
+    root = tmp_path_factory.mktemp("synth")
+    rng = np.random.default_rng(0)
+    (root / "meta.json").write_text(json.dumps({"seed": 0, "splits": {"train": ["0000"], "test": ["0001"]}}))
+    frames = []
+    for seq in ["0000", "0001"]:
+        shapes = {}
+        for t in range(3):
+            shapes[str(t)] = car_with_cabin(rng)
+            (root / "shapes" / seq).mkdir(parents=True, exist_ok=True)
+            np.save(root / "shapes" / seq / f"{t}.npy", shapes[str(t)])
+        for f in range(3):
+            centers = np.array([[1.0 + f, 8.0, -0.9], [-2.0 + f, -25.0, -0.9], [2.0, 45.0 + f, -0.9]])
+            yaws = np.array([0.1, -0.2, 0.3 + 0.1 * f])
+            lengths = np.array([4.2, 4.6, 3.9])
+            size = np.column_stack([lengths, lengths * 0.4, lengths * 0.35])
+            points = []
+            for t in range(3):
+                shape = shapes[str(t)]
+                sensor = from_canonical(shape, centers[t], yaws[t], lengths[t])
+                towards = -centers[t] / np.linalg.norm(centers[t])
+                outward = sensor - centers[t]
+                seen = (outward @ towards) > 0  # the sensor-facing half only
+                keep = seen & (rng.random(len(shape)) < [0.3, 0.1, 0.03][t])
+                points.append(sensor[keep])
+            pts = np.concatenate(points).astype(np.float32)
+            pts = np.column_stack([pts, np.zeros(len(pts), np.float32)])
+            boxes = Boxes(centers, size, yaws, ["Car"] * 3, None, [str(t) for t in range(3)])
+            frames.append(Sample(stamp_ns=f * 100_000_000, frame_id="velodyne", points=pts, ground_truth=boxes,
+                                 sequence=seq, index=f))
+    cache_dir = tmp_path_factory.mktemp("cache") / "cache"
+    cache = extract_instances(frames, cache_dir, ExtractConfig(ground_margin=0.0, val_fraction=0.0), synthcars=root,
+                              progress=False)
+    assert len(cache.indices("test")) == 9 and len(cache.indices("train")) == 9
+    return cache_dir
 
 
 def require_rclpy():

@@ -100,6 +100,7 @@ def _chord(o: np.ndarray, e: np.ndarray, cell: tuple[int, int, int]) -> float:
     return max(t1 - t0, 0.0) * float(np.linalg.norm(d))
 
 
+@pytest.mark.slow
 def test_exact_traversal_matches_a_brute_force_ray_walk():
     rng = np.random.default_rng(3)
     spec = AML_GRID
@@ -291,6 +292,7 @@ def test_vae_loss_decreases():
     assert np.mean(losses[-5:]) < 0.75 * np.mean(losses[:5])
 
 
+@pytest.mark.slow
 def test_frozen_decoder_stays_frozen_while_the_encoder_trains(tmp_path):
     torch.manual_seed(0)
     prior = AML(device="cpu")
@@ -449,6 +451,7 @@ def test_box_jitter_off_gives_the_completer_observation(tmp_path):
     assert jittered.occupied.flatten(1).sum(1).tolist() != [0, 0, 0]
 
 
+@pytest.mark.slow
 def test_lambda_selection_scores_real_crops_by_held_out_points():
     from pcc_ros.models.aml import RealCrops, holdout_fidelity
 

@@ -179,6 +179,7 @@ def test_synth_layout_uses_its_detections(shared_data, tmp_path):
     assert [len(f.detections) for f in back] == [3, 3]
 
 
+@pytest.mark.slow
 def test_synthcars_output_converts(tmp_path):
     synthetic = pytest.importorskip("pcc_ros.data.synthetic")
     if not hasattr(synthetic, "generate"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pcc_ros.data.synthetic.lidar import REALISTIC_ARTEFACTS, Sensor, cast
 from pcc_ros.data.synthetic.mesh import box, concatenate
@@ -56,6 +57,7 @@ def test_realistic_sensor_is_deterministic_and_thicker_with_range():
     assert len(s1.points) < len(_scan(Sensor.low_res(), seed=1).points)
 
 
+@pytest.mark.slow
 def test_domain_gap_statistics_and_plot(tmp_path, shared_data):
     from pcc_ros.data.domain_gap import main as gap_main
     from pcc_ros.data.instances import ExtractConfig, extract_instances

@@ -98,6 +98,7 @@ def test_chunked_folding_decoder_equals_reference(monkeypatch):
     torch.testing.assert_close(fine, ref_fine, rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_shipped_pointpncnet_fast_path_equals_reference_path():
     """The whole network on the shipped weights: tiny, typical and capped clouds in one batch."""
     path = default_checkpoint("pointpncnet")
@@ -118,6 +119,7 @@ def test_shipped_pointpncnet_fast_path_equals_reference_path():
         np.testing.assert_allclose(a, b, rtol=0, atol=2e-5)
 
 
+@pytest.mark.slow
 def test_worker_threads_return_the_same_completions_in_order():
     from pcc_ros.errors import ConfigError
     from pcc_ros.models import create

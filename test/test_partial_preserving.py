@@ -200,6 +200,7 @@ def test_real_instances_from_detections_move_the_reference_into_the_detection_fr
     assert not np.allclose(g["reference"][:, 0], d["reference"][:, 0], atol=0.01)
 
 
+@pytest.mark.slow
 def test_eval_real_rows_are_the_published_output_and_the_generated_points(shared_data, tmp_path, capsys):
     from pcc_ros.cli.main import main
 

@@ -237,6 +237,7 @@ def test_train_batch_uses_only_the_observed_views():
     assert (seg[:-1] <= seg[1:]).all()
 
 
+@pytest.mark.slow
 def test_a_few_steps_reduce_the_loss():
     torch.manual_seed(0)
     rng = np.random.default_rng(10)

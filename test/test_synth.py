@@ -126,6 +126,7 @@ def _loglog_fit(counts, dist):
     return slope, np.exp(intercept + slope * np.log(20.0))
 
 
+@pytest.mark.slow
 def test_point_counts_fall_with_distance_like_kitti(shared_data):
     root = shared_data / "kitti_tracking" / "training"
     calib = Calibration.read(root / "calib" / "0000.txt")

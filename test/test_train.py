@@ -7,65 +7,25 @@ import json
 import numpy as np
 import pytest
 import torch
-from shapes import box_surface
 
 from pcc_ros.cli.main import main
-from pcc_ros.data.instances import ExtractConfig, extract_instances
 from pcc_ros.errors import ConfigError
-from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.models import load_completer
 from pcc_ros.models.checkpoint import load_config
 from pcc_ros.train import learning_rate, load_recipe, optimizer_tensors, parse_options, restore_optimizer
-from pcc_ros.types import Boxes, Sample
 
 
-def car_shape(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
-    return box_surface(rng, n, [0.5, 0.2, 0.15]).astype(np.float32)
-
-
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    """Two SynthCars-like sequences (train / test) of 4 frames with 3 tracked cars each."""
-    root = tmp_path_factory.mktemp("synth")
-    rng = np.random.default_rng(0)
-    (root / "meta.json").write_text(json.dumps({"seed": 0, "splits": {"train": ["0000"], "test": ["0001"]}}))
-    frames = []
-    for seq in ("0000", "0001"):
-        shapes = [car_shape(rng) for _ in range(3)]
-        (root / "shapes" / seq).mkdir(parents=True)
-        for t, shape in enumerate(shapes):
-            np.save(root / "shapes" / seq / f"{t}.npy", shape)
-        for f in range(4):
-            centers = np.array([[2.0 + f, 8.0, -0.9], [-3.0 + f, -12.0, -0.9], [6.0, 20.0 + f, -0.9]])
-            yaws = np.array([0.1, -0.2, 0.3 + 0.1 * f])
-            lengths = np.array([4.2, 4.6, 3.9])
-            points = []
-            for t, shape in enumerate(shapes):
-                sensor = from_canonical(shape, centers[t], yaws[t], lengths[t])
-                seen = ((sensor - centers[t]) @ -centers[t]) > 0
-                points.append(sensor[seen & (rng.random(len(shape)) < 0.3)])
-            pts = np.concatenate(points).astype(np.float32)
-            boxes = Boxes(centers, np.column_stack([lengths, lengths * 0.4, lengths * 0.3]), yaws, ["Car"] * 3,
-                          None, ["0", "1", "2"])
-            frames.append(Sample(stamp_ns=f * 100_000_000, frame_id="velodyne",
-                                points=np.column_stack([pts, np.zeros(len(pts), np.float32)]),
-                                ground_truth=boxes, sequence=seq, index=f))
-    out = tmp_path_factory.mktemp("cache") / "cache"
-    extract_instances(frames, out, ExtractConfig(ground_margin=0.0, val_fraction=0.0), synthcars=root,
-                      progress=False)
-    return out
-
-
-def _argv(cache_dir, out, *extra):
-    return ["train", "pointpncnet", "--data", str(cache_dir), "--out", str(out), "--batch-size", "4",
+def _argv(tiny_cache, out, *extra):
+    return ["train", "pointpncnet", "--data", str(tiny_cache), "--out", str(out), "--batch-size", "4",
             "--val-split", "test", "--val-instances", "6", "--val-every", "2", "--checkpoint-every", "2",
             "--no-progress", "--device", "cpu", "--option", "loss_points=64", "--option", "local_loss_points=8",
             *extra]
 
 
-def test_train_validate_checkpoint_and_resume(cache_dir, tmp_path, capsys):
+@pytest.mark.slow
+def test_train_validate_checkpoint_and_resume(tiny_cache, tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(_argv(cache_dir, out, "--iterations", "4")) == 0
+    assert main(_argv(tiny_cache, out, "--iterations", "4")) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["step"] == 4
     for name in ("pointpncnet.safetensors", "pointpncnet.json", "resume.safetensors", "resume.json",
@@ -89,35 +49,36 @@ def test_train_validate_checkpoint_and_resume(cache_dir, tmp_path, capsys):
     assert completer.complete([np.random.default_rng(0).normal(size=(50, 3)) * 0.2])[0].shape == (2048, 3)
 
     # a second run into the same directory must be explicit
-    assert main(_argv(cache_dir, out, "--iterations", "4")) == 1
+    assert main(_argv(tiny_cache, out, "--iterations", "4")) == 1
     # resuming continues the step counter and the log
-    assert main(_argv(cache_dir, out, "--iterations", "8", "--resume")) == 0
+    assert main(_argv(tiny_cache, out, "--iterations", "8", "--resume")) == 0
     assert json.loads(capsys.readouterr().out)["step"] == 8
     resume = load_config(out / "resume.json")["resume"]
     assert resume["step"] == 8 and resume["lr_decay_every"] == 1  # kept from the 4-step run, not 8 // 4
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records if "val_cd_l1" in r] == [2, 4, 6, 8]
     # resuming with other settings is refused
-    assert main(_argv(cache_dir, out, "--iterations", "10", "--resume", "--lr", "1e-2")) == 1
-    assert main(_argv(cache_dir, out, "--iterations", "10", "--resume", "--config", "paper")) == 1
+    assert main(_argv(tiny_cache, out, "--iterations", "10", "--resume", "--lr", "1e-2")) == 1
+    assert main(_argv(tiny_cache, out, "--iterations", "10", "--resume", "--config", "paper")) == 1
 
 
-def test_real_scans_are_mixed_at_the_requested_share(cache_dir, tmp_path):
+def test_real_scans_are_mixed_at_the_requested_share(tiny_cache, tmp_path):
     out = tmp_path / "mixed"
-    argv = [*_argv(cache_dir, out, "--iterations", "2"), "--val-instances", "0", "--real-data", str(cache_dir),
+    argv = [*_argv(tiny_cache, out, "--iterations", "2"), "--val-instances", "0", "--real-data", str(tiny_cache),
             "--real-share", "0.25"]
     assert main(argv) == 0
     mixing = load_config(out / "pointpncnet.json")["training"]["real_data"]
     assert mixing["share_requested"] == 0.25 and mixing["repeats"] >= 1 and mixing["share"] > 0  # tiny: 1 repeat
-    assert mixing["groups"] >= 1 and str(cache_dir) in mixing["caches"]
+    assert mixing["groups"] >= 1 and str(tiny_cache) in mixing["caches"]
     assert main([*argv[:-1], "1.5"]) == 1  # a share outside (0, 1) is a clear error, not a traceback
 
 
-def test_init_from_a_checkpoint_is_recorded_and_validated_at_step_0(cache_dir, tmp_path):
+@pytest.mark.slow
+def test_init_from_a_checkpoint_is_recorded_and_validated_at_step_0(tiny_cache, tmp_path):
     first = tmp_path / "first"
-    assert main(_argv(cache_dir, first, "--iterations", "2")) == 0
+    assert main(_argv(tiny_cache, first, "--iterations", "2")) == 0
     out = tmp_path / "finetune"
-    assert main(_argv(cache_dir, out, "--iterations", "2", "--init", str(first / "pointpncnet_last.safetensors"))) == 0
+    assert main(_argv(tiny_cache, out, "--iterations", "2", "--init", str(first / "pointpncnet_last.safetensors"))) == 0
     config = load_config(out / "pointpncnet.json")
     assert config["training"]["init"]["path"].endswith("pointpncnet_last.safetensors")
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
@@ -126,13 +87,13 @@ def test_init_from_a_checkpoint_is_recorded_and_validated_at_step_0(cache_dir, t
         load_config(first / "pointpncnet_last.json")["metrics"]["val_cd_l1"], rel=1e-5)  # the same weights
     assert config["training"]["selected_step"] == 2  # step 0 (the initial weights) is never "selected"
     bad = tmp_path / "bad"
-    argv = _argv(cache_dir, bad, "--iterations", "2", "--init", str(tmp_path / "missing.safetensors"))
+    argv = _argv(tiny_cache, bad, "--iterations", "2", "--init", str(tmp_path / "missing.safetensors"))
     assert main(argv) == 1
 
 
-def test_no_inpainting_ablation_is_recorded(cache_dir, tmp_path):
+def test_no_inpainting_ablation_is_recorded(tiny_cache, tmp_path):
     out = tmp_path / "ablation"
-    assert main([*_argv(cache_dir, out, "--iterations", "2", "--no-inpainting"), "--val-instances", "0"]) == 0
+    assert main([*_argv(tiny_cache, out, "--iterations", "2", "--no-inpainting"), "--val-instances", "0"]) == 0
     assert load_config(out / "pointpncnet.json")["training"]["recipe"]["drop_prob"] == 0.0
 
 
@@ -170,7 +131,7 @@ def test_options_schedule_and_recipe_errors():
 
 
 @pytest.mark.slow
-def test_torchrun_two_processes_gloo(cache_dir, tmp_path):
+def test_torchrun_two_processes_gloo(tiny_cache, tmp_path):
     """DistributedDataParallel under torchrun (two CPU processes, gloo): rank 0 writes one run."""
     import shutil
     import subprocess
@@ -183,7 +144,7 @@ def test_torchrun_two_processes_gloo(cache_dir, tmp_path):
     if not torchrun:
         pytest.skip("torchrun not installed")
     out = tmp_path / "ddp"
-    argv = _argv(cache_dir, out, "--iterations", "4", "--threads", "1")
+    argv = _argv(tiny_cache, out, "--iterations", "4", "--threads", "1")
     proc = subprocess.run(
         [str(torchrun), "--nproc-per-node", "2", "-m", "pcc_ros.cli", *argv],
         capture_output=True, text=True, timeout=300,
