@@ -62,6 +62,19 @@ def _node(graph, mode, threaded=False, **params):
     return NodeCore(runtime, f"{mode}_node", mode, {"backend": "mirror", **params}, threaded=threaded)
 
 
+def _driver(graph):
+    """A test driver's scan and detection publishers on ``graph``, with the nodes' QoS."""
+    driver = LocalRuntime(graph, "driver")
+    return (driver.create_publisher("/points", CLOUD, SENSOR_DATA),
+            driver.create_publisher("/detections", DETS, RELIABLE))
+
+
+def _send(driver, cloud, dets):
+    """Publish one scan, then its detections, from ``driver``."""
+    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
+    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+
+
 def _tap(graph, topic, msgtype, qos=RELIABLE):
     got = []
     LocalRuntime(graph, "probe").create_subscription(topic, msgtype, got.append, qos)
@@ -72,9 +85,7 @@ def test_completion_outputs_equal_the_pipeline_run_directly(graph):
     core = _node(graph, "completion")
     completed = _tap(graph, "/completed", CLOUD)
     markers = _tap(graph, "/completed_markers", "visualization_msgs/msg/MarkerArray")
-    probe = LocalRuntime(graph, "driver")
-    pub_cloud = probe.create_publisher("/points", CLOUD, SENSOR_DATA)
-    pub_dets = probe.create_publisher("/detections", DETS, RELIABLE)
+    pub_cloud, pub_dets = _driver(graph)
     cloud, dets = _messages(1_000_000_000)
     pub_cloud.publish(cloud)
     assert not completed  # unpaired yet
@@ -111,9 +122,7 @@ def test_filter_node_publishes_kept_and_rejected_and_markers(graph):
 def test_pairing_respects_slop_and_counts_drops(graph):
     core = _node(graph, "completion", sync_slop=0.01, queue_size=2)
     completed = _tap(graph, "/completed", CLOUD)
-    driver = LocalRuntime(graph, "driver")
-    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
-    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    pub_cloud, pub_dets = _driver(graph)
     cloud, dets = _messages(1_000_000_000, det_stamp_ns=1_050_000_000)  # 50 ms apart > 10 ms slop
     pub_cloud.publish(cloud)
     pub_dets.publish(dets)
@@ -129,9 +138,7 @@ def test_pairing_respects_slop_and_counts_drops(graph):
 def test_malformed_cloud_is_logged_skipped_and_the_node_keeps_serving(graph, caplog):
     core = _node(graph, "completion")
     completed = _tap(graph, "/completed", CLOUD)
-    driver = LocalRuntime(graph, "driver")
-    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
-    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    pub_cloud, pub_dets = _driver(graph)
     bad, dets = _messages(1_000_000_000)
     bad.width = bad.width + 1000  # claims more points than data holds
     with caplog.at_level(logging.WARNING, logger="pcc_ros.completion_node"):
@@ -149,9 +156,7 @@ def test_worker_thread_processes_the_newest_pair(graph):
     wall = LocalGraph()  # wall clock: the timer and worker are real threads
     core = _node(wall, "completion", threaded=True)
     completed = _tap(wall, "/completed", CLOUD)
-    driver = LocalRuntime(wall, "driver")
-    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
-    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    pub_cloud, pub_dets = _driver(wall)
     try:
         for k in range(3):
             cloud, dets = _messages((k + 1) * 1_000_000_000, seed=k)
@@ -175,8 +180,7 @@ def test_diagnostics_follow_the_simulated_clock(graph):
     diags = _tap(graph, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
     driver = LocalRuntime(graph, "driver")
     cloud, dets = _messages(1_000_000_000)
-    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
-    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    _send(driver, cloud, dets)
     graph.advance_to(2_500_000_000)
     assert len(diags) == 2
     status = diags[-1].status[0]
@@ -191,9 +195,7 @@ def test_diagnostics_follow_the_simulated_clock(graph):
 def test_detections_in_another_frame_go_through_the_runtime_transform(graph):
     core = _node(graph, "filter", rule="trapcc")  # the scene's ground shows through its cars
     kept = _tap(graph, "/detections_filtered", DETS)
-    driver = LocalRuntime(graph, "driver")
-    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
-    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    pub_cloud, pub_dets = _driver(graph)
     cloud, _ = _messages(1_000_000_000)
     _, boxes = _scene()
     shifted = Boxes(boxes.center - [1.0, 0.0, 0.0], boxes.size, boxes.yaw, boxes.label, boxes.score, boxes.track_id)
@@ -275,9 +277,7 @@ def test_qos_parameters_reach_the_subscriptions_and_publishers(graph):
 def test_set_parameters_swaps_thresholds_and_backend_without_dropping_the_node(graph):
     core = _node(graph, "filter", rule="trapcc")  # the TraPCC rule's thresholds (the scene is see-through)
     rejected = _tap(graph, "/detections_rejected", DETS)
-    driver = LocalRuntime(graph, "driver")
-    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
-    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    pub_cloud, pub_dets = _driver(graph)
 
     def frame(k):
         cloud, dets = _messages(k * 1_000_000_000)
@@ -320,14 +320,12 @@ def test_class_thresholds_override_the_detection_threshold_per_class(graph):
     rejected = _tap(graph, "/detections_rejected", DETS)
     driver = LocalRuntime(graph, "driver")
     cloud, dets = _messages(1_000_000_000)
-    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
-    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    _send(driver, cloud, dets)
     assert rejected[-1].detections == []  # "c" scores 0.2 >= the Car threshold 0.1
     assert not core.set_parameters({"class_thresholds": "Car:2"}).successful
     assert core.set_parameters({"class_thresholds": "Van:0.1"}).successful
     cloud, dets = _messages(2_000_000_000)
-    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
-    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    _send(driver, cloud, dets)
     assert [d.id for d in rejected[-1].detections] == ["c"]
 
 
@@ -335,9 +333,7 @@ def test_output_frame_moves_every_output_through_the_transform(graph):
     core = _node(graph, "filter", output_frame="map")
     kept = _tap(graph, "/detections_filtered", DETS)
     markers = _tap(graph, "/filter_markers", "visualization_msgs/msg/MarkerArray")
-    driver = LocalRuntime(graph, "driver")
-    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
-    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    pub_cloud, pub_dets = _driver(graph)
     cloud, dets = _messages(1_000_000_000)
     pub_cloud.publish(cloud)
     pub_dets.publish(dets)
@@ -369,8 +365,7 @@ def test_output_frame_without_tf_says_so_once_and_counts_skipped_frames(graph, c
     driver = LocalRuntime(graph, "driver")
     for k in (1, 2):
         cloud, dets = _messages(k * 1_000_000_000)
-        driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
-        driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+        _send(driver, cloud, dets)
     values = core.diagnostics_values()
     assert values["frames_without_transform"] == "2" and values["frames"] == "0"
 
@@ -380,8 +375,7 @@ def test_completed_cloud_carries_instance_source_colour_and_score(graph):
     completed = _tap(graph, "/completed", CLOUD)
     driver = LocalRuntime(graph, "driver")
     cloud, dets = _messages(1_000_000_000)
-    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
-    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    _send(driver, cloud, dets)
     from pcc_ros.msg.pointcloud2 import structured_view
 
     points = structured_view(completed[0])
@@ -402,8 +396,7 @@ def test_filter_markers_read_the_mapped_score_mismatch_and_decision(graph):
     markers = _tap(graph, "/filter_markers", "visualization_msgs/msg/MarkerArray")
     driver = LocalRuntime(graph, "driver")
     cloud, dets = _messages(1_000_000_000)
-    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(cloud)
-    driver.create_publisher("/detections", DETS, RELIABLE).publish(dets)
+    _send(driver, cloud, dets)
     texts = [m.text for m in markers[0].markers if m.ns.endswith("_text")]
     assert len(texts) == 3
     assert texts[2] == "Car p=0.55 m=1.00 rejected"  # sigmoid(0.2) = 0.55 < 0.6, empty box
@@ -442,9 +435,7 @@ def test_scan_timeout_must_be_positive():
 def test_detections_without_scans_are_counted_and_reported(graph, caplog):
     core = _node(graph, "completion", scan_timeout=0.5)
     diags = _tap(graph, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
-    driver = LocalRuntime(graph, "driver")
-    pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
-    pub_dets = driver.create_publisher("/detections", DETS, RELIABLE)
+    pub_cloud, pub_dets = _driver(graph)
     cloud, dets = _messages(1_000_000_000)
     graph.advance_to(1_000_000_000)
     pub_cloud.publish(cloud)
