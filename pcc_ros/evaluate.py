@@ -507,6 +507,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--emd-points", type=int, default=1024, help="EMD subsample size (exact assignment)")
     parser.add_argument("--no-emd", action="store_true", help="skip EMD (the slowest metric)")
     parser.add_argument(
+        "--decode-density", type=int, default=None,
+        help="folding decoders decode N times finer per grid axis (default: 1; with --real, completion_node's "
+        "decode_density)",
+    )
+    parser.add_argument(
         "--keep-input", action="store_true",
         help="score the partial-preserving output (observed crop + generated points, what completion_node "
         "publishes) instead of the generated points alone",
@@ -565,6 +570,7 @@ def evaluate(
     keep: Sequence[int] = (),
     on_backend_done: Callable[[dict[str, Any]], None] | None = None,
     keep_input: bool = False,
+    decode_density: int = 1,
 ) -> tuple[dict[str, Any], dict[str, dict[int, np.ndarray]]]:
     """Score every backend on ``instances``.
 
@@ -588,6 +594,7 @@ def evaluate(
         "fixed_threshold_m": fixed_threshold_m,
         "emd_points": emd_points if with_emd else None,
         "keep_input": bool(keep_input),
+        "decode_density": int(decode_density),
     }
     results: dict[str, Any] = {
         **settings,
@@ -607,7 +614,7 @@ def evaluate(
     kept: dict[str, dict[int, np.ndarray]] = {}
     for name in backends:
         cls = get_backend(name)
-        options = {"batch_size": batch_size} if cls.learned else {}
+        options = {"batch_size": batch_size, "decode_density": decode_density} if cls.learned else {}
         completer = load_completer(name, checkpoints.get(name), device=device, **options)
         stamp = _checkpoint_stamp(name, checkpoints.get(name)) if cls.learned else None
         old = reusable.get(name)
@@ -701,7 +708,7 @@ def run(args: argparse.Namespace) -> int:
         device=args.device, batch_size=args.batch_size, seed=args.seed,
         fixed_threshold_m=args.fixed_threshold, emd_points=args.emd_points, with_emd=not args.no_emd,
         previous=None if args.no_resume else _previous_results(args.json), keep=picks, on_backend_done=save,
-        keep_input=args.keep_input,
+        keep_input=args.keep_input, decode_density=args.decode_density or 1,
     )
     results = {**header, **results}
     print_tables(results, reference)

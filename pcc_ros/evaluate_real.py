@@ -51,6 +51,13 @@ def node_crop() -> tuple[float, float, int]:
     return float(cfg.box_margin), float(cfg.ground_margin), int(cfg.min_points)
 
 
+def node_decode_density() -> int:
+    """``completion_node``'s default ``decode_density`` (what the learned rows are decoded with)."""
+    from pcc_ros.pipeline.core import PipelineConfig
+
+    return int(PipelineConfig().decode_density)
+
+
 def real_instances(
     sources: list[Path], min_track_frames: int = 2, min_points: int | None = None, voxel_m: float = 0.03,
     classes: tuple[str, ...] = ("Car", "Van"), boxes: str = "ground_truth", detections_dir: Path | None = None,
@@ -108,8 +115,9 @@ def real_instances(
                 chosen, match = gt, np.arange(len(gt))
             else:
                 det = frame.detections
-                if det is None:
-                    raise DataError(f"{source}: frame {frame.index} has no detections (pass --real-detections)")
+                if det is None:  # e.g. the nuScenes key frame beside KITTI detections: counted, not fatal
+                    skipped["frame_without_detections"] += 1
+                    continue
                 det = det[class_mask(det.label, classes)]
                 chosen = det[det.valid_mask()]
                 if len(chosen) == 0:
@@ -195,7 +203,7 @@ GENERATED_SUFFIX = "/generated"
 
 def evaluate_real(
     instances: list[dict[str, Any]], backends: list[str], checkpoints: dict[str, Path], device: str = "cpu",
-    batch_size: int = 32, progress: bool = True, keep_input: bool = True,
+    batch_size: int = 32, progress: bool = True, keep_input: bool = True, decode_density: int | None = None,
 ) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
     """Complete every instance with every backend (batched, with the boxes' sizes) and score it.
 
@@ -205,7 +213,7 @@ def evaluate_real(
     Row ``NAME/generated`` scores the generated points alone (the network's own shape, what the
     filter's mismatch term reads). ``keep_input=False`` scores only the generated points, as
     ``NAME``. Backends that read scene context (TraPCC) get the other evaluated cars of the
-    frame as neighbours."""
+    frame as neighbours. ``decode_density``: the learned backends' (default: the node's)."""
     from tqdm import tqdm
 
     from pcc_ros.metrics.realdata import real_instance_metrics
@@ -219,7 +227,8 @@ def evaluate_real(
     for name in backends:
         try:
             cls = get_backend(name)
-            options = {"batch_size": batch_size} if cls.learned else {}
+            density = node_decode_density() if decode_density is None else int(decode_density)
+            options = {"batch_size": batch_size, "decode_density": density} if cls.learned else {}
             completer = load_completer(name, checkpoints.get(name), device=device, **options)
         except (CheckpointError, BackendError) as exc:
             log.warning("%s: skipped (%s)", name, exc)
@@ -244,6 +253,7 @@ def evaluate_real(
                 results[row]["checkpoint"] = str(checkpoints.get(name, "shipped default"))
                 results[row]["checkpoint_sha256"] = ck.get("sha256")
                 results[row]["box_aspect"] = getattr(completer, "box_aspect", None)
+                results[row]["decode_density"] = getattr(completer, "decode_density", None)
                 results[row]["variant"] = ("generated points only (the network's own shape)" if row != name else
                                            "published: observed crop + generated points" if keep else "generated")
             completions[row] = clouds
@@ -341,7 +351,8 @@ def run_real(args: argparse.Namespace) -> int:
              len({i["key"].split("@")[0] for i in instances}))
     device = "cpu" if args.device == "auto" else args.device
     results, completions = evaluate_real(instances, backends, checkpoints, device, args.batch_size,
-                                         keep_input=not getattr(args, "real_generated_only", False))
+                                         keep_input=not getattr(args, "real_generated_only", False),
+                                         decode_density=getattr(args, "decode_density", None))
     print_real_tables(results)
     verdict = criteria(results)
     for name, v in verdict.items():

@@ -42,7 +42,7 @@ def main() -> int:
     import matplotlib.pyplot as plt
 
     from pcc_ros.data.instances import InstanceCache
-    from pcc_ros.evaluate import EvalInstance, attach_contexts, parse_checkpoints
+    from pcc_ros.evaluate import EvalInstance, attach_contexts, instance_sizes, parse_checkpoints
     from pcc_ros.models import load_completer
 
     picked = []
@@ -58,7 +58,8 @@ def main() -> int:
             EvalInstance(key=f"{path.name}:{cache.meta['sequence'][i]}/{cache.meta['frame'][i]}/"
                          f"{cache.meta['track'][i] or i}", partial=np.asarray(cache.points(int(i)), np.float32),
                          reference=np.zeros((1, 3), np.float32), length=float(cache.meta["box_size"][i, 0]),
-                         distance=float(cache.meta["distance"][i]), has_ground_truth=False, meta={"index": int(i)})
+                         distance=float(cache.meta["distance"][i]), has_ground_truth=False, meta={"index": int(i)},
+                         size=np.asarray(cache.meta["box_size"][i], np.float64))
             for i in np.flatnonzero(keep)
         ]
         attach_contexts(cache, insts)
@@ -75,7 +76,8 @@ def main() -> int:
     for name in backends:
         completer = load_completer(name, checkpoints.get(name), device="cpu")
         contexts = [r.context for r in rows] if getattr(completer, "uses_context", False) else None
-        outputs[name] = completer.complete([r.partial for r in rows], contexts)
+        # the generated points, made with the boxes' sizes as in the node (the red input is drawn over them)
+        outputs[name] = completer.complete([r.partial for r in rows], contexts, sizes=instance_sizes(rows))
 
     cols = len(backends) * len(VIEWS)
     fig, axes = plt.subplots(len(rows), cols, figsize=(2.3 * cols, 1.9 * len(rows)), squeeze=False)

@@ -218,3 +218,24 @@ def test_eval_real_rows_are_the_published_output_and_the_generated_points(shared
     assert rows["pointpncnet"]["box_aspect"] is not None
     assert result["input_crop"] == {"box_margin": 0.1, "ground_margin": 0.05}
     assert "pointpncnet/generated" in capsys.readouterr().out
+
+
+def test_denser_decoding_keeps_the_trained_points_and_adds_points_between_them():
+    rng = np.random.default_rng(4)
+    clouds = [rng.normal(size=(300, 3)).astype(np.float32) * [0.4, 0.15, 0.12]]
+    plain = create("pointpncnet", device="cpu")
+    dense = create("pointpncnet", device="cpu", decode_density=2)
+    dense.model.load_state_dict(plain.model.state_dict())
+    a, b = plain.complete(clouds)[0], dense.complete(clouds)[0]
+    assert len(a) == 2048 and len(b) == 2048 * 9 // 4  # 2x2 folding grids become 3x3
+    from scipy.spatial import cKDTree
+
+    assert cKDTree(b).query(a)[0].max() < 1e-5  # every trained grid point is still decoded
+    assert dense.decode_density == 2
+    with pytest.raises(ConfigError, match="decode_density"):
+        create("pointpncnet", device="cpu", decode_density=0)
+    from pcc_ros.pipeline.core import PipelineConfig
+
+    assert PipelineConfig().decode_density == 2
+    with pytest.raises(ConfigError, match="decode_density"):
+        PipelineConfig(decode_density=9)

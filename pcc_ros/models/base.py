@@ -448,6 +448,10 @@ class Completer(abc.ABC):
         return f"{type(self).__name__}(name={self.name!r}, config={self.config!r})"
 
 
+#: Largest ``decode_density`` (a 2x2 folding grid becomes 9x9: 20x the points).
+MAX_DECODE_DENSITY = 8
+
+
 def parse_box_aspect(value: Any) -> tuple[float, float]:
     """``(width / length, height / length)`` from a pair or a checkpoint's ``box_aspect`` record."""
     if isinstance(value, dict):
@@ -501,6 +505,12 @@ class TorchCompleter(Completer):
       ``batch_size`` clouds), called under ``torch.inference_mode`` with the model in eval
       mode; use :func:`resample_cloud` (content-seeded) if the network needs fixed sizes.
 
+    ``decode_density`` (run-time, default 1): folding decoders (PointPnCNet, TraPCC) decode on a
+    grid that many times finer per axis over the same span (``FoldingDecoder.set_density``): the
+    trained grid points are kept and the new ones lie between them on each folded patch, so a
+    2x2 grid becomes 3x3 at 2 (2.25x the points). ``completion_node`` uses 2 (``decode_density``
+    parameter): on real KITTI cars the denser surface covers more of the car (docs/evaluation.md).
+
     Run-time options that do not change the weights (``batch_size``, ``half_precision``:
     weights and activations in float16 on CUDA, bfloat16 on CPU; inputs are cast on the way
     in, outputs come back as float32; ``workers``) are not hyper-parameters and are not saved.
@@ -515,7 +525,7 @@ class TorchCompleter(Completer):
 
     def __init__(
         self, device: str = "auto", batch_size: int = 32, half_precision: bool = False, workers: int = 1,
-        box_aspect: Sequence[float] | None = None, **config: Any
+        box_aspect: Sequence[float] | None = None, decode_density: int = 1, **config: Any
     ) -> None:
         defaults = self.default_config()
         unknown = sorted(set(config) - set(defaults))
@@ -525,6 +535,8 @@ class TorchCompleter(Completer):
             raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
         if int(workers) < 1:
             raise ConfigError(f"workers must be >= 1, got {workers}")
+        if not 1 <= int(decode_density) <= MAX_DECODE_DENSITY:
+            raise ConfigError(f"decode_density must be in 1..{MAX_DECODE_DENSITY}, got {decode_density}")
         super().__init__(device=device, **{**defaults, **config})
         self.batch_size = int(batch_size)
         self.half_precision = bool(half_precision)
@@ -533,6 +545,11 @@ class TorchCompleter(Completer):
         self._pool = None
         self.device = select_device(device)
         self.model = self.build_model().to(self.device)
+        self.decode_density = int(decode_density)
+        if self.decode_density > 1:
+            from pcc_ros.models.layers import set_decode_density
+
+            set_decode_density(self.model, self.decode_density)
         if self.half_precision:
             import torch
 

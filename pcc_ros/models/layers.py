@@ -213,6 +213,14 @@ class PCNEncoder(nn.Module):
         return torch.where(nonempty, out, 0.0)
 
 
+def set_decode_density(model: nn.Module, density: int) -> int:
+    """:meth:`FoldingDecoder.set_density` on every folding decoder of ``model``; returns how many."""
+    decoders = [m for m in model.modules() if isinstance(m, FoldingDecoder)]
+    for decoder in decoders:
+        decoder.set_density(density)
+    return len(decoders)
+
+
 def folding_grid(size: int, scale: float) -> torch.Tensor:
     """``(size*size, 2)`` regular 2-D grid in ``[-scale, scale]^2`` (a single point at 0 for size 1)."""
     if size == 1:
@@ -245,6 +253,7 @@ class FoldingDecoder(nn.Module):
         if len(fold_widths) < 1:
             raise ValueError("fold_widths needs at least one hidden layer")
         self.num_coarse = num_coarse
+        self.grid_size, self.grid_scale = int(grid_size), float(grid_scale)
         self.fc = SharedMLP(code_dim, [*fc_widths, num_coarse * 3])
         self.register_buffer("grid", folding_grid(grid_size, grid_scale), persistent=False)
         h = fold_widths[0]
@@ -253,6 +262,17 @@ class FoldingDecoder(nn.Module):
         self.fold_grid = nn.Linear(2, h, bias=False)
         self.fold_mlp = SharedMLP(h, [*fold_widths[1:], 3])
         self.num_points = num_coarse * self.grid.shape[0]
+
+    def set_density(self, density: int) -> None:
+        """Decode ``density`` times finer along each grid axis (inference): the grid side becomes
+        ``(grid_size - 1) * density + 1`` over the same span, so the trained grid points stay and
+        the new ones lie between them on each coarse point's folded patch. ``1``: as trained."""
+        density = int(density)
+        if density < 1:
+            raise ValueError(f"decode density must be >= 1, got {density}")
+        size = self.grid_size if self.grid_size == 1 else (self.grid_size - 1) * density + 1
+        self.grid = folding_grid(size, self.grid_scale).to(self.grid.device, self.grid.dtype)
+        self.num_points = self.num_coarse * self.grid.shape[0]
 
     def forward(self, code: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``code`` ``(S, code_dim)`` -> ``(coarse (S, K, 3), fine (S, K*G, 3))``."""

@@ -33,6 +33,8 @@ DESCRIPTIONS = {
     "batch_size": "instances per backend batch (the GPU / CPU memory knob of learned backends)",
     "workers": "CPU threads completing shares of a frame's instances, one torch thread each (1: torch's threads); "
                ">= 2 also measures the filter's ground term beside its rays",
+    "decode_density": "folding decoders (pointpncnet, trapcc) decode this many times finer per grid axis: denser "
+    "completions (2: 2.25x the points)",
     "include_input_points": "also publish the raw scan points (instance -1, source observed) in the completed cloud",
     "include_observed_points": "partial-preserving output: each completed car's own LiDAR points (its instance, "
     "source = observed) with its generated points",
@@ -81,6 +83,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "ground_margin": (0.0, 5.0),
     "batch_size": (1, 4096),
     "workers": (1, 64),
+    "decode_density": (1, 8),
     "match_threshold": (0.0, 1.0),
     "detection_threshold": (0.0, 1.0),
     "reject_threshold": (1e-6, 1.0 - 1e-6),
@@ -111,7 +114,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
 READ_ONLY = frozenset({"queue_size", "scan_timeout", *(name for name in NODE_DEFAULTS if name.startswith("qos."))})
 
 #: Parameters that change the loaded network (a run-time change reloads the backend).
-BACKEND_PARAMETERS = ("backend", "checkpoint", "device", "half_precision", "batch_size", "workers")
+BACKEND_PARAMETERS = ("backend", "checkpoint", "device", "half_precision", "batch_size", "workers", "decode_density")
 
 
 @dataclass(frozen=True)

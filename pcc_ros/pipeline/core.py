@@ -78,6 +78,8 @@ class PipelineConfig:
     half_precision: bool = False
     batch_size: int = 32
     workers: int = 2
+    #: folding decoders decode this many times finer per grid axis (TorchCompleter.decode_density)
+    decode_density: int = 2
     include_input_points: bool = False
     #: partial-preserving output: each completed car's own crop points (source observed) with
     #: its generated points, i.e. ``Completer.complete(..., keep_input=True)`` in the sensor frame
@@ -92,6 +94,8 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.min_points < 1 or self.max_instances < 1 or self.batch_size < 1 or self.workers < 1:
             raise ConfigError("min_points, max_instances, batch_size and workers must be >= 1")
+        if not 1 <= self.decode_density <= 8:
+            raise ConfigError(f"decode_density must be in 1..8, got {self.decode_density}")
         if self.max_crop_work < 1:
             raise ConfigError("max_crop_work must be >= 1")
         if self.box_margin < 0 or self.ground_margin < 0:
@@ -327,7 +331,8 @@ class Pipeline:
 
         if not get_backend(config.backend).learned:
             return {}  # baselines have no network: batch size, precision and workers do not apply
-        return {"batch_size": config.batch_size, "half_precision": config.half_precision, "workers": config.workers}
+        return {"batch_size": config.batch_size, "half_precision": config.half_precision, "workers": config.workers,
+                "decode_density": config.decode_density}
 
     # ------------------------------------------------------------------ core
 
