@@ -465,3 +465,13 @@ def test_lambda_selection_scores_real_crops_by_held_out_points():
     # metres: the held-out points of a ~4 m car lie within a few metres of any completion
     assert all(0 < v < 3.0 for v in table.values())
     assert holdout_fidelity(aml, crops, [1.0], steps=2, holdout=0.3, seed=0)["1.0"] == table["1.0"]  # seeded
+
+
+def test_the_ml_baseline_is_found_by_name_in_a_fresh_process():
+    import subprocess
+    import sys
+
+    # aml_ml lives in pcc_ros/models/aml.py: the registry must find it without "aml" loaded first
+    code = "from pcc_ros.models.base import get_backend; print(get_backend('aml_ml').__name__)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "AMLMaximumLikelihood"

@@ -85,6 +85,9 @@ def get_backend(name: str) -> type[Completer]:
         _import_backend_module("pcc_ros.models.baselines")
         if name not in _REGISTRY and name.replace("_", "").isalnum():
             _import_backend_module(f"pcc_ros.models.{name}")
+        if name not in _REGISTRY and "_" in name and name.replace("_", "").isalnum():
+            # a variant registered beside its backend (aml_ml in pcc_ros/models/aml.py)
+            _import_backend_module(f"pcc_ros.models.{name.split('_')[0]}")
     if name not in _REGISTRY:
         raise ConfigError(f"unknown completion backend {name!r}; available: {', '.join(available())}")
     return _REGISTRY[name]

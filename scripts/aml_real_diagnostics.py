@@ -1,0 +1,147 @@
+"""Where AML's real-scan error comes from: the measurements of docs/aml.md, one command::
+
+    python scripts/aml_real_diagnostics.py --old-checkpoint OLD/aml.safetensors \\
+        --caches out/data/kitti_tracking,out/data/kitti_object,out/data/nuscenes,out/data/cache
+
+On the real KITTI tracking observations of ``pcc eval --real`` (labelled boxes, each track's
+aggregated crops as partial ground truth) it prints, for the shipped AML weights (and the
+``--old-checkpoint`` ones when given):
+
+1. box proportions of each track and the 1st / 99th percentiles of its aggregated GT and of
+   AML's completions in box units (does the completion fill the box?), and the spread of the
+   completions' canonical extents over all observations (does every car come out alike?);
+2. the sensor height above the box bottom of every instance cache in ``--caches`` (is the
+   canonical sensor origin, from which free space is cast, where the LiDAR is?);
+3. completeness by region of the box (rear / front face, sides, top) at 2048 and 16384
+   output points (how much is shape, how much is point spacing);
+4. on two observations, the ML baseline run to convergence at lambda 0 and at the
+   checkpoint's lambda against the amortized encoder: code norm, observed-voxel NLL and
+   completeness (the prior's shape space vs the amortization gap).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+
+def _report_extents(name, completer, instances, contexts) -> None:
+    from pcc_ros.geometry.voxels import box_aspect
+
+    outs = completer.complete([i["partial"] for i in instances], contexts)
+    tracks = sorted({i["key"].split("@")[0] for i in instances})
+    for track in tracks:  # a handful of tracks
+        idx = [j for j, i in enumerate(instances) if i["key"].split("@")[0] == track]
+        size = instances[idx[0]]["size"]
+        gt = instances[idx[0]]["reference"] / box_aspect(size)
+        box = [outs[j] / box_aspect(instances[j]["size"]) for j in idx]
+        print(f"  {name} {track}: box l w h {np.round(size, 2)} (h/l {size[2] / size[0]:.3f}); box units p1/p99: "
+              f"GT {np.percentile(gt, 1, 0).round(3)} {np.percentile(gt, 99, 0).round(3)}, completion "
+              f"{np.mean([np.percentile(b, 1, 0) for b in box], 0).round(3)} "
+              f"{np.mean([np.percentile(b, 99, 0) for b in box], 0).round(3)}")
+    extent = np.array([np.percentile(o, 99, 0) - np.percentile(o, 1, 0) for o in outs])
+    height = np.mean([e[2] * i["size"][0] / i["size"][2] for e, i in zip(extent, instances)])
+    print(f"  {name}: completion extent (canonical) mean {extent.mean(0).round(3)}, std over instances "
+          f"{extent.std(0).round(4)}; height / box height {height:.3f}")
+
+
+def _report_regions(name, completer, instances, contexts, counts) -> None:
+    from scipy.spatial import cKDTree
+
+    from pcc_ros.geometry.voxels import box_aspect
+
+    for n in counts:
+        completer.config["output_points"] = n
+        outs = completer.complete([i["partial"] for i in instances], contexts)
+        sums: dict[str, list[float]] = {}
+        means = []
+        for o, inst in zip(outs, instances):  # 35 instances, vectorised inside
+            d = cKDTree(o).query(inst["reference"])[0] * inst["size"][0]
+            means.append(d.mean())
+            b = inst["reference"] / box_aspect(inst["size"])
+            regions = {"rear face": b[:, 0] < -0.4, "front face": b[:, 0] > 0.4, "sides": np.abs(b[:, 1]) > 0.4,
+                       "top": b[:, 2] > 0.3}
+            regions["rest"] = ~np.any(list(regions.values()), axis=0)
+            for k, m in regions.items():
+                sums.setdefault(k, [0.0, 0.0])
+                sums[k][0] += float(d[m].sum())
+                sums[k][1] += float(m.sum())
+        total = sum(c for _, c in sums.values())
+        parts = ", ".join(f"{k} {s / max(c, 1):.3f} m ({100 * c / total:.0f} % of GT)" for k, (s, c) in sums.items())
+        print(f"  {name}, {n} points: completeness {np.mean(means):.4f} m; by region: {parts}")
+    completer.config["output_points"] = 2048
+
+
+def _report_amortization(completer, instances, contexts, keys, steps) -> None:
+    import torch
+    from scipy.spatial import cKDTree
+
+    from pcc_ros.models.aml import observed_nll
+
+    picks = [j for j, i in enumerate(instances) if i["key"].split(":", 1)[-1] in keys]
+    clouds = [instances[j]["partial"] for j in picks]
+    with torch.inference_mode():
+        x, aspects = completer.observe(clouds, [contexts[j] for j in picks])
+    occ, free = x[:, 0] > 0.5, x[:, 1] > 0.5
+    log_var = float(completer.config["log_var"])
+
+    def show(label, z):
+        with torch.inference_mode():
+            decoded = completer.model.decoder(z)
+            nll = observed_nll(decoded, occ, free, log_var)
+            outs = completer.decode_points(decoded, clouds, aspects)
+        for j, o, n, zz in zip(picks, outs, nll, z):
+            inst = instances[j]
+            comp = cKDTree(o).query(inst["reference"])[0].mean() * inst["size"][0]
+            print(f"  {label} {inst['key']}: |z| {float(zz.norm()):.2f}, observed-voxel NLL {float(n):.0f}, "
+                  f"completeness {comp:.3f} m")
+
+    with torch.inference_mode():
+        show("amortized encoder", completer.model.encoder(x))
+    for lam in (0.0, completer.lam):
+        show(f"ML lambda {lam:g}, {steps} steps", completer.fit_latent(occ, free, steps=steps, lam=lam))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--real-sources", default="../shared/data/kitti_tracking")
+    parser.add_argument("--checkpoint", type=Path, help="AML weights (default: the shipped ones)")
+    parser.add_argument("--old-checkpoint", type=Path, help="other AML weights to compare (e.g. the first ones)")
+    parser.add_argument("--caches", default="", help="comma-separated instance caches for the sensor-height check")
+    parser.add_argument("--observations", default="0000/0@0,0000/3@19", help="observations of the ML check")
+    parser.add_argument("--ml-steps", type=int, default=200)
+    args = parser.parse_args()
+
+    import torch
+
+    from pcc_ros.data.instances import InstanceCache
+    from pcc_ros.evaluate_real import real_instances, scene_contexts
+    from pcc_ros.models import load_completer
+
+    torch.set_num_threads(1)
+    instances, _ = real_instances([Path(s) for s in args.real_sources.split(",") if s])
+    contexts = scene_contexts(instances)
+    models = {"shipped": load_completer("aml", args.checkpoint, device="cpu")}
+    if args.old_checkpoint:
+        models["old"] = load_completer("aml", args.old_checkpoint, device="cpu")
+    print(f"{len(instances)} real observations")
+    print("1. box vs completion extents")
+    for name, model in models.items():
+        _report_extents(name, model, instances, contexts)
+    print("2. sensor height above the box bottom (median, metres)")
+    for path in [c for c in args.caches.split(",") if c]:
+        meta = InstanceCache.load(path).meta
+        height = meta["origin"][:, 2] * meta["box_size"][:, 0] + meta["box_size"][:, 2] / 2
+        print(f"  {path}: {np.median(height):.2f} m over {len(height)} instances")
+    print("3. completeness by region of the box")
+    for name, model in models.items():
+        _report_regions(name, model, instances, contexts, (2048, 16384))
+    print("4. amortized encoder vs ML to convergence (shipped weights)")
+    _report_amortization(models["shipped"], instances, contexts, args.observations.split(","), args.ml_steps)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
