@@ -26,7 +26,6 @@ frames) and reports the held-out operating figures. Same inputs and seed, same o
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import re
@@ -37,14 +36,10 @@ from typing import Any
 import numpy as np
 
 from pcc_ros.detection_eval import (
-    DEFAULT_CONFIG,
     auc,
     detection_truth,
-    load_kitti,
     operating_curve,
-    parse_frames,
     removed_at,
-    write_json,
 )
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
@@ -394,103 +389,3 @@ PRESETS: dict[str, dict[str, Any]] = {
     "kitti": {"score_mapping": "identity"},
     "nuscenes": {"sensor": "hdl32", "score_mapping": "identity", "match_threshold": 0.4},
 }
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--real", type=Path, required=True, help="labelled KITTI root with real detections")
-    parser.add_argument("--real-detections", type=Path, required=True, help="the real detector's results")
-    parser.add_argument("--real-sequence", help="tracking sequence(s) of --real, comma-separated")
-    parser.add_argument("--real-frames", help="START:STOP of --real's scans")
-    parser.add_argument("--synth", type=Path, help="SynthCars root (pcc synth) with detections/synthetic")
-    parser.add_argument("--synth-frames", type=int, default=20, help="frames used per SynthCars sequence (20)")
-    parser.add_argument("--object", type=Path, help="KITTI object root: real scans, labelled cars as true detections")
-    parser.add_argument("--gt-classes", default="Car,Van", help="labels that make a real detection true (Car,Van)")
-    parser.add_argument("--score-mapping", choices=("identity", "sigmoid"), default="sigmoid",
-                        help="how the real detector's scores read (sigmoid: logits, PointRCNN)")
-    parser.add_argument("--sensor", default="hdl64", help="sensor model preset (hdl64 | hdl32)")
-    parser.add_argument("--max-lost", type=float, default=0.01, help="true detections the threshold may lose (0.01)")
-    parser.add_argument("--l2", type=float, default=1e-2, help="ridge penalty on standardised weights (0.01)")
-    parser.add_argument("--folds", type=int, default=5, help="leave-frames-out folds over the real frames (5; 0: none)")
-    parser.add_argument("--seed", type=int, default=0, help="simulator seed")
-    parser.add_argument("--terms", default=",".join(FIT_TERMS),
-                        help=f"terms to fit, comma-separated (default {','.join(FIT_TERMS)}; the rest get weight 0)")
-    parser.add_argument("--base-config", type=Path, help="node YAML to start from (default: the shipped one)")
-    parser.add_argument("--out", type=Path, help="write the calibrated node YAML here")
-    parser.add_argument(
-        "--preset", choices=tuple(PRESETS), default="kitti",
-        help="what --out is for: kitti (the fitted sensor and score mapping) | nuscenes (HDL-32E sensor model, "
-        "probability scores; the same physics weights: no real nuScenes detections to fit on)",
-    )
-    parser.add_argument("--json", type=Path, help="write weights, data sizes and the cross-validated figures here")
-
-
-def _synth_frames(root: Path, per_sequence: int):
-    split = root / "training" if (root / "training").is_dir() else root
-    frames = []
-    for seq in sorted(p.name for p in (split / "velodyne").iterdir() if p.is_dir()):
-        frames += load_kitti(root, root / "detections" / "synthetic", seq, slice(0, per_sequence))
-    return frames
-
-
-def run(args: argparse.Namespace) -> int:
-    config = FilterConfig(rule="evidence", score_mapping=args.score_mapping, sensor=args.sensor)
-    gt_classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
-    sequences = [q.strip() for q in args.real_sequence.split(",")] if args.real_sequence else [None]
-    window = parse_frames(args.real_frames)
-    real = [f for q in sequences for f in load_kitti(args.real, args.real_detections, q, window)]
-    synth = _synth_frames(args.synth, args.synth_frames) if args.synth else []
-    obj = []
-    if args.object:
-        obj = load_kitti(args.object, None)  # labelled cars become the true detections
-    terms = tuple(t.strip() for t in args.terms.split(",") if t.strip())
-    unknown = set(terms) - set(TERMS)
-    if unknown or not terms:
-        raise ConfigError(f"--terms: unknown {sorted(unknown)} (have {', '.join(TERMS)})")
-    result = calibrate(real, synth, obj, config, args.seed, gt_classes, max_lost=args.max_lost, l2=args.l2,
-                       terms=terms)
-    table = result["table"]
-    counts = {s: {"true": int((~table.false[table.source == s]).sum()),
-                  "false": int(table.false[table.source == s].sum())}
-              for s in ("real", "synth", "object")}
-    print("calibration rows:", json.dumps(counts))
-    print("weights:", " ".join(f"w_{t}={w:+.4f}" for t, w in zip(TERMS, result["weights"])),
-          f"w_bias={result['bias']:+.4f} reject_threshold={result['threshold']:.4f}")
-    for name, fig in result["in_sample"].items():
-        print(f"in-sample {name}: " + ", ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
-                                                for k, v in fig.items()))
-    payload: dict[str, Any] = {
-        "seed": args.seed, "terms": list(terms), "rows": counts, "bias": result["bias"],
-        "weights": dict(zip(TERMS, result["weights"].tolist())), "threshold": result["threshold"],
-        "in_sample": result["in_sample"], "max_lost": args.max_lost, "l2": args.l2,
-        "real": str(args.real), "synth": str(args.synth), "object": str(args.object),
-        "false_templates": {"count": len(result["templates"].range),
-                            "range_median": float(np.median(result["templates"].range)),
-                            "points_median": float(np.median(result["templates"].points)),
-                            "score_median": float(np.median(result["templates"].score))},
-    }
-    if args.folds:
-        cv = cross_validate(real, synth, obj, config, args.seed, gt_classes, args.folds, max_lost=args.max_lost,
-                            l2=args.l2, terms=terms)
-        payload["cross_validation"] = cv
-        print(f"held-out ({args.folds} leave-frames-out folds over the real frames): " + ", ".join(
-            f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in cv["held_out"].items()))
-    if args.out:
-        header = (
-            f"# calibrated: pcc calibrate-filter --real {args.real} --real-detections {args.real_detections}"
-            f"{' --synth ' + str(args.synth) if args.synth else ''}"
-            f"{' --object ' + str(args.object) if args.object else ''}"
-            f" --score-mapping {args.score_mapping} --sensor {args.sensor} --seed {args.seed} --preset {args.preset}"
-            f" --out {args.out}\n"
-        )
-        values = {"score_mapping": args.score_mapping, "sensor": args.sensor, **PRESETS[args.preset]}
-        header += (
-            f"# calibrated: preset {args.preset}, sensor {values['sensor']}, score_mapping {values['score_mapping']}\n"
-        )
-        text = preset_yaml(args.base_config or DEFAULT_CONFIG, result["bias"], result["weights"], result["threshold"],
-                           values, header)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-        log.info("wrote %s", args.out)
-    if args.json:
-        write_json(args.json, payload)
-    return 0

@@ -26,8 +26,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "extract": ("pcc_ros.cli.extract", "extract canonical car instances from bags or datasets"),
     "train": ("pcc_ros.train", "train a completion backend self-supervised"),
     "eval": ("pcc_ros.evaluate", "evaluate completion backends (`pcc eval detections`: the detection filter)"),
-    "eval-detections": ("pcc_ros.detection_eval", "detection AP and the filter's operating curve vs baselines"),
-    "calibrate-filter": ("pcc_ros.filter_calibration", "fit the detection filter's weights (SynthCars + real frames)"),
+    "eval-detections": ("pcc_ros.cli.eval_detections", "detection AP and the filter's operating curve vs baselines"),
+    "calibrate-filter": (
+        "pcc_ros.cli.calibrate_filter", "fit the detection filter's weights (SynthCars + real frames)",
+    ),
     "replay": ("pcc_ros.runtime.bag", "run the per-frame pipeline over a bag"),
     "demo": ("pcc_ros.demo", "end-to-end demo on SynthCars and real KITTI frames"),
     "play": ("pcc_ros.nodes.play", "publish a bag onto the ROS 2 graph with its recorded timing (rclpy)"),

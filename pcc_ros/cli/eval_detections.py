@@ -1,0 +1,68 @@
+"""``pcc eval detections``: does the detection filter earn its place? The yardstick.
+
+The command half of :mod:`pcc_ros.detection_eval` (which says what is measured): flags in,
+the library's loading, evaluation, report, plot and JSON out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pcc_ros.detection_eval import (
+    DEFAULT_CONFIG,
+    build_pipeline,
+    evaluate_detections,
+    load_kitti,
+    parse_frames,
+    plot,
+    print_report,
+    to_json,
+    write_json,
+)
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--kitti", type=Path, required=True, help="KITTI tracking / object root (or SynthCars output)")
+    parser.add_argument("--detections", type=Path, help="detector results (default: ROOT/detections/synthetic)")
+    parser.add_argument("--sequence", help="tracking sequence (needed when the root holds several)")
+    parser.add_argument("--frames", help="START:STOP slice of the scans (default: all)")
+    parser.add_argument("--config", type=Path, help=f"filter node YAML (default: {DEFAULT_CONFIG.name})")
+    parser.add_argument("--backend", help="override the completion backend (the evidence rule does not need it)")
+    parser.add_argument("--score-mapping", choices=("identity", "sigmoid"), help="override score_mapping")
+    parser.add_argument("--rule", choices=("evidence", "trapcc"), help="override the filter rule")
+    parser.add_argument(
+        "--gt-classes", default="Car",
+        help="labels counted as Car (default: Car, KITTI's protocol: Vans ignored). 'Car,Van' scores vehicles",
+    )
+    parser.add_argument("--true-iou", type=float, default=0.3, help="BEV IoU that makes a detection true (0.3)")
+    parser.add_argument("--max-lost", type=float, default=0.02, help="true-lost budget of the table (0.02)")
+    parser.add_argument("--json", type=Path, help="write the results here")
+    parser.add_argument("--plot", type=Path, help="PNG: operating curves and score distributions")
+
+
+def run(args: argparse.Namespace) -> int:
+    detections = args.detections or (args.kitti / "detections" / "synthetic")
+    frames = load_kitti(args.kitti, detections, args.sequence, parse_frames(args.frames))
+    pipeline = build_pipeline(
+        args.config, {"backend": args.backend, "score_mapping": args.score_mapping, "rule": args.rule}
+    )
+    gt_classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
+    results = evaluate_detections(frames, pipeline, gt_classes, args.true_iou, args.max_lost)
+    title = f"{args.kitti} ({detections.name})"
+    print_report(results, title)
+    if all(np.isnan(v) for row in results["ap_before"].values() for v in row.values()):
+        log.warning("no valid ground truth of %s: AP undefined (a sequence of Vans only? try --gt-classes Car,Van)",
+                    "+".join(gt_classes))
+    if args.plot:
+        plot(results, args.plot, title)
+        log.info("wrote %s", args.plot)
+    if args.json:
+        write_json(args.json, to_json(results))
+        log.info("wrote %s", args.json)
+    return 0
