@@ -94,6 +94,17 @@ def test_nan_points_and_no_boxes():
     assert len(evidence(scan, Boxes.empty()).n_in) == 0
 
 
+def test_a_second_thread_measures_the_same_evidence():
+    scan = cast([(CAR_LO, CAR_HI), ((25.0, 3.0, GROUND_Z + 0.3), (29.0, 4.8, GROUND_Z + 1.4))])
+    boxes = Boxes([[16.1, 0.0, GROUND_Z + 0.75], [27.0, 3.9, GROUND_Z + 0.8], [22.0, -6.0, GROUND_Z + 0.7]],
+                  [[4.2, 1.8, 1.5], [4.0, 1.8, 1.6], [4.4, 1.9, 1.4]], [0.0, 0.3, -1.2], ["Car"] * 3, [0.3] * 3)
+    one, two = evidence(scan, boxes).as_dict(), evidence(scan, boxes, workers=2).as_dict()
+    assert one.keys() == two.keys()
+    for key in one:
+        np.testing.assert_array_equal(one[key], two[key])
+    assert np.isfinite(one["ground_z"]).all() and (one["n_in"][:2] > 20).all()
+
+
 def test_probability_combines_terms_with_the_configured_weights():
     config = FilterConfig(w_bias=-1.0, w_density=-1.0, w_free_space=0.5, w_ground_gap=2.0, w_score=-0.5)
     terms = {"density": np.array([0.0, -3.0]), "free_space": np.array([-5.0, 4.0]),

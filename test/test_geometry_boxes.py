@@ -71,6 +71,15 @@ def test_overlapping_boxes_share_points_and_cell_size_does_not_matter():
             np.testing.assert_array_equal(f, s)
 
 
+@pytest.mark.parametrize("stack", [2, 5, 12])  # a few boxes per cell, and many (the CSR walk)
+def test_stacked_boxes_each_get_their_points(stack):
+    rng = np.random.default_rng(stack)
+    points = rng.uniform(-4, 4, (4000, 3)).astype(np.float32)
+    boxes = Boxes(rng.normal(0, 0.3, (stack, 3)), rng.uniform(1.0, 4.0, (stack, 3)), rng.uniform(-np.pi, np.pi, stack))
+    for f, s in zip(points_in_boxes(points, boxes, margin=0.1), slow_points_in_boxes(points, boxes, 0.1)):
+        np.testing.assert_array_equal(f, s)
+
+
 def test_margin_reaches_the_corners_of_a_yawed_box():
     # The margin-enlarged box of a 45-degree box reaches margin * sqrt(2) beyond the extent
     # of its corners: points there (the enlarged corners, every side) are inside it.

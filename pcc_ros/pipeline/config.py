@@ -32,7 +32,7 @@ DESCRIPTIONS = {
     "ground_margin": "points lower than this many metres above the box bottom are ground",
     "batch_size": "instances per backend batch (the GPU / CPU memory knob of learned backends)",
     "workers": "CPU threads completing shares of a frame's instances, one torch thread each (1: torch's threads); "
-               ">= 2 also measures the filter's ground term beside its rays",
+               ">= 2 also measures the filter's ground and expected returns beside its rays",
     "decode_density": "folding decoders (pointpncnet, trapcc) decode this many times finer per grid axis: denser "
     "completions (2: 2.25x the points)",
     "include_input_points": "also publish the raw scan points (instance -1, source observed) in the completed cloud",

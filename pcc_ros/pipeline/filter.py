@@ -469,14 +469,14 @@ def _local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH,
     return out
 
 
-_GROUND_POOL: ThreadPoolExecutor | None = None
+_SIDE_POOL: ThreadPoolExecutor | None = None
 
 
-def _ground_pool() -> ThreadPoolExecutor:
-    global _GROUND_POOL
-    if _GROUND_POOL is None:
-        _GROUND_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pcc-filter-ground")
-    return _GROUND_POOL
+def _side_pool() -> ThreadPoolExecutor:
+    global _SIDE_POOL
+    if _SIDE_POOL is None:
+        _SIDE_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pcc-filter")
+    return _SIDE_POOL
 
 
 def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1) -> Evidence:
@@ -485,9 +485,9 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
     Vectorised over (ray, box) pairs: one pass over the scan, no loop over points or boxes;
     the pairs' geometry runs column by column in float64 on per-box values gathered once.
-    ``workers`` >= 2: the local ground (a query of its own over the scan) is measured on a
-    second thread while this one follows the rays (numpy releases the GIL in its loops);
-    the values are the same either way.
+    ``workers`` >= 2: the sensor model's expected returns and the local ground (a query of
+    its own over the scan) are measured on a second thread while this one follows the rays
+    (numpy releases the GIL in its loops); the values are the same either way.
     """
     sensor = sensor or SensorModel()
     points = np.asarray(points)
@@ -497,12 +497,16 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
         return Evidence(*([zero] * 7), _derive(*([zero] * 7), boxes))
     if points.ndim != 2 or points.shape[1] < 3:
         raise DataError(f"points must be (N, >=3), got shape {points.shape}")
-    ground_job = _ground_pool().submit(_local_ground, points, boxes) if workers > 1 else None
     az_lo, az_hi, el_lo, el_hi, judged = _angular_window(boxes)
+    table = _BoxTable(boxes)
+
+    def beams_and_ground() -> tuple[np.ndarray, np.ndarray]:
+        return _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged, table), _local_ground(points, boxes)
+
+    side_job = _side_pool().submit(beams_and_ground) if workers > 1 else None
     # contiguous columns: numpy's SIMD loops (arctan2 among them) skip strided arrays
     x, y, z = (np.ascontiguousarray(points[:, k]) for k in range(3))
     pair_point, pair_box = _rays_towards(x, y, z, az_lo, az_hi, el_lo, el_hi, judged)
-    table = _BoxTable(boxes)
     # Box-frame ray: origin (the sensor, one per box) + t * (point - origin); t = 1 at the return.
     local = to_box_local(
         np.take(x, pair_point).astype(np.float64), np.take(y, pair_point).astype(np.float64),
@@ -527,8 +531,7 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
 
     n_in, n_occ, n_stop = count(inside), count(occluded), count(stop)
     n_pass, n_rays = count(passed), np.bincount(pair_box, minlength=n).astype(np.float64)
-    expected = _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged, table)
-    ground = ground_job.result() if ground_job is not None else _local_ground(points, boxes)
+    expected, ground = side_job.result() if side_job is not None else beams_and_ground()
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
         _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),
