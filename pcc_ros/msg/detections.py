@@ -262,6 +262,9 @@ def _check_boxes(boxes: Boxes) -> None:
         raise MessageError(f"box {int(np.flatnonzero(~np.isfinite(boxes.yaw))[0])}: non-finite yaw")
 
 
+_NO_ROTATION = {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}
+
+
 def _pose(classes, center, yaw):
     return new_message(
         "geometry_msgs/msg/Pose",
@@ -269,8 +272,9 @@ def _pose(classes, center, yaw):
         position=new_message(
             "geometry_msgs/msg/Point", classes, x=float(center[0]), y=float(center[1]), z=float(center[2])
         ),
-        orientation=new_message(
-            "geometry_msgs/msg/Quaternion", classes, **dict(zip("xyzw", quaternion_from_yaw(yaw).tolist()))
+        orientation=new_message(  # the markers' upright poses (yaw 0) skip the numpy round trip: same values
+            "geometry_msgs/msg/Quaternion", classes,
+            **(_NO_ROTATION if yaw == 0.0 else dict(zip("xyzw", quaternion_from_yaw(yaw).tolist()))),
         ),
     )
 
@@ -368,6 +372,13 @@ def box_edges(boxes: Boxes) -> np.ndarray:
     return box_corners(boxes)[:, _EDGES.reshape(-1)]
 
 
+def box_edge_points(boxes: Boxes, classes: ClassResolver | None = None) -> list[list]:
+    """Per box, the ``geometry_msgs/Point`` list of its :func:`box_edges` (a ``LINE_LIST``),
+    built once so several marker arrays of the same boxes can share it (``edge_points``)."""
+    point_cls = resolve(classes)("geometry_msgs/msg/Point")  # x, y, z given: no defaults to fill
+    return [[point_cls(x=x, y=y, z=z) for x, y, z in box] for box in box_edges(boxes).tolist()]
+
+
 def _color(classes, rgba):
     return new_message("std_msgs/msg/ColorRGBA", classes, r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
 
@@ -383,6 +394,7 @@ def marker_array_from_boxes(
     line_width: float = 0.08,
     text_height: float = 0.6,
     texts: Sequence[str] | None = None,
+    edge_points: list[list] | None = None,
 ):
     """A ``visualization_msgs/msg/MarkerArray`` drawing ``boxes`` for RViz.
 
@@ -391,6 +403,8 @@ def marker_array_from_boxes(
     ``TEXT_VIEW_FACING`` (``ns + "_text"``, id ``i``) reading ``texts[i]`` (default
     ``"<label> <score>"``) above the box and, with ``cubes=True``, a translucent ``CUBE``
     (``ns + "_cubes"``, id ``i``, text = label) that :func:`boxes_from_marker_array` can read back.
+    ``edge_points``: :func:`box_edge_points` of ``boxes``, when the caller draws the same boxes
+    more than once (the point messages are shared, not rebuilt).
     """
     _check_boxes(boxes)
     n = len(boxes)
@@ -404,8 +418,10 @@ def marker_array_from_boxes(
         return new_message("visualization_msgs/msg/Marker", classes, header=header, **fields)
 
     markers = [marker(ns=ns, id=0, action=DELETEALL)]
-    segments = box_edges(boxes).tolist()  # Python floats, converted once for all boxes
-    point_cls = resolve(classes)("geometry_msgs/msg/Point")  # x, y, z given: no defaults to fill
+    if edge_points is None:
+        edge_points = box_edge_points(boxes, classes)
+    elif len(edge_points) != n:
+        raise MessageError(f"edge_points has {len(edge_points)} entries for {n} boxes")
     for i in range(n):
         rgba = STATUS_COLORS.get(None if status is None else str(status[i]), _OTHER_COLOR)
         identity = _pose(classes, (0.0, 0.0, 0.0), 0.0)
@@ -418,7 +434,7 @@ def marker_array_from_boxes(
                 pose=identity,
                 scale=_vector3(classes, (line_width, 0.0, 0.0)),
                 color=_color(classes, rgba),
-                points=[point_cls(x=x, y=y, z=z) for x, y, z in segments[i]],
+                points=edge_points[i],
             )
         )
         top = boxes.center[i] + (0.0, 0.0, boxes.size[i, 2] / 2 + text_height)

@@ -579,20 +579,22 @@ def build_outputs(
     (Detection3DArray: the original detection messages when given, so every hypothesis and
     id survives untouched, else re-encoded from the boxes).
     """
-    from pcc_ros.msg.detections import detection_array_from_boxes, marker_array_from_boxes
+    from pcc_ros.msg.detections import box_edge_points, detection_array_from_boxes, marker_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
     from pcc_ros.msg.stamps import make_header
     from pcc_ros.msg.typestore import new_message
     from pcc_ros.pipeline.filter import annotate_detections
 
+    edges = box_edge_points(result.detections, classes)  # both marker arrays draw the same boxes
     outputs = {
         "completed": create_cloud(completed_cloud_array(result), None, result.frame_id, result.stamp_ns, classes),
         "completed_markers": marker_array_from_boxes(
-            result.detections, result.frame_id, result.stamp_ns, status=result.status, ns="pcc", classes=classes
+            result.detections, result.frame_id, result.stamp_ns, status=result.status, ns="pcc", classes=classes,
+            edge_points=edges,
         ),
         "filter_markers": marker_array_from_boxes(
             result.detections, result.frame_id, result.stamp_ns, status=result.status, ns="pcc_filter",
-            classes=classes, texts=filter_texts(result),
+            classes=classes, texts=filter_texts(result), edge_points=edges,
         ),
     }
     keep = result.keep
