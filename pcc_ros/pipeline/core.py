@@ -529,28 +529,23 @@ class Pipeline:
 
 def estimated_crop_pairs(points: np.ndarray, boxes: Boxes, margin: float = 0.0) -> np.ndarray:
     """Per box, the number of scan points within its footprint's axis-aligned bounding
-    rectangle widened by one grid cell (an upper estimate of the points it crops), from a BEV
-    count grid and its summed-area table: ``O(points + boxes)``, whatever the boxes' sizes.
-
-    The scan pass runs on float32 columns (a few contiguous passes, no float64 copy of the
-    scan); the one-cell widening keeps the estimate an upper bound whatever the rounding of a
-    point on a cell boundary."""
+    rectangle (an upper estimate of the points it crops), from a BEV count grid and its
+    summed-area table: ``O(points + boxes)``, whatever the boxes' sizes. The scan pass works
+    column by column (a float64 copy of x and of y, not of the (N, 2) slice: numpy reduces
+    and divides a two-column array several times slower)."""
     if len(boxes) == 0 or len(points) == 0:
         return np.zeros(len(boxes), dtype=np.int64)
-    x, y = points[:, 0], points[:, 1]
-    lo = np.array([x.min(), y.min()], dtype=np.float64)
-    hi = np.array([x.max(), y.max()], dtype=np.float64)
+    x = np.array(points[:, 0], dtype=np.float64)  # copies: modified in place below
+    y = np.array(points[:, 1], dtype=np.float64)
+    lo = np.array([x.min(), y.min()])
+    hi = np.array([x.max(), y.max()])
     cell = max(1.0, float((hi - lo).max()) / 1024.0)  # at most ~1024 x 1024 cells
     shape = np.floor((hi - lo) / cell).astype(np.int64) + 1
-    inv = np.float32(1.0 / cell)
-    cx = np.subtract(x, np.float32(lo[0]), dtype=np.float32)
-    cx *= inv
-    np.fmin(cx, np.float32(shape[0] - 1), out=cx)  # rounding never leaves the grid
-    cy = np.subtract(y, np.float32(lo[1]), dtype=np.float32)
-    cy *= inv
-    np.fmin(cy, np.float32(shape[1] - 1), out=cy)
-    key = np.maximum(cx, 0, out=cx).astype(np.int32) * np.int32(shape[1])
-    key += np.maximum(cy, 0, out=cy).astype(np.int32)
+    x -= lo[0]
+    x /= cell
+    y -= lo[1]
+    y /= cell
+    key = np.floor(x, out=x).astype(np.int64) * shape[1] + np.floor(y, out=y).astype(np.int64)
     grid = np.bincount(key, minlength=int(shape.prod())).reshape(shape)
     table = np.zeros((shape[0] + 1, shape[1] + 1), dtype=np.int64)
     table[1:, 1:] = grid.cumsum(axis=0).cumsum(axis=1)
@@ -558,8 +553,8 @@ def estimated_crop_pairs(points: np.ndarray, boxes: Boxes, margin: float = 0.0) 
     hl, hw = boxes.size[:, 0] / 2.0 + margin, boxes.size[:, 1] / 2.0 + margin
     c, s = np.abs(np.cos(boxes.yaw)), np.abs(np.sin(boxes.yaw))
     half = np.stack([hl * c + hw * s, hl * s + hw * c], axis=1)
-    first = np.clip(np.floor((boxes.center[:, :2] - half - lo) / cell) - 1, 0, shape).astype(np.int64)
-    last = np.clip(np.floor((boxes.center[:, :2] + half - lo) / cell) + 2, 0, shape).astype(np.int64)
+    first = np.clip(np.floor((boxes.center[:, :2] - half - lo) / cell), 0, shape).astype(np.int64)
+    last = np.clip(np.floor((boxes.center[:, :2] + half - lo) / cell) + 1, 0, shape).astype(np.int64)
     return (table[last[:, 0], last[:, 1]] - table[first[:, 0], last[:, 1]]
             - table[last[:, 0], first[:, 1]] + table[first[:, 0], first[:, 1]])
 
