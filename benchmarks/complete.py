@@ -25,7 +25,8 @@ is recorded):
 5. Where the time goes (``--no-breakdown`` skips it), one intra-op thread: the matrix
    products the fast path runs for a batch of 32 (every ``mm`` / ``addmm`` with its shapes,
    recorded once by ``torch.profiler``) are replayed alone -- the same shapes in the same order,
-   nothing else -- interleaved with the network. The replay's rate is what the network's own
+   the right operand a transposed weight as in the network, nothing else -- interleaved with
+   the network. The replay's rate is what the network's own
    matrix shapes allow (thin layers: few columns or rows per call run far below the square
    ceiling); ``1 - replay / network`` is the share of the network's time outside matrix
    products (max-pooling scatters, gathers, ReLUs, bias broadcasts, the folding adds). Per
@@ -176,11 +177,16 @@ def recorded_matmuls(call: Callable[[], object]) -> list[tuple[int, int, int]]:
     return shapes
 
 
-def matmul_replay(shapes: list[tuple[int, int, int]]) -> Callable[[], None]:
-    """A callable running ``torch.mm`` at each shape in order (inputs allocated once)."""
+def matmul_replay(shapes: list[tuple[int, int, int]], weight_layout: bool = True) -> Callable[[], None]:
+    """A callable running ``torch.mm`` at each shape in order (inputs allocated once); with
+    ``weight_layout`` the right operand is a transposed ``(N, K)`` matrix, as the network's
+    ``weight.t()`` (MKL's speed at few output columns depends on it several-fold)."""
     import torch
 
-    operands = [(torch.randn(m, k), torch.randn(k, n), torch.empty(m, n)) for m, k, n in shapes]
+    def right(k: int, n: int):
+        return torch.randn(n, k).t() if weight_layout else torch.randn(k, n)
+
+    operands = [(torch.randn(m, k), right(k, n), torch.empty(m, n)) for m, k, n in shapes]
 
     def replay() -> None:
         for a, b, out in operands:
@@ -199,7 +205,7 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     alts: dict[str, Callable[[], object]] = {"network": lambda: completer.complete(batch), "matmul_replay": replay}
     reps = {shape: max(1, int(2e9 // (2 * np.prod(shape)))) for shape in CEILING_SHAPES}
     for shape in CEILING_SHAPES:  # the ceiling as in section 2: the faster of the two shapes
-        alts[f"mm{shape}"] = matmul_replay([shape] * reps[shape])
+        alts[f"mm{shape}"] = matmul_replay([shape] * reps[shape], weight_layout=False)
     times = interleaved(alts, repeat)
     network, replayed = float(np.median(times["network"])), float(np.median(times["matmul_replay"]))
     ceiling = max(2 * np.prod(shape) * reps[shape] / float(np.median(times[f"mm{shape}"])) / 1e9
