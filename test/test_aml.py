@@ -475,3 +475,21 @@ def test_the_ml_baseline_is_found_by_name_in_a_fresh_process():
     code = "from pcc_ros.models.base import get_backend; print(get_backend('aml_ml').__name__)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "AMLMaximumLikelihood"
+
+
+def test_decode_density_samples_denser_and_odd_boxes_are_clipped():
+    from pcc_ros.models.aml import box_aspects
+
+    torch.manual_seed(0)
+    aml = AML(device="cpu", decode_density=2)
+    assert aml.points_per_car() == round(2048 * 2.25)
+    with torch.no_grad():  # a fixed SDF: the surface is the grid box (see the contract test)
+        aml.model.decoder.out.weight.zero_()
+        aml.model.decoder.out.bias.zero_()
+        aml.model.decoder.out.bias[8:] = -1.0
+    cloud = np.random.default_rng(0).uniform(-0.4, 0.4, (50, 3)).astype(np.float32) * [1, 0.4, 0.3]
+    assert aml.complete([cloud])[0].shape == (4608, 3)
+    # a box 3 x as wide as long (a detector's swapped axes) is clipped to 2 x the default aspect
+    wide = Boxes(np.zeros((1, 3)), np.array([[1.8, 5.4, 1.5]]), np.zeros(1), np.array(["Car"], object))
+    ctx = SceneContext(box=wide, neighbour_boxes=wide[np.array([], int)])
+    np.testing.assert_allclose(box_aspects([ctx, None])[:, 1], [2 * DEFAULT_ASPECT[1], DEFAULT_ASPECT[1]])

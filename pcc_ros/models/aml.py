@@ -334,11 +334,19 @@ def surface_samples(sdf: np.ndarray, spec: GridSpec, aspects: np.ndarray, n: int
 
 
 def box_aspects(contexts: Sequence[SceneContext | None]) -> np.ndarray:
-    """``(B, 3)`` box aspect ``(1, w / l, h / l)`` of each instance: its context's box, else :data:`DEFAULT_ASPECT`."""
-    out = np.tile(np.asarray(DEFAULT_ASPECT, np.float64), (len(contexts), 1))
+    """``(B, 3)`` box aspect ``(1, w / l, h / l)`` of each instance: its context's box, else
+    :data:`DEFAULT_ASPECT`; ``w / l`` and ``h / l`` clipped to ``ASPECT_SCALE_RANGE`` times the
+    default (as the shared :func:`~pcc_ros.models.base.aspect_scales`): a detector box twice
+    as wide or tall as a car is not a car body the prior can fill."""
+    from pcc_ros.models.base import ASPECT_SCALE_RANGE
+
+    default = np.asarray(DEFAULT_ASPECT, np.float64)
+    out = np.tile(default, (len(contexts), 1))
     for i, ctx in enumerate(contexts):  # per instance: one 3-vector
         if ctx is not None:
             out[i] = box_aspect(ctx.box.size[0])
+    low, high = ASPECT_SCALE_RANGE
+    out[:, 1:] = np.clip(out[:, 1:], default[1:] * low, default[1:] * high)
     return out
 
 
@@ -408,6 +416,13 @@ class AML(TorchCompleter):
 
     # ---- inference
 
+    def points_per_car(self) -> int:
+        """Points sampled on each mesh: ``output_points``, times the point multiplier a 2 x 2
+        folding grid gets at the run-time ``decode_density`` d, ((d + 1) / 2)^2 (2.25 at the node's
+        default 2): the same denser output as the folding backends, drawn on the same mesh."""
+        d = int(getattr(self, "decode_density", 1))
+        return round(int(self.config["output_points"]) * ((d + 1) / 2) ** 2)
+
     @property
     def grid(self) -> GridSpec:
         """The voxel grid of this model's frame (``frame`` hyper-parameter)."""
@@ -440,7 +455,7 @@ class AML(TorchCompleter):
                       ) -> list[np.ndarray]:
         """Decoded grids -> marching cubes on the SDF -> surface samples (one canonical cloud each)."""
         sdf = decoded[:, 1].float().cpu().numpy()
-        points = surface_samples(sdf, self.grid, aspects, int(self.config["output_points"]),
+        points = surface_samples(sdf, self.grid, aspects, self.points_per_car(),
                                  [cloud_seed(c) for c in clouds])
         missing = [i for i, p in enumerate(points) if len(p) == 0]
         if missing:  # no zero crossing: fall back to the decoded occupancy, then the input
