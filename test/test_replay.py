@@ -14,7 +14,7 @@ from pcc_ros.models.base import load_completer
 from pcc_ros.msg.pointcloud2 import read_xyz
 from pcc_ros.msg.typestore import get_typestore
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig
-from pcc_ros.runtime.bag import BagPairs, load_config, replay_bag
+from pcc_ros.runtime.bag import load_config, replay_bag
 
 
 @pytest.fixture(scope="module", params=["mcap", "sqlite3"])
@@ -54,9 +54,11 @@ def test_replay_writes_node_topics_matching_the_pipeline(kitti_bag, tmp_path):
 
 
 def test_pairs_report_unpaired_messages(kitti_bag):
-    pairs = BagPairs(kitti_bag, detections_topic="/ground_truth")
-    assert len(list(pairs)) == 3
-    assert pairs.stats.dropped_clouds == 0 and pairs.stats.dropped_detections == 0
+    """Replay pairs with the node's own pairer; its summary reports what stayed unpaired."""
+    pipeline = Pipeline(PipelineConfig(backend="input"), completer=load_completer("input"))
+    summary = replay_bag(kitti_bag, None, pipeline, detections_topic="/ground_truth", progress=False)
+    assert summary.frames == 3
+    assert summary.unpaired_clouds == 0 and summary.unpaired_detections == 0
 
 
 def test_missing_topic_is_a_clear_error(kitti_bag, tmp_path):

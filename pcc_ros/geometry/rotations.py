@@ -67,6 +67,23 @@ def quaternion_product(a, b) -> tuple[float, float, float, float]:
     )
 
 
+def quaternion_slerp(a, b, fraction: float) -> tuple[float, float, float, float]:
+    """Spherical linear interpolation from unit quaternion ``a`` (``fraction`` 0) to ``b`` (1),
+    along the shorter arc (as tf2 interpolates rotations between two stamps)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    dot = float(a @ b)
+    if dot < 0.0:  # q and -q are one rotation: take the short way
+        b, dot = -b, -dot
+    if dot > 1.0 - 1e-9:  # (nearly) the same rotation: a straight line is exact enough
+        out = a + fraction * (b - a)
+    else:
+        theta = np.arccos(dot)
+        out = (np.sin((1.0 - fraction) * theta) * a + np.sin(fraction * theta) * b) / np.sin(theta)
+    out = out / np.linalg.norm(out)
+    return tuple(float(v) for v in out)
+
+
 def yaw_from_quaternion(q: np.ndarray) -> np.ndarray:
     """Yaw of ``(N, 4)`` unit quaternions ``(x, y, z, w)``: heading of the rotated x axis."""
     x, y, z, w = np.asarray(q, dtype=np.float64).T

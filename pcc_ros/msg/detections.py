@@ -44,7 +44,13 @@ import numpy as np
 
 from pcc_ros.errors import MessageError
 from pcc_ros.geometry.boxes import box_corners
-from pcc_ros.geometry.rotations import quaternion_from_yaw, tilt_from_quaternion, yaw_from_quaternion
+from pcc_ros.geometry.rotations import (
+    quaternion_from_yaw,
+    quaternion_product,
+    tilt_from_quaternion,
+    yaw_from_quaternion,
+)
+from pcc_ros.geometry.transforms import Transform
 from pcc_ros.msg.stamps import make_header
 from pcc_ros.msg.typestore import ClassResolver, new_message, resolve
 from pcc_ros.types import Boxes
@@ -227,14 +233,25 @@ def valid_detection_mask(msg, limits: DetectionLimits | None = DEFAULT_LIMITS) -
 
 
 def decode_detection_array(
-    msg, skip_invalid: bool = False, limits: DetectionLimits | None = DEFAULT_LIMITS
+    msg, skip_invalid: bool = False, limits: DetectionLimits | None = DEFAULT_LIMITS,
+    transform: Transform | None = None,
 ) -> tuple[Boxes, np.ndarray]:
     """:class:`Boxes` of a ``vision_msgs/Detection3DArray`` and which entries of
-    ``msg.detections`` they came from (one decode for callers that republish the originals)."""
+    ``msg.detections`` they came from (one decode for callers that republish the originals).
+
+    ``transform`` (``scan frame <- detections' frame``, as tf2 gives it) moves every pose
+    once, before the checks: the limits (range, tilt) apply in the frame the boxes are used
+    in, and the yaw is the heading of the moved orientation (no re-encoding, nothing lost).
+    """
     arrays = _detection_arrays(msg)
     if arrays is None:
         return Boxes.empty(), np.zeros(0, dtype=bool)
     center_a, quat_a, size_a, label_a, score_a, track_a = arrays
+    if transform is not None:
+        matrix = transform.matrix()
+        center_a = center_a @ matrix[:3, :3].T + matrix[:3, 3]
+        turn = np.asarray(transform.rotation, dtype=np.float64)
+        quat_a = np.stack(quaternion_product(turn / np.linalg.norm(turn), quat_a.T), axis=1)
     reasons = _invalid_reasons(center_a, size_a, quat_a, score_a, limits)
     keep = _keep_valid(reasons, "detection", skip_invalid, track_a)
     quat_a = quat_a[keep] / np.linalg.norm(quat_a[keep], axis=1, keepdims=True)
@@ -254,6 +271,39 @@ def boxes_from_detection_array(
 ) -> Boxes:
     """:class:`Boxes` from a ``vision_msgs/Detection3DArray`` (see the module docstring)."""
     return decode_detection_array(msg, skip_invalid, limits)[0]
+
+
+def transform_detections(detections: Sequence, transform: Transform, frame: str) -> list:
+    """Copies of ``vision_msgs/Detection3D`` messages (any class flavour) expressed in ``frame``:
+    box and hypothesis poses moved by ``transform`` (``frame <- their frame``), each
+    hypothesis's pose covariance rotated with it; ids, labels, scores and sizes untouched."""
+    import copy
+
+    matrix = transform.matrix()
+    rotation, translation = matrix[:3, :3], matrix[:3, 3]
+    turn = np.asarray(transform.rotation, dtype=np.float64)
+    turn = turn / np.linalg.norm(turn)
+    both = np.zeros((6, 6))
+    both[:3, :3] = both[3:, 3:] = rotation  # position and rotation-vector blocks turn alike
+
+    def move(pose) -> None:
+        p, o = pose.position, pose.orientation
+        x, y, z = rotation @ (p.x, p.y, p.z) + translation
+        p.x, p.y, p.z = float(x), float(y), float(z)
+        o.x, o.y, o.z, o.w = (float(v) for v in quaternion_product(turn, (o.x, o.y, o.z, o.w)))
+
+    out = []
+    for detection in detections:
+        moved = copy.deepcopy(detection)
+        moved.header.frame_id = frame
+        move(moved.bbox.center)
+        for result in moved.results:
+            move(result.pose.pose)
+            covariance = np.asarray(result.pose.covariance, dtype=np.float64).reshape(6, 6)
+            if covariance.any():
+                result.pose.covariance = (both @ covariance @ both.T).reshape(36)
+        out.append(moved)
+    return out
 
 
 def _check_boxes(boxes: Boxes) -> None:

@@ -490,17 +490,21 @@ class Pipeline:
                             outside, float(boxes.score[(boxes.score < 0) | (boxes.score > 1)][0]),
                             self.scores_outside_unit)
 
-    def process_messages(self, cloud_msg, detections_msg) -> tuple[FrameResult, Any]:
+    def process_messages(self, cloud_msg, detections_msg, transform=None) -> tuple[FrameResult, Any]:
         """Decode a PointCloud2 and a Detection3DArray (any message classes) and run the frame.
 
         Invalid detections (NaN pose, non-positive size) are dropped with a warning and
-        counted in ``skipped``; a malformed cloud or array, or detections in another frame
-        than the scan, raise :class:`pcc_ros.errors.MessageError` for the caller to log and skip.
+        counted in ``skipped``; a malformed cloud or array raises
+        :class:`pcc_ros.errors.MessageError` for the caller to log and skip. Detections in
+        another frame than the scan need ``transform`` (a
+        :class:`~pcc_ros.geometry.transforms.Transform`, ``scan frame <- detections' frame``,
+        as the node core looks it up): the decoded boxes are moved once, and the republished
+        detection messages are moved with them; without it such a frame is a ``MessageError``.
         Returns the result and the valid subset of ``detections_msg.detections``, in the
         order of ``result.detections`` (so the outputs republish the original messages).
         """
         from pcc_ros.errors import MessageError
-        from pcc_ros.msg.detections import decode_detection_array
+        from pcc_ros.msg.detections import decode_detection_array, transform_detections
         from pcc_ros.msg.pointcloud2 import read_xyz
         from pcc_ros.msg.stamps import stamp_to_ns
 
@@ -508,16 +512,20 @@ class Pipeline:
             if stamp_to_ns(msg.header.stamp) < 0:
                 raise MessageError(f"{what} stamp {stamp_to_ns(msg.header.stamp)} ns is negative (before 1970)")
         cloud_frame, boxes_frame = str(cloud_msg.header.frame_id), str(detections_msg.header.frame_id)
-        if boxes_frame and boxes_frame != cloud_frame:
+        if boxes_frame and boxes_frame != cloud_frame and transform is None:
             raise MessageError(
                 f"detections are in frame '{boxes_frame}' but the scan is in '{cloud_frame}': "
                 "transform them first (the nodes do it with tf2)"
             )
         tic = time.perf_counter()
         points = read_xyz(cloud_msg)
-        boxes, valid = decode_detection_array(detections_msg, skip_invalid=True, limits=self.config.detection_limits())
+        boxes, valid = decode_detection_array(
+            detections_msg, skip_invalid=True, limits=self.config.detection_limits(), transform=transform
+        )
         self._check_score_range(boxes)
         originals = [d for d, ok in zip(detections_msg.detections, valid) if ok]
+        if transform is not None:
+            originals = transform_detections(originals, transform, cloud_frame)
         decode_ms = _ms(tic)
         result = self.process(
             points, boxes, stamp_to_ns(cloud_msg.header.stamp), str(cloud_msg.header.frame_id)

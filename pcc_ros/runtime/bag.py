@@ -1,42 +1,56 @@
-"""``pcc replay``: run exactly the pipeline the nodes run over a bag, and record what they publish.
+"""``pcc replay``: the node core itself over a bag — what a live node would publish, recorded.
 
-Scans and detections are paired by header stamp with the nodes' own
-:class:`~pcc_ros.runtime.pairing.StampPairer`, each pair goes through
-:meth:`~pcc_ros.pipeline.core.Pipeline.process_messages` and
-:func:`~pcc_ros.pipeline.core.build_outputs`, and the outputs are written on the nodes'
-topics and types. Offline nothing is dropped for lack of time: every pair is processed.
+The bag's messages are published, in bag order and on the bag's clock, into an in-process
+graph (:mod:`pcc_ros.runtime.local`, simulated time) where one
+:class:`~pcc_ros.runtime.node.NodeCore` runs with ``threaded=False`` (offline nothing is
+dropped for lack of time). So replay pairs with the node's own pairer and parameters
+(``sync_slop``, ``queue_size``), publishes the node's topic table
+(:data:`pcc_ros.runtime.node.OUTPUTS`; ``--filter`` records the completion outputs as well),
+and takes the node's one tf path: the bag's ``/tf`` and ``/tf_static`` are loaded into the
+graph's :class:`~pcc_ros.msg.transforms.TransformBuffer`, so detections in another frame
+than the scan are moved as tf2 moves them for a live node.
 
 Failures: the output bag is written next to ``--out`` and renamed into place only after
 every check passed (at least one frame processed); a message that does not deserialize is
 skipped, counted and left out of the output (also of the copied input topics); a frame
-the pipeline refuses is skipped and counted, as a node would.
+the pipeline refuses, or one whose transform is unknown, is skipped and counted, as a node
+would.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from pcc_ros.errors import DataError, PccError
+from pcc_ros.data.bag import (
+    DETECTION3DARRAY,
+    POINTCLOUD2,
+    TFMESSAGE,
+    check_topic_types,
+    decode,
+    iter_messages,
+    open_bag,
+)
+from pcc_ros.data.bag_writer import TF_STATIC_QOS, TF_STATIC_TOPIC, TF_TOPIC, atomic_bag
+from pcc_ros.errors import ConfigError, DataError, PccError
+from pcc_ros.msg.stamps import stamp_to_ns
+from pcc_ros.pipeline.core import NODE_DEFAULTS, Pipeline, PipelineConfig, read_parameters
+from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
+from pcc_ros.runtime.local import LocalGraph, LocalRuntime, resolve_topic
+from pcc_ros.runtime.node import NodeCore, node_parameters, output_names
 
 log = logging.getLogger(__name__)
 
-#: Output topic -> message type, as the nodes publish them.
-COMPLETION_TOPICS = {
-    "/completed": "sensor_msgs/msg/PointCloud2",
-    "/completed_markers": "visualization_msgs/msg/MarkerArray",
-}
-FILTER_TOPICS = {
-    "/detections_filtered": "vision_msgs/msg/Detection3DArray",
-    "/detections_rejected": "vision_msgs/msg/Detection3DArray",
-    "/filter_markers": "visualization_msgs/msg/MarkerArray",
-}
+#: The node names of the shipped parameter files (and of the node replay runs).
+NODE_NAMES = {"completion": "completion_node", "filter": "detection_filter_node"}
 
 
 @dataclass
@@ -58,154 +72,149 @@ class ReplaySummary:
             rows.append({"stage": stage, "p50_ms": float(np.percentile(v, 50)), "p95_ms": float(np.percentile(v, 95))})
         return rows
 
-
-class BagPairs:
-    """``(cloud, detections, bag_time_ns)`` pairs of a bag, paired exactly as the nodes pair them.
-
-    After iteration, :attr:`stats` holds the pairer's counters, with the messages left
-    unmatched at the end of the bag added to the drop counts.
-    """
-
-    def __init__(
-        self, bag: str | Path, points_topic: str = "/points", detections_topic: str = "/detections",
-        slop_s: float = 0.05,
-    ) -> None:
-        from pcc_ros.runtime.pairing import StampPairer, SyncStats
-
-        self.bag, self.points_topic, self.detections_topic = Path(bag), points_topic, detections_topic
-        # Bags are in time order, so a partner arrives within a few messages; a bounded queue
-        # keeps pairing linear even for a bag whose streams never pair.
-        self.pairer: StampPairer = StampPairer(slop_ns=int(slop_s * 1e9), queue_size=100)
-        self.stats: SyncStats = self.pairer.stats
-        self.undecodable = 0
-        self.first_problem = ""
-
-    def __iter__(self) -> Iterator[tuple[object, object, int]]:
-        from pcc_ros.data.bag import DETECTION3DARRAY, POINTCLOUD2, check_topic_types, decode, iter_messages, open_bag
-        from pcc_ros.msg.stamps import stamp_to_ns
-
-        reader = open_bag(self.bag)
-        try:
-            wanted = (self.points_topic, self.detections_topic)
-            expected = {self.points_topic: POINTCLOUD2, self.detections_topic: DETECTION3DARRAY}
-            check_topic_types(reader, self.bag, expected, required=wanted)
-            connections = [c for c in reader.connections if c.topic in wanted]
-            for connection, time_ns, raw in iter_messages(reader, self.bag, connections):
-                try:
-                    msg = decode(reader, raw, connection, time_ns, self.bag)
-                    stamp = stamp_to_ns(msg.header.stamp)
-                except (PccError, AttributeError) as exc:
-                    self.undecodable += 1
-                    self.first_problem = self.first_problem or str(exc)
-                    log.warning("skipped: %s", exc)
-                    continue
-                is_cloud = connection.topic == self.points_topic
-                add = self.pairer.add_left if is_cloud else self.pairer.add_right
-                pair = add(stamp, msg)
-                if pair is not None:
-                    yield pair[0], pair[1], time_ns
-            left, right = self.pairer.pending()
-            self.stats.dropped_clouds += left
-            self.stats.dropped_detections += right
-        finally:
-            reader.close()
+    def add(self, result) -> None:
+        """Count one published frame."""
+        self.frames += 1
+        self.kept += int(result.keep.sum())
+        self.rejected += int((~result.keep).sum())
+        for stage, ms in result.timings_ms.items():
+            self.timings_ms.setdefault(stage, []).append(ms)
 
 
-#: Types of the input topics ``pcc replay`` copies into its output.
+#: Types of the input topics ``pcc replay`` copies into its output (besides the paired two).
 COPIED_TOPICS = {
     "/ground_truth": "vision_msgs/msg/Detection3DArray",
-    "/tf": "tf2_msgs/msg/TFMessage",
-    "/tf_static": "tf2_msgs/msg/TFMessage",
+    TF_TOPIC: TFMESSAGE,
+    TF_STATIC_TOPIC: TFMESSAGE,
 }
 
 
-def copy_topics(bag: str | Path, writer, topics: dict[str, str]) -> int:
-    """Copy the raw records of ``topics`` (name -> expected type) from ``bag`` into an open
-    :class:`BagWriter`; messages that do not deserialize are left out. Returns how many were."""
-    from pcc_ros.data.bag import check_topic_types, decode, iter_messages, open_bag
-    from pcc_ros.data.bag_writer import TF_STATIC_QOS
-
-    reader = open_bag(bag)
-    left_out = 0
-    try:
-        check_topic_types(reader, bag, topics)
-        connections = [c for c in reader.connections if c.topic in topics]
+def load_transforms(graph: LocalGraph, bag: str | Path) -> int:
+    """Every transform of the bag's ``/tf`` and ``/tf_static`` into ``graph.transforms``
+    (undecodable messages skipped and logged); returns how many were loaded."""
+    loaded = 0
+    with open_bag(bag) as reader:
+        check_topic_types(reader, bag, {TF_TOPIC: TFMESSAGE, TF_STATIC_TOPIC: TFMESSAGE})
+        connections = [c for c in reader.connections if c.topic in (TF_TOPIC, TF_STATIC_TOPIC)]
         for connection, time_ns, raw in iter_messages(reader, bag, connections):
             try:
-                decode(reader, raw, connection, time_ns, bag)
-            except PccError:
-                left_out += 1  # BagPairs logs the paired topics; the others are logged here
-                if connection.topic not in ("/points", "/detections"):
-                    log.warning("%s: left out an undecodable %s message at %d", bag, connection.topic, time_ns)
-                continue
-            qos = TF_STATIC_QOS if connection.topic == "/tf_static" else None
-            writer.write_raw(connection.topic, connection.msgtype, raw, time_ns, qos)
-    finally:
-        reader.close()
-    return left_out
+                msg = decode(reader, raw, connection, time_ns, bag)
+                loaded += graph.transforms.add_message(msg, static=connection.topic == TF_STATIC_TOPIC)
+            except (PccError, AttributeError) as exc:
+                log.warning("%s: a %s message left out of the transforms: %s", bag, connection.topic, exc)
+    return loaded
+
+
+def parameters_of(pipeline: Pipeline, slop_s: float | None = None) -> dict[str, Any]:
+    """Node parameters that build ``pipeline``'s config (node-only ones at their defaults)."""
+    values = {**pipeline.config.as_parameters(), **NODE_DEFAULTS}
+    if slop_s is not None:
+        values["sync_slop"] = float(slop_s)
+    return values
 
 
 def replay_bag(
     bag: str | Path,
     out: str | Path | None,
-    pipeline,
+    pipeline: Pipeline | None = None,
     with_filter: bool = True,
     points_topic: str = "/points",
     detections_topic: str = "/detections",
-    slop_s: float = 0.05,
+    slop_s: float | None = None,
     storage: str = "mcap",
     force: bool = False,
     copy_inputs: bool = True,
     on_result: Callable | None = None,
     progress: bool = True,
+    parameters: dict[str, Any] | None = None,
 ) -> ReplaySummary:
-    """Replay ``bag`` through ``pipeline``; write the node outputs to ``out`` (None: don't write).
+    """Run the node core over ``bag``; write what it publishes to ``out`` (None: don't write).
 
-    ``on_result(result, cloud_msg, detections_msg)`` is called for each processed frame
-    (the demo and evaluation use it). A frame the pipeline refuses (malformed message)
-    is logged, counted and skipped, as a node would.
+    The node is built from ``parameters`` (node parameters, e.g. :func:`load_parameters`),
+    else from ``pipeline``'s config (with ``slop_s`` as ``sync_slop``); a given ``pipeline``
+    is used as it is (its loaded backend). ``with_filter`` runs the filter node and records
+    the completion outputs as well. ``on_result(result, cloud_msg, detections_msg)`` is
+    called for each published frame (the demo and evaluation use it). A frame the node
+    refuses (malformed message, unknown transform) is logged, counted and skipped.
     """
-    from contextlib import nullcontext
-
-    from pcc_ros.data.bag_writer import atomic_bag
-    from pcc_ros.pipeline.core import build_outputs
-
+    if parameters is None:
+        if pipeline is None:
+            raise ConfigError("replay_bag needs a pipeline or node parameters")
+        parameters = parameters_of(pipeline, slop_s)
+    elif slop_s is not None:
+        parameters = {**parameters, "sync_slop": float(slop_s)}
+    mode = "filter" if with_filter else "completion"
     summary = ReplaySummary()
-    topics = dict(COMPLETION_TOPICS)
-    if with_filter:
-        topics.update(FILTER_TOPICS)
+    with open_bag(bag) as reader:  # a missing topic is named before anything is written
+        paired = {points_topic: POINTCLOUD2, detections_topic: DETECTION3DARRAY}
+        check_topic_types(reader, bag, {**paired, **COPIED_TOPICS}, required=paired)
+        start_ns = reader.start_time
+
+    graph = LocalGraph(simulated=True)
+    graph.advance_to(start_ns)  # before any timer exists: the clock starts at the bag's first message
+    load_transforms(graph, bag)
+
+    def record(result, cloud, detections) -> None:
+        summary.add(result)
+        if on_result is not None:
+            on_result(result, cloud, detections)
+
+    core = NodeCore(
+        LocalRuntime(graph, NODE_NAMES[mode]), NODE_NAMES[mode], mode, parameters, pipeline=pipeline,
+        threaded=False, remap={"points": points_topic, "detections": detections_topic},
+        outputs=output_names(mode, with_completion=True), on_result=record,
+    )
+    player = LocalRuntime(graph, "pcc_replay")
+    publishers = {
+        points_topic: player.create_publisher(points_topic, POINTCLOUD2, RELIABLE),
+        detections_topic: player.create_publisher(detections_topic, DETECTION3DARRAY, RELIABLE),
+    }
+    now = {"bag_ns": start_ns}
     context = atomic_bag(out, storage=storage, force=force) if out is not None else nullcontext(None)
     with context as writer:
-        if writer is not None and copy_inputs:
-            from pcc_ros.data.bag import DETECTION3DARRAY, POINTCLOUD2
+        if writer is not None:  # the node's outputs, recorded at the bag time of the message that completed the pair
+            def recorder(topic: str, msgtype: str):
+                return lambda msg: writer.write(topic, msgtype, msg, now["bag_ns"])
 
-            copied = {points_topic: POINTCLOUD2, detections_topic: DETECTION3DARRAY, **COPIED_TOPICS}
-            copy_topics(bag, writer, copied)
-        pairs = BagPairs(bag, points_topic, detections_topic, slop_s)
-        for cloud, detections, time_ns in tqdm(pairs, unit="frame", desc="replay", disable=not progress):
-            try:
-                result, originals = pipeline.process_messages(cloud, detections)
-            except PccError as exc:
-                summary.skipped_frames += 1
-                summary.first_skip_reason = summary.first_skip_reason or str(exc)
-                log.warning("frame at %d skipped: %s", time_ns, exc)
-                continue
-            outputs = build_outputs(result, originals, detections_header=cloud.header)
-            if writer is not None:
-                for topic, msgtype in topics.items():
-                    writer.write(topic, msgtype, outputs[topic.lstrip("/")], time_ns)
-            summary.frames += 1
-            summary.kept += int(result.keep.sum())
-            summary.rejected += int((~result.keep).sum())
-            for stage, ms in result.timings_ms.items():
-                summary.timings_ms.setdefault(stage, []).append(ms)
-            if on_result is not None:
-                on_result(result, cloud, detections)
-        summary.unpaired_clouds = pairs.stats.dropped_clouds
-        summary.unpaired_detections = pairs.stats.dropped_detections
-        summary.undecodable = pairs.undecodable
+            for name, msgtype in core.outputs.items():
+                topic = resolve_topic(core.topics[name])
+                player.create_subscription(topic, msgtype, recorder(topic, msgtype), SENSOR_DATA)
+        copied = set(COPIED_TOPICS) if writer is not None and copy_inputs else set()
+        first_problem = ""
+        with open_bag(bag) as reader:
+            wanted = set(publishers) | copied | (set(paired) if writer is not None and copy_inputs else set())
+            connections = [c for c in reader.connections if c.topic in wanted]
+            total = sum(c.msgcount for c in connections)
+            messages = iter_messages(reader, bag, connections)
+            for connection, time_ns, raw in tqdm(messages, total=total, unit="msg", desc="replay",
+                                                 disable=not progress):
+                topic = connection.topic
+                try:
+                    msg = decode(reader, raw, connection, time_ns, bag)
+                    if topic in publishers:
+                        stamp_to_ns(msg.header.stamp)  # a message without a usable stamp never pairs
+                except (PccError, AttributeError) as exc:
+                    if topic in publishers:
+                        summary.undecodable += 1
+                        first_problem = first_problem or str(exc)
+                    log.warning("skipped: %s", exc)
+                    continue
+                if writer is not None and (topic in copied or (copy_inputs and topic in publishers)):
+                    writer.write_raw(topic, connection.msgtype, raw, time_ns,
+                                     TF_STATIC_QOS if topic == TF_STATIC_TOPIC else None)
+                if topic in publishers:
+                    now["bag_ns"] = time_ns
+                    graph.advance_to(time_ns)
+                    publishers[topic].publish(msg)
+        stats = core.pairer.stats
+        left, right = core.pairer.pending()  # never paired before the bag ended
+        summary.unpaired_clouds = stats.dropped_clouds + left
+        summary.unpaired_detections = stats.dropped_detections + right
+        summary.skipped_frames = core.failures
+        summary.first_skip_reason = core.first_failure
+        core.shutdown()
         if summary.frames == 0 and out is not None:  # inside the block: the output is not committed
-            raise DataError(_no_frame_reason(bag, summary, slop_s, pairs.first_problem),
+            raise DataError(_no_frame_reason(bag, summary, float(core.parameters["sync_slop"]), first_problem),
                             hint="nothing was written; `pcc info` shows the bag's topics, counts and damage")
     return summary
 
@@ -213,7 +222,7 @@ def replay_bag(
 def _no_frame_reason(bag, summary: ReplaySummary, slop_s: float, first_problem: str) -> str:
     """Why no frame came out: every frame malformed, every message undecodable, or no pairing."""
     if summary.skipped_frames:
-        return (f"{bag}: all {summary.skipped_frames} paired frames were malformed and skipped "
+        return (f"{bag}: all {summary.skipped_frames} paired frames were skipped (malformed, or no transform) "
                 f"(first: {summary.first_skip_reason})")
     if summary.undecodable:
         return f"{bag}: {summary.undecodable} undecodable messages left nothing to pair (first: {first_problem})"
@@ -241,26 +250,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="replace an existing output bag")
 
 
-def load_config(config: Path | None, with_filter: bool, **overrides):
-    """PipelineConfig from a YAML file (default: the package's shipped config) plus overrides.
+def load_parameters(config: Path | None, with_filter: bool, **overrides) -> dict[str, Any]:
+    """Checked node parameters from a YAML file (default: the package's shipped config) plus overrides.
 
     Every value goes through the nodes' own parameter check, so a file a node would refuse
     (unknown key, wrong type, value out of range) is refused here with the same message.
     """
-    from pcc_ros.errors import ConfigError
-    from pcc_ros.pipeline.core import read_parameters
-    from pcc_ros.runtime.node import node_parameters, pipeline_config
-
+    mode = "filter" if with_filter else "completion"
     if config is None:
-        name = "detection_filter.yaml" if with_filter else "completion.yaml"
-        config = shipped_config_dir() / name
-    values = read_parameters(config)
+        config = shipped_config_dir() / ("detection_filter.yaml" if with_filter else "completion.yaml")
+    values = read_parameters(config, NODE_NAMES[mode]) if _names_node(config, NODE_NAMES[mode]) \
+        else read_parameters(config)
     values.update({k: v for k, v in overrides.items() if v is not None})
     try:
-        values = node_parameters(values)
-        return pipeline_config(values), float(values["sync_slop"])
+        return node_parameters(values)
     except ConfigError as exc:
         raise ConfigError(f"{config}: {exc}") from exc
+
+
+def _names_node(path: Path, node_name: str) -> bool:
+    """True when the parameter file has a block for ``node_name`` (else its first block is read)."""
+    try:
+        read_parameters(path, node_name)
+    except ConfigError:
+        return False
+    return True
+
+
+def load_config(config: Path | None, with_filter: bool, **overrides) -> tuple[PipelineConfig, float]:
+    """The pipeline config and ``sync_slop`` of :func:`load_parameters`."""
+    from pcc_ros.runtime.node import pipeline_config
+
+    values = load_parameters(config, with_filter, **overrides)
+    return pipeline_config(values), float(values["sync_slop"])
 
 
 def shipped_config_dir() -> Path:
@@ -274,27 +296,25 @@ def shipped_config_dir() -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pcc_ros.pipeline.core import Pipeline
     from pcc_ros.tables import print_table
 
-    config, slop = load_config(
+    parameters = load_parameters(
         args.config, args.filter, backend=args.backend, checkpoint=args.checkpoint, device=args.device,
         score_mapping=args.score_mapping,
     )
-    pipeline = Pipeline(config)
     summary = replay_bag(
         args.bag,
         args.out,
-        pipeline,
+        parameters=parameters,
         with_filter=args.filter,
         points_topic=args.points_topic,
         detections_topic=args.detections_topic,
-        slop_s=slop,
         storage=args.storage,
         force=args.force,
         copy_inputs=not args.no_copy_inputs,
     )
-    print_table(f"replay timing per frame ({summary.frames} frames, backend {config.backend})", summary.latency_table())
+    print_table(f"replay timing per frame ({summary.frames} frames, backend {parameters['backend']})",
+                summary.latency_table())
     print(
         f"\nkept {summary.kept}, rejected {summary.rejected} detections; skipped frames {summary.skipped_frames}; "
         f"undecodable messages {summary.undecodable} (left out of the output); "

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
-import numpy as np
+from pcc_ros.geometry.transforms import Transform
 
 
 @dataclass(frozen=True)
@@ -42,19 +42,6 @@ class QoS:
 SENSOR_DATA = QoS(reliable=False, depth=5)
 #: Detections and every output: reliable, keep-last 10, volatile.
 RELIABLE = QoS(reliable=True, depth=10)
-
-
-@dataclass(frozen=True)
-class Transform:
-    """A rigid transform (translation xyz, quaternion xyzw) as tf2 returns it."""
-
-    translation: tuple[float, float, float]
-    rotation: tuple[float, float, float, float]
-
-    def matrix(self) -> np.ndarray:
-        from pcc_ros.geometry.transforms import transform_matrix
-
-        return transform_matrix(self.translation, self.rotation)
 
 
 class Publisher(Protocol):

@@ -9,7 +9,9 @@ reliable reader, as in DDS). Messages are rosbags dataclasses (``classes`` =
 The clock is the wall clock, or — with ``LocalGraph(simulated=True)`` — a simulated one
 that only moves through :meth:`LocalGraph.advance_to` (``use_sim_time`` for offline work:
 timers fire when simulated time passes their deadline, so diagnostics of a replayed
-bag are reproducible). Transforms come from :meth:`LocalGraph.set_transform`.
+bag are reproducible). Transforms come from the graph's
+:class:`~pcc_ros.msg.transforms.TransformBuffer` (:meth:`LocalGraph.set_transform`, or a
+bag's ``/tf`` and ``/tf_static`` loaded by ``pcc replay``), looked up through the tree as tf2 does.
 
 Uses: the node-core tests (a real runtime, no mock of ROS), benchmarks that separate node
 cost from transport cost, and embedding nodes in one process.
@@ -25,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from pcc_ros.msg.transforms import TransformBuffer
 from pcc_ros.msg.typestore import rosbags_classes
 from pcc_ros.runtime.base import QoS, Transform
 
@@ -60,7 +63,7 @@ class LocalGraph:
     _subs: dict[str, list[_Subscription]] = field(default_factory=lambda: defaultdict(list))
     _types: dict[str, str] = field(default_factory=dict)
     _timers: list[_Timer] = field(default_factory=list)
-    _transforms: dict[tuple[str, str], Transform] = field(default_factory=dict)
+    transforms: TransformBuffer = field(default_factory=TransformBuffer)
     _sim_ns: int = 0
     _lock: threading.RLock = field(default_factory=threading.RLock)
 
@@ -83,8 +86,9 @@ class LocalGraph:
             timer.callback()
 
     def set_transform(self, target: str, source: str, transform: Transform) -> None:
-        """Static transform ``source`` -> ``target`` (what ``/tf_static`` would carry)."""
-        self._transforms[(target, source)] = transform
+        """Static transform ``source`` -> ``target``, i.e. the edge ``target <- source`` (what
+        ``/tf_static`` would carry with ``target`` as the parent frame)."""
+        self.transforms.set_transform(target, source, transform)
 
     def _check_type(self, topic: str, msgtype: str) -> None:
         known = self._types.setdefault(topic, msgtype)
@@ -159,7 +163,7 @@ class LocalRuntime:
         return self._logger
 
     def lookup_transform(self, target: str, source: str, stamp_ns: int) -> Transform | None:
-        return self.graph._transforms.get((target, source))
+        return self.graph.transforms.lookup(target, source, stamp_ns)
 
     def shutdown(self) -> None:
         """Stop wall-clock timers (subscriptions stay registered: the graph outlives nodes in tests)."""

@@ -21,12 +21,13 @@ from typing import Any
 import numpy as np
 
 from pcc_ros.errors import ConfigError, PccError
-from pcc_ros.geometry.rotations import quaternion_product
+from pcc_ros.geometry.transforms import transform_boxes
+from pcc_ros.msg.detections import transform_detections
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
 from pcc_ros.msg.typestore import new_message
 from pcc_ros.pipeline.config import BACKEND_PARAMETERS, NODE_DEFAULTS, check_value, parameter_specs, parameter_table
 from pcc_ros.pipeline.core import FrameResult, Pipeline, PipelineConfig, build_outputs
-from pcc_ros.runtime.base import RELIABLE, QoS, Runtime, Transform
+from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
 
 MODES = ("completion", "filter")
@@ -45,6 +46,16 @@ OUTPUTS = {
     },
 }
 DIAGNOSTICS_TOPIC = "/diagnostics"
+
+def output_names(mode: str, with_completion: bool = False) -> list[str]:
+    """The outputs a node of ``mode`` publishes; ``with_completion`` adds the completion
+    outputs to a filter node's (``pcc replay --filter`` records both from one pipeline run)."""
+    if mode not in MODES:
+        raise ConfigError(f"node mode must be one of {MODES}, not {mode!r}")
+    names = list(OUTPUTS[mode])
+    if with_completion and mode != "completion":
+        names = [*OUTPUTS["completion"], *names]
+    return names
 
 
 #: Parameters every ROS node has, or rclpy adds itself; never reported as unknown.
@@ -109,6 +120,11 @@ class NodeCore:
         threaded: process on a worker thread, newest pair wins (a live node); ``False``
             processes each pair in the subscription callback (offline).
         remap: default topic name -> actual name.
+        outputs: the output topics (default names) to publish, default :func:`output_names` of
+            ``mode``; ``pcc replay --filter`` asks for the completion outputs as well.
+        on_result: called as ``on_result(result, cloud, detections)`` after each published
+            frame (``detections`` as received, ``result`` in the scan frame): replay's summary,
+            the demo and evaluation read the frames through it.
     """
 
     def __init__(
@@ -120,9 +136,14 @@ class NodeCore:
         pipeline: Pipeline | None = None,
         threaded: bool = True,
         remap: dict[str, str] | None = None,
+        outputs: list[str] | None = None,
+        on_result=None,
     ) -> None:
-        if mode not in MODES:
-            raise ConfigError(f"node mode must be one of {MODES}, not {mode!r}")
+        names = output_names(mode) if outputs is None else list(outputs)
+        every = {**OUTPUTS["completion"], **OUTPUTS["filter"]}
+        unknown = [n for n in names if n not in every]
+        if unknown:
+            raise ConfigError(f"unknown node output(s) {unknown}; known: {sorted(every)}")
         self.runtime, self.node_name, self.mode = runtime, node_name, mode
         self.log = runtime.get_logger()
         values = node_parameters(parameters)
@@ -136,6 +157,8 @@ class NodeCore:
         self.slot: LatestSlot = LatestSlot(self.pairer.stats)
         self.frames = 0
         self.failures = 0
+        self.first_failure = ""  # the reason of the first skipped frame (replay's summary names it)
+        self.on_result = on_result
         self.no_transform = 0  # frames skipped because a transform was not available
         self.parameter_changes = 0
         self._parameter_lock = threading.Lock()
@@ -155,11 +178,13 @@ class NodeCore:
         self.last_decisions = dict(self.decisions)
         self.latency_ms: list[float] = []
         remap = remap or {}
-        self.topics = {name: remap.get(name, name) for name in [*INPUTS, *OUTPUTS[mode]]}
+        self.topics = {name: remap.get(name, name) for name in [*INPUTS, *names]}
+        #: Default output name -> message type, in publishing order: the one topic table.
+        self.outputs = {name: every[name] for name in names}
 
         self.publishers = {
             name: runtime.create_publisher(self.topics[name], msgtype, qos_of(values, "outputs"))
-            for name, msgtype in OUTPUTS[mode].items()
+            for name, msgtype in self.outputs.items()
         }
         self.pub_diagnostics = runtime.create_publisher(
             DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", RELIABLE
@@ -291,11 +316,15 @@ class NodeCore:
         try:
             self.process(cloud, detections)
         except PccError as exc:  # malformed input: log, skip, keep serving
-            self.failures += 1
+            self._failed(str(exc))
             self.log.warning(f"skipped a frame: {exc}")
         except Exception as exc:  # a running node must not die on one frame
-            self.failures += 1
+            self._failed(f"{type(exc).__name__}: {exc}")
             self.log.error(f"frame failed: {type(exc).__name__}: {exc}")
+
+    def _failed(self, reason: str) -> None:
+        self.failures += 1
+        self.first_failure = self.first_failure or reason
 
     # ------------------------------------------------------------- work
 
@@ -303,11 +332,13 @@ class NodeCore:
         """Run one pair through the pipeline and publish; returns the published messages (None: skipped)."""
         tic = time.perf_counter()
         pipeline, output_frame = self.pipeline, self.output_frame  # one consistent set per frame
-        if detections.header.frame_id and detections.header.frame_id != cloud.header.frame_id:
-            detections = self._detections_in_frame(detections, cloud)
-            if detections is None:
+        transform = None
+        source, target = detections.header.frame_id, cloud.header.frame_id
+        if source and source != target:  # detections in another frame: moved once, after decoding
+            transform = self._lookup(target, source, stamp_to_ns(detections.header.stamp))
+            if transform is None:
                 return None
-        result, originals = pipeline.process_messages(cloud, detections)
+        result, originals = pipeline.process_messages(cloud, detections, transform=transform)
         header = cloud.header
         if output_frame and output_frame != result.frame_id:
             moved = self._to_output_frame(result, originals, output_frame)
@@ -330,6 +361,8 @@ class NodeCore:
         del self.latency_ms[:-200]
         if result.skipped:
             self.log.debug(f"frame {result.stamp_ns}: skipped {result.skipped}")
+        if self.on_result is not None:
+            self.on_result(result, cloud, detections)
         return published
 
     def _lookup(self, target: str, source: str, stamp_ns: int):
@@ -337,7 +370,7 @@ class NodeCore:
         tf = self.runtime.lookup_transform(target, source, stamp_ns)
         if tf is None:
             self.no_transform += 1
-            self.failures += 1
+            self._failed(f"no transform '{source}' -> '{target}'")
             if (source, target) not in self._no_transform_logged:  # once per frame pair, then counted
                 self._no_transform_logged.add((source, target))
                 self.log.warning(
@@ -348,8 +381,6 @@ class NodeCore:
 
     def _to_output_frame(self, result: FrameResult, originals, frame: str):
         """The frame's result and detection messages re-expressed in ``frame``, or None (no transform)."""
-        from pcc_ros.geometry.transforms import transform_boxes
-
         tf = self._lookup(frame, result.frame_id, result.stamp_ns)
         if tf is None:
             return None
@@ -359,19 +390,6 @@ class NodeCore:
             result, frame_id=frame, detections=transform_boxes(result.detections, matrix), completed_points=points
         )
         return moved, transform_detections(originals, tf, frame)
-
-    def _detections_in_frame(self, detections, cloud):
-        """Detections re-expressed in the cloud's frame through the runtime's transforms, or None (logged)."""
-        from pcc_ros.geometry.transforms import transform_boxes
-        from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
-
-        source, target = detections.header.frame_id, cloud.header.frame_id
-        tf = self._lookup(target, source, stamp_to_ns(detections.header.stamp))
-        if tf is None:
-            return None
-        boxes = boxes_from_detection_array(detections, skip_invalid=True)
-        moved = transform_boxes(boxes, tf.matrix())
-        return detection_array_from_boxes(moved, target, stamp_to_ns(cloud.header.stamp), self.runtime.classes)
 
     # ------------------------------------------------------------- diagnostics
 
@@ -436,33 +454,6 @@ class NodeCore:
         self.slot.close()
         if self._worker is not None:
             self._worker.join(timeout=2.0)
-
-
-def transform_detections(detections, transform: Transform, frame: str) -> list:
-    """Copies of ``vision_msgs/Detection3D`` messages (any class flavour) whose box and
-    hypothesis poses are moved by ``transform``; ids, labels, scores and sizes untouched."""
-    import copy
-
-    matrix = transform.matrix()
-    rotation, translation = matrix[:3, :3], matrix[:3, 3]
-    turn = np.asarray(transform.rotation, dtype=np.float64)
-    turn = turn / np.linalg.norm(turn)
-
-    def move(pose) -> None:
-        p, o = pose.position, pose.orientation
-        x, y, z = rotation @ (p.x, p.y, p.z) + translation
-        p.x, p.y, p.z = float(x), float(y), float(z)
-        o.x, o.y, o.z, o.w = (float(v) for v in quaternion_product(turn, (o.x, o.y, o.z, o.w)))
-
-    out = []
-    for detection in detections:
-        moved = copy.deepcopy(detection)
-        moved.header.frame_id = frame
-        move(moved.bbox.center)
-        for result in moved.results:
-            move(result.pose.pose)
-        out.append(moved)
-    return out
 
 
 def _byte_is_bytes(classes) -> bool:
