@@ -45,7 +45,7 @@ from pcc_ros.msg.stamps import stamp_to_ns
 from pcc_ros.pipeline.core import NODE_DEFAULTS, Pipeline, PipelineConfig, read_parameters
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime, resolve_topic
-from pcc_ros.runtime.node import NodeCore, node_parameters, output_names
+from pcc_ros.runtime.node import NodeCore, node_parameters, output_names, pipeline_config
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +143,8 @@ def replay_bag(
         parameters = parameters_of(pipeline, slop_s)
     elif slop_s is not None:
         parameters = {**parameters, "sync_slop": float(slop_s)}
+    if pipeline is None:  # the backend loads first: a bad checkpoint is named before the bag is read
+        pipeline = Pipeline(pipeline_config(node_parameters(parameters)))
     mode = "filter" if with_filter else "completion"
     summary = ReplaySummary()
     with open_bag(bag) as reader:  # a missing topic is named before anything is written
@@ -279,8 +281,6 @@ def _names_node(path: Path, node_name: str) -> bool:
 
 def load_config(config: Path | None, with_filter: bool, **overrides) -> tuple[PipelineConfig, float]:
     """The pipeline config and ``sync_slop`` of :func:`load_parameters`."""
-    from pcc_ros.runtime.node import pipeline_config
-
     values = load_parameters(config, with_filter, **overrides)
     return pipeline_config(values), float(values["sync_slop"])
 
