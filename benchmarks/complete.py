@@ -257,8 +257,8 @@ def run(args: argparse.Namespace) -> dict:
     import torch
 
     from pcc_ros.models import available, default_checkpoint, get_backend, load_completer
-    from pcc_ros.models.base import create
     from pcc_ros.models.layers import reference_path
+    from pcc_ros.models.registry import create
 
     load_before = load_average()
     batches = [int(b) for b in args.batches.split(",") if b.strip()]

@@ -158,7 +158,7 @@ def one_frame(pipeline, cloud, dets) -> tuple[dict[str, float], object]:
 
 
 def make_pipeline(backend: str, checkpoint: str | None):
-    from pcc_ros.models.base import create, default_checkpoint, get_backend, load_completer
+    from pcc_ros.models.registry import create, default_checkpoint, get_backend, load_completer
     from pcc_ros.pipeline.core import Pipeline, PipelineConfig
 
     config = PipelineConfig(backend=backend, device="cpu", min_points=5, max_instances=128)

@@ -542,8 +542,8 @@ def fingerprint(instances: Sequence[EvalInstance], settings: dict[str, Any]) -> 
 def _checkpoint_stamp(name: str, path: Path | None) -> str | None:
     """What identifies the weights a learned backend ran with: the weights' sha256 recorded
     in the checkpoint config (the shipped default's when no path is given)."""
-    from pcc_ros.models.base import default_checkpoint
     from pcc_ros.models.checkpoint import load_config
+    from pcc_ros.models.registry import default_checkpoint
 
     path = path or default_checkpoint(name)
     if path is None:

@@ -1,7 +1,7 @@
 """Train a completion backend self-supervised from partial scans (``pcc train BACKEND``).
 
-The loop is generic. A trainable backend module ``pcc_ros.models.<BACKEND>`` exposes
-``training_recipe(size, **options)`` returning an object with
+The loop is generic. A trainable backend's class (``get_backend(BACKEND)``) owns its recipe:
+``cls.training_recipe(size, **options)`` returns an object with
 
 * ``build_completer(device) -> TorchCompleter`` (the network is its ``.model``),
 * ``training_data(cache, split, min_points)`` -> the backend's own training set, built
@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib
 import json
 import logging
 import os
@@ -119,16 +118,13 @@ def parse_options(items: list[str]) -> dict[str, Any]:
 
 
 def load_recipe(backend: str, size: str, options: dict[str, Any]) -> Any:
-    """The backend module's training recipe; :class:`ConfigError` if it has none or options are wrong."""
-    from pcc_ros.models.base import get_backend
+    """The backend's training recipe (``cls.training_recipe``); :class:`ConfigError` if it has none or
+    the options are wrong."""
+    from pcc_ros.models.registry import get_backend
 
     cls = get_backend(backend)  # ConfigError for unknown names
-    module = importlib.import_module(cls.__module__)
-    factory = getattr(module, "training_recipe", None)
-    if factory is None:
-        raise ConfigError(f"backend {backend!r} cannot be trained with `pcc train` (no training_recipe)")
     try:
-        return factory(size=size, **options)
+        return cls.training_recipe(size=size, **options)  # the base class refuses backends without weights
     except TypeError as exc:
         raise ConfigError(f"backend {backend!r}: invalid training options {sorted(options)}: {exc}") from exc
 

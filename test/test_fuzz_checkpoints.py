@@ -20,8 +20,8 @@ from safetensors.torch import load_file, save_file
 
 from pcc_ros.data.instances import ExtractConfig, extract_instances
 from pcc_ros.errors import CheckpointError
-from pcc_ros.models.base import load_completer
 from pcc_ros.models.checkpoint import load_checkpoint, sha256_file
+from pcc_ros.models.registry import load_completer
 
 SHIPPED = Path(__file__).resolve().parents[1] / "pcc_ros" / "weights" / "pointpncnet"
 

@@ -294,3 +294,30 @@ def test_scene_context_neighbours():
     # Contexts pass through complete() unchanged for backends that ignore them.
     out = create("input").complete(clouds, contexts)
     assert len(out) == 5
+
+
+def test_backend_table_names_every_registered_class_and_owns_recipes_and_presets():
+    """The explicit table and the package's @register decorators agree (read with ast), and a
+    backend's recipe and presets are found on its class."""
+    import ast
+    from pathlib import Path
+
+    from pcc_ros.models import BACKENDS, get_backend
+    from pcc_ros.train import load_recipe
+
+    package = Path(__file__).resolve().parents[1] / "pcc_ros" / "models"
+    decorated = {}
+    for path in package.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                for deco in node.decorator_list:
+                    if isinstance(deco, ast.Call) and getattr(deco.func, "id", "") == "register":
+                        decorated[deco.args[0].value] = f"pcc_ros.models.{path.stem}:{node.name}"
+    assert decorated == BACKENDS
+    for name in BACKENDS:
+        assert get_backend(name).name == name
+    pointpncnet = get_backend("pointpncnet")
+    assert set(pointpncnet.presets) >= {"default", "paper"} and get_backend("mirror").presets == {}
+    recipe = load_recipe("pointpncnet", "default", {"inpainting": False})
+    assert type(recipe).__name__ == "PointPnCNetRecipe" and recipe.describe()["drop_prob"] == 0.0
+    assert type(load_recipe("aml_ml", "default", {})) is type(get_backend("aml").training_recipe())

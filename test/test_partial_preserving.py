@@ -10,14 +10,8 @@ import numpy as np
 import pytest
 
 from pcc_ros.errors import CheckpointError, ConfigError, DataError
-from pcc_ros.models.base import (
-    ASPECT_SCALE_RANGE,
-    Completer,
-    aspect_scales,
-    create,
-    load_completer,
-    median_box_aspect,
-)
+from pcc_ros.models.base import ASPECT_SCALE_RANGE, Completer, aspect_scales, median_box_aspect
+from pcc_ros.models.registry import create, load_completer
 from pcc_ros.types import Boxes
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pcc_ros.errors import ConfigError, MessageError
-from pcc_ros.models.base import load_completer
+from pcc_ros.models.registry import load_completer
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.pipeline.core import (

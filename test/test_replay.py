@@ -10,7 +10,7 @@ from pcc_ros.cli.main import main
 from pcc_ros.data.bag_writer import write_bag
 from pcc_ros.data.kitti import KittiTracking
 from pcc_ros.errors import DataError
-from pcc_ros.models.base import load_completer
+from pcc_ros.models.registry import load_completer
 from pcc_ros.msg.pointcloud2 import read_xyz
 from pcc_ros.msg.typestore import get_typestore
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig

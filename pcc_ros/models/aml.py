@@ -56,7 +56,8 @@ from pcc_ros.geometry.voxels import (
     reference_grids,
     to_box_frame,
 )
-from pcc_ros.models.base import SceneContext, TorchCompleter, cloud_seed, register
+from pcc_ros.models.base import SceneContext, TorchCompleter, cloud_seed
+from pcc_ros.models.registry import register
 
 log = logging.getLogger(__name__)
 
@@ -390,6 +391,14 @@ class AML(TorchCompleter):
     @classmethod
     def default_config(cls) -> dict[str, Any]:
         return {"size": "default", **PRESETS["default"]}
+
+    #: The named sizes of the network.
+    presets = PRESETS
+
+    @classmethod
+    def training_recipe(cls, size: str = "default", **options: Any) -> AMLRecipe:
+        """What ``pcc train aml`` runs (:func:`training_recipe` of this module)."""
+        return training_recipe(size=size, **options)
 
     def build_model(self) -> AMLNet:
         if len(self.config["channels"]) != 3:

@@ -1,10 +1,10 @@
-"""The completion interface every backend implements, and the registry that names them.
+"""The completion interface every backend implements (the table that names them is
+:mod:`pcc_ros.models.registry`).
 
-A backend is one module in ``pcc_ros/models/`` that defines a :class:`Completer`
-subclass decorated with ``@register("name")``. Nothing else needs editing: the registry
-imports ``pcc_ros.models.<name>`` on first use of ``name`` and scans the package for
-:func:`available` (the PoinTr pattern, without its central import list). Callers only ever
-see :func:`create` / :func:`load_completer` and :meth:`Completer.complete`.
+A backend is a :class:`Completer` subclass decorated with ``@register("name")`` and named
+in :data:`pcc_ros.models.registry.BACKENDS`. Callers only ever see
+:func:`~pcc_ros.models.registry.create` / :func:`~pcc_ros.models.registry.load_completer`
+and :meth:`Completer.complete`.
 
 Contract of :meth:`Completer.complete` (why it is shaped like this):
 
@@ -24,11 +24,9 @@ Contract of :meth:`Completer.complete` (why it is shaped like this):
 from __future__ import annotations
 
 import abc
-import importlib
 import itertools
 import logging
-import pkgutil
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -43,132 +41,6 @@ if TYPE_CHECKING:  # torch is imported lazily so baselines and metrics stay torc
     import torch
 
 log = logging.getLogger(__name__)
-
-#: Modules of ``pcc_ros.models`` that are infrastructure, never backends.
-_NOT_BACKENDS = frozenset({"base", "checkpoint", "baselines", "layers"})
-
-_REGISTRY: dict[str, type[Completer]] = {}
-
-
-# --------------------------------------------------------------------------- registry
-
-
-def register(name: str) -> Callable[[type[Completer]], type[Completer]]:
-    """Class decorator: make a :class:`Completer` subclass selectable as ``name``."""
-    if not name or not name.replace("_", "").isalnum() or name != name.lower():
-        raise ValueError(f"backend name {name!r} must be lower-case alphanumeric/underscore")
-
-    def decorate(cls: type[Completer]) -> type[Completer]:
-        if not (isinstance(cls, type) and issubclass(cls, Completer)):
-            raise TypeError(f"@register({name!r}) needs a Completer subclass, got {cls!r}")
-        previous = _REGISTRY.get(name)
-        if previous is not None and previous.__qualname__ != cls.__qualname__:
-            raise ValueError(f"backend {name!r} already registered by {previous.__module__}.{previous.__qualname__}")
-        cls.name = name
-        _REGISTRY[name] = cls
-        return cls
-
-    return decorate
-
-
-def _import_backend_module(module: str) -> None:
-    try:
-        importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name != module:  # the module exists but one of its imports is missing: a real error
-            raise
-
-
-def get_backend(name: str) -> type[Completer]:
-    """The class registered as ``name``; imports ``pcc_ros.models.<name>`` on demand."""
-    if name not in _REGISTRY:
-        _import_backend_module("pcc_ros.models.baselines")
-        if name not in _REGISTRY and name.replace("_", "").isalnum():
-            _import_backend_module(f"pcc_ros.models.{name}")
-        if name not in _REGISTRY and "_" in name and name.replace("_", "").isalnum():
-            # a variant registered beside its backend (aml_ml in pcc_ros/models/aml.py)
-            _import_backend_module(f"pcc_ros.models.{name.split('_')[0]}")
-    if name not in _REGISTRY:
-        raise ConfigError(f"unknown completion backend {name!r}; available: {', '.join(available())}")
-    return _REGISTRY[name]
-
-
-def available() -> list[str]:
-    """Names of every backend in the package (imports each backend module once).
-
-    A backend module that fails to import is logged and left out, so one broken backend
-    never hides the others.
-    """
-    import pcc_ros.models as package
-
-    _import_backend_module("pcc_ros.models.baselines")
-    for info in pkgutil.iter_modules(package.__path__):
-        if info.name in _NOT_BACKENDS or info.name.startswith("_"):
-            continue
-        try:
-            _import_backend_module(f"pcc_ros.models.{info.name}")
-        except Exception as exc:  # report and keep the others usable
-            log.warning("completion backend module pcc_ros.models.%s failed to import: %s", info.name, exc)
-    return sorted(_REGISTRY)
-
-
-def create(name: str, **config: Any) -> Completer:
-    """A fresh backend ``name`` built from ``config`` (untrained weights for learned ones)."""
-    cls = get_backend(name)
-    try:
-        return cls(**config)
-    except TypeError as exc:  # an option the constructor does not take
-        raise ConfigError(f"backend {name!r}: bad options {sorted(config)}: {exc}") from exc
-
-
-def default_checkpoint(name: str) -> Path | None:
-    """The shipped default checkpoint ``<name>.safetensors`` of a backend, or ``None``.
-
-    Looked up in the package's ``weights/`` directory (package data of a pip/editable
-    install) and then in ``<prefix>/share/pcc_ros/weights`` (a colcon install).
-    """
-    from pcc_ros.paths import share_dirs
-
-    cls = _REGISTRY.get(name)
-    name = (cls.weights_name if cls is not None else None) or name  # a variant sharing another's weights
-    folders = [Path(__file__).resolve().parents[1] / "weights", *(d / "weights" for d in share_dirs())]
-    candidates = [folder / f"{name}.safetensors" for folder in folders]
-    for path in candidates:
-        if path.is_file():
-            return path
-    return None
-
-
-def load_completer(
-    name: str, checkpoint: str | Path | None = None, device: str = "auto", **overrides: Any
-) -> Completer:
-    """A ready-to-run backend: learned ones with weights loaded, in eval mode.
-
-    Args:
-        name: registered backend name.
-        checkpoint: ``.safetensors`` path (its ``.json`` beside it); ``None`` uses the
-            shipped default for learned backends.
-        device: ``auto`` | ``cpu`` | ``cuda`` | ``cuda:N``.
-        overrides: run-time options that do not change the weights (``batch_size``, ...).
-
-    Raises:
-        CheckpointError: no checkpoint found, or the file is corrupt / mismatched.
-        ConfigError: unknown backend, unavailable device, checkpoint given to a baseline.
-    """
-    cls = get_backend(name)
-    if not cls.learned:
-        if checkpoint is not None:
-            raise ConfigError(f"backend {name!r} has no weights; do not pass a checkpoint")
-        return create(name, device=device, **overrides)
-    if checkpoint is None:
-        checkpoint = default_checkpoint(name)
-        if checkpoint is None:
-            raise CheckpointError(
-                f"no default checkpoint shipped for backend {name!r} (pcc_ros/weights/{name}.safetensors); "
-                f"train one with `pcc train {name}` and pass it as the checkpoint"
-            )
-    return cls.from_checkpoint(checkpoint, device=device, **overrides)
-
 
 # --------------------------------------------------------------------------- devices
 
@@ -373,6 +245,13 @@ class Completer(abc.ABC):
     #: Reference box aspect ``(width / length, height / length)`` the network works in, or ``None``
     #: (see :func:`aspect_scales`); learned backends take it from their checkpoint.
     box_aspect: tuple[float, float] | None = None
+    #: Named model sizes (``pcc train --config NAME``, ``size=NAME``): name -> hyper-parameters.
+    presets: ClassVar[dict[str, dict[str, Any]]] = {}
+
+    @classmethod
+    def training_recipe(cls, size: str = "default", **options: Any) -> Any:
+        """What ``pcc train`` runs for this backend (learned backends override it); others refuse."""
+        raise ConfigError(f"backend {cls.name!r} cannot be trained with `pcc train` (no training_recipe)")
 
     def __init__(self, device: str = "auto", **config: Any) -> None:
         self.device_request = device

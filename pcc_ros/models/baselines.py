@@ -23,7 +23,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.models.base import Completer, SceneContext, cloud_seed, register
+from pcc_ros.models.base import Completer, SceneContext, cloud_seed
+from pcc_ros.models.registry import register
 
 
 @register("input")

@@ -43,7 +43,6 @@ from pcc_ros.models.base import (
     TorchCompleter,
     aspect_scales,
     median_box_aspect,
-    register,
     resample_cloud,
 )
 from pcc_ros.models.layers import (
@@ -54,6 +53,7 @@ from pcc_ros.models.layers import (
     using_reference_path,
     weighted_chamfer,
 )
+from pcc_ros.models.registry import register
 
 log = logging.getLogger(__name__)
 
@@ -252,6 +252,14 @@ class PointPnCNet(TorchCompleter):
     def default_config(cls) -> dict[str, Any]:
         return {"size": "default", **PRESETS["default"]}
 
+    #: The named sizes of the network.
+    presets = PRESETS
+
+    @classmethod
+    def training_recipe(cls, size: str = "default", **options: Any) -> PointPnCNetRecipe:
+        """What ``pcc train pointpncnet`` runs (:func:`training_recipe` of this module)."""
+        return training_recipe(size=size, **options)
+
     def build_model(self) -> PointPnCNetNet:
         cap = int(self.config["max_input_points"])
         if cap < 1:
@@ -434,8 +442,8 @@ def inpainting_loss(
 class PointPnCNetRecipe:
     """What ``pcc train pointpncnet`` needs: model, loss and batch sampler.
 
-    ``pcc_ros.train`` is generic: it asks a backend module for ``training_recipe(...)``
-    and drives any object with this shape.
+    ``pcc_ros.train`` is generic: it asks the backend class for ``training_recipe(...)``
+    (:meth:`PointPnCNet.training_recipe`) and drives any object with this shape.
     """
 
     def __init__(self, size: str, inpainting: bool = True, options: TrainOptions | None = None) -> None:

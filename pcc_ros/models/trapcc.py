@@ -54,8 +54,9 @@ import torch
 from torch import nn
 
 from pcc_ros.errors import ConfigError, DataError
-from pcc_ros.models.base import SceneContext, TorchCompleter, register, resample_cloud
+from pcc_ros.models.base import SceneContext, TorchCompleter, resample_cloud
 from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, masked_mean, weighted_chamfer
+from pcc_ros.models.registry import register
 
 log = logging.getLogger(__name__)
 
@@ -287,6 +288,14 @@ class TraPCC(TorchCompleter):
     @classmethod
     def default_config(cls) -> dict[str, Any]:
         return {"size": "default", **PRESETS["default"]}
+
+    #: The named sizes of the network.
+    presets = PRESETS
+
+    @classmethod
+    def training_recipe(cls, size: str = "default", **options: Any) -> TraPCCRecipe:
+        """What ``pcc train trapcc`` runs (:func:`training_recipe` of this module)."""
+        return training_recipe(size=size, **options)
 
     def build_model(self) -> TraPCCNet:
         if self.config["scene_graph"] not in SCENE_GRAPHS:

@@ -310,7 +310,7 @@ class Pipeline:
     def __init__(self, config: PipelineConfig, completer=None) -> None:
         self.config = config
         if completer is None:
-            from pcc_ros.models.base import load_completer
+            from pcc_ros.models.registry import load_completer
 
             completer = load_completer(
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
@@ -321,13 +321,13 @@ class Pipeline:
         self.filter_completer = None
         name = config.filter.filter_backend
         if config.filter.uses_mismatch and name and name != config.backend:
-            from pcc_ros.models.base import load_completer
+            from pcc_ros.models.registry import load_completer
 
             self.filter_completer = load_completer(name, None, device=config.device)
 
     @staticmethod
     def _runtime_options(config: PipelineConfig) -> dict[str, Any]:
-        from pcc_ros.models.base import get_backend
+        from pcc_ros.models.registry import get_backend
 
         if not get_backend(config.backend).learned:
             return {}  # baselines have no network: batch size, precision and workers do not apply
