@@ -51,6 +51,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 @dataclass
+class DemoConfig:
+    """What ``pcc demo`` is told (the CLI builds it from its flags, same names)."""
+
+    out: Path = Path("out/demo")
+    backend: str | None = None  # None: the shipped config's
+    checkpoint: str | None = None  # None: the backend's shipped weights
+    frames: int = 10  # SynthCars frames
+    seed: int = 2026  # SynthCars seed
+    kitti: Path | None = None  # None: ../shared/data/kitti_tracking
+    baselines: str = "input,mirror"
+
+
+@dataclass
 class FilterTally:
     """Detections by truth (true / false) and decision (kept / rejected)."""
 
@@ -120,20 +133,20 @@ def completion_scores(result, frame, shapes_root: Path) -> list[dict[str, float]
     return rows
 
 
-def run_synthcars(args: argparse.Namespace, config) -> dict:
+def run_synthcars(opts: DemoConfig, config) -> dict:
     from pcc_ros.data.synthetic import generate
 
-    root = args.out / "synthcars"
-    meta = generate(root, sequences=2, frames=args.frames, seed=args.seed, test_fraction=0.5, progress=True)
+    root = opts.out / "synthcars"
+    meta = generate(root, sequences=2, frames=opts.frames, seed=opts.seed, test_fraction=0.5, progress=True)
     sequence = meta["splits"]["test"][0]
-    bag = args.out / "synthcars_test.mcap"
+    bag = opts.out / "synthcars_test.mcap"
     frames = KittiTracking(root / "training").frames(sequence, detections_dir=root / "detections" / "synthetic")
     write_bag(frames, bag, force=True, progress=False)
     frames_by_stamp = {f.stamp_ns: f for f in read_frames(bag)}
     for f in frames_by_stamp.values():
         f.sequence = sequence
 
-    backends = [config.backend] + [b for b in args.baselines.split(",") if b and b != config.backend]
+    backends = [config.backend] + [b for b in opts.baselines.split(",") if b and b != config.backend]
     completion_rows, tally, pictures = [], FilterTally(), {}
     for backend in backends:
         scores: list[dict[str, float]] = []
@@ -146,7 +159,7 @@ def run_synthcars(args: argparse.Namespace, config) -> dict:
                 pictures[result.stamp_ns] = (result, frame)
 
         cfg = config if primary else replace(config, backend=backend, checkpoint="")
-        _replay(bag, args.out / "synthcars_replayed" if primary else None, cfg, frames_by_stamp, on_frame)
+        _replay(bag, opts.out / "synthcars_replayed" if primary else None, cfg, frames_by_stamp, on_frame)
         mean = {m: float(np.mean([s[m] for s in scores])) for m in COMPLETION_METRICS}
         completion_rows.append({"backend": backend, "instances": len(scores), **mean})
 
@@ -154,18 +167,18 @@ def run_synthcars(args: argparse.Namespace, config) -> dict:
     filter_summary = tally.summary()
     print_table("SynthCars detection filter (true = BEV IoU >= 0.3 with a labelled car)", [filter_summary])
     stamp = sorted(pictures)[len(pictures) // 2]
-    png = args.out / "synthcars_demo.png"
+    png = opts.out / "synthcars_demo.png"
     plot_frame(*pictures[stamp], png, f"SynthCars test sequence {sequence}, backend {config.backend}")
     return {"completion": completion_rows, "filter": filter_summary, "png": str(png)}
 
 
-def run_kitti(args: argparse.Namespace, config) -> dict | None:
-    root = args.kitti or shared_data_dir() / "kitti_tracking"
+def run_kitti(opts: DemoConfig, config) -> dict | None:
+    root = opts.kitti or shared_data_dir() / "kitti_tracking"
     if not (root / "training").is_dir():
         log.info("no KITTI tracking data at %s: real-data part skipped", root)
         return None
     detections = root / "detections" / "pointrcnn"
-    bag = args.out / "kitti_0000.mcap"
+    bag = opts.out / "kitti_0000.mcap"
     frames = KittiTracking(root / "training").frames("0000", detections_dir=detections if detections.is_dir() else None)
     write_bag(frames, bag, force=True, progress=False)
     frames_by_stamp = {f.stamp_ns: f for f in read_frames(bag)}
@@ -178,11 +191,11 @@ def run_kitti(args: argparse.Namespace, config) -> dict | None:
         tally.add(truly_vehicle(result.detections, frame.ground_truth), ~result.keep)
         pictures[result.stamp_ns] = (result, frame)
 
-    _replay(bag, args.out / "kitti_replayed", config, frames_by_stamp, on_frame)
+    _replay(bag, opts.out / "kitti_replayed", config, frames_by_stamp, on_frame)
     summary = tally.summary()
     print_table("Real KITTI 0000, PointRCNN detections: filter decisions (true = IoU >= 0.3 with a label)", [summary])
     stamp = sorted(pictures)[len(pictures) // 2]
-    png = args.out / "kitti_demo.png"
+    png = opts.out / "kitti_demo.png"
     plot_frame(*pictures[stamp], png, f"KITTI tracking 0000 (real scan), backend {config.backend}")
     return {"filter": summary, "png": str(png)}
 
@@ -232,11 +245,19 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def demo(opts: DemoConfig) -> dict:
+    """The demo as ``opts`` says: SynthCars, then real KITTI; writes ``demo.json`` and the PNGs, returns the results."""
+    opts.out.mkdir(parents=True, exist_ok=True)
+    config, _ = load_config(None, with_filter=True, backend=opts.backend, checkpoint=opts.checkpoint)
+    results = {"backend": config.backend, "synthcars": run_synthcars(opts, config), "kitti": run_kitti(opts, config)}
+    files.write_json(opts.out / "demo.json", results, indent=2)
+    return results
+
+
 def run(args: argparse.Namespace) -> int:
-    args.out.mkdir(parents=True, exist_ok=True)
-    config, _ = load_config(None, with_filter=True, backend=args.backend, checkpoint=args.checkpoint)
-    results = {"backend": config.backend, "synthcars": run_synthcars(args, config), "kitti": run_kitti(args, config)}
-    files.write_json(args.out / "demo.json", results, indent=2)
-    print(f"\nwrote {args.out / 'demo.json'} and the PNGs: "
+    opts = DemoConfig(out=args.out, backend=args.backend, checkpoint=args.checkpoint, frames=args.frames,
+                      seed=args.seed, kitti=args.kitti, baselines=args.baselines)
+    results = demo(opts)
+    print(f"\nwrote {opts.out / 'demo.json'} and the PNGs: "
           + ", ".join(r["png"] for r in (results["synthcars"], results["kitti"]) if r))
     return 0

@@ -40,7 +40,7 @@ import json
 import logging
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -100,6 +100,51 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--select-by", choices=("cd_l1", "fscore", "coverage"), default="cd_l1",
         help="validation metric that picks the shipped weights (best, not last; default cd_l1)",
+    )
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run is told; ``pcc train`` builds it from its flags (same names)."""
+
+    backend: str
+    data: Path
+    out: Path
+    size: str = "default"  # the backend's preset (--config)
+    iterations: int = 4000
+    batch_size: int = 32
+    lr: float | None = None  # None: the recipe's default_lr (5e-4)
+    lr_decay_every: int | None = None  # None: a quarter of the iterations
+    seed: int = 0
+    resume: bool = False
+    inpainting: bool = True
+    stage: str | None = None
+    options: dict[str, Any] = field(default_factory=dict)  # backend training options (parsed --option)
+    device: str = "auto"
+    split: str = "train"
+    val_split: str = "val"
+    val_instances: int = 200
+    val_every: int = 500
+    checkpoint_every: int = 250
+    min_points: int = 10
+    threads: int | None = None
+    progress: bool = True
+    real_data: list[Path] = field(default_factory=list)
+    real_share: float = 0.1
+    init: Path | None = None
+    select_by: str = "cd_l1"
+
+
+def train_config(args: argparse.Namespace) -> TrainConfig:
+    """The :class:`TrainConfig` of ``pcc train``'s parsed flags."""
+    return TrainConfig(
+        backend=args.backend, data=args.data, out=args.out, size=args.config, iterations=args.iterations,
+        batch_size=args.batch_size, lr=args.lr, lr_decay_every=args.lr_decay_every, seed=args.seed,
+        resume=args.resume, inpainting=not args.no_inpainting, stage=args.stage, options=parse_options(args.option),
+        device=args.device, split=args.split, val_split=args.val_split, val_instances=args.val_instances,
+        val_every=args.val_every, checkpoint_every=args.checkpoint_every, min_points=args.min_points,
+        threads=args.threads, progress=not args.no_progress, real_data=list(args.real_data),
+        real_share=args.real_share, init=args.init, select_by=args.select_by,
     )
 
 
@@ -352,60 +397,60 @@ def plot_log(records: list[dict[str, Any]], path: Path, title: str, best: dict[s
 # --------------------------------------------------------------------------- the loop
 
 
-def train(args: argparse.Namespace) -> dict[str, Any]:
-    """Run training as configured by ``args``; returns the final summary (also in the checkpoint)."""
+def train(opts: TrainConfig) -> dict[str, Any]:
+    """Run training as ``opts`` says; returns the final summary (also in the checkpoint)."""
     import torch
     from tqdm import tqdm
 
     from pcc_ros.data.instances import InstanceCache
     from pcc_ros.models.base import select_device
 
-    if args.iterations < 1 or args.batch_size < 1:
+    if opts.iterations < 1 or opts.batch_size < 1:
         raise ConfigError("--iterations and --batch-size must be >= 1")
     dist = Distributed.from_env()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    options = parse_options(args.option)
-    if args.no_inpainting:
+    if opts.threads:
+        torch.set_num_threads(opts.threads)
+    options = dict(opts.options)
+    if not opts.inpainting:
         options["inpainting"] = False
-    if args.stage:
-        options["stage"] = args.stage
-    recipe = load_recipe(args.backend, args.config, options)
+    if opts.stage:
+        options["stage"] = opts.stage
+    recipe = load_recipe(opts.backend, opts.size, options)
 
     if dist.world > 1:
-        backend = "nccl" if torch.cuda.is_available() and args.device != "cpu" else "gloo"
+        backend = "nccl" if torch.cuda.is_available() and opts.device != "cpu" else "gloo"
         torch.distributed.init_process_group(backend=backend)
         device = f"cuda:{dist.local_rank}" if backend == "nccl" else "cpu"
         if backend == "nccl":
             torch.cuda.set_device(dist.local_rank)
     else:
-        device = str(select_device(args.device))
+        device = str(select_device(opts.device))
 
-    torch.manual_seed(args.seed)  # same initial weights on every rank
+    torch.manual_seed(opts.seed)  # same initial weights on every rank
     completer = recipe.build_completer(device)
     init = None
-    if args.init is not None and not args.resume:
-        init = init_weights(completer, args.init)
+    if opts.init is not None and not opts.resume:
+        init = init_weights(completer, opts.init)
     net = completer.model
     net.train()
-    lr = args.lr if args.lr is not None else float(getattr(recipe, "default_lr", 5e-4))
-    decay_every = args.lr_decay_every or max(1, args.iterations // 4)
+    lr = opts.lr if opts.lr is not None else float(getattr(recipe, "default_lr", 5e-4))
+    decay_every = opts.lr_decay_every or max(1, opts.iterations // 4)
     optimizer = torch.optim.Adam(net.parameters(), lr=lr)
 
-    out: Path = args.out
+    out: Path = opts.out
     out.mkdir(parents=True, exist_ok=True)
     run_settings = {
-        "backend": args.backend, "config": args.config, "iterations": args.iterations,
-        "batch_size": args.batch_size, "world_size": dist.world, "lr": lr, "lr_decay_every": decay_every,
-        "seed": args.seed, "data": str(args.data), "split": args.split, "recipe": recipe.describe(),
+        "backend": opts.backend, "config": opts.size, "iterations": opts.iterations,
+        "batch_size": opts.batch_size, "world_size": dist.world, "lr": lr, "lr_decay_every": decay_every,
+        "seed": opts.seed, "data": str(opts.data), "split": opts.split, "recipe": recipe.describe(),
     }
     if init is not None:
         run_settings["init"] = init
     step = 0
     log_path = out / "log.jsonl"
-    if args.resume:
-        step, previous = load_resume(out, args.backend, completer, optimizer)
-        if args.lr_decay_every is None and "lr_decay_every" in previous:
+    if opts.resume:
+        step, previous = load_resume(out, opts.backend, completer, optimizer)
+        if opts.lr_decay_every is None and "lr_decay_every" in previous:
             # a longer --iterations must not move the decay steps of the run being continued
             decay_every = int(previous["lr_decay_every"])
             run_settings["lr_decay_every"] = decay_every
@@ -422,33 +467,33 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     # Optional recipe hooks (a backend whose data is not an instance cache, its own validation,
     # a step between loading and training, a last transformation of saved weights):
     # open_data, validation_data, validate, prepare, finalize, summary, select_metric.
-    cache = getattr(recipe, "open_data", InstanceCache.load)(args.data)
+    cache = getattr(recipe, "open_data", InstanceCache.load)(opts.data)
     if hasattr(cache, "check_finite"):
         cache.check_finite()
     t0 = time.perf_counter()
     own_mixing = hasattr(recipe, "use_real_data")  # TraPCC mixes real caches itself (into its GT pools too)
-    if own_mixing and args.real_data:
-        recipe.use_real_data([str(p) for p in args.real_data], args.real_share)
-    data = recipe.training_data(cache, args.split, min_points=args.min_points)
+    if own_mixing and opts.real_data:
+        recipe.use_real_data([str(p) for p in opts.real_data], opts.real_share)
+    data = recipe.training_data(cache, opts.split, min_points=opts.min_points)
     total_views = sum(len(g) for g in data) if isinstance(data, list) else len(data)
     log.info("training data: %d groups, %d observations of split %r (%.1f s)",
-             len(data), total_views, args.split, time.perf_counter() - t0)
+             len(data), total_views, opts.split, time.perf_counter() - t0)
     if own_mixing:
         mixing = recipe.data_summary()
     else:
-        if args.real_data and not isinstance(data, list):
-            raise ConfigError(f"backend {args.backend!r} takes real-scan caches through its own option, "
+        if opts.real_data and not isinstance(data, list):
+            raise ConfigError(f"backend {opts.backend!r} takes real-scan caches through its own option, "
                               "not --real-data")
-        data, mixing = mix_real(recipe, data, args.real_data, args.real_share, args.min_points)
+        data, mixing = mix_real(recipe, data, opts.real_data, opts.real_share, opts.min_points)
     run_settings["real_data"] = mixing
     val_instances, reference = ([], "none")
     if dist.main:
         find_val = getattr(recipe, "validation_data", validation_instances)
-        val_instances, reference = find_val(cache, args.val_split, args.val_instances, args.seed)
-        log.info("validation: %d instances of split %r against %s", len(val_instances), args.val_split, reference)
+        val_instances, reference = find_val(cache, opts.val_split, opts.val_instances, opts.seed)
+        log.info("validation: %d instances of split %r against %s", len(val_instances), opts.val_split, reference)
     validate_fn = getattr(recipe, "validate", validate)
     if hasattr(recipe, "prepare"):
-        recipe.prepare(completer, data, val_instances, args.seed)
+        recipe.prepare(completer, data, val_instances, opts.seed)
 
     train_net: Any = net
     if dist.world > 1:
@@ -457,8 +502,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         train_net = DistributedDataParallel(net, device_ids=[dist.local_rank] if device.startswith("cuda") else None)
 
     # Batch sampling is a pure function of (seed, rank, start step): a resumed run is reproducible.
-    rng = np.random.default_rng([args.seed, dist.rank, step])
-    batches = recipe.batches(data, args.batch_size, completer.config, rng)
+    rng = np.random.default_rng([opts.seed, dist.rank, step])
+    batches = recipe.batches(data, opts.batch_size, completer.config, rng)
     records: list[dict[str, Any]] = []
     if log_path.exists():
         records = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
@@ -470,7 +515,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         with log_path.open("a") as f:
             f.write(json.dumps(record) + "\n")
 
-    select_key = getattr(recipe, "select_metric", None) or f"val_{args.select_by}"
+    select_key = getattr(recipe, "select_metric", None) or f"val_{opts.select_by}"
     lower_better = select_key != "val_fscore"
 
     def best_record() -> dict[str, Any] | None:
@@ -501,40 +546,40 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     def on_validation(record: dict[str, Any]) -> None:
         """Keep the best weights by validation (the shipped checkpoint is the best, not the last)."""
         if dist.main and best_record() is record:
-            save_weights(args.backend, record)
+            save_weights(opts.backend, record)
             log.info("step %d: best %s so far (%.5f): wrote %s", step, select_key, record[select_key],
-                     out / f"{args.backend}.safetensors")
+                     out / f"{opts.backend}.safetensors")
 
     def checkpoint(final: bool = False) -> None:
         if not dist.main:
             return
-        save_resume(out, args.backend, completer, optimizer, step, run_settings)
+        save_resume(out, opts.backend, completer, optimizer, step, run_settings)
         if final:
             last_val = next((r for r in reversed(records) if select_key in r), {})
-            save_weights(f"{args.backend}_last", last_val)
+            save_weights(f"{opts.backend}_last", last_val)
             if best_record() is None:  # no validation data: the last weights are all there is
-                save_weights(args.backend, last_val)
-        plot_log(records, out / "training.png", f"pcc train {args.backend} ({args.config})",
+                save_weights(opts.backend, last_val)
+        plot_log(records, out / "training.png", f"pcc train {opts.backend} ({opts.size})",
                  best=best_record(), select_key=select_key)
 
     started = time.perf_counter()
     if dist.main and init is not None and step == 0 and val_instances:
-        emit({"step": 0, **validate_fn(completer, val_instances, args.seed)})  # where the initial weights stand
-        log.info("initial weights %s: %s", args.init, records[-1])
+        emit({"step": 0, **validate_fn(completer, val_instances, opts.seed)})  # where the initial weights stand
+        log.info("initial weights %s: %s", opts.init, records[-1])
     window: dict[str, list[float]] = {}
     window_start = time.perf_counter()
     log_every = 50
-    bar = tqdm(total=args.iterations, initial=step, desc=f"train {args.backend}", unit="step",
-               disable=args.no_progress or not dist.main)
+    bar = tqdm(total=opts.iterations, initial=step, desc=f"train {opts.backend}", unit="step",
+               disable=not opts.progress or not dist.main)
     try:
-        while step < args.iterations:
+        while step < opts.iterations:
             current_lr = learning_rate(lr, step, decay_every)
             for group in optimizer.param_groups:
                 group["lr"] = current_lr
             batch = next(batches).to(completer.device)
             loss, stats = recipe.loss(train_net, batch)
             if not torch.isfinite(loss):
-                raise TrainingError(f"{args.data}: non-finite training loss at step {step} ({stats})",
+                raise TrainingError(f"{opts.data}: non-finite training loss at step {step} ({stats})",
                                     hint="the run diverged: lower --lr or resume from the last checkpoint")
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -544,17 +589,17 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
                 window.setdefault(k, []).append(v)
             bar.update(1)
             bar.set_postfix(loss=f"{stats['loss']:.4f}")
-            if step % log_every == 0 or step == args.iterations:
+            if step % log_every == 0 or step == opts.iterations:
                 seconds = time.perf_counter() - window_start
                 n = len(next(iter(window.values())))
                 emit({"step": step, "lr": current_lr, **{k: float(np.mean(v)) for k, v in window.items()},
-                      "instances_per_s": round(n * args.batch_size * dist.world / max(seconds, 1e-9), 1)})
+                      "instances_per_s": round(n * opts.batch_size * dist.world / max(seconds, 1e-9), 1)})
                 window, window_start = {}, time.perf_counter()
-            if dist.main and args.val_every and step % args.val_every == 0 and step < args.iterations:
-                emit({"step": step, **validate_fn(completer, val_instances, args.seed)})
+            if dist.main and opts.val_every and step % opts.val_every == 0 and step < opts.iterations:
+                emit({"step": step, **validate_fn(completer, val_instances, opts.seed)})
                 log.info("step %d: %s", step, records[-1])
                 on_validation(records[-1])
-            if step % args.checkpoint_every == 0 and step < args.iterations:
+            if step % opts.checkpoint_every == 0 and step < opts.iterations:
                 checkpoint()
     except KeyboardInterrupt:
         log.warning("interrupted at step %d: writing the resume checkpoint", step)
@@ -563,7 +608,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     finally:
         bar.close()
     if dist.main:
-        emit({"step": step, **validate_fn(completer, val_instances, args.seed)})
+        emit({"step": step, **validate_fn(completer, val_instances, opts.seed)})
         log.info("final validation: %s", records[-1])
         on_validation(records[-1])
     checkpoint(final=True)
@@ -574,7 +619,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     with contextlib.suppress(BrokenPipeError):
-        summary = train(args)
+        summary = train(train_config(args))
         if Distributed.from_env().main:
             print(json.dumps(summary, indent=2))
     return 0

@@ -295,24 +295,50 @@ def shipped_config_dir() -> Path:
     return folder
 
 
+@dataclass
+class ReplayConfig:
+    """What ``pcc replay`` is told (the CLI builds it from its flags)."""
+
+    bag: Path
+    out: Path | None
+    config: Path | None = None  # node parameter YAML; None: the shipped one of the mode
+    backend: str | None = None  # overrides of the file's values (None: the file's)
+    checkpoint: str | None = None
+    device: str | None = None
+    score_mapping: str | None = None
+    with_filter: bool = False  # the filter node (its outputs and the completion outputs)
+    points_topic: str = "/points"
+    detections_topic: str = "/detections"
+    storage: str = "mcap"
+    copy_inputs: bool = True
+    force: bool = False
+    progress: bool = True
+
+
+def replay(opts: ReplayConfig, on_result: Callable | None = None) -> tuple[ReplaySummary, dict[str, Any]]:
+    """Replay as ``opts`` says; returns the summary and the node parameters it ran with."""
+    parameters = load_parameters(
+        opts.config, opts.with_filter, backend=opts.backend, checkpoint=opts.checkpoint, device=opts.device,
+        score_mapping=opts.score_mapping,
+    )
+    summary = replay_bag(
+        opts.bag, opts.out, parameters=parameters, with_filter=opts.with_filter, points_topic=opts.points_topic,
+        detections_topic=opts.detections_topic, storage=opts.storage, force=opts.force,
+        copy_inputs=opts.copy_inputs, on_result=on_result, progress=opts.progress,
+    )
+    return summary, parameters
+
+
 def run(args: argparse.Namespace) -> int:
     from pcc_ros.tables import print_table
 
-    parameters = load_parameters(
-        args.config, args.filter, backend=args.backend, checkpoint=args.checkpoint, device=args.device,
-        score_mapping=args.score_mapping,
+    opts = ReplayConfig(
+        bag=args.bag, out=args.out, config=args.config, backend=args.backend, checkpoint=args.checkpoint,
+        device=args.device, score_mapping=args.score_mapping, with_filter=args.filter,
+        points_topic=args.points_topic, detections_topic=args.detections_topic, storage=args.storage,
+        copy_inputs=not args.no_copy_inputs, force=args.force,
     )
-    summary = replay_bag(
-        args.bag,
-        args.out,
-        parameters=parameters,
-        with_filter=args.filter,
-        points_topic=args.points_topic,
-        detections_topic=args.detections_topic,
-        storage=args.storage,
-        force=args.force,
-        copy_inputs=not args.no_copy_inputs,
-    )
+    summary, parameters = replay(opts)
     print_table(f"replay timing per frame ({summary.frames} frames, backend {parameters['backend']})",
                 summary.latency_table())
     print(
@@ -320,5 +346,5 @@ def run(args: argparse.Namespace) -> int:
         f"undecodable messages {summary.undecodable} (left out of the output); "
         f"unpaired clouds {summary.unpaired_clouds}, unpaired detection arrays {summary.unpaired_detections}"
     )
-    print(f"wrote {args.out}")
+    print(f"wrote {opts.out}")
     return 0
