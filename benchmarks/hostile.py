@@ -59,8 +59,8 @@ def _peak_mb(fn) -> float:
 def run(args: argparse.Namespace) -> dict:
     import dataclasses
 
+    from pcc_ros.pipeline.config import load_config
     from pcc_ros.pipeline.core import Pipeline
-    from pcc_ros.runtime.bag import load_config
 
     cloud, dets, n_points = _frame(args.data, args.boxes, args.size, args.seed)
     config, _ = load_config(None, with_filter=True)

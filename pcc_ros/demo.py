@@ -27,9 +27,10 @@ from pcc_ros.geometry.boxes import box_corners, iou_bev
 from pcc_ros.geometry.canonical import to_canonical
 from pcc_ros.metrics.suite import instance_metrics, to_metres
 from pcc_ros.paths import shared_data_dir
+from pcc_ros.pipeline.config import load_config
 from pcc_ros.pipeline.core import Pipeline
 from pcc_ros.pipeline.filter import FilterConfig
-from pcc_ros.runtime.bag import load_config, replay_bag
+from pcc_ros.runtime.bag import replay_bag
 from pcc_ros.tables import print_table
 from pcc_ros.types import Boxes, class_mask
 

@@ -129,7 +129,7 @@ def test_shipped_filter_rejects_the_empty_box_and_keeps_the_car():
 def test_defaults_are_the_shipped_calibration():
     from pathlib import Path
 
-    from pcc_ros.pipeline.core import read_parameters
+    from pcc_ros.pipeline.config import read_parameters
 
     shipped = read_parameters(Path(__file__).resolve().parents[1] / "config" / "detection_filter.yaml")
     defaults = FilterConfig()

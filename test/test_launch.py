@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from pcc_ros.pipeline.core import read_parameters
+from pcc_ros.pipeline.config import read_parameters
 from pcc_ros.runtime.node import OUTPUTS, node_parameters
 
 REPO = Path(__file__).resolve().parents[1]

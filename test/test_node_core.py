@@ -506,7 +506,7 @@ def test_rclpy_node_declares_rules_refuses_unknown_keys_and_swaps_at_run_time():
 
 
 def test_replay_config_is_checked_as_the_nodes_check_it(tmp_path):
-    from pcc_ros.runtime.bag import load_config
+    from pcc_ros.pipeline.config import load_config
 
     typo = tmp_path / "typo.yaml"
     typo.write_text("/**/detection_filter_node:\n  ros__parameters:\n    backendd: mirror\n")

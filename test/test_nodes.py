@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 from conftest import require_rclpy
 
-from pcc_ros.pipeline.config import parameter_table
-from pcc_ros.pipeline.core import read_parameters
+from pcc_ros.pipeline.config import parameter_table, read_parameters
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -9,13 +9,13 @@ from pcc_ros.errors import ConfigError, MessageError
 from pcc_ros.models.registry import load_completer
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
+from pcc_ros.pipeline.config import read_parameters
 from pcc_ros.pipeline.core import (
     RAW_POINT_INSTANCE,
     SOURCE_OBSERVED,
     Pipeline,
     PipelineConfig,
     build_outputs,
-    read_parameters,
 )
 from pcc_ros.pipeline.filter import FilterConfig
 from pcc_ros.types import Boxes

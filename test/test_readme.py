@@ -136,7 +136,7 @@ def test_ros2_lines_name_real_executables_files_arguments_and_parameters():
 
 
 def test_shipped_config_score_mapping_is_what_the_readme_says():
-    from pcc_ros.pipeline.core import read_parameters
+    from pcc_ros.pipeline.config import read_parameters
 
     shipped = read_parameters(REPO / "config" / "detection_filter.yaml", "detection_filter_node")["score_mapping"]
     assert shipped == "identity" and "`score_mapping:\nidentity`" in README

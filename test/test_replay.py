@@ -13,8 +13,9 @@ from pcc_ros.errors import DataError
 from pcc_ros.models.registry import load_completer
 from pcc_ros.msg.pointcloud2 import read_xyz
 from pcc_ros.msg.typestore import get_typestore
+from pcc_ros.pipeline.config import load_config
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig
-from pcc_ros.runtime.bag import load_config, replay_bag
+from pcc_ros.runtime.bag import replay_bag
 
 
 @pytest.fixture(scope="module", params=["mcap", "sqlite3"])

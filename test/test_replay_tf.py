@@ -24,7 +24,7 @@ from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_f
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.msg.transforms import TransformBuffer
 from pcc_ros.msg.typestore import get_typestore
-from pcc_ros.runtime.bag import load_parameters
+from pcc_ros.pipeline.config import load_parameters
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
 from pcc_ros.runtime.node import NodeCore, output_names

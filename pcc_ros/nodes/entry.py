@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-from pcc_ros.pipeline.config import parameter_table
+from pcc_ros.pipeline.config import CONFIG_FILES, parameter_table
 
 TOPICS = {
     "completion": "in: points (PointCloud2), detections (vision_msgs/Detection3DArray)\n"
@@ -19,7 +19,6 @@ TOPICS = {
 }
 #: ROS 2 message packages the nodes use (vision_msgs is not among the PyPI wheels: it is built at set-up).
 MESSAGE_PACKAGES = ("sensor_msgs", "vision_msgs", "visualization_msgs", "diagnostic_msgs")
-CONFIG = {"completion": "completion.yaml", "filter": "detection_filter.yaml"}
 
 
 def usage(node_name: str, mode: str) -> str:
@@ -28,7 +27,7 @@ def usage(node_name: str, mode: str) -> str:
         "",
         f"  {TOPICS[mode]}",
         "",
-        f"  shipped parameters: share/pcc_ros/config/{CONFIG[mode]} (source tree: config/{CONFIG[mode]})",
+        f"  shipped parameters: share/pcc_ros/config/{CONFIG_FILES[mode]} (source tree: config/{CONFIG_FILES[mode]})",
         "  parameters (name, type, default; docs/nodes.md has the rules and descriptions):",
     ]
     for spec in parameter_table():

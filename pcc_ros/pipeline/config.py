@@ -1,22 +1,209 @@
-"""The nodes' parameter table, without ROS: the one place a parameter is defined.
+"""Configuration, in one place: the parameter table, the YAML files, and the pipeline's config.
 
 One :class:`ParameterSpec` per ROS parameter — name, type, default, description, range or
 choices, and whether it can change while the node runs. Names and defaults come from
-:class:`pcc_ros.pipeline.core.PipelineConfig`, :class:`pcc_ros.pipeline.filter.FilterConfig` and
-:data:`pcc_ros.pipeline.core.NODE_DEFAULTS`, so the nodes, ``pcc replay`` and the YAML files
-cannot disagree. The rclpy host turns each spec into a ``ParameterDescriptor`` (ranges
-included); :func:`check_value` applies the same rules in the node core, so every runtime
-refuses a bad value with the same reason.
+:class:`PipelineConfig`, :class:`pcc_ros.pipeline.filter.FilterConfig` and
+:data:`NODE_DEFAULTS`, so the nodes, ``pcc replay`` and the YAML files cannot disagree.
+
+Every way in goes through this table:
+
+* the rclpy host declares one ROS parameter per spec (a ``ParameterDescriptor`` with the
+  range) and hands the values to the node core, which checks them with
+  :func:`node_parameters` (:func:`check_value` per parameter) — as it checks run-time changes;
+* a YAML parameter file (``config/*.yaml``, ``--config``) is read by :func:`load_file`
+  (ROS 2's block rules) and checked by the same :func:`node_parameters`;
+  :func:`load_parameters` adds the shipped file of a node and command-line overrides
+  (``pcc replay``, ``pcc demo``, the benchmarks);
+* :func:`pipeline_config` turns checked node parameters into the :class:`PipelineConfig`
+  the pipeline runs with; :meth:`PipelineConfig.from_dict` / ``from_yaml`` are the same path.
+
+So every runtime refuses a bad value with the same reason, and a typo in a file is an error
+naming it, never ignored.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
+from pathlib import Path
 from typing import Any
 
-from pcc_ros.errors import ConfigError
-from pcc_ros.pipeline.core import NODE_DEFAULTS, PipelineConfig
+import numpy as np
+import yaml
+
+from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.paths import resource_dir
 from pcc_ros.pipeline.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
+from pcc_ros.types import class_mask
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Every knob of the pipeline; the nodes declare one ROS parameter per field."""
+
+    backend: str = "pointpncnet"
+    checkpoint: str = ""
+    device: str = "auto"
+    classes: tuple[str, ...] = ("Car", "Van")
+    min_points: int = 20
+    max_instances: int = 32
+    box_margin: float = 0.1
+    ground_margin: float = 0.05
+    half_precision: bool = False
+    batch_size: int = 32
+    workers: int = 2
+    #: folding decoders decode this many times finer per grid axis (TorchCompleter.decode_density)
+    decode_density: int = 2
+    include_input_points: bool = False
+    #: partial-preserving output: each completed car's own crop points (source observed) with
+    #: its generated points, i.e. ``Completer.complete(..., keep_input=True)`` in the sensor frame
+    include_observed_points: bool = True
+    class_thresholds: str = ""
+    max_box_size: float = 40.0
+    max_box_range: float = 1000.0
+    max_box_tilt: float = 0.35
+    max_crop_work: int = 100_000
+    filter: FilterConfig = field(default_factory=FilterConfig)
+
+    def __post_init__(self) -> None:
+        if self.min_points < 1 or self.max_instances < 1 or self.batch_size < 1 or self.workers < 1:
+            raise ConfigError("min_points, max_instances, batch_size and workers must be >= 1")
+        if self.max_crop_work < 1:
+            raise ConfigError("max_crop_work must be >= 1")
+        if self.box_margin < 0 or self.ground_margin < 0:
+            raise ConfigError("box_margin and ground_margin must be >= 0")
+        if not 1 <= self.decode_density <= 8:
+            raise ConfigError(f"decode_density must be in 1..8, got {self.decode_density}")
+        object.__setattr__(self, "classes", tuple(str(c) for c in self.classes))
+        parse_class_thresholds(self.class_thresholds)  # refuse a malformed map now, not per frame
+        self.detection_limits()  # refuse implausible box bounds now, not per frame
+
+    def detection_limits(self):
+        """The :class:`~pcc_ros.msg.detections.DetectionLimits` incoming detections must meet."""
+        from pcc_ros.msg.detections import DetectionLimits
+
+        return DetectionLimits(
+            max_size=float(self.max_box_size), max_range=float(self.max_box_range),
+            max_tilt=float(self.max_box_tilt),
+        )
+
+    def detection_thresholds(self, labels: np.ndarray) -> np.ndarray:
+        """The filter's detection-score threshold of each label: ``class_thresholds`` where it
+        names the class (same matching as ``classes``), ``filter.detection_threshold`` elsewhere."""
+        out = np.full(len(labels), float(self.filter.detection_threshold))
+        for name, threshold in parse_class_thresholds(self.class_thresholds).items():
+            out[class_mask(labels, (name,))] = threshold
+        return out
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> PipelineConfig:
+        """From flat node parameters (a YAML ``ros__parameters`` block, ROS parameters, CLI),
+        checked against the parameter table (:func:`node_parameters`: an unknown key, a wrong
+        type or a value out of range is a :class:`ConfigError` naming the parameter)."""
+        return pipeline_config(node_parameters(values))
+
+    @classmethod
+    def from_yaml(cls, path: str | Path, node_name: str | None = None) -> PipelineConfig:
+        """Read a ``config/*.yaml`` node parameter file (the first node when no name is given)."""
+        return pipeline_config(load_file(path, node_name))
+
+    def as_parameters(self) -> dict[str, Any]:
+        """Flat parameter dict (the inverse of :meth:`from_dict`)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "filter"}
+        out["classes"] = list(self.classes)
+        out.update({f.name: getattr(self.filter, f.name) for f in fields(FilterConfig)})
+        return out
+
+
+#: Parameters the node shells read themselves (pairing, queues), with their defaults; the
+#: pipeline ignores them (and ROS's own ``use_sim_time``).
+NODE_DEFAULTS: dict[str, Any] = {
+    "sync_slop": 0.05,
+    "queue_size": 2,
+    "output_frame": "",
+    "qos.points.reliability": "best_effort",
+    "qos.points.depth": 5,
+    "qos.detections.reliability": "reliable",
+    "qos.detections.depth": 10,
+    "qos.outputs.reliability": "reliable",
+    "qos.outputs.depth": 10,
+    "scan_timeout": 1.0,
+}
+#: Parameters every ROS node has, or rclpy adds itself; never reported as unknown.
+ROS_OWN_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
+def parse_class_thresholds(text: str) -> dict[str, float]:
+    """``"Van:0.6, Pedestrian:0.3"`` -> ``{"Van": 0.6, "Pedestrian": 0.3}`` (``""`` -> ``{}``).
+
+    Raises :class:`ConfigError` naming the bad entry (no colon, not a number, outside [0, 1]).
+    """
+    out: dict[str, float] = {}
+    for entry in str(text).split(","):
+        entry = entry.strip()
+        if not entry:
+            continue
+        name, sep, value = entry.rpartition(":")
+        try:
+            threshold = float(value)
+        except ValueError:
+            threshold = float("nan")
+        if not sep or not name.strip() or not 0.0 <= threshold <= 1.0:
+            raise ConfigError(
+                f"class_thresholds: bad entry {entry!r}; expected 'Class:threshold' with a threshold in [0, 1], "
+                "entries separated by commas (e.g. 'Van:0.6, Truck:0.7')"
+            )
+        out[name.strip()] = threshold
+    return out
+
+
+def read_parameters(path: str | Path, node_name: str | None = None) -> dict[str, Any]:
+    """The ``ros__parameters`` of one node in a ROS 2 YAML parameter file, dotted names.
+
+    As ROS 2 does, the blocks that apply to the node are merged, most specific last:
+    ``/**``, ``/**/<node>``, ``<node>`` and ``/<node>`` (the shipped files use
+    ``/**/<node>`` so they apply under any namespace). Without ``node_name`` the first
+    block of the file is read.
+    """
+    path = Path(path)
+    try:
+        document = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read parameter file ({exc})") from exc
+    if not isinstance(document, dict) or not document:
+        raise ConfigError(f"{path}: no node in parameter file")
+    if node_name is None:
+        keys = [next(iter(document))]
+        node_name = keys[0].rsplit("/", 1)[-1]
+    else:
+        keys = ["/**", f"/**/{node_name}", node_name, f"/{node_name}"]
+    values: dict[str, Any] = {}
+    found = False
+    for key in keys:
+        block = document.get(key)
+        if block is None:
+            continue
+        if not isinstance(block, dict) or not isinstance(block.get("ros__parameters"), dict):
+            raise ConfigError(f"{path}: '{key}' has no 'ros__parameters:' map")
+        values.update(flatten_parameters(block["ros__parameters"]))
+        found = True
+    if not found:
+        raise ConfigError(f"{path}: no '/**/{node_name}: ros__parameters:' block (nodes: {sorted(document)})")
+    return values
+
+
+def flatten_parameters(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested YAML maps -> dotted ROS parameter names (``qos: {points: {depth: 5}}`` ->
+    ``qos.points.depth``), as ROS 2 reads a parameter file."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten_parameters(value, f"{name}."))
+        else:
+            out[name] = value
+    return out
+
+
 
 RELIABILITIES = ("reliable", "best_effort")
 
@@ -231,3 +418,102 @@ def markdown_table() -> str:
         rule = spec.constraints or "-"
         rows.append(f"| `{spec.name}` | {spec.type_name} | `{shown}` | {rule} | {live} | {spec.description} |")
     return "\n".join(rows)
+
+
+# --------------------------------------------------------------------------- checking and loading
+
+
+def unknown_parameters(names) -> list[str]:
+    """The names in ``names`` that are not parameters of the nodes (ROS's own and rclpy's
+    ``qos_overrides.*`` excluded), sorted: a YAML typo must be reported, not ignored."""
+    table = {spec.name for spec in parameter_table()}
+    return sorted(
+        n for n in set(names) - table if n not in ROS_OWN_PARAMETERS and not n.startswith("qos_overrides.")
+    )
+
+
+def node_parameters(values: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Every node parameter: the defaults of the parameter table overridden by ``values``.
+
+    Each value is checked against its spec (type, range, choices); an unknown name or a bad
+    value raises :class:`ConfigError` naming the parameter.
+    """
+    specs = parameter_specs()
+    values = {k: v for k, v in (values or {}).items() if k not in ROS_OWN_PARAMETERS}
+    unknown = unknown_parameters(values)
+    if unknown:
+        raise ConfigError(f"unknown node parameter(s): {unknown} (see docs/nodes.md for the list)")
+    merged = {name: spec.default for name, spec in specs.items()}
+    merged.update({name: check_value(specs[name], value) for name, value in values.items()})
+    merged["classes"] = list(merged["classes"])
+    return merged
+
+
+def pipeline_config(values: dict[str, Any]) -> PipelineConfig:
+    """The :class:`PipelineConfig` of checked node parameters (:func:`node_parameters`); the
+    node-only ones (pairing, QoS, frames) are left to the node."""
+    own = {f.name for f in fields(PipelineConfig)} - {"filter"}
+    filter_keys = {f.name for f in fields(FilterConfig)}
+    main = {k: v for k, v in values.items() if k in own}
+    if "classes" in main:
+        main["classes"] = tuple(main["classes"])
+    return PipelineConfig(**main, filter=FilterConfig(**{k: v for k, v in values.items() if k in filter_keys}))
+
+
+#: The node of each mode and its shipped parameter file (``config/`` of a checkout,
+#: ``share/pcc_ros/config`` of an install).
+NODE_NAMES = {"completion": "completion_node", "filter": "detection_filter_node"}
+CONFIG_FILES = {"completion": "completion.yaml", "filter": "detection_filter.yaml"}
+
+
+def shipped_config_dir() -> Path:
+    """``config/`` of a source checkout, or ``share/pcc_ros/config`` of an install."""
+    folder = resource_dir("config")
+    if folder is None:
+        raise DataError("cannot find the shipped config/ folder; pass --config")
+    return folder
+
+
+def load_file(path: str | Path, node_name: str | None = None) -> dict[str, Any]:
+    """The checked node parameters of a YAML parameter file (its ``node_name`` blocks when the
+    file has them, else its first block); errors name the file."""
+    path = Path(path)
+    values = read_parameters(path, node_name if node_name and _has_block(path, node_name) else None)
+    try:
+        return node_parameters(values)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
+
+
+def load_parameters(config: str | Path | None = None, with_filter: bool = False, **overrides) -> dict[str, Any]:
+    """Checked node parameters of the completion node (``with_filter``: the filter node) from a
+    YAML file (default: the shipped one) plus ``overrides`` (``None`` values ignored).
+
+    Every value goes through the nodes' own parameter check, so a file a node would refuse
+    (unknown key, wrong type, value out of range) is refused here with the same message.
+    """
+    mode = "filter" if with_filter else "completion"
+    path = Path(config) if config is not None else shipped_config_dir() / CONFIG_FILES[mode]
+    values = load_file(path, NODE_NAMES[mode])
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return node_parameters(values)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
+
+
+def load_config(
+    config: str | Path | None = None, with_filter: bool = False, **overrides
+) -> tuple[PipelineConfig, float]:
+    """The :class:`PipelineConfig` and ``sync_slop`` of :func:`load_parameters`."""
+    values = load_parameters(config, with_filter, **overrides)
+    return pipeline_config(values), float(values["sync_slop"])
+
+
+def _has_block(path: Path, node_name: str) -> bool:
+    try:
+        document = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return True  # read_parameters names the problem
+    keys = ("/**", f"/**/{node_name}", node_name, f"/{node_name}")
+    return not isinstance(document, dict) or any(k in document for k in keys)

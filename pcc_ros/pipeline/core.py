@@ -14,17 +14,15 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields, replace
-from pathlib import Path
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from pcc_ros.errors import ConfigError
 from pcc_ros.geometry.boxes import crop_canonical
 from pcc_ros.geometry.canonical import from_canonical
+from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.filter import (
-    FilterConfig,
     false_probability,
     filter_terms,
     map_scores,
@@ -61,186 +59,6 @@ INSTANCE_PALETTE = np.array(
     dtype=np.uint32,
 )
 RAW_POINT_RGB = (160, 160, 160)
-
-
-@dataclass(frozen=True)
-class PipelineConfig:
-    """Every knob of the pipeline; the nodes declare one ROS parameter per field."""
-
-    backend: str = "pointpncnet"
-    checkpoint: str = ""
-    device: str = "auto"
-    classes: tuple[str, ...] = ("Car", "Van")
-    min_points: int = 20
-    max_instances: int = 32
-    box_margin: float = 0.1
-    ground_margin: float = 0.05
-    half_precision: bool = False
-    batch_size: int = 32
-    workers: int = 2
-    #: folding decoders decode this many times finer per grid axis (TorchCompleter.decode_density)
-    decode_density: int = 2
-    include_input_points: bool = False
-    #: partial-preserving output: each completed car's own crop points (source observed) with
-    #: its generated points, i.e. ``Completer.complete(..., keep_input=True)`` in the sensor frame
-    include_observed_points: bool = True
-    class_thresholds: str = ""
-    max_box_size: float = 40.0
-    max_box_range: float = 1000.0
-    max_box_tilt: float = 0.35
-    max_crop_work: int = 100_000
-    filter: FilterConfig = field(default_factory=FilterConfig)
-
-    def __post_init__(self) -> None:
-        if self.min_points < 1 or self.max_instances < 1 or self.batch_size < 1 or self.workers < 1:
-            raise ConfigError("min_points, max_instances, batch_size and workers must be >= 1")
-        if not 1 <= self.decode_density <= 8:
-            raise ConfigError(f"decode_density must be in 1..8, got {self.decode_density}")
-        if self.max_crop_work < 1:
-            raise ConfigError("max_crop_work must be >= 1")
-        if self.box_margin < 0 or self.ground_margin < 0:
-            raise ConfigError("box_margin and ground_margin must be >= 0")
-        object.__setattr__(self, "classes", tuple(str(c) for c in self.classes))
-        parse_class_thresholds(self.class_thresholds)  # refuse a malformed map now, not per frame
-        self.detection_limits()  # refuse implausible box bounds now, not per frame
-
-    def detection_limits(self):
-        """The :class:`~pcc_ros.msg.detections.DetectionLimits` incoming detections must meet."""
-        from pcc_ros.msg.detections import DetectionLimits
-
-        return DetectionLimits(
-            max_size=float(self.max_box_size), max_range=float(self.max_box_range),
-            max_tilt=float(self.max_box_tilt),
-        )
-
-    def detection_thresholds(self, labels: np.ndarray) -> np.ndarray:
-        """The filter's detection-score threshold of each label: ``class_thresholds`` where it
-        names the class (same matching as ``classes``), ``filter.detection_threshold`` elsewhere."""
-        out = np.full(len(labels), float(self.filter.detection_threshold))
-        for name, threshold in parse_class_thresholds(self.class_thresholds).items():
-            out[class_mask(labels, (name,))] = threshold
-        return out
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> PipelineConfig:
-        """From flat parameters (a YAML ``ros__parameters`` block, ROS parameters, CLI).
-
-        Unknown keys that are not runtime options of a node raise :class:`ConfigError`, so
-        a typo in a YAML file is reported instead of silently ignored.
-        """
-        own = {f.name for f in fields(cls)} - {"filter"}
-        filter_keys = {f.name for f in fields(FilterConfig)}
-        unknown = set(values) - own - filter_keys - NODE_ONLY_PARAMETERS
-        if unknown:
-            raise ConfigError(f"unknown pipeline parameter(s): {sorted(unknown)}")
-        main = {k: v for k, v in values.items() if k in own}
-        if "classes" in main:
-            main["classes"] = tuple(main["classes"])
-        filt = FilterConfig(**{k: v for k, v in values.items() if k in filter_keys})
-        return cls(**main, filter=filt)
-
-    @classmethod
-    def from_yaml(cls, path: str | Path, node_name: str | None = None) -> PipelineConfig:
-        """Read a ``config/*.yaml`` node parameter file (the first node when no name is given)."""
-        return cls.from_dict(read_parameters(path, node_name))
-
-    def as_parameters(self) -> dict[str, Any]:
-        """Flat parameter dict (the inverse of :meth:`from_dict`)."""
-        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "filter"}
-        out["classes"] = list(self.classes)
-        out.update({f.name: getattr(self.filter, f.name) for f in fields(FilterConfig)})
-        return out
-
-
-#: Parameters the node shells read themselves (pairing, queues), with their defaults; the
-#: pipeline ignores them (and ROS's own ``use_sim_time``).
-NODE_DEFAULTS: dict[str, Any] = {
-    "sync_slop": 0.05,
-    "queue_size": 2,
-    "output_frame": "",
-    "qos.points.reliability": "best_effort",
-    "qos.points.depth": 5,
-    "qos.detections.reliability": "reliable",
-    "qos.detections.depth": 10,
-    "qos.outputs.reliability": "reliable",
-    "qos.outputs.depth": 10,
-    "scan_timeout": 1.0,
-}
-NODE_ONLY_PARAMETERS = frozenset({*NODE_DEFAULTS, "use_sim_time"})
-
-
-def parse_class_thresholds(text: str) -> dict[str, float]:
-    """``"Van:0.6, Pedestrian:0.3"`` -> ``{"Van": 0.6, "Pedestrian": 0.3}`` (``""`` -> ``{}``).
-
-    Raises :class:`ConfigError` naming the bad entry (no colon, not a number, outside [0, 1]).
-    """
-    out: dict[str, float] = {}
-    for entry in str(text).split(","):
-        entry = entry.strip()
-        if not entry:
-            continue
-        name, sep, value = entry.rpartition(":")
-        try:
-            threshold = float(value)
-        except ValueError:
-            threshold = float("nan")
-        if not sep or not name.strip() or not 0.0 <= threshold <= 1.0:
-            raise ConfigError(
-                f"class_thresholds: bad entry {entry!r}; expected 'Class:threshold' with a threshold in [0, 1], "
-                "entries separated by commas (e.g. 'Van:0.6, Truck:0.7')"
-            )
-        out[name.strip()] = threshold
-    return out
-
-
-def read_parameters(path: str | Path, node_name: str | None = None) -> dict[str, Any]:
-    """The ``ros__parameters`` of one node in a ROS 2 YAML parameter file, dotted names.
-
-    As ROS 2 does, the blocks that apply to the node are merged, most specific last:
-    ``/**``, ``/**/<node>``, ``<node>`` and ``/<node>`` (the shipped files use
-    ``/**/<node>`` so they apply under any namespace). Without ``node_name`` the first
-    block of the file is read.
-    """
-    import yaml
-
-    path = Path(path)
-    try:
-        document = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read parameter file ({exc})") from exc
-    if not isinstance(document, dict) or not document:
-        raise ConfigError(f"{path}: no node in parameter file")
-    if node_name is None:
-        keys = [next(iter(document))]
-        node_name = keys[0].rsplit("/", 1)[-1]
-    else:
-        keys = ["/**", f"/**/{node_name}", node_name, f"/{node_name}"]
-    values: dict[str, Any] = {}
-    found = False
-    for key in keys:
-        block = document.get(key)
-        if block is None:
-            continue
-        if not isinstance(block, dict) or not isinstance(block.get("ros__parameters"), dict):
-            raise ConfigError(f"{path}: '{key}' has no 'ros__parameters:' map")
-        values.update(flatten_parameters(block["ros__parameters"]))
-        found = True
-    if not found:
-        raise ConfigError(f"{path}: no '/**/{node_name}: ros__parameters:' block (nodes: {sorted(document)})")
-    return values
-
-
-def flatten_parameters(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Nested YAML maps -> dotted ROS parameter names (``qos: {points: {depth: 5}}`` ->
-    ``qos.points.depth``), as ROS 2 reads a parameter file."""
-    out: dict[str, Any] = {}
-    for key, value in values.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(flatten_parameters(value, f"{name}."))
-        else:
-            out[name] = value
-    return out
 
 
 @dataclass

@@ -42,16 +42,13 @@ from pcc_ros.data.bag import (
 from pcc_ros.data.bag_writer import TF_STATIC_QOS, TF_STATIC_TOPIC, TF_TOPIC, atomic_bag
 from pcc_ros.errors import ConfigError, DataError, PccError
 from pcc_ros.msg.stamps import stamp_to_ns
-from pcc_ros.pipeline.core import NODE_DEFAULTS, Pipeline, PipelineConfig, read_parameters
+from pcc_ros.pipeline.config import NODE_DEFAULTS, NODE_NAMES, load_parameters, node_parameters, pipeline_config
+from pcc_ros.pipeline.core import Pipeline
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime, resolve_topic
-from pcc_ros.runtime.node import NodeCore, node_parameters, output_names, pipeline_config
+from pcc_ros.runtime.node import NodeCore, output_names
 
 log = logging.getLogger(__name__)
-
-#: The node names of the shipped parameter files (and of the node replay runs).
-NODE_NAMES = {"completion": "completion_node", "filter": "detection_filter_node"}
-
 
 @dataclass
 class ReplaySummary:
@@ -250,49 +247,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     parser.add_argument("--no-copy-inputs", action="store_true", help="write only the pipeline outputs")
     parser.add_argument("--force", action="store_true", help="replace an existing output bag")
-
-
-def load_parameters(config: Path | None, with_filter: bool, **overrides) -> dict[str, Any]:
-    """Checked node parameters from a YAML file (default: the package's shipped config) plus overrides.
-
-    Every value goes through the nodes' own parameter check, so a file a node would refuse
-    (unknown key, wrong type, value out of range) is refused here with the same message.
-    """
-    mode = "filter" if with_filter else "completion"
-    if config is None:
-        config = shipped_config_dir() / ("detection_filter.yaml" if with_filter else "completion.yaml")
-    values = read_parameters(config, NODE_NAMES[mode]) if _names_node(config, NODE_NAMES[mode]) \
-        else read_parameters(config)
-    values.update({k: v for k, v in overrides.items() if v is not None})
-    try:
-        return node_parameters(values)
-    except ConfigError as exc:
-        raise ConfigError(f"{config}: {exc}") from exc
-
-
-def _names_node(path: Path, node_name: str) -> bool:
-    """True when the parameter file has a block for ``node_name`` (else its first block is read)."""
-    try:
-        read_parameters(path, node_name)
-    except ConfigError:
-        return False
-    return True
-
-
-def load_config(config: Path | None, with_filter: bool, **overrides) -> tuple[PipelineConfig, float]:
-    """The pipeline config and ``sync_slop`` of :func:`load_parameters`."""
-    values = load_parameters(config, with_filter, **overrides)
-    return pipeline_config(values), float(values["sync_slop"])
-
-
-def shipped_config_dir() -> Path:
-    """``config/`` of a source checkout, or ``share/pcc_ros/config`` of an install."""
-    from pcc_ros.paths import resource_dir
-
-    folder = resource_dir("config")
-    if folder is None:
-        raise DataError("cannot find the shipped config/ folder; pass --config")
-    return folder
 
 
 @dataclass

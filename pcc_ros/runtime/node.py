@@ -25,8 +25,15 @@ from pcc_ros.geometry.transforms import transform_boxes
 from pcc_ros.msg.detections import transform_detections
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
 from pcc_ros.msg.typestore import new_message
-from pcc_ros.pipeline.config import BACKEND_PARAMETERS, NODE_DEFAULTS, check_value, parameter_specs, parameter_table
-from pcc_ros.pipeline.core import FrameResult, Pipeline, PipelineConfig, build_outputs
+from pcc_ros.pipeline.config import (
+    BACKEND_PARAMETERS,
+    check_value,
+    node_parameters,
+    parameter_specs,
+    pipeline_config,
+    unknown_parameters,
+)
+from pcc_ros.pipeline.core import FrameResult, Pipeline, build_outputs
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
 
@@ -56,41 +63,6 @@ def output_names(mode: str, with_completion: bool = False) -> list[str]:
     if with_completion and mode != "completion":
         names = [*OUTPUTS["completion"], *names]
     return names
-
-
-#: Parameters every ROS node has, or rclpy adds itself; never reported as unknown.
-ROS_OWN_PARAMETERS = ("use_sim_time", "start_type_description_service")
-
-
-def unknown_parameters(names) -> list[str]:
-    """The names in ``names`` that are not parameters of the nodes (ROS's own and rclpy's
-    ``qos_overrides.*`` excluded), sorted: a YAML typo must be reported, not ignored."""
-    table = {spec.name for spec in parameter_table()}
-    return sorted(
-        n for n in set(names) - table if n not in ROS_OWN_PARAMETERS and not n.startswith("qos_overrides.")
-    )
-
-
-def node_parameters(values: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Every node parameter: the defaults of the parameter table overridden by ``values``.
-
-    Each value is checked against its spec (type, range, choices); an unknown name or a bad
-    value raises :class:`ConfigError` naming the parameter.
-    """
-    specs = parameter_specs()
-    values = {k: v for k, v in (values or {}).items() if k not in ROS_OWN_PARAMETERS}
-    unknown = unknown_parameters(values)
-    if unknown:
-        raise ConfigError(f"unknown node parameter(s): {unknown} (see docs/nodes.md for the list)")
-    merged = {name: spec.default for name, spec in specs.items()}
-    merged.update({name: check_value(specs[name], value) for name, value in values.items()})
-    merged["classes"] = list(merged["classes"])
-    return merged
-
-
-def pipeline_config(values: dict[str, Any]) -> PipelineConfig:
-    """The pipeline part of flat node parameters (raises :class:`ConfigError` with the reason)."""
-    return PipelineConfig.from_dict({k: v for k, v in values.items() if k not in NODE_DEFAULTS})
 
 
 def qos_of(values: dict[str, Any], topic: str) -> QoS:
