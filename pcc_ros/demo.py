@@ -12,7 +12,6 @@
 
 from __future__ import annotations
 
-import argparse
 import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -39,16 +38,6 @@ log = logging.getLogger(__name__)
 VEHICLES = ("car", "van")
 TRUE_IOU = 0.3  # BEV IoU with a labelled vehicle above which a detection counts as true
 COMPLETION_METRICS = ("cd_l1", "precision", "coverage", "fscore")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
-    parser.add_argument("--backend", help="completion backend (default: the shipped config's)")
-    parser.add_argument("--checkpoint", help="checkpoint of the backend (default: shipped weights)")
-    parser.add_argument("--frames", type=int, default=10, help="SynthCars frames")
-    parser.add_argument("--seed", type=int, default=2026, help="SynthCars seed")
-    parser.add_argument("--kitti", type=Path, help="KITTI tracking root (default: ../shared/data/kitti_tracking)")
-    parser.add_argument("--baselines", default="input,mirror", help="baselines shown beside the backend")
 
 
 @dataclass
@@ -253,12 +242,3 @@ def demo(opts: DemoConfig) -> dict:
     results = {"backend": config.backend, "synthcars": run_synthcars(opts, config), "kitti": run_kitti(opts, config)}
     files.write_json(opts.out / "demo.json", results, indent=2)
     return results
-
-
-def run(args: argparse.Namespace) -> int:
-    opts = DemoConfig(out=args.out, backend=args.backend, checkpoint=args.checkpoint, frames=args.frames,
-                      seed=args.seed, kitti=args.kitti, baselines=args.baselines)
-    results = demo(opts)
-    print(f"\nwrote {opts.out / 'demo.json'} and the PNGs: "
-          + ", ".join(r["png"] for r in (results["synthcars"], results["kitti"]) if r))
-    return 0

@@ -23,7 +23,6 @@ Example::
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import logging
@@ -450,83 +449,6 @@ def parse_checkpoints(items: Sequence[str]) -> dict[str, Path]:
     return {name: Path(path) for name, path in parse_assignments(items, "--checkpoint", "NAME=PATH").items()}
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", type=Path, help="instance cache written by `pcc extract` (not with --real)")
-    parser.add_argument(
-        "--real", action="store_true",
-        help="real-data evaluation: KITTI tracking / nuScenes frames with labels, each track's crops aggregated "
-        "as its partial ground truth (see pcc_ros/metrics/realdata.py)",
-    )
-    parser.add_argument(
-        "--real-sources", default="../shared/data/kitti_tracking,../shared/data/nuscenes_mini",
-        help="--real: comma-separated KITTI tracking / object or nuScenes roots (default: the shared samples)",
-    )
-    parser.add_argument("--real-voxel", type=float, default=0.03, help="--real: reference voxel size, metres")
-    parser.add_argument(
-        "--real-min-points", type=int, default=None,
-        help="--real: inputs with fewer points are skipped (default: completion_node's min_points)",
-    )
-    parser.add_argument(
-        "--real-detections", default=None, metavar="DIR",
-        help="--real: crop the inputs from these detector results (KITTI label format with scores), each matched "
-        "to a labelled track by 3D IoU >= 0.5, instead of the labelled boxes",
-    )
-    parser.add_argument(
-        "--real-generated-only", action="store_true",
-        help="--real: score learned backends' generated points only (default: the published, partial-preserving "
-        "output, plus a NAME/generated row)",
-    )
-    parser.add_argument(
-        "--plot-backends", default=None,
-        help="--real: comma-separated completion columns of the PNG (default: every evaluated backend)",
-    )
-    parser.add_argument("--split", default="test", help="split to evaluate (default: test)")
-    parser.add_argument(
-        "--backends", default=None,
-        help="comma-separated backends (default: the baselines; with --real every available backend)",
-    )
-    parser.add_argument(
-        "--checkpoint", action="append", default=[], metavar="NAME=PATH",
-        help="checkpoint of a learned backend (repeatable); default: the shipped one",
-    )
-    parser.add_argument("--device", default="auto", help="auto | cpu | cuda[:N] for learned backends")
-    parser.add_argument("--batch-size", type=int, default=32, help="completion batch size of learned backends")
-    parser.add_argument("--json", type=Path, help="write the results here")
-    parser.add_argument("--plot", type=Path, help="PNG grid of examples (input / completions / reference)")
-    parser.add_argument(
-        "--reference", choices=("auto", "ground_truth", "aggregated"), default="auto",
-        help="what completions are scored against (auto: SynthCars shapes when the cache has them)",
-    )
-    parser.add_argument(
-        "--min-track-frames", type=int, default=2,
-        help="aggregated reference: observations a track needs (default 2)",
-    )
-    parser.add_argument("--max-instances", type=int, help="evaluate a seeded random subset of this size")
-    parser.add_argument("--seed", type=int, default=0, help="subset and EMD subsample seed (default 0)")
-    parser.add_argument("--fixed-threshold", type=float, default=0.05, help="fixed F-score threshold, metres")
-    parser.add_argument("--emd-points", type=int, default=1024, help="EMD subsample size (exact assignment)")
-    parser.add_argument("--no-emd", action="store_true", help="skip EMD (the slowest metric)")
-    parser.add_argument(
-        "--decode-density", type=int, default=None,
-        help="folding decoders decode N times finer per grid axis (default: 1; with --real, completion_node's "
-        "decode_density)",
-    )
-    parser.add_argument(
-        "--keep-input", action="store_true",
-        help="score the partial-preserving output (observed crop + generated points, what completion_node "
-        "publishes) instead of the generated points alone",
-    )
-    parser.add_argument("--examples", type=int, default=4, help="rows in the example grid")
-    parser.add_argument(
-        "--no-gt-free", action="store_true",
-        help="skip TraPCC's L-G / L-S / meanCD (no pseudo-GT pools built from the cache's train tracks)",
-    )
-    parser.add_argument(
-        "--no-resume", action="store_true",
-        help="recompute every backend even if --json already holds results for the same instances and settings",
-    )
-
-
 def fingerprint(instances: Sequence[EvalInstance], settings: dict[str, Any]) -> str:
     """Hash of what a result depends on (instances, their point counts, settings).
 
@@ -674,49 +596,69 @@ def _previous_results(path: Path | None) -> dict[str, Any] | None:
     return data if isinstance(data, dict) else None
 
 
-def run(args: argparse.Namespace) -> int:
-    if args.real:
-        from pcc_ros.evaluate_real import run_real
+@dataclass
+class EvalConfig:
+    """What ``pcc eval`` (on an instance cache) is told; the command builds it from its flags."""
 
-        return run_real(args)
-    if args.data is None:
-        raise ConfigError("--data is required (an instance cache), unless --real")
-    backends = [b.strip() for b in (args.backends or "input,densify,mirror").split(",") if b.strip()]
+    data: Path
+    split: str = "test"
+    backends: str | None = None  # comma-separated; None: the baselines input, densify, mirror
+    checkpoints: dict[str, Path] = field(default_factory=dict)  # backend -> checkpoint (default: shipped)
+    device: str = "auto"
+    batch_size: int = 32
+    json: Path | None = None
+    plot: Path | None = None
+    reference: str = "auto"  # auto | ground_truth | aggregated
+    min_track_frames: int = 2
+    max_instances: int | None = None
+    seed: int = 0
+    fixed_threshold: float = 0.05
+    emd_points: int = 1024
+    with_emd: bool = True
+    examples: int = 4
+    gt_free: bool = True
+    resume: bool = True  # reuse --json's results for the same instances and settings
+    keep_input: bool = False  # score the partial-preserving output (what completion_node publishes)
+    decode_density: int = 1  # folding decoders decode this many times finer per grid axis
+
+
+def evaluate_cache(opts: EvalConfig) -> tuple[dict[str, Any], str]:
+    """Evaluate ``opts.backends`` on the instance cache; writes ``opts.json`` / ``opts.plot`` when
+    given and returns the results and the kind of reference they were scored against."""
+    backends = [b.strip() for b in (opts.backends or "input,densify,mirror").split(",") if b.strip()]
     if not backends:
         raise ConfigError("--backends is empty")
     if len(set(backends)) != len(backends):
-        raise ConfigError(f"--backends lists a backend twice: {args.backends}")
-    checkpoints = parse_checkpoints(args.checkpoint)
-    if not args.data.exists():
-        raise DataError(f"{args.data}: instance cache not found (write one with `pcc extract`)")
+        raise ConfigError(f"--backends lists a backend twice: {opts.backends}")
+    if not opts.data.exists():
+        raise DataError(f"{opts.data}: instance cache not found (write one with `pcc extract`)")
     instances, reference = load_instances(
-        args.data, args.split, args.max_instances, args.seed, args.reference, args.min_track_frames,
-        gt_free=not args.no_gt_free,
+        opts.data, opts.split, opts.max_instances, opts.seed, opts.reference, opts.min_track_frames,
+        gt_free=opts.gt_free,
     )
     if not instances:
-        raise DataError(f"{args.data}: no usable instances in split {args.split!r}")
-    log.info("evaluating %d instance(s) of split %r against %s references", len(instances), args.split, reference)
-    picks = example_indices(instances, args.examples) if args.plot else []
-    header = {"data": str(args.data), "split": args.split}
+        raise DataError(f"{opts.data}: no usable instances in split {opts.split!r}")
+    log.info("evaluating %d instance(s) of split %r against %s references", len(instances), opts.split, reference)
+    picks = example_indices(instances, opts.examples) if opts.plot else []
+    header = {"data": str(opts.data), "split": opts.split}
 
     def save(partial: dict[str, Any]) -> None:
-        if args.json:
-            _write_json(args.json, {**header, **partial})
+        if opts.json:
+            _write_json(opts.json, {**header, **partial})
 
     results, kept = evaluate(
-        instances, reference, backends, checkpoints,
-        device=args.device, batch_size=args.batch_size, seed=args.seed,
-        fixed_threshold_m=args.fixed_threshold, emd_points=args.emd_points, with_emd=not args.no_emd,
-        previous=None if args.no_resume else _previous_results(args.json), keep=picks, on_backend_done=save,
-        keep_input=args.keep_input, decode_density=args.decode_density or 1,
+        instances, reference, backends, opts.checkpoints,
+        device=opts.device, batch_size=opts.batch_size, seed=opts.seed,
+        fixed_threshold_m=opts.fixed_threshold, emd_points=opts.emd_points, with_emd=opts.with_emd,
+        previous=_previous_results(opts.json) if opts.resume else None, keep=picks, on_backend_done=save,
+        keep_input=opts.keep_input, decode_density=opts.decode_density,
     )
     results = {**header, **results}
-    print_tables(results, reference)
-    if args.plot:
-        plot_examples(args.plot, instances, kept, reference, picks)
-        results["plot"] = {"path": str(args.plot), "instances": [instances[i].key for i in picks]}
-        log.info("wrote %s", args.plot)
-    if args.json:
-        _write_json(args.json, results)
-        log.info("wrote %s", args.json)
-    return 0
+    if opts.plot:
+        plot_examples(opts.plot, instances, kept, reference, picks)
+        results["plot"] = {"path": str(opts.plot), "instances": [instances[i].key for i in picks]}
+        log.info("wrote %s", opts.plot)
+    if opts.json:
+        _write_json(opts.json, results)
+        log.info("wrote %s", opts.json)
+    return results, reference

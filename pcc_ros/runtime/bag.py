@@ -19,7 +19,6 @@ would.
 
 from __future__ import annotations
 
-import argparse
 import logging
 from collections.abc import Callable
 from contextlib import nullcontext
@@ -230,25 +229,6 @@ def _no_frame_reason(bag, summary: ReplaySummary, slop_s: float, first_problem: 
             "check the stamps, or raise sync_slop in the config)")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("bag", type=Path, help="input rosbag2 (MCAP or sqlite3)")
-    parser.add_argument("--out", type=Path, required=True, help="output bag")
-    parser.add_argument("--config", type=Path, help="node parameter YAML (default: the shipped config/*.yaml)")
-    parser.add_argument("--backend", help="override the config's backend")
-    parser.add_argument("--checkpoint", help="override the config's checkpoint")
-    parser.add_argument("--device", help="auto | cpu | cuda | cuda:N")
-    parser.add_argument(
-        "--score-mapping", choices=("identity", "sigmoid"),
-        help="override the config's score_mapping (sigmoid for logits, e.g. PointRCNN)",
-    )
-    parser.add_argument("--filter", action="store_true", help="also record the detection filter's outputs")
-    parser.add_argument("--points-topic", default="/points")
-    parser.add_argument("--detections-topic", default="/detections", help="e.g. /ground_truth to complete GT boxes")
-    parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
-    parser.add_argument("--no-copy-inputs", action="store_true", help="write only the pipeline outputs")
-    parser.add_argument("--force", action="store_true", help="replace an existing output bag")
-
-
 @dataclass
 class ReplayConfig:
     """What ``pcc replay`` is told (the CLI builds it from its flags)."""
@@ -281,24 +261,3 @@ def replay(opts: ReplayConfig, on_result: Callable | None = None) -> tuple[Repla
         copy_inputs=opts.copy_inputs, on_result=on_result, progress=opts.progress,
     )
     return summary, parameters
-
-
-def run(args: argparse.Namespace) -> int:
-    from pcc_ros.tables import print_table
-
-    opts = ReplayConfig(
-        bag=args.bag, out=args.out, config=args.config, backend=args.backend, checkpoint=args.checkpoint,
-        device=args.device, score_mapping=args.score_mapping, with_filter=args.filter,
-        points_topic=args.points_topic, detections_topic=args.detections_topic, storage=args.storage,
-        copy_inputs=not args.no_copy_inputs, force=args.force,
-    )
-    summary, parameters = replay(opts)
-    print_table(f"replay timing per frame ({summary.frames} frames, backend {parameters['backend']})",
-                summary.latency_table())
-    print(
-        f"\nkept {summary.kept}, rejected {summary.rejected} detections; skipped frames {summary.skipped_frames}; "
-        f"undecodable messages {summary.undecodable} (left out of the output); "
-        f"unpaired clouds {summary.unpaired_clouds}, unpaired detection arrays {summary.unpaired_detections}"
-    )
-    print(f"wrote {opts.out}")
-    return 0
