@@ -53,10 +53,9 @@ def test_yaw_round_trip_tilt_and_rotation_z():
 
 
 def test_detections_moved_by_a_yawed_transform_turn_with_it():
-    """node_core.transform_detections through a 30-degree yaw (an identity would hide a yaw bug)."""
-    from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
+    """transform_detections through a 30-degree yaw (an identity would hide a yaw bug)."""
+    from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes, transform_detections
     from pcc_ros.runtime.base import Transform
-    from pcc_ros.runtime.node import transform_detections
     from pcc_ros.types import Boxes
 
     boxes = Boxes([[10.0, 2.0, -0.8], [-4.0, 7.0, -0.7]], [[4.2, 1.8, 1.5], [4.5, 1.9, 1.6]], [0.2, -2.5],

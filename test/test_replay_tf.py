@@ -176,3 +176,25 @@ def test_buffer_chains_interpolates_and_refuses_extrapolation():
                                (odom_from_base(1_030_000_000) @ MOUNT).inverse().matrix(), atol=1e-9)
     assert not buffer.set_transform("odom", "base_link", Transform((0.0, 0.0, np.nan), (0.0, 0.0, 0.0, 1.0)), 5)
     assert buffer.invalid == 1
+
+
+def test_moved_detections_keep_every_hypothesis_and_turn_their_covariance():
+    """The republished detections are the originals moved (not re-encoded): every hypothesis
+    stays, and a pose covariance turns with the frame (x and y variances swap under 90 degrees)."""
+    from pcc_ros.msg.detections import transform_detections
+    from pcc_ros.msg.typestore import new_message
+
+    boxes = Boxes([[10.0, 2.0, -0.8]], [[4.2, 1.8, 1.5]], [0.2], ["Car"], [0.9], ["a"])
+    array = detection_array_from_boxes(boxes, "base_link", 1)
+    detection = array.detections[0]
+    second = new_message("vision_msgs/msg/ObjectHypothesisWithPose", None)
+    second.hypothesis.class_id, second.hypothesis.score = "Van", 0.4
+    second.pose.pose.orientation.w = 1.0
+    second.pose.covariance = np.diag([1.0, 4.0, 9.0, 0.1, 0.2, 0.3]).reshape(36)
+    detection.results = [*detection.results, second]
+    quarter = Transform((0.0, 0.0, 0.0), tuple(quaternion_from_yaw(np.pi / 2).tolist()))
+    moved = transform_detections(array.detections, quarter, "velodyne")[0]
+    assert [r.hypothesis.class_id for r in moved.results] == ["Car", "Van"]
+    covariance = np.asarray(moved.results[1].pose.covariance).reshape(6, 6)
+    np.testing.assert_allclose(np.diag(covariance), [4.0, 1.0, 9.0, 0.2, 0.1, 0.3], atol=1e-12)
+    np.testing.assert_allclose(detection.results[1].pose.covariance[:3], [1.0, 0.0, 0.0])  # the original untouched
