@@ -182,3 +182,30 @@ def test_node_publishes_scores_terms_markers_and_counts():
     assert any("p_false" in t and "kept" in t for t in texts) and any("rejected" in t for t in texts)
     values = {kv.key: kv.value for kv in got["diag"][-1].status[0].values}
     assert values["detections_kept"] == "1" and values["detections_rejected"] == "1"
+
+
+def test_ray_index_on_the_boxes_sectors_equals_the_whole_scan(monkeypatch):
+    """The ray index keeps only the points of the boxes' azimuth sectors (when these cover
+    little of the circle): the same pairs, in the same order, as indexing the whole scan,
+    across the +-pi seam and with NaN points."""
+    import pcc_ros.pipeline.filter as filt
+
+    rng = np.random.default_rng(3)
+    scan = rng.uniform(-40.0, 40.0, (20_000, 3)).astype(np.float32)
+    scan[:, 2] = rng.uniform(-2.0, 1.0, len(scan))
+    scan[::97] = np.nan
+    boxes = Boxes([[-20.0, 0.3, -1.0], [-18.0, -0.4, -0.9], [10.0, 12.0, -1.0], [5.0, -30.0, -0.8]],
+                  [[4.2, 1.8, 1.5], [4.0, 1.8, 1.6], [4.4, 1.9, 1.4], [4.5, 1.8, 1.5]],
+                  [0.2, -1.0, 2.5, 0.7], ["Car"] * 4, [0.5] * 4)
+    x, y, z = (np.ascontiguousarray(scan[:, k]) for k in range(3))
+    window = filt._angular_window(boxes)
+    results = []
+    for share in (0.0, 2.0):  # never / always on the sectors' subset
+        monkeypatch.setattr(filt, "_SUBSET_SHARE", share)
+        results.append((filt._rays_towards(x, y, z, *window), evidence(scan, boxes).as_dict()))
+    (pairs_all, ev_all), (pairs_sub, ev_sub) = results
+    assert len(pairs_all[0]) > 100
+    for a, b in zip(pairs_all, pairs_sub):
+        np.testing.assert_array_equal(a, b)
+    for key in ev_all:
+        np.testing.assert_array_equal(ev_all[key], ev_sub[key])

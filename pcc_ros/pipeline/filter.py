@@ -269,6 +269,9 @@ EXPECTED_COLUMNS = 64
 #: product stays below 2^15 so the bin key is an int16 (numpy's radix sort).
 _AZ_BINS = 1800
 _EL_BANDS = 16
+#: The ray index works on the points of the boxes' azimuth sectors only when these cover less
+#: than this share of the circle (beyond it, selecting the subset costs more than it saves).
+_SUBSET_SHARE = 0.75
 
 
 @dataclass
@@ -357,11 +360,14 @@ def _rays_towards(x, y, z, az_lo, az_hi, el_lo, el_hi, judged) -> tuple[np.ndarr
     """(point, box) pairs whose ray from the sensor lies in the box's angular window (a
     superset of the rays that cross the box; :func:`evidence` tests them exactly).
 
-    One pass over the scan in its own precision: the azimuth and elevation of every point,
-    a radix sort into (azimuth, elevation band) bins; each box's azimuth bins expand into
-    the contiguous run of its elevation bands without a Python loop, and the elevation window
-    is tested on the pairs by a gather of the points' elevations. Bins are widened by one on
-    every side (float32 rounding at a bin edge loses no ray). Non-finite points never pair."""
+    One pass over the scan in its own precision gives every point's azimuth bin; only the
+    points in a bin some box needs (its azimuth sector, widened by one bin each way) go on:
+    their elevation, a radix sort into (azimuth, elevation band) bins; each box's azimuth bins
+    expand into the contiguous run of its elevation bands without a Python loop, and the
+    elevation window is tested on the pairs by a gather of the points' elevations. Bins are
+    widened by one on every side (float32 rounding at a bin edge loses no ray). The subset
+    keeps scan order, so the pairs (and their order) are those of the whole scan sorted.
+    Non-finite points never pair."""
     boxes_idx = np.flatnonzero(judged)
     if not len(boxes_idx):
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -369,11 +375,27 @@ def _rays_towards(x, y, z, az_lo, az_hi, el_lo, el_hi, judged) -> tuple[np.ndarr
     hi_el = el_hi[boxes_idx] + _ELEVATION_SLACK
     e0 = float(lo_el.min())
     width = max(float(hi_el.max()) - e0, 1e-6) / _EL_BANDS
+    b0 = np.floor((az_lo[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) - 1
+    b1 = np.floor((az_hi[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) + 1
+    nbins = np.minimum(b1 - b0 + 1, _AZ_BINS)
+    box_of_bin = np.repeat(np.arange(len(boxes_idx)), nbins)
+    local = np.arange(nbins.sum()) - np.repeat(np.cumsum(nbins) - nbins, nbins)
+    az_bin = (np.repeat(b0, nbins) + local) % _AZ_BINS
     with np.errstate(invalid="ignore"):
         az = np.arctan2(y, x)
         scaled = (az + np.float32(np.pi)) * np.float32(_AZ_BINS / (2 * np.pi))
         key = np.where(np.isfinite(scaled), scaled, 0).astype(np.int16)
         np.clip(key, 0, _AZ_BINS - 1, out=key)
+    # The boxes' azimuth sectors: the points outside them cannot pair (a cheap table lookup
+    # instead of elevation, sort and counts over the whole scan, unless the sectors cover
+    # most of the circle).
+    wanted = np.zeros(_AZ_BINS, dtype=bool)
+    wanted[az_bin] = True
+    subset = None
+    if np.count_nonzero(wanted) < _SUBSET_SHARE * _AZ_BINS:
+        subset = np.flatnonzero(np.take(wanted, key))
+        key, x, y, z = (np.take(a, subset) for a in (key, x, y, z))
+    with np.errstate(invalid="ignore"):
         elevation = np.arctan2(z, np.sqrt(x * x + y * y))
         band = (elevation - elevation.dtype.type(e0)) * elevation.dtype.type(1.0 / width) + 1
         band = np.fmin(np.fmax(band, 0), _EL_BANDS + 1).astype(np.int16)  # NaN -> band 0: no box
@@ -383,26 +405,24 @@ def _rays_towards(x, y, z, az_lo, az_hi, el_lo, el_hi, judged) -> tuple[np.ndarr
     order = np.argsort(key, kind="stable")
     starts = np.zeros(n_bins + 1, dtype=np.int64)
     np.cumsum(np.bincount(key, minlength=n_bins), out=starts[1:])
-    b0 = np.floor((az_lo[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) - 1
-    b1 = np.floor((az_hi[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) + 1
     band_lo = np.clip(np.floor((lo_el - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
     band_hi = np.clip(np.floor((hi_el - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
-    nbins = np.minimum(b1 - b0 + 1, _AZ_BINS)
-    box_of_bin = np.repeat(np.arange(len(boxes_idx)), nbins)
-    local = np.arange(nbins.sum()) - np.repeat(np.cumsum(nbins) - nbins, nbins)
-    bins = (np.repeat(b0, nbins) + local) % _AZ_BINS * (_EL_BANDS + 2)
+    bins = az_bin * (_EL_BANDS + 2)
     lo = starts[bins + np.take(band_lo, box_of_bin)]
     count = starts[bins + np.take(band_hi, box_of_bin) + 1] - lo
     pair_box = np.repeat(np.take(boxes_idx, box_of_bin), count)
     offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    pair_point = np.take(order, np.repeat(lo, count) + offset)
+    pair_point = np.take(order, np.repeat(lo, count) + offset)  # positions in the (sub)scan
     e = np.take(elevation, pair_point)
     dt = elevation.dtype
     with np.errstate(invalid="ignore"):
         keep = e >= np.take((el_lo - _ELEVATION_SLACK).astype(dt), pair_box)
         keep &= e <= np.take((el_hi + _ELEVATION_SLACK).astype(dt), pair_box)
     keep = np.flatnonzero(keep)
-    return np.take(pair_point, keep), np.take(pair_box, keep)
+    pair_point = np.take(pair_point, keep)
+    if subset is not None:
+        pair_point = np.take(subset, pair_point)
+    return pair_point, np.take(pair_box, keep)
 
 
 def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_hi, judged,
