@@ -33,9 +33,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
+from pcc_ros import files
 from pcc_ros.assignments import parse_assignments
+from pcc_ros.data.gt_pools import PoolConfig, load_or_assign, load_or_build_pools
+from pcc_ros.data.instances import EvalShapes, InstanceCache, aggregate_track
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.metrics import METRICS, instance_metrics, to_metres, unit_label
+from pcc_ros.models import get_backend, load_completer
+from pcc_ros.models.base import SceneContext
+from pcc_ros.models.checkpoint import load_config
+from pcc_ros.models.registry import default_checkpoint
+from pcc_ros.tables import print_table
 
 log = logging.getLogger("pcc.eval")
 
@@ -103,8 +113,6 @@ def load_instances(
 
     The only place that opens the instance cache (``pcc_ros.data.instances``).
     """
-    from pcc_ros.data.instances import InstanceCache
-
     cache = InstanceCache.load(path)
     return instances_from_cache(cache, split, max_instances, seed, reference, min_track_frames, gt_free=gt_free)
 
@@ -135,8 +143,6 @@ def instances_from_cache(
     from the pools of the cache's ``train`` tracks (:mod:`pcc_ros.data.gt_pools`, cached
     under ``CACHE/trapcc_gt``) for L-G / L-S / meanCD.
     """
-    from pcc_ros.data.instances import EvalShapes, aggregate_track
-
     if reference not in ("auto", "ground_truth", "aggregated"):
         raise ConfigError(f"--reference must be auto, ground_truth or aggregated, got {reference!r}")
     indices = cache.indices(split)
@@ -181,8 +187,6 @@ def instances_from_cache(
 
 def attach_contexts(cache: Any, instances: Sequence[EvalInstance]) -> None:
     """Give each instance the :class:`SceneContext` of its frame (all cache instances of that frame)."""
-    from pcc_ros.models.base import SceneContext
-
     if not instances:
         return
     wanted = {inst.meta["index"]: inst for inst in instances}
@@ -202,8 +206,6 @@ def attach_contexts(cache: Any, instances: Sequence[EvalInstance]) -> None:
 
 def attach_pseudo_gt(cache: Any, instances: Sequence[EvalInstance], pool_split: str = "train") -> None:
     """TraPCC's retrieved Whole- / Partial-GT of each instance (from the ``pool_split`` tracks)."""
-    from pcc_ros.data.gt_pools import PoolConfig, load_or_assign, load_or_build_pools
-
     if not instances:
         return
     config = PoolConfig()
@@ -267,10 +269,6 @@ def score_backend(
     The EMD subsample seed depends on the instance index only, so every backend is
     compared against the same subsample of each reference.
     """
-    from tqdm import tqdm
-
-    from pcc_ros.metrics import instance_metrics
-
     name = getattr(completer, "name", type(completer).__name__)
     use_context = getattr(completer, "uses_context", False)
     completions: list[np.ndarray] = []
@@ -318,8 +316,6 @@ def _mean_table(
 
 def summarise(instances: Sequence[EvalInstance], rows: Sequence[dict[str, float]]) -> dict[str, Any]:
     """Overall means and breakdowns, in metres (sensor frame) and canonical units."""
-    from pcc_ros.metrics import to_metres
-
     keys = [k for k in REPORTED if rows and k in rows[0]]
     lengths = np.array([inst.length for inst in instances])
     metres = [{k: float(to_metres(k, r[k], length)) for k in keys} for r, length in zip(rows, lengths)]
@@ -352,9 +348,6 @@ def _cell(value: Any) -> str:
 
 def print_tables(results: dict[str, Any], reference: str) -> None:
     """One table per metric: backends x (overall, distance bands, point bands), in metres."""
-    from pcc_ros.metrics import METRICS, unit_label
-    from pcc_ros.tables import print_table
-
     backends = results["backends"]
     if not backends:
         return
@@ -464,9 +457,6 @@ def fingerprint(instances: Sequence[EvalInstance], settings: dict[str, Any]) -> 
 def _checkpoint_stamp(name: str, path: Path | None) -> str | None:
     """What identifies the weights a learned backend ran with: the weights' sha256 recorded
     in the checkpoint config (the shipped default's when no path is given)."""
-    from pcc_ros.models.checkpoint import load_config
-    from pcc_ros.models.registry import default_checkpoint
-
     path = path or default_checkpoint(name)
     if path is None:
         return None
@@ -502,9 +492,6 @@ def evaluate(
     only their ``keep`` completions are recomputed. ``on_backend_done(results)`` is called
     after each backend (the command writes the JSON there, so an interrupted run resumes).
     """
-    from pcc_ros.metrics import METRICS, unit_label
-    from pcc_ros.models import get_backend, load_completer
-
     checkpoints = dict(checkpoints or {})
     unused = sorted(set(checkpoints) - set(backends))
     if unused:
@@ -579,8 +566,6 @@ def example_indices(instances: Sequence[EvalInstance], count: int) -> list[int]:
 
 
 def _write_json(path: Path, results: dict[str, Any]) -> None:
-    from pcc_ros import files
-
     path.parent.mkdir(parents=True, exist_ok=True)
     files.write_json(path, results, indent=2, allow_nan=False)
 

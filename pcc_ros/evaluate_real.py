@@ -31,8 +31,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
+from pcc_ros.data.sources import open_frames
+from pcc_ros.data.track_aggregate import collect_tracks
 from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
+from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS, _cell, _write_json, parse_checkpoints
+from pcc_ros.geometry.boxes import crop_canonical, iou_3d
+from pcc_ros.geometry.canonical import from_canonical, to_canonical
+from pcc_ros.metrics.realdata import REAL_METRICS, draw_three_views, mean_rows, real_instance_metrics
+from pcc_ros.models import available, get_backend, load_completer
+from pcc_ros.models.base import SceneContext
+from pcc_ros.pipeline.core import PipelineConfig
+from pcc_ros.tables import print_table
+from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger("pcc.eval.real")
 
@@ -45,16 +57,12 @@ REFERENCE_ROW = "aggregated GT"
 def node_crop() -> tuple[float, float, int]:
     """``(box_margin, ground_margin, min_points)`` of ``completion_node`` (the pipeline defaults):
     inputs are cropped as the node crops them, so the scored union is what it publishes."""
-    from pcc_ros.pipeline.core import PipelineConfig
-
     cfg = PipelineConfig()
     return float(cfg.box_margin), float(cfg.ground_margin), int(cfg.min_points)
 
 
 def node_decode_density() -> int:
     """``completion_node``'s default ``decode_density`` (what the learned rows are decoded with)."""
-    from pcc_ros.pipeline.core import PipelineConfig
-
     return int(PipelineConfig().decode_density)
 
 
@@ -80,12 +88,6 @@ def real_instances(
     Each instance: ``key``, ``partial`` (canonical), ``reference`` (canonical, same frame),
     ``size`` (box l, w, h), ``distance``, ``track_frames``, ``label``, ``frame_key``, ``center``, ``yaw``.
     """
-    from pcc_ros.data.sources import open_frames
-    from pcc_ros.data.track_aggregate import collect_tracks
-    from pcc_ros.geometry.boxes import crop_canonical, iou_3d
-    from pcc_ros.geometry.canonical import from_canonical, to_canonical
-    from pcc_ros.types import class_mask
-
     if boxes not in ("ground_truth", "detections"):
         raise ConfigError(f"real-data boxes must be ground_truth or detections, got {boxes!r}")
     margin, ground_margin, node_min = node_crop()
@@ -165,9 +167,6 @@ def real_instances(
 
 
 def _bands(instances: list[dict[str, Any]], rows: list[dict[str, float]]) -> dict[str, Any]:
-    from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS
-    from pcc_ros.metrics.realdata import mean_rows
-
     distance = np.array([i["distance"] for i in instances])
     points = np.array([len(i["partial"]) for i in instances])
     return {
@@ -180,9 +179,6 @@ def _bands(instances: list[dict[str, Any]], rows: list[dict[str, float]]) -> dic
 def scene_contexts(instances: list[dict[str, Any]]) -> list[Any]:
     """One :class:`~pcc_ros.models.base.SceneContext` per instance: the other evaluated cars of
     the same frame are its neighbours (what the pipeline gives a context-using backend)."""
-    from pcc_ros.models.base import SceneContext
-    from pcc_ros.types import Boxes
-
     contexts: list[Any] = [None] * len(instances)
     groups: dict[str, list[int]] = {}
     for i, inst in enumerate(instances):
@@ -214,11 +210,6 @@ def evaluate_real(
     filter's mismatch term reads). ``keep_input=False`` scores only the generated points, as
     ``NAME``. Backends that read scene context (TraPCC) get the other evaluated cars of the
     frame as neighbours. ``decode_density``: the learned backends' (default: the node's)."""
-    from tqdm import tqdm
-
-    from pcc_ros.metrics.realdata import real_instance_metrics
-    from pcc_ros.models import get_backend, load_completer
-
     results: dict[str, Any] = {}
     completions: dict[str, list[np.ndarray]] = {}
     partials = [i["partial"] for i in instances]
@@ -283,10 +274,6 @@ def criteria(results: dict[str, Any]) -> dict[str, Any]:
 
 
 def print_real_tables(results: dict[str, Any]) -> None:
-    from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS, _cell
-    from pcc_ros.metrics.realdata import REAL_METRICS
-    from pcc_ros.tables import print_table
-
     scored = {n: r for n, r in results.items() if "overall" in r}
     columns = ["backend", "overall"] + [b[0] for b in DISTANCE_BANDS] + [b[0] for b in POINT_BANDS]
     for key in TABLE_METRICS:
@@ -327,10 +314,6 @@ def pick_examples(instances: list[dict[str, Any]], count: int) -> list[int]:
 
 
 def run_real(args: argparse.Namespace) -> int:
-    from pcc_ros.evaluate import _write_json, parse_checkpoints
-    from pcc_ros.metrics.realdata import draw_three_views
-    from pcc_ros.models import available
-
     sources = [Path(s.strip()) for s in args.real_sources.split(",") if s.strip()]
     if not sources:
         raise ConfigError("--real-sources is empty")

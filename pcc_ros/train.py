@@ -39,15 +39,22 @@ import contextlib
 import json
 import logging
 import os
+import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from pcc_ros.assignments import parse_assignments
+from pcc_ros.data.instances import InstanceCache
 from pcc_ros.errors import CheckpointError, ConfigError, TrainingError
+from pcc_ros.evaluate import instances_from_cache, score_backend
+from pcc_ros.models.base import select_device
+from pcc_ros.models.checkpoint import load_checkpoint, make_config, save_checkpoint, validate_state
+from pcc_ros.models.registry import get_backend
 
 log = logging.getLogger("pcc.train")
 
@@ -105,8 +112,6 @@ def parse_options(items: list[str]) -> dict[str, Any]:
 def load_recipe(backend: str, size: str, options: dict[str, Any]) -> Any:
     """The backend's training recipe (``cls.training_recipe``); :class:`ConfigError` if it has none or
     the options are wrong."""
-    from pcc_ros.models.registry import get_backend
-
     cls = get_backend(backend)  # ConfigError for unknown names
     try:
         return cls.training_recipe(size=size, **options)  # the base class refuses backends without weights
@@ -173,8 +178,6 @@ def restore_optimizer(optimizer: Any, tensors: dict[str, Any], meta: dict[str, A
 
 def save_resume(out: Path, backend: str, completer: Any, optimizer: Any, step: int, run: dict[str, Any]) -> Path:
     """Weights + optimizer state (safetensors) and step + run settings (JSON) for ``--resume``."""
-    from pcc_ros.models.checkpoint import make_config, save_checkpoint
-
     opt_tensors, opt_meta = optimizer_tensors(optimizer)
     tensors = {_MODEL_PREFIX + k: v for k, v in completer.model.state_dict().items()}
     tensors.update(opt_tensors)
@@ -184,8 +187,6 @@ def save_resume(out: Path, backend: str, completer: Any, optimizer: Any, step: i
 
 def load_resume(out: Path, backend: str, completer: Any, optimizer: Any) -> tuple[int, dict[str, Any]]:
     """Restore weights and optimizer from ``OUT/resume``; returns ``(step, run settings)``."""
-    from pcc_ros.models.checkpoint import load_checkpoint, validate_state
-
     path = out / f"{RESUME_NAME}.safetensors"
     state, config = load_checkpoint(path)
     if config["backend"] != backend:
@@ -208,8 +209,6 @@ def load_resume(out: Path, backend: str, completer: Any, optimizer: Any) -> tupl
 
 def validate(completer: Any, instances: list[Any], seed: int) -> dict[str, float]:
     """Mean evaluation metrics (canonical units, no EMD) of ``completer`` on ``instances``."""
-    from pcc_ros.evaluate import score_backend
-
     if not instances:
         return {}
     was_training = completer.model.training
@@ -226,8 +225,6 @@ def validate(completer: Any, instances: list[Any], seed: int) -> dict[str, float
 
 def validation_instances(cache: Any, split: str, count: int, seed: int) -> tuple[list[Any], str]:
     """A seeded subset of the validation split with its reference (ground truth or aggregate)."""
-    from pcc_ros.evaluate import instances_from_cache
-
     if count <= 0 or len(cache.indices(split)) == 0:
         return [], "none"
     return instances_from_cache(cache, split, count, seed)
@@ -238,8 +235,6 @@ def validation_instances(cache: Any, split: str, count: int, seed: int) -> tuple
 
 def init_weights(completer: Any, path: Path) -> dict[str, Any]:
     """Load a checkpoint's weights into ``completer`` (same backend and size); what was loaded."""
-    from pcc_ros.models.checkpoint import load_checkpoint, validate_state
-
     state, config = load_checkpoint(path)
     if config.get("backend") != completer.name:
         raise CheckpointError(f"{path}: a {config.get('backend')!r} checkpoint cannot initialise {completer.name!r}")
@@ -251,8 +246,6 @@ def init_weights(completer: Any, path: Path) -> dict[str, Any]:
 
 def machine_info() -> dict[str, Any]:
     """Where a run trained: host, CPU, threads, load (recorded in the checkpoint)."""
-    import platform
-
     import torch
 
     info: dict[str, Any] = {"host": platform.node(), "platform": platform.platform(),
@@ -272,8 +265,6 @@ def mix_real(
     Real scans are few, so their groups are repeated (references, no copies) until they make
     up ``share`` of an epoch; what was mixed is returned for the checkpoint config.
     """
-    from pcc_ros.data.instances import InstanceCache
-
     if not real_caches:
         return data, {"caches": [], "share": 0.0}
     if not 0.0 < share < 1.0:
@@ -340,10 +331,6 @@ def plot_log(records: list[dict[str, Any]], path: Path, title: str, best: dict[s
 def train(opts: TrainConfig) -> dict[str, Any]:
     """Run training as ``opts`` says; returns the final summary (also in the checkpoint)."""
     import torch
-    from tqdm import tqdm
-
-    from pcc_ros.data.instances import InstanceCache
-    from pcc_ros.models.base import select_device
 
     if opts.iterations < 1 or opts.batch_size < 1:
         raise ConfigError("--iterations and --batch-size must be >= 1")

@@ -175,14 +175,14 @@ def _frames_with_a_shifted_detection():
 
 
 def test_real_instances_from_detections_move_the_reference_into_the_detection_frame(monkeypatch, tmp_path):
-    import pcc_ros.data.sources as sources
-    from pcc_ros.evaluate_real import real_instances
+    import pcc_ros.evaluate_real as evaluate_real
     from pcc_ros.geometry.canonical import from_canonical
 
     frames = _frames_with_a_shifted_detection()
-    monkeypatch.setattr(sources, "open_frames", lambda path, **kw: iter(frames))
-    gt_inst, _ = real_instances([tmp_path], min_points=10)
-    det_inst, report = real_instances([tmp_path], min_points=10, boxes="detections", detections_dir=tmp_path)
+    monkeypatch.setattr(evaluate_real, "open_frames", lambda path, **kw: iter(frames))
+    gt_inst, _ = evaluate_real.real_instances([tmp_path], min_points=10)
+    det_inst, report = evaluate_real.real_instances([tmp_path], min_points=10, boxes="detections",
+                                                    detections_dir=tmp_path)
     assert len(gt_inst) == len(det_inst) == 3
     assert report[str(tmp_path)]["skipped"]["detection_unmatched"] == 3  # the box at 40 m holds no car
     g, d = gt_inst[0], det_inst[0]

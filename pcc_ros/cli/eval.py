@@ -12,6 +12,7 @@ from pathlib import Path
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.evaluate import EvalConfig, evaluate_cache, parse_checkpoints, print_tables
+from pcc_ros.evaluate_real import run_real
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -93,8 +94,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.real:
-        from pcc_ros.evaluate_real import run_real
-
         return run_real(args)
     if args.data is None:
         raise ConfigError("--data is required (an instance cache), unless --real")

@@ -12,6 +12,7 @@ import argparse
 import importlib
 import importlib.util
 import logging
+import os
 import sys
 import traceback
 
@@ -95,8 +96,6 @@ def main(argv: list[str] | None = None) -> int:
                 "where it stopped, pcc train with --resume)")
         return 130
     except BrokenPipeError:  # `pcc info BAG | head`: the reader left; not an error worth a message
-        import os
-
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
     except Exception as exc:  # the command boundary: a named error, never a traceback

@@ -32,8 +32,10 @@ convolution, so no 3 x 3 x 3 convolution touches the 31k-voxel full-resolution g
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,9 +44,14 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.spatial import cKDTree
 from torch import nn
+from tqdm import tqdm
 
+from pcc_ros.data.instances import InstanceCache
 from pcc_ros.errors import CheckpointError, ConfigError, DataError
+from pcc_ros.files import atomic_write
+from pcc_ros.geometry.canonical import to_canonical
 from pcc_ros.geometry.voxels import (
     AML_GRID,
     BOX_GRID,
@@ -56,8 +63,11 @@ from pcc_ros.geometry.voxels import (
     reference_grids,
     to_box_frame,
 )
-from pcc_ros.models.base import SceneContext, TorchCompleter, cloud_seed
+from pcc_ros.metrics import instance_metrics
+from pcc_ros.models.base import ASPECT_SCALE_RANGE, SceneContext, TorchCompleter, cloud_seed
+from pcc_ros.models.checkpoint import load_checkpoint
 from pcc_ros.models.registry import register
+from pcc_ros.train import validate, validation_instances
 
 log = logging.getLogger(__name__)
 
@@ -339,8 +349,6 @@ def box_aspects(contexts: Sequence[SceneContext | None]) -> np.ndarray:
     :data:`DEFAULT_ASPECT`; ``w / l`` and ``h / l`` clipped to ``ASPECT_SCALE_RANGE`` times the
     default (as the shared :func:`~pcc_ros.models.base.aspect_scales`): a detector box twice
     as wide or tall as a car is not a car body the prior can fill."""
-    from pcc_ros.models.base import ASPECT_SCALE_RANGE
-
     default = np.asarray(DEFAULT_ASPECT, np.float64)
     out = np.tile(default, (len(contexts), 1))
     for i, ctx in enumerate(contexts):  # per instance: one 3-vector
@@ -353,8 +361,6 @@ def box_aspects(contexts: Sequence[SceneContext | None]) -> np.ndarray:
 
 def canonical_origins(clouds: Sequence[np.ndarray], contexts: Sequence[SceneContext | None]) -> np.ndarray:
     """Sensor origin of each cloud in its canonical frame: exact from a context's box, else estimated."""
-    from pcc_ros.geometry.canonical import to_canonical
-
     out = np.empty((len(clouds), 3))
     for i, (cloud, ctx) in enumerate(zip(clouds, contexts)):  # per instance: one 3-vector
         if ctx is None:
@@ -564,10 +570,6 @@ def synthcars_reference_shapes(root: str | Path, truncation: float, max_shapes: 
                                progress: bool = True, frame: str = "box") -> ReferenceSet:
     """Voxelise the complete shapes of a SynthCars root's *train* sequences (test never);
     at most ``max_shapes`` of them (a seeded subset), in the grid of ``frame``."""
-    import json
-
-    from tqdm import tqdm
-
     root = Path(root)
     meta_path = root / "meta.json"
     if not (meta_path.is_file() and (root / "shapes").is_dir()):
@@ -603,8 +605,6 @@ def synthcars_reference_shapes(root: str | Path, truncation: float, max_shapes: 
 
 
 def _hash_split(keys: Sequence[str], val_fraction: float) -> np.ndarray:
-    import zlib
-
     return np.array([zlib.crc32(k.encode()) / 2**32 < val_fraction for k in keys], dtype=bool)
 
 
@@ -738,8 +738,6 @@ class AMLRecipe:
     def build_completer(self, device: str) -> AML:
         completer = AML(device=device, size=self.size)
         if self.stage == "encoder":
-            from pcc_ros.models.checkpoint import load_checkpoint
-
             state, config = load_checkpoint(self.prior)
             if config["backend"] != "aml":
                 raise CheckpointError(f"{self.prior}: not an AML checkpoint (backend {config['backend']!r})")
@@ -758,7 +756,6 @@ class AMLRecipe:
     def open_data(self, path: Path) -> Any:
         if self.stage == "prior":
             return self._reference_shapes(Path(path))
-        from pcc_ros.data.instances import InstanceCache
 
         return InstanceCache.load(path)
 
@@ -776,8 +773,6 @@ class AMLRecipe:
             log.info("aml: %s was made from other shapes or settings; recomputing", cache)
         ref = synthcars_reference_shapes(root, truncation, self.max_shapes, frame=frame)
         if cache is not None:
-            from pcc_ros.files import atomic_write
-
             cache.parent.mkdir(parents=True, exist_ok=True)
             with atomic_write(cache, "wb") as stream:
                 np.savez_compressed(stream, occupancy=ref.occupancy, sdf=ref.sdf, keys=np.array(ref.keys), stamp=stamp)
@@ -787,7 +782,6 @@ class AMLRecipe:
         if self.stage == "prior":
             val = _hash_split(source.keys, 0.1)
             return source.subset(np.flatnonzero(~val))
-        from pcc_ros.data.instances import InstanceCache
 
         clouds, origins, aspects, sources = [], [], [], {}
         caches = [(source, 1, split)] + [(InstanceCache.load(p), self.real_repeat, self.real_split) for p in self.real]
@@ -863,14 +857,12 @@ class AMLRecipe:
         if self.stage == "prior":
             val = _hash_split(source.keys, 0.1)
             return source.subset(np.flatnonzero(val)), "held-out reference shapes"
-        from pcc_ros.train import validation_instances
 
         return validation_instances(source, split, count, seed)
 
     def validate(self, completer: AML, val_data: Any, seed: int) -> dict[str, float]:
         if self.stage == "prior":
             return validate_prior(completer, val_data, self.beta)
-        from pcc_ros.train import validate
 
         return validate(completer, val_data, seed)
 
@@ -1002,8 +994,6 @@ class RealCrops:
 
 def real_crops(paths: Sequence[str], split: str = "all", min_points: int = 10) -> RealCrops:
     """The crops of real instance caches (``split``: one split or ``all``)."""
-    from pcc_ros.data.instances import InstanceCache
-
     clouds, origins, sizes = [], [], []
     for path in paths:  # a handful of caches
         cache = InstanceCache.load(path)
@@ -1024,8 +1014,6 @@ def holdout_fidelity(completer: AML, crops: RealCrops, lambdas: Sequence[float],
     A real crop has no complete ground truth; its own unseen points are the honest check of
     how well a completion explains the car (too strong a prior misses them; the likelihood
     is what fits them). ``repeats`` seeded splits per crop."""
-    from scipy.spatial import cKDTree
-
     kept, held, origins, aspects, lengths = [], [], [], [], []
     for r in range(repeats):
         for i, cloud in enumerate(crops.clouds):  # a few dozen crops: index bookkeeping only
@@ -1064,8 +1052,6 @@ def select_lambda(completer: AML, instances: Sequence[Any], lambdas: Sequence[fl
     (when ``real`` crops are given): :func:`holdout_fidelity` in metres. Score of a lambda:
     ``(1 - w) * cd / min(cd) + w * real / min(real)`` with ``w = real_weight`` (each domain
     relative to its best candidate, so neither's units dominate)."""
-    from pcc_ros.metrics import instance_metrics
-
     if not instances:
         raise ConfigError("aml: lambda selection needs validation instances (--val-instances > 0)")
     if not lambdas:

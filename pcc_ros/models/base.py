@@ -27,6 +27,7 @@ import abc
 import itertools
 import logging
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -34,7 +35,17 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
+from pcc_ros.geometry.canonical import to_canonical
 from pcc_ros.geometry.sampling import cloud_seed  # re-exported: backends seed per cloud through models.base
+from pcc_ros.models.checkpoint import (
+    box_aspect_record,
+    check_hyper_parameters,
+    load_checkpoint,
+    make_config,
+    parse_box_aspect,
+    save_checkpoint,
+    validate_state,
+)
 from pcc_ros.types import Boxes
 
 if TYPE_CHECKING:  # torch is imported lazily so baselines and metrics stay torch-free
@@ -146,8 +157,6 @@ class SceneContext:
 
     def neighbour_centres_canonical(self) -> np.ndarray:
         """``(K, 3)`` neighbour box centres in this instance's canonical frame."""
-        from pcc_ros.geometry.canonical import to_canonical
-
         return to_canonical(
             self.neighbour_boxes.center, self.box.center[0], float(self.box.yaw[0]), float(self.box.size[0, 0])
         ).astype(np.float32)
@@ -334,28 +343,6 @@ class Completer(abc.ABC):
 MAX_DECODE_DENSITY = 8
 
 
-def parse_box_aspect(value: Any) -> tuple[float, float]:
-    """``(width / length, height / length)`` from a pair or a checkpoint's ``box_aspect`` record."""
-    if isinstance(value, dict):
-        value = (value.get("width_over_length"), value.get("height_over_length"))
-    try:
-        pair = tuple(float(v) for v in value)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"box_aspect must be (width/length, height/length), got {value!r}") from exc
-    if len(pair) != 2 or not all(np.isfinite(pair)) or not all(0.05 < v < 5.0 for v in pair):
-        raise ConfigError(f"box_aspect must be two ratios in (0.05, 5), got {value!r}")
-    return pair  # type: ignore[return-value]
-
-
-def box_aspect_record(aspect: Sequence[float], source: str = "") -> dict[str, Any]:
-    """The checkpoint JSON entry ``box_aspect`` (read back by :func:`parse_box_aspect`)."""
-    w, h = parse_box_aspect(aspect)
-    record: dict[str, Any] = {"width_over_length": round(w, 6), "height_over_length": round(h, 6)}
-    if source:
-        record["source"] = source
-    return record
-
-
 def median_box_aspect(sizes: np.ndarray) -> tuple[float, float]:
     """The median ``(width / length, height / length)`` of ``(N, 3)`` box sizes (a training set's)."""
     size = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
@@ -477,8 +464,6 @@ class TorchCompleter(Completer):
         self, clouds: list[np.ndarray], contexts: list[SceneContext | None], workers: int
     ) -> list[np.ndarray]:
         """Contiguous shares of the instances on ``workers`` threads (this one included), in order."""
-        from concurrent.futures import ThreadPoolExecutor
-
         import torch
 
         if self._pool is None or self._pool._max_workers < self.workers - 1:
@@ -508,8 +493,6 @@ class TorchCompleter(Completer):
         extra: dict[str, Any] | None = None,
     ) -> Path:
         """Write ``path`` (.safetensors) and its ``.json`` config; returns the weights path."""
-        from pcc_ros.models.checkpoint import make_config, save_checkpoint
-
         if self.box_aspect is not None and not (extra and "box_aspect" in extra):
             extra = {**(extra or {}), "box_aspect": box_aspect_record(self.box_aspect)}
         config = make_config(self.name, self.config, training=training, metrics=metrics, extra=extra)
@@ -518,8 +501,6 @@ class TorchCompleter(Completer):
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "auto", **overrides: Any) -> TorchCompleter:
         """Build the backend from a checkpoint's config and load its validated weights."""
-        from pcc_ros.models.checkpoint import check_hyper_parameters, load_checkpoint, validate_state
-
         state, config = load_checkpoint(path)
         if config["backend"] not in (cls.name, cls.weights_name):
             raise CheckpointError(f"{path}: checkpoint is for backend {config['backend']!r}, not {cls.name!r}")

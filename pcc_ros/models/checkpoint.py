@@ -29,12 +29,15 @@ import datetime as _dt
 import hashlib
 import json
 import subprocess
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pcc_ros import files
-from pcc_ros.errors import CheckpointError
+import numpy as np
+from safetensors import SafetensorError
+
+from pcc_ros import __version__, files
+from pcc_ros.errors import CheckpointError, ConfigError
 
 if TYPE_CHECKING:
     import torch
@@ -48,6 +51,28 @@ _KNOWN_KEYS = frozenset({
 })
 #: Deepest JSON nesting a checkpoint config may have (real ones are about 4 levels deep).
 MAX_CONFIG_DEPTH = 32
+
+
+def parse_box_aspect(value: Any) -> tuple[float, float]:
+    """``(width / length, height / length)`` from a pair or a checkpoint's ``box_aspect`` record."""
+    if isinstance(value, dict):
+        value = (value.get("width_over_length"), value.get("height_over_length"))
+    try:
+        pair = tuple(float(v) for v in value)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"box_aspect must be (width/length, height/length), got {value!r}") from exc
+    if len(pair) != 2 or not all(np.isfinite(pair)) or not all(0.05 < v < 5.0 for v in pair):
+        raise ConfigError(f"box_aspect must be two ratios in (0.05, 5), got {value!r}")
+    return pair  # type: ignore[return-value]
+
+
+def box_aspect_record(aspect: Sequence[float], source: str = "") -> dict[str, Any]:
+    """The checkpoint JSON entry ``box_aspect`` (read back by :func:`parse_box_aspect`)."""
+    w, h = parse_box_aspect(aspect)
+    record: dict[str, Any] = {"width_over_length": round(w, 6), "height_over_length": round(h, 6)}
+    if source:
+        record["source"] = source
+    return record
 
 
 def checkpoint_paths(path: str | Path) -> tuple[Path, Path]:
@@ -89,8 +114,6 @@ def make_config(
     Point counts are pulled out of the hyper-parameters (keys containing ``points``) into
     ``"points"`` so a person reading the JSON sees them at a glance.
     """
-    from pcc_ros import __version__
-
     hyper = json.loads(json.dumps(dict(hyper_parameters)))  # JSON-able, detached copy
     config: dict[str, Any] = {
         "format": FORMAT,
@@ -187,8 +210,6 @@ def set_box_aspect(path: str | Path, aspect: Any, source: str) -> Path:
     """Record the reference box aspect (``Completer.box_aspect``) in an existing checkpoint's
     JSON, e.g. the median aspect of the data weights were trained on; ``source`` says where it
     comes from. The weights are untouched. Returns the JSON path."""
-    from pcc_ros.models.base import box_aspect_record
-
     _, config_path = checkpoint_paths(path)
     config = load_config(path)
     config["box_aspect"] = box_aspect_record(aspect, source)
@@ -207,7 +228,6 @@ def load_checkpoint(path: str | Path, verify_hash: bool = True) -> tuple[dict[st
             the config's manifest, or a tensor holds NaN/inf.
     """
     import torch
-    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
     weights_path, config_path = checkpoint_paths(path)

@@ -38,6 +38,7 @@ import torch
 from torch import nn
 
 from pcc_ros.errors import ConfigError
+from pcc_ros.geometry.partitions import octant_masks
 from pcc_ros.models.base import (
     SceneContext,
     TorchCompleter,
@@ -109,8 +110,6 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 def region_masks(points: np.ndarray, overlap: float) -> np.ndarray:
     """``(N, 8)`` octant membership of canonical points (the shared partition definition)."""
-    from pcc_ros.geometry.partitions import octant_masks
-
     return np.asarray(octant_masks(points, overlap), dtype=bool)
 
 

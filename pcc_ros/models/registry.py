@@ -23,6 +23,7 @@ from typing import Any
 
 from pcc_ros.errors import CheckpointError, ConfigError
 from pcc_ros.models.base import Completer
+from pcc_ros.paths import share_dirs
 
 log = logging.getLogger(__name__)
 
@@ -113,8 +114,6 @@ def default_checkpoint(name: str) -> Path | None:
     Looked up in the package's ``weights/`` directory (package data of a pip/editable
     install) and then in ``<prefix>/share/pcc_ros/weights`` (a colcon install).
     """
-    from pcc_ros.paths import share_dirs
-
     cls = _REGISTERED.get(name)
     if cls is None and name in BACKENDS:
         cls = get_backend(name)

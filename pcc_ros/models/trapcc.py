@@ -53,9 +53,12 @@ import numpy as np
 import torch
 from torch import nn
 
+from pcc_ros.data.gt_pools import PoolConfig, load_or_assign, load_or_build_pools
+from pcc_ros.data.instances import InstanceCache
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.geometry.canonical import to_canonical
 from pcc_ros.models.base import SceneContext, TorchCompleter, resample_cloud
-from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, masked_mean, weighted_chamfer
+from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, _nearest, masked_mean, weighted_chamfer
 from pcc_ros.models.registry import register
 
 log = logging.getLogger(__name__)
@@ -99,8 +102,6 @@ def neighbour_geometry(center: np.ndarray, yaw: float, length: float, nb_center:
     cosine between target->neighbour and target->sensor (1: the neighbour is between the
     target and the sensor, the external-occlusion case of TraPCC §4.3).
     """
-    from pcc_ros.geometry.canonical import to_canonical
-
     nb_center = np.asarray(nb_center, dtype=np.float64).reshape(-1, 3)
     if len(nb_center) == 0:
         return np.zeros((0, GEOMETRY_FEATURES), np.float32)
@@ -463,9 +464,6 @@ class TraPCCRecipe:
         Pools are built from the ``split`` tracks of all caches together; retrieval is cached
         (see :mod:`pcc_ros.data.gt_pools`). Instances without a Whole-GT (empty pool) are left out.
         """
-        from pcc_ros.data.gt_pools import PoolConfig, load_or_assign, load_or_build_pools
-        from pcc_ros.data.instances import InstanceCache
-
         caches = [cache]
         for path in self.options.real_data:
             try:
@@ -643,8 +641,6 @@ def one_sided(source: torch.Tensor, source_mask: torch.Tensor, pred: torch.Tenso
 
     One nearest-neighbour query (source -> prediction) instead of Chamfer's two.
     """
-    from pcc_ros.models.layers import _nearest
-
     with torch.no_grad():
         idx = _nearest(source, pred)
     near = torch.gather(pred, -2, idx[..., None].expand(*idx.shape, 3))
@@ -659,7 +655,6 @@ def chamfer(target: torch.Tensor, target_mask: torch.Tensor, pred: torch.Tensor,
     """Chamfer-L1 (``weighted_chamfer``; ``beta`` = weight of pred -> target), or its squared form."""
     if not squared:
         return weighted_chamfer(target, target_mask, pred, beta)
-    from pcc_ros.models.layers import _nearest
 
     with torch.no_grad():
         nn_y2x = _nearest(pred, target, target_mask)

@@ -36,13 +36,14 @@ class and score above each box.
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from pcc_ros.errors import MessageError
+from pcc_ros.errors import ConfigError, MessageError
 from pcc_ros.geometry.boxes import box_corners
 from pcc_ros.geometry.rotations import (
     quaternion_from_yaw,
@@ -92,8 +93,6 @@ class DetectionLimits:
     def __post_init__(self) -> None:
         if not (self.max_size > 0 and self.max_range > 0 and self.quaternion_tolerance >= 0
                 and 0 <= self.max_tilt <= np.pi):
-            from pcc_ros.errors import ConfigError
-
             raise ConfigError("max_box_size and max_box_range must be > 0, max_box_tilt in [0, pi]")
 
 
@@ -277,8 +276,6 @@ def transform_detections(detections: Sequence, transform: Transform, frame: str)
     """Copies of ``vision_msgs/Detection3D`` messages (any class flavour) expressed in ``frame``:
     box and hypothesis poses moved by ``transform`` (``frame <- their frame``), each
     hypothesis's pose covariance rotated with it; ids, labels, scores and sizes untouched."""
-    import copy
-
     matrix = transform.matrix()
     rotation, translation = matrix[:3, :3], matrix[:3, 3]
     turn = np.asarray(transform.rotation, dtype=np.float64)

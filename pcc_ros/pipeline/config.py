@@ -31,6 +31,7 @@ import numpy as np
 import yaml
 
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.msg.detections import DetectionLimits
 from pcc_ros.paths import resource_dir
 from pcc_ros.pipeline.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
 from pcc_ros.types import class_mask
@@ -79,8 +80,6 @@ class PipelineConfig:
 
     def detection_limits(self):
         """The :class:`~pcc_ros.msg.detections.DetectionLimits` incoming detections must meet."""
-        from pcc_ros.msg.detections import DetectionLimits
-
         return DetectionLimits(
             max_size=float(self.max_box_size), max_range=float(self.max_box_range),
             max_tilt=float(self.max_box_tilt),

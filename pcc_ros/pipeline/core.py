@@ -19,10 +19,24 @@ from typing import Any
 
 import numpy as np
 
+from pcc_ros.errors import MessageError
 from pcc_ros.geometry.boxes import crop_canonical
 from pcc_ros.geometry.canonical import from_canonical
+from pcc_ros.models.base import SceneContext
+from pcc_ros.models.registry import get_backend, load_completer
+from pcc_ros.msg.detections import (
+    box_edge_points,
+    decode_detection_array,
+    detection_array_from_boxes,
+    marker_array_from_boxes,
+    transform_detections,
+)
+from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
+from pcc_ros.msg.stamps import make_header, stamp_to_ns
+from pcc_ros.msg.typestore import new_message
 from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.filter import (
+    annotate_detections,
     false_probability,
     filter_terms,
     map_scores,
@@ -128,8 +142,6 @@ class Pipeline:
     def __init__(self, config: PipelineConfig, completer=None) -> None:
         self.config = config
         if completer is None:
-            from pcc_ros.models.registry import load_completer
-
             completer = load_completer(
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
             )
@@ -139,14 +151,10 @@ class Pipeline:
         self.filter_completer = None
         name = config.filter.filter_backend
         if config.filter.uses_mismatch and name and name != config.backend:
-            from pcc_ros.models.registry import load_completer
-
             self.filter_completer = load_completer(name, None, device=config.device)
 
     @staticmethod
     def _runtime_options(config: PipelineConfig) -> dict[str, Any]:
-        from pcc_ros.models.registry import get_backend
-
         if not get_backend(config.backend).learned:
             return {}  # baselines have no network: batch size, precision and workers do not apply
         return {"batch_size": config.batch_size, "half_precision": config.half_precision, "workers": config.workers,
@@ -204,8 +212,6 @@ class Pipeline:
         crops = [canonical[i] for i in np.flatnonzero(enough)]
         context = None
         if getattr(self.completer, "uses_context", False) and crops:
-            from pcc_ros.models.base import SceneContext
-
             context = SceneContext.from_frame(detections[selected], crops)
         sizes = detections.size[selected]
         completions = self.completer.complete(crops, context, sizes=sizes) if crops else []
@@ -321,11 +327,6 @@ class Pipeline:
         Returns the result and the valid subset of ``detections_msg.detections``, in the
         order of ``result.detections`` (so the outputs republish the original messages).
         """
-        from pcc_ros.errors import MessageError
-        from pcc_ros.msg.detections import decode_detection_array, transform_detections
-        from pcc_ros.msg.pointcloud2 import read_xyz
-        from pcc_ros.msg.stamps import stamp_to_ns
-
         for what, msg in (("scan", cloud_msg), ("detections", detections_msg)):
             if stamp_to_ns(msg.header.stamp) < 0:
                 raise MessageError(f"{what} stamp {stamp_to_ns(msg.header.stamp)} ns is negative (before 1970)")
@@ -400,12 +401,6 @@ def build_outputs(
     (Detection3DArray: the original detection messages when given, so every hypothesis and
     id survives untouched, else re-encoded from the boxes).
     """
-    from pcc_ros.msg.detections import box_edge_points, detection_array_from_boxes, marker_array_from_boxes
-    from pcc_ros.msg.pointcloud2 import create_cloud
-    from pcc_ros.msg.stamps import make_header
-    from pcc_ros.msg.typestore import new_message
-    from pcc_ros.pipeline.filter import annotate_detections
-
     edges = box_edge_points(result.detections, classes)  # both marker arrays draw the same boxes
     outputs = {
         "completed": create_cloud(completed_cloud_array(result), None, result.frame_id, result.stamp_ns, classes),

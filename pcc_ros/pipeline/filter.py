@@ -49,6 +49,7 @@ from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import box_corners, pairs_in_boxes
 from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.metrics.chamfer import nearest_distances_batch
+from pcc_ros.msg.typestore import new_message
 from pcc_ros.types import Boxes
 
 SCORE_MAPPINGS = ("identity", "sigmoid")
@@ -638,8 +639,6 @@ def annotate_detections(detections: list, result, index: np.ndarray, classes=Non
     ``ObjectHypothesisWithPose`` ``class_id="pcc_filter_score"``, score = probability that the
     detection is false, then one ``pcc_filter/<term>`` per finite term (score = the term's
     value), all with the box pose. The detector's own hypotheses come first, untouched."""
-    from pcc_ros.msg.typestore import new_message
-
     if result.filter_score is None and not np.isfinite(result.mismatch).any():
         return list(detections)
     out = []

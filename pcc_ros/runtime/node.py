@@ -24,7 +24,7 @@ from pcc_ros.errors import ConfigError, PccError
 from pcc_ros.geometry.transforms import transform_boxes
 from pcc_ros.msg.detections import transform_detections
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
-from pcc_ros.msg.typestore import new_message
+from pcc_ros.msg.typestore import is_rosbags_class, new_message
 from pcc_ros.pipeline.config import (
     BACKEND_PARAMETERS,
     check_value,
@@ -34,6 +34,7 @@ from pcc_ros.pipeline.config import (
     unknown_parameters,
 )
 from pcc_ros.pipeline.core import FrameResult, Pipeline, build_outputs
+from pcc_ros.pipeline.filter import decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
 
@@ -324,8 +325,6 @@ class NodeCore:
             self.publishers[name].publish(msg)
         self.frames += 1
         if self.mode == "filter":
-            from pcc_ros.pipeline.filter import decision_counts
-
             self.last_decisions = decision_counts(result.status)
             for k, v in self.last_decisions.items():
                 self.decisions[k] += v
@@ -430,6 +429,4 @@ class NodeCore:
 
 def _byte_is_bytes(classes) -> bool:
     """rclpy's generated classes type ``byte`` fields as ``bytes``; rosbags uses ints."""
-    from pcc_ros.msg.typestore import is_rosbags_class
-
     return not is_rosbags_class(classes("diagnostic_msgs/msg/DiagnosticStatus"))
