@@ -65,19 +65,14 @@ PREFIXES = {
 #: Sibling folders of one layer that must not import each other.
 SIBLINGS = (("pcc_ros.data", "pcc_ros.models"),)
 
-#: Known upward imports left for the next round of #14, each with why it is not fixed here.
-#: An entry that no longer occurs fails the test too (delete it when its import is gone).
-ALLOWED: set[tuple[str, str]] = set()
-#: Like ALLOWED, for modules other work of this round is still adding (they may be absent).
-IN_FLIGHT = {
-    # TraPCC's training recipe builds its ground-truth pools from the data layer; models/
-    # trapcc.py is being written now. Next round: the recipe takes the pools as an argument
-    # (as PointPnCNet's takes the cache and calls cache.multiview_groups).
+#: Known upward imports, each with why it is not fixed yet. An entry that no longer occurs
+#: fails the test too (delete it when its import is gone): the list can only shrink.
+ALLOWED = {
+    # The TraPCC and AML training recipes (training_recipe on the backend class) open the
+    # instance cache and TraPCC's ground-truth pools from data/, and AML validates through
+    # train. Next: the recipe receives the cache and a validation callback from train.
     ("pcc_ros.models.trapcc", "pcc_ros.data.gt_pools"),
     ("pcc_ros.models.trapcc", "pcc_ros.data.instances"),
-    # AML (models/aml.py): the recipe opens the instance cache and validates through train.
-    # Next round: the recipe receives the cache and a validation callback instead of
-    # importing the doors.
     ("pcc_ros.models.aml", "pcc_ros.data.instances"),
     ("pcc_ros.models.aml", "pcc_ros.train"),
 }
@@ -162,7 +157,7 @@ def test_imports_point_down_the_flow():
     found = upward_imports()
     pairs = {(a, b) for a, b, _ in found}
     unexpected = sorted(f"{a} (layer {LAYER_NAMES[layer(a)]}) imports {b} (layer {LAYER_NAMES[layer(b)]}), line {n}"
-                        for a, b, n in found if (a, b) not in ALLOWED | IN_FLIGHT)
+                        for a, b, n in found if (a, b) not in ALLOWED)
     assert not unexpected, "imports up the flow:\n" + "\n".join(unexpected)
     stale = sorted(ALLOWED - pairs)
     assert not stale, f"allow-listed imports that no longer occur (delete them from ALLOWED): {stale}"
@@ -187,6 +182,17 @@ def test_nothing_imports_the_cli():
         if module_name(p) != "pcc_ros.cli" and not module_name(p).startswith("pcc_ros.cli.")
         for target, line in imports(p)
         if target == "pcc_ros.cli" or target.startswith("pcc_ros.cli.")
+    ]
+    assert not offenders, offenders
+
+
+def test_the_package_never_imports_the_benchmarks():
+    """``benchmarks/`` is not installed: only ``pcc bench`` (cli/bench) loads it, from the checkout's path."""
+    offenders = [
+        f"{module_name(p)}:{line} imports {target}"
+        for p in sources()
+        for target, line in imports(p)
+        if target.split(".")[0] == "benchmarks"
     ]
     assert not offenders, offenders
 
