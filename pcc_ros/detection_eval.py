@@ -30,7 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pcc_ros import files
-from pcc_ros.data.kitti import _split_dir, read_velodyne
+from pcc_ros.data.kitti import read_velodyne, split_dir
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
@@ -77,7 +77,7 @@ def load_kitti(
     lines with a score column, ``DETECTIONS/FFFFFF.txt`` or ``DETECTIONS/SSSS/FFFFFF.txt``.
     A frame without a detection file reads as no detections (counted, logged).
     """
-    split = _split_dir(Path(root), "training")
+    split = split_dir(Path(root), "training")
     det_root = None if detections is None else Path(detections)
     if det_root is not None and not det_root.is_dir():
         raise DataError(f"{det_root}: detections directory does not exist")

@@ -45,7 +45,7 @@ from pcc_ros.models import get_backend, load_completer
 from pcc_ros.models.base import SceneContext
 from pcc_ros.models.checkpoint import load_config
 from pcc_ros.models.registry import default_checkpoint
-from pcc_ros.tables import print_table
+from pcc_ros.tables import metric_cell, print_table
 
 log = logging.getLogger("pcc.eval")
 
@@ -337,15 +337,6 @@ def summarise(instances: Sequence[EvalInstance], rows: Sequence[dict[str, float]
 # --------------------------------------------------------------------------- output
 
 
-def _cell(value: Any) -> str:
-    """4 significant digits (squared metres of good completions are ~1e-4), '-' for empty bands."""
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        return f"{value:.4g}"
-    return str(value)
-
-
 def print_tables(results: dict[str, Any], reference: str) -> None:
     """One table per metric: backends x (overall, distance bands, point bands), in metres."""
     backends = results["backends"]
@@ -360,7 +351,7 @@ def print_tables(results: dict[str, Any], reference: str) -> None:
             row: dict[str, Any] = {"backend": name, "overall": res["overall"][key]}
             row.update({band: res["by_distance"][band][key] for band, _, _ in DISTANCE_BANDS})
             row.update({band: res["by_points"][band][key] for band, _, _ in POINT_BANDS})
-            rows.append({k: _cell(v) for k, v in row.items()})
+            rows.append({k: metric_cell(v) for k, v in row.items()})
         better = "lower" if METRICS[key].lower_is_better else "higher"
         unit = unit_label(key, metres=True)
         unit_text = "dimensionless" if unit == "-" else f"{unit}, sensor frame"
@@ -370,7 +361,8 @@ def print_tables(results: dict[str, Any], reference: str) -> None:
     counts.update({band: first["by_points"][band]["count"] for band, _, _ in POINT_BANDS})
     print_table("instances per band", [counts], columns)
     canon_rows = [
-        {"backend": name, **{f"{k} [{unit_label(k, metres=False)}]": _cell(res["overall_canonical"][k]) for k in keys}}
+        {"backend": name,
+         **{f"{k} [{unit_label(k, metres=False)}]": metric_cell(res["overall_canonical"][k]) for k in keys}}
         for name, res in backends.items()
     ]
     print_table("overall in canonical units (box length = 1)", canon_rows)

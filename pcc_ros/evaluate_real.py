@@ -33,17 +33,18 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from pcc_ros import files
 from pcc_ros.data.sources import open_frames
 from pcc_ros.data.track_aggregate import collect_tracks
 from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
-from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS, _cell, _write_json, parse_checkpoints
+from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS, parse_checkpoints
 from pcc_ros.geometry.boxes import crop_canonical, iou_3d
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.metrics.realdata import REAL_METRICS, draw_three_views, mean_rows, real_instance_metrics
 from pcc_ros.models import available, get_backend, load_completer
 from pcc_ros.models.base import SceneContext
 from pcc_ros.pipeline.core import PipelineConfig
-from pcc_ros.tables import print_table
+from pcc_ros.tables import metric_cell, print_table
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger("pcc.eval.real")
@@ -286,15 +287,16 @@ def print_real_tables(results: dict[str, Any]) -> None:
             row.update({b: res["by_distance"][b][key] for b, _, _ in DISTANCE_BANDS})
             row.update({b: res["by_points"][b][key] for b, _, _ in POINT_BANDS})
             if key == "points":
-                row["overall"] = f"{_cell(res['overall'][key])} [{_cell(res['overall'].get('points_min'))}-" \
-                                 f"{_cell(res['overall'].get('points_max'))}]"
-            rows.append({k: _cell(v) for k, v in row.items()})
+                o = res["overall"]
+                row["overall"] = (f"{metric_cell(o[key])} [{metric_cell(o.get('points_min'))}-"
+                                  f"{metric_cell(o.get('points_max'))}]")
+            rows.append({k: metric_cell(v) for k, v in row.items()})
         if key == "fidelity":  # the scan's own spacing, the yardstick of fidelity
             any_res = next(iter(scored.values()))
             row = {"backend": "(input spacing)", "overall": any_res["overall"]["spacing"]}
             row.update({b: any_res["by_distance"][b]["spacing"] for b, _, _ in DISTANCE_BANDS})
             row.update({b: any_res["by_points"][b]["spacing"] for b, _, _ in POINT_BANDS})
-            rows.append({k: _cell(v) for k, v in row.items()})
+            rows.append({k: metric_cell(v) for k, v in row.items()})
         better = "" if lower is None else ("; lower is better" if lower else "; higher is better")
         print_table(f"{key} [{unit}{better}] {meaning}", rows, columns)
     first = next(iter(scored.values()))
@@ -367,6 +369,7 @@ def run_real(args: argparse.Namespace) -> int:
         out["plot"] = {"path": str(args.plot), "instances": [instances[p]["key"] for p in picks]}
         log.info("wrote %s", args.plot)
     if args.json:
-        _write_json(args.json, json.loads(json.dumps(out, default=float)))
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        files.write_json(args.json, json.loads(json.dumps(out, default=float)), indent=2, allow_nan=False)
         log.info("wrote %s", args.json)
     return 0

@@ -43,7 +43,7 @@ from pcc_ros.detection_eval import (
 )
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
-from pcc_ros.pipeline.filter import EVIDENCE_GROUND, TERMS, FilterConfig, _local_ground, filter_terms, term_matrix
+from pcc_ros.pipeline.filter import EVIDENCE_GROUND, TERMS, FilterConfig, filter_terms, local_ground, term_matrix
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
@@ -190,7 +190,7 @@ def simulate_false(points: np.ndarray, gt: Boxes, templates: FalseTemplates, rng
     yaw = rng.uniform(-np.pi, np.pi, count * m)
     centre = np.c_[r * np.cos(bearing), r * np.sin(bearing), np.zeros(count * m)]
     flat = Boxes(centre, size, yaw)
-    ground = _local_ground(points, flat)
+    ground = local_ground(points, flat)
     ground = np.where(np.isfinite(ground), ground, np.nanmedian(ground) if np.isfinite(ground).any() else -1.73)
     centre[:, 2] = ground + np.repeat(templates.gap[pick], m) + size[:, 2] / 2
     cands = Boxes(centre, size, yaw, ["Car"] * (count * m), np.repeat(templates.score[pick], m))

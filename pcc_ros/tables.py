@@ -3,6 +3,16 @@
 from __future__ import annotations
 
 
+def metric_cell(value: object) -> str:
+    """A metric in a table cell: 4 significant digits (squared metres of good completions are
+    ~1e-4), '-' for an empty band (``None``)."""
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
 def print_table(title: str, rows: list[dict], columns: list[str] | None = None) -> None:
     """Print ``rows`` (dicts) as an aligned text table."""
     if not rows:

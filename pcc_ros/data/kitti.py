@@ -167,7 +167,9 @@ def read_timestamps(path: str | Path) -> np.ndarray:
     return np.array(out, dtype=np.int64)
 
 
-def _split_dir(root: Path, split: str) -> Path:
+def split_dir(root: Path, split: str) -> Path:
+    """The split folder of a KITTI root: ``root/split`` when it exists, else ``root`` itself
+    when it holds ``velodyne/`` (the split directory was given); :class:`DataError` otherwise."""
     root = Path(root)
     if (root / split).is_dir():
         return root / split
@@ -189,7 +191,7 @@ class KittiTracking:
     """
 
     def __init__(self, root: str | Path, split: str = "training") -> None:
-        self.root = _split_dir(Path(root), split)
+        self.root = split_dir(Path(root), split)
         self.unknown_classes: Counter = Counter()
         self.missing_detections = 0
 

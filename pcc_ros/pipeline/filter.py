@@ -468,7 +468,7 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     return out
 
 
-def _local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH, quantile: float = 0.05) -> np.ndarray:
+def local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH, quantile: float = 0.05) -> np.ndarray:
     """Ground height around each box: the ``quantile`` of the z of the returns within ``reach``
     metres of its footprint and from 3 m below to 1 m above its bottom (NaN when there are none)."""
     n = len(boxes)
@@ -522,7 +522,7 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     table = _BoxTable(boxes)
 
     def beams_and_ground() -> tuple[np.ndarray, np.ndarray]:
-        return _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged, table), _local_ground(points, boxes)
+        return _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged, table), local_ground(points, boxes)
 
     side_job = _side_pool().submit(beams_and_ground) if workers > 1 else None
     # contiguous columns: numpy's SIMD loops (arctan2 among them) skip strided arrays
