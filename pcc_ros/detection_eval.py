@@ -35,12 +35,17 @@ from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.metrics.detection import DIFFICULTIES, NEIGHBOURS, FrameBoxes, ap_table
+from pcc_ros.pipeline.config import CONFIG_FILES, shipped_config_dir
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "detection_filter.yaml"
+def default_config() -> Path:
+    """The filter node's shipped parameter file: ``config/`` of a checkout, or
+    ``share/pcc_ros/config`` of an install (found as the nodes find it,
+    :func:`pcc_ros.pipeline.config.shipped_config_dir`)."""
+    return shipped_config_dir() / CONFIG_FILES["filter"]
 
 
 # ----------------------------------------------------------------------------- data
@@ -417,7 +422,7 @@ def parse_frames(text: str | None) -> slice:
 
 
 def build_pipeline(config_path: Path | None, overrides: dict[str, Any]):
-    config = PipelineConfig.from_yaml(config_path or DEFAULT_CONFIG)
+    config = PipelineConfig.from_yaml(config_path or default_config())
     main = {k: v for k, v in overrides.items() if k in ("backend", "checkpoint", "device") and v is not None}
     filt = {k: v for k, v in overrides.items() if k not in main and v is not None}
     if filt:

@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import json
+import shutil
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from pcc_ros import paths
 from pcc_ros.cli.main import main
-from pcc_ros.detection_eval import load_kitti, operating_curve, removed_at
+from pcc_ros.detection_eval import build_pipeline, default_config, load_kitti, operating_curve, removed_at
+from pcc_ros.errors import DataError
 from pcc_ros.filter_calibration import calibrate, fit_logistic, predict
+from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.filter import FilterConfig
 
 
@@ -75,3 +81,24 @@ def test_eval_detections_on_real_kitti(shared_data, tmp_path, capsys):
     assert shipped["false_removed_share"] > max(ops["points-in-box"][key], ops["detector score"][key])
     assert result["ap_after"]["3d@0.7"]["moderate"] >= result["ap_before"]["3d@0.7"]["moderate"]
     assert (tmp_path / "eval.png").stat().st_size > 10_000
+
+
+def test_eval_detections_finds_the_shipped_config_in_an_install(tmp_path, monkeypatch):
+    """``pcc eval detections`` without ``--config`` in an installed copy (no source tree beside
+    the package): the filter node's YAML comes from ``share/pcc_ros/config`` as the nodes find it."""
+    shipped = Path(__file__).resolve().parents[1] / "config" / "detection_filter.yaml"
+    prefix = tmp_path / "install" / "pcc_ros"
+    (prefix / "share" / "pcc_ros" / "config").mkdir(parents=True)
+    installed = prefix / "share" / "pcc_ros" / "config" / "detection_filter.yaml"
+    shutil.copy(shipped, installed)
+    monkeypatch.setattr(paths, "SOURCE_ROOT", tmp_path / "site-packages")  # no config/ beside the package
+    monkeypatch.setattr(sys, "prefix", str(tmp_path / "venv"))
+    monkeypatch.setattr(sys, "base_prefix", str(tmp_path / "venv"))
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(prefix))
+    assert default_config() == installed
+    pipeline = build_pipeline(None, {"backend": "input"})
+    expected = PipelineConfig.from_yaml(shipped)
+    assert pipeline.config.filter == expected.filter and pipeline.config.backend == "input"
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path / "elsewhere"))
+    with pytest.raises(DataError, match="pass --config"):
+        build_pipeline(None, {})

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.detection_eval import DEFAULT_CONFIG, load_kitti, parse_frames, write_json
+from pcc_ros.detection_eval import default_config, load_kitti, parse_frames, write_json
 from pcc_ros.errors import ConfigError
 from pcc_ros.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
 from pcc_ros.pipeline.filter import TERMS, FilterConfig
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         header += (
             f"# calibrated: preset {args.preset}, sensor {values['sensor']}, score_mapping {values['score_mapping']}\n"
         )
-        text = preset_yaml(args.base_config or DEFAULT_CONFIG, result["bias"], result["weights"], result["threshold"],
+        text = preset_yaml(args.base_config or default_config(), result["bias"], result["weights"], result["threshold"],
                            values, header)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text)

@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 
 from pcc_ros.detection_eval import (
-    DEFAULT_CONFIG,
     build_pipeline,
     evaluate_detections,
     load_kitti,
@@ -23,6 +22,7 @@ from pcc_ros.detection_eval import (
     to_json,
     write_json,
 )
+from pcc_ros.pipeline.config import CONFIG_FILES
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detections", type=Path, help="detector results (default: ROOT/detections/synthetic)")
     parser.add_argument("--sequence", help="tracking sequence (needed when the root holds several)")
     parser.add_argument("--frames", help="START:STOP slice of the scans (default: all)")
-    parser.add_argument("--config", type=Path, help=f"filter node YAML (default: {DEFAULT_CONFIG.name})")
+    parser.add_argument("--config", type=Path, help=f"filter node YAML (default: the shipped {CONFIG_FILES['filter']})")
     parser.add_argument("--backend", help="override the completion backend (the evidence rule does not need it)")
     parser.add_argument("--score-mapping", choices=("identity", "sigmoid"), help="override score_mapping")
     parser.add_argument("--rule", choices=("evidence", "trapcc"), help="override the filter rule")
