@@ -10,6 +10,11 @@ The loop is generic. A trainable backend's class (``get_backend(BACKEND)``) owns
 * ``loss(net, batch) -> (loss tensor, {name: float})``,
 * ``describe() -> dict`` (stored in the checkpoint), and ``default_lr`` (optional).
 
+A recipe lives beside its network in ``models/``, which never imports ``data/`` or this module;
+one that reads caches declares a ``kit`` attribute, and :func:`load_recipe` sets it to
+:func:`training_kit` (``models.base.TrainingKit``: the cache loader, TraPCC's ground-truth
+pools, :func:`validation_instances` and :func:`validate`).
+
 This module owns everything else: seeds, devices, DistributedDataParallel under
 ``torchrun`` (``WORLD_SIZE`` / ``LOCAL_RANK``), the learning-rate schedule, tqdm, periodic
 validation with the evaluation metrics on a held-out split, resumable checkpoints and a
@@ -49,10 +54,11 @@ import numpy as np
 from tqdm import tqdm
 
 from pcc_ros.assignments import parse_assignments
+from pcc_ros.data import gt_pools
 from pcc_ros.data.instances import InstanceCache
 from pcc_ros.errors import CheckpointError, ConfigError, TrainingError
 from pcc_ros.evaluate import instances_from_cache, score_backend
-from pcc_ros.models.base import select_device
+from pcc_ros.models.base import TrainingKit, select_device
 from pcc_ros.models.checkpoint import load_checkpoint, make_config, save_checkpoint, validate_state
 from pcc_ros.models.registry import get_backend
 
@@ -114,9 +120,19 @@ def load_recipe(backend: str, size: str, options: dict[str, Any]) -> Any:
     the options are wrong."""
     cls = get_backend(backend)  # ConfigError for unknown names
     try:
-        return cls.training_recipe(size=size, **options)  # the base class refuses backends without weights
+        recipe = cls.training_recipe(size=size, **options)  # the base class refuses backends without weights
     except TypeError as exc:
         raise ConfigError(f"backend {backend!r}: invalid training options {sorted(options)}: {exc}") from exc
+    if hasattr(recipe, "kit"):  # a recipe that reads caches gets them (and validation) from here
+        recipe.kit = training_kit()
+    return recipe
+
+
+def training_kit() -> TrainingKit:
+    """What the recipes of ``models/`` use from ``data/`` and this module (they never import them)."""
+    return TrainingKit(open_cache=InstanceCache.load, validation_instances=validation_instances, validate=validate,
+                       pool_config=gt_pools.PoolConfig, load_or_build_pools=gt_pools.load_or_build_pools,
+                       load_or_assign=gt_pools.load_or_assign)
 
 
 def learning_rate(base: float, step: int, every: int) -> float:

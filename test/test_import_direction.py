@@ -66,16 +66,10 @@ PREFIXES = {
 SIBLINGS = (("pcc_ros.data", "pcc_ros.models"),)
 
 #: Known upward imports, each with why it is not fixed yet. An entry that no longer occurs
-#: fails the test too (delete it when its import is gone): the list can only shrink.
-ALLOWED = {
-    # The TraPCC and AML training recipes (training_recipe on the backend class) open the
-    # instance cache and TraPCC's ground-truth pools from data/, and AML validates through
-    # train. Next: the recipe receives the cache and a validation callback from train.
-    ("pcc_ros.models.trapcc", "pcc_ros.data.gt_pools"),
-    ("pcc_ros.models.trapcc", "pcc_ros.data.instances"),
-    ("pcc_ros.models.aml", "pcc_ros.data.instances"),
-    ("pcc_ros.models.aml", "pcc_ros.train"),
-}
+#: fails the test too (delete it when its import is gone): the list can only shrink. Empty:
+#: the training recipes of models/ get caches, TraPCC's pools and validation from train
+#: (models.base.TrainingKit) instead of importing data/ or train.
+ALLOWED: set[tuple[str, str]] = set()
 
 ROS_PACKAGES = ("rclpy", "tf2_ros", "rosidl_runtime_py", "launch", "launch_ros")
 

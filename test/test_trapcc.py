@@ -27,6 +27,7 @@ from pcc_ros.models.trapcc import (
     neighbour_geometry,
     training_recipe,
 )
+from pcc_ros.train import load_recipe, training_kit
 from pcc_ros.types import Boxes, Sample
 
 ELLIPSOID = np.array([4.0, 1.8, 1.5])
@@ -276,7 +277,9 @@ def train_cache(tmp_path_factory):
 
 
 def _recipe(tmp_path, **model):
-    return training_recipe(gt_dir=str(tmp_path / "gt"), min_points_pool=512, **{**TINY, **model})
+    recipe = training_recipe(gt_dir=str(tmp_path / "gt"), min_points_pool=512, **{**TINY, **model})
+    recipe.kit = training_kit()  # what pcc train hands it: caches and ground-truth pools
+    return recipe
 
 
 def test_training_data_never_touches_complete_shapes_and_has_neighbours(train_cache, tmp_path):
@@ -287,6 +290,14 @@ def test_training_data_never_touches_complete_shapes_and_has_neighbours(train_ca
     assert (data.neighbours[:, 0] >= 0).all() and (data.neighbours[:, 1:] == -1).all()  # one other car per frame
     summary = recipe.data_summary()
     assert summary["complete_shapes_used"] is False and summary["real_instances"] == 0
+
+
+def test_recipe_without_the_training_kit_names_itself(train_cache, tmp_path):
+    """models/ never imports data/: the caches and pools come from pcc_ros.train (load_recipe sets the kit)."""
+    recipe = training_recipe(gt_dir=str(tmp_path / "gt"), **TINY)
+    with pytest.raises(ConfigError, match=r"trapcc: .*training_kit"):
+        recipe.training_data(train_cache, "train")
+    assert load_recipe("trapcc", "default", {"gt_dir": str(tmp_path / "gt")}).kit == training_kit()
 
 
 @pytest.mark.slow

@@ -48,7 +48,6 @@ from scipy.spatial import cKDTree
 from torch import nn
 from tqdm import tqdm
 
-from pcc_ros.data.instances import InstanceCache
 from pcc_ros.errors import CheckpointError, ConfigError, DataError
 from pcc_ros.files import atomic_write
 from pcc_ros.geometry.canonical import to_canonical
@@ -64,10 +63,9 @@ from pcc_ros.geometry.voxels import (
     to_box_frame,
 )
 from pcc_ros.metrics import instance_metrics
-from pcc_ros.models.base import ASPECT_SCALE_RANGE, SceneContext, TorchCompleter, cloud_seed
+from pcc_ros.models.base import ASPECT_SCALE_RANGE, SceneContext, TorchCompleter, TrainingKit, cloud_seed
 from pcc_ros.models.checkpoint import load_checkpoint
 from pcc_ros.models.registry import register
-from pcc_ros.train import validate, validation_instances
 
 log = logging.getLogger(__name__)
 
@@ -724,6 +722,9 @@ class AMLRecipe:
         self.lambda_sweep: dict[str, Any] = {}
         self.completer: AML | None = None
         self._source_root: Path | None = None
+        #: instance caches and the evaluation-metric validation come through :class:`TrainingKit`
+        #: (set by ``pcc_ros.train``); the prior stage needs none of it
+        self.kit: TrainingKit | None = None
 
     def describe(self) -> dict[str, Any]:
         return {"size": self.size, "stage": self.stage, "prior": self.prior, "lambdas": self.lambdas,
@@ -757,7 +758,7 @@ class AMLRecipe:
         if self.stage == "prior":
             return self._reference_shapes(Path(path))
 
-        return InstanceCache.load(path)
+        return TrainingKit.require(self.kit, "aml").open_cache(path)
 
     def _reference_shapes(self, root: Path) -> ReferenceSet:
         """The voxelised reference set, read from / written to ``reference_cache`` when given."""
@@ -784,7 +785,8 @@ class AMLRecipe:
             return source.subset(np.flatnonzero(~val))
 
         clouds, origins, aspects, sources = [], [], [], {}
-        caches = [(source, 1, split)] + [(InstanceCache.load(p), self.real_repeat, self.real_split) for p in self.real]
+        open_cache = TrainingKit.require(self.kit, "aml").open_cache if self.real else None
+        caches = [(source, 1, split)] + [(open_cache(p), self.real_repeat, self.real_split) for p in self.real]
         for cache, repeat, which in caches:  # a handful of caches
             idx = cache.indices(which, min_points=min_points) if which != "all" else np.concatenate(
                 [cache.indices(s, min_points=min_points) for s in ("train", "val", "test")])
@@ -858,13 +860,13 @@ class AMLRecipe:
             val = _hash_split(source.keys, 0.1)
             return source.subset(np.flatnonzero(val)), "held-out reference shapes"
 
-        return validation_instances(source, split, count, seed)
+        return TrainingKit.require(self.kit, "aml").validation_instances(source, split, count, seed)
 
     def validate(self, completer: AML, val_data: Any, seed: int) -> dict[str, float]:
         if self.stage == "prior":
             return validate_prior(completer, val_data, self.beta)
 
-        return validate(completer, val_data, seed)
+        return TrainingKit.require(self.kit, "aml").validate(completer, val_data, seed)
 
     def prepare(self, completer: AML, data: Any, val_data: Any, seed: int) -> None:
         """Encoder stage: choose lambda with the ML baseline on validation instances."""
@@ -874,7 +876,10 @@ class AMLRecipe:
             completer.lam = float(self.fixed_lam)
             self.lambda_sweep = {"chosen": completer.lam, "how": "given (--option lam)"}
             return
-        real = real_crops(self.real, "all") if self.real and self.lambda_real_weight > 0 else None
+        real = None
+        if self.real and self.lambda_real_weight > 0:
+            open_cache = TrainingKit.require(self.kit, "aml").open_cache
+            real = real_crops([open_cache(p) for p in self.real], "all")
         self.lambda_sweep = select_lambda(completer, val_data[: self.lambda_instances], self.lambdas,
                                           self.lambda_steps, seed, real=real, real_weight=self.lambda_real_weight,
                                           holdout=self.lambda_holdout)
@@ -992,11 +997,10 @@ class RealCrops:
         return len(self.clouds)
 
 
-def real_crops(paths: Sequence[str], split: str = "all", min_points: int = 10) -> RealCrops:
-    """The crops of real instance caches (``split``: one split or ``all``)."""
+def real_crops(caches: Sequence[Any], split: str = "all", min_points: int = 10) -> RealCrops:
+    """The crops of real instance caches, already open (``split``: one split or ``all``)."""
     clouds, origins, sizes = [], [], []
-    for path in paths:  # a handful of caches
-        cache = InstanceCache.load(path)
+    for cache in caches:  # a handful of caches
         splits = ("train", "val", "test") if split == "all" else (split,)
         idx = np.concatenate([cache.indices(s, min_points=min_points) for s in splits]).astype(np.int64)
         clouds.extend(np.asarray(cache.points(int(i)), np.float32) for i in idx)

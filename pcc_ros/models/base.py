@@ -26,7 +26,7 @@ from __future__ import annotations
 import abc
 import itertools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -229,6 +229,40 @@ def resample_cloud(cloud: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     else:
         index = np.concatenate([rng.permutation(m), rng.integers(0, m, n - m)])
     return cloud[index]
+
+
+# --------------------------------------------------------------------------- training
+
+
+@dataclass(frozen=True)
+class TrainingKit:
+    """What a training recipe uses from the layers beside and above ``models/``.
+
+    ``models/`` never imports ``data/`` or ``pcc_ros.train`` (docs/ARCHITECTURE.md, layers):
+    :mod:`pcc_ros.train`, which sits above both, builds the kit (``train.training_kit()``) and
+    hands it to the recipe (``recipe.kit``) before it opens data. A recipe that reads caches
+    declares a ``kit`` attribute; :meth:`require` names the recipe when it was not handed one.
+    """
+
+    #: ``path -> instance cache`` (``data.instances.InstanceCache.load``).
+    open_cache: Callable[[Any], Any]
+    #: ``(cache, split, count, seed) -> (instances, reference)`` (``train.validation_instances``).
+    validation_instances: Callable[[Any, str, int, int], tuple[list[Any], str]]
+    #: ``(completer, instances, seed) -> {val_metric: value}`` (``train.validate``).
+    validate: Callable[[Any, list[Any], int], dict[str, float]]
+    #: TraPCC's ground-truth pools (``data.gt_pools``): the options' type, ``load_or_build_pools``,
+    #: ``load_or_assign``.
+    pool_config: Callable[..., Any]
+    load_or_build_pools: Callable[..., tuple[Any, Path]]
+    load_or_assign: Callable[..., dict[str, np.ndarray]]
+
+    @staticmethod
+    def require(kit: TrainingKit | None, who: str) -> TrainingKit:
+        """``kit``, or a :class:`ConfigError` naming ``who`` (a recipe used outside ``pcc train``)."""
+        if kit is None:
+            raise ConfigError(f"{who}: the recipe reads its data through the training layer; set "
+                              "recipe.kit = pcc_ros.train.training_kit() (pcc train does)")
+        return kit
 
 
 # --------------------------------------------------------------------------- completers

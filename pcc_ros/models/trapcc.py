@@ -53,11 +53,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from pcc_ros.data.gt_pools import PoolConfig, load_or_assign, load_or_build_pools
-from pcc_ros.data.instances import InstanceCache
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.canonical import to_canonical
-from pcc_ros.models.base import SceneContext, TorchCompleter, resample_cloud
+from pcc_ros.models.base import SceneContext, TorchCompleter, TrainingKit, resample_cloud
 from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, _nearest, masked_mean, weighted_chamfer
 from pcc_ros.models.registry import register
 
@@ -439,6 +437,8 @@ class TraPCCRecipe:
             raise ConfigError(f"trapcc: real_share must be in [0, 1], got {self.options.real_share}")
         self.model = model
         self.data_summary_: dict[str, Any] = {}
+        #: caches and ground-truth pools come through :class:`TrainingKit` (set by ``pcc_ros.train``)
+        self.kit: TrainingKit | None = None
 
     def use_real_data(self, caches: list[str], share: float) -> None:
         """``pcc train --real-data CACHE --real-share S``: the same as ``--option real_data=[...]``."""
@@ -464,17 +464,18 @@ class TraPCCRecipe:
         Pools are built from the ``split`` tracks of all caches together; retrieval is cached
         (see :mod:`pcc_ros.data.gt_pools`). Instances without a Whole-GT (empty pool) are left out.
         """
+        kit = TrainingKit.require(self.kit, "trapcc")
         caches = [cache]
         for path in self.options.real_data:
             try:
-                caches.append(InstanceCache.load(Path(path)))
+                caches.append(kit.open_cache(Path(path)))
             except DataError as exc:
                 raise ConfigError(f"trapcc: real_data cache {path}: {exc}") from exc
-        pool_cfg = PoolConfig(min_points=int(self.options.min_points_pool),
+        pool_cfg = kit.pool_config(min_points=int(self.options.min_points_pool),
                               min_half_points=int(self.options.min_points_pool) // 2,
                               size_candidates=int(self.options.size_candidates))
         root = Path(self.options.gt_dir) if self.options.gt_dir else Path(cache.root) / "trapcc_gt"
-        pools, folder = load_or_build_pools(caches, split, root, pool_cfg)
+        pools, folder = kit.load_or_build_pools(caches, split, root, pool_cfg)
         if len(pools.whole) == 0:
             raise ConfigError(f"trapcc: the Whole-GT pool of split {split!r} is empty (no track aggregate passed "
                               f"the >= {pool_cfg.min_points} points + evenness test); add tracked data")
@@ -484,7 +485,7 @@ class TraPCCRecipe:
         per_source = []
         for s, c in enumerate(caches):
             idx = c.indices(split, min_points=min_points)
-            a = load_or_assign(pools, folder, c, idx, f"{split}-min{min_points}", pool_cfg.size_candidates)
+            a = kit.load_or_assign(pools, folder, c, idx, f"{split}-min{min_points}", pool_cfg.size_candidates)
             base = len(nb_clouds)
             all_idx = np.arange(len(c))
             nb_clouds.extend(np.asarray(c.points(int(i)), dtype=np.float32) for i in all_idx)
