@@ -160,6 +160,24 @@ def test_node_help_works_without_ros(node):
     assert "rclpy" not in out.stderr
 
 
+@pytest.mark.parametrize("mode", ["completion", "filter"])
+def test_node_help_topics_come_from_the_topic_table(mode, monkeypatch):
+    """``--help`` names every input and output of the one topic table (runtime/node), and a
+    topic added to the table shows there without another edit."""
+    from pcc_ros.nodes import entry
+    from pcc_ros.runtime.node import DIAGNOSTICS_TOPIC, INPUTS, OUTPUTS
+
+    text = entry.usage("some_node", mode)
+    inputs, outputs = text.split("  in: ", 1)[1].split("\n  out: ", 1)
+    outputs = outputs.split("\n", 1)[0]
+    assert [t.split(" (")[0] for t in inputs.split(", ")] == list(INPUTS)
+    assert [t.split(" (")[0] for t in outputs.split("), ")] == [*OUTPUTS[mode], DIAGNOSTICS_TOPIC]
+    other = "filter" if mode == "completion" else "completion"
+    assert not any(name in outputs for name in OUTPUTS[other])
+    monkeypatch.setitem(OUTPUTS, mode, {**OUTPUTS[mode], "extra_topic": "std_msgs/msg/String"})
+    assert "extra_topic (String)" in entry.usage("some_node", mode)
+
+
 def test_node_without_rclpy_says_what_is_missing():
     # A finder that refuses rclpy, as on a machine without ROS 2.
     script = (

@@ -10,13 +10,24 @@ import importlib
 import sys
 
 from pcc_ros.pipeline.config import CONFIG_FILES, parameter_table
+from pcc_ros.pipeline.core import COMPLETED_CLOUD_DTYPE
+from pcc_ros.runtime.node import DIAGNOSTICS_TOPIC, INPUTS, OUTPUTS
 
-TOPICS = {
-    "completion": "in: points (PointCloud2), detections (vision_msgs/Detection3DArray)\n"
-    "  out: completed (PointCloud2 x y z instance rgb score source), completed_markers (MarkerArray), /diagnostics",
-    "filter": "in: points (PointCloud2), detections (vision_msgs/Detection3DArray)\n"
-    "  out: detections_filtered, detections_rejected (Detection3DArray), filter_markers (MarkerArray), /diagnostics",
-}
+
+def _topic(name: str, msg_type: str) -> str:
+    """``name (Type)``; the completed cloud also names its point fields."""
+    kind = msg_type.rsplit("/", 1)[-1]
+    if kind == "PointCloud2" and name not in INPUTS:
+        kind = " ".join([kind, *COMPLETED_CLOUD_DTYPE.names])
+    return f"{name} ({kind})"
+
+
+def topics(mode: str) -> str:
+    """The ``--help`` lines of a node's topics, drawn from the one topic table
+    (:data:`pcc_ros.runtime.node.INPUTS`, :data:`~pcc_ros.runtime.node.OUTPUTS`), so they cannot drift."""
+    inputs = ", ".join(_topic(n, t) for n, t in INPUTS.items())
+    outputs = ", ".join([*(_topic(n, t) for n, t in OUTPUTS[mode].items()), DIAGNOSTICS_TOPIC])
+    return f"in: {inputs}\n  out: {outputs}"
 #: ROS 2 message packages the nodes use (vision_msgs is not among the PyPI wheels: it is built at set-up).
 MESSAGE_PACKAGES = ("sensor_msgs", "vision_msgs", "visualization_msgs", "diagnostic_msgs")
 
@@ -25,7 +36,7 @@ def usage(node_name: str, mode: str) -> str:
     lines = [
         f"usage: ros2 run pcc_ros {node_name} [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]",
         "",
-        f"  {TOPICS[mode]}",
+        f"  {topics(mode)}",
         "",
         f"  shipped parameters: share/pcc_ros/config/{CONFIG_FILES[mode]} (source tree: config/{CONFIG_FILES[mode]})",
         "  parameters (name, type, default; docs/nodes.md has the rules and descriptions):",
