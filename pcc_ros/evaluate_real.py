@@ -23,10 +23,10 @@ Example::
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +37,7 @@ from pcc_ros import files
 from pcc_ros.data.sources import open_frames
 from pcc_ros.data.track_aggregate import collect_tracks
 from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
-from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS, parse_checkpoints
+from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS
 from pcc_ros.geometry.boxes import crop_canonical, iou_3d
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.metrics.realdata import REAL_METRICS, draw_three_views, mean_rows, real_instance_metrics
@@ -315,29 +315,51 @@ def pick_examples(instances: list[dict[str, Any]], count: int) -> list[int]:
     return [int(order[p]) for p in np.unique(picks)]
 
 
-def run_real(args: argparse.Namespace) -> int:
-    sources = [Path(s.strip()) for s in args.real_sources.split(",") if s.strip()]
+@dataclass
+class RealEvalConfig:
+    """What ``pcc eval --real`` is told; the command builds it from its ``--real-*`` flags."""
+
+    sources: list[Path]  # KITTI tracking / object or nuScenes roots
+    backends: str | None = None  # comma-separated; None: every available backend
+    checkpoints: dict[str, Path] = field(default_factory=dict)  # backend -> checkpoint (default: shipped)
+    voxel: float = 0.03  # reference voxel size, metres
+    min_points: int | None = None  # inputs with fewer points are skipped (None: completion_node's min_points)
+    min_track_frames: int = 2  # observations a track needs (at least 2: a multi-view reference)
+    detections: Path | None = None  # crop the inputs from these detector results instead of the labelled boxes
+    keep_input: bool = True  # score the published, partial-preserving output (False: generated points only)
+    decode_density: int | None = None  # None: completion_node's decode_density
+    device: str = "auto"  # auto runs on the CPU
+    batch_size: int = 32
+    json: Path | None = None
+    plot: Path | None = None
+    plot_backends: str | None = None  # comma-separated completion columns of the PNG (None: every backend)
+    examples: int = 4
+
+
+def run_real(opts: RealEvalConfig) -> int:
+    """Evaluate ``opts.backends`` on the real sources: prints the tables and the issue's bar,
+    writes ``opts.json`` / ``opts.plot`` when given."""
+    sources = list(opts.sources)
     if not sources:
         raise ConfigError("--real-sources is empty")
-    if args.real_voxel <= 0:
-        raise ConfigError(f"--real-voxel must be positive, got {args.real_voxel}")
-    backends = [b.strip() for b in args.backends.split(",") if b.strip()] if args.backends else available()
-    checkpoints = parse_checkpoints(args.checkpoint)
+    if opts.voxel <= 0:
+        raise ConfigError(f"--real-voxel must be positive, got {opts.voxel}")
+    backends = [b.strip() for b in opts.backends.split(",") if b.strip()] if opts.backends else available()
+    checkpoints = dict(opts.checkpoints)
     unused = sorted(set(checkpoints) - set(backends))
     if unused:
         raise ConfigError(f"--checkpoint given for backend(s) not evaluated: {unused}")
-    detections = Path(args.real_detections) if getattr(args, "real_detections", None) else None
+    detections = Path(opts.detections) if opts.detections else None
     boxes = "detections" if detections is not None else "ground_truth"
-    instances, report = real_instances(sources, max(args.min_track_frames, 2), args.real_min_points, args.real_voxel,
+    instances, report = real_instances(sources, max(opts.min_track_frames, 2), opts.min_points, opts.voxel,
                                        boxes=boxes, detections_dir=detections)
     if not instances:
         raise DataError(f"no real instance with a multi-view reference in {', '.join(map(str, sources))}")
     log.info("evaluating %d real instance(s) of %d track(s)", len(instances),
              len({i["key"].split("@")[0] for i in instances}))
-    device = "cpu" if args.device == "auto" else args.device
-    results, completions = evaluate_real(instances, backends, checkpoints, device, args.batch_size,
-                                         keep_input=not getattr(args, "real_generated_only", False),
-                                         decode_density=getattr(args, "decode_density", None))
+    device = "cpu" if opts.device == "auto" else opts.device
+    results, completions = evaluate_real(instances, backends, checkpoints, device, opts.batch_size,
+                                         keep_input=opts.keep_input, decode_density=opts.decode_density)
     print_real_tables(results)
     verdict = criteria(results)
     for name, v in verdict.items():
@@ -346,14 +368,14 @@ def run_real(args: argparse.Namespace) -> int:
               f"{v['fidelity_over_spacing']:.2f}x / generated points {v['fidelity_generated_over_spacing']:.2f}x "
               f"the input spacing (bar 2x: {'met' if v['fidelity_ok'] else 'NOT met'})")
     margin, ground_margin, _ = node_crop()
-    out = {"mode": "real", "sources": report, "voxel_m": args.real_voxel, "instances": len(instances), "boxes": boxes,
+    out = {"mode": "real", "sources": report, "voxel_m": opts.voxel, "instances": len(instances), "boxes": boxes,
            "input_crop": {"box_margin": margin, "ground_margin": ground_margin},
            "backends": results, "criteria": verdict}
-    if args.plot:
-        picks = pick_examples(instances, args.examples)
+    if opts.plot:
+        picks = pick_examples(instances, opts.examples)
         names = [n for n in completions if n != "input" and not n.endswith(GENERATED_SUFFIX)]
-        if args.plot_backends:
-            wanted = [b.strip() for b in args.plot_backends.split(",") if b.strip()]
+        if opts.plot_backends:
+            wanted = [b.strip() for b in opts.plot_backends.split(",") if b.strip()]
             names = [n for n in wanted if n in completions]
         examples = []
         for p in picks:
@@ -363,13 +385,13 @@ def run_real(args: argparse.Namespace) -> int:
                       REFERENCE_ROW: inst["reference"]}
             examples.append({"label": f"{inst['key']}\n{inst['distance']:.0f} m, {len(inst['partial'])} pts",
                              "box": size / size[0] / 2, "length": size[0], "clouds": clouds})
-        args.plot.parent.mkdir(parents=True, exist_ok=True)
-        draw_three_views(args.plot, examples, ["input", *names, REFERENCE_ROW],
+        opts.plot.parent.mkdir(parents=True, exist_ok=True)
+        draw_three_views(opts.plot, examples, ["input", *names, REFERENCE_ROW],
                          "real completions (metres about the box centre; grey: labelled box)")
-        out["plot"] = {"path": str(args.plot), "instances": [instances[p]["key"] for p in picks]}
-        log.info("wrote %s", args.plot)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        files.write_json(args.json, json.loads(json.dumps(out, default=float)), indent=2, allow_nan=False)
-        log.info("wrote %s", args.json)
+        out["plot"] = {"path": str(opts.plot), "instances": [instances[p]["key"] for p in picks]}
+        log.info("wrote %s", opts.plot)
+    if opts.json:
+        opts.json.parent.mkdir(parents=True, exist_ok=True)
+        files.write_json(opts.json, json.loads(json.dumps(out, default=float)), indent=2, allow_nan=False)
+        log.info("wrote %s", opts.json)
     return 0

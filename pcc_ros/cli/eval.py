@@ -1,8 +1,8 @@
 """Evaluate completion backends on an instance cache, or on real labelled frames (``pcc eval``).
 
 The command half of :mod:`pcc_ros.evaluate` (and of :mod:`pcc_ros.evaluate_real` with
-``--real``): the flags, the :class:`~pcc_ros.evaluate.EvalConfig` built from them, and the
-tables printed.
+``--real``): the flags, the :class:`~pcc_ros.evaluate.EvalConfig` (with ``--real``:
+:class:`~pcc_ros.evaluate_real.RealEvalConfig`) built from them, and the tables printed.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.evaluate import EvalConfig, evaluate_cache, parse_checkpoints, print_tables
-from pcc_ros.evaluate_real import run_real
+from pcc_ros.evaluate_real import RealEvalConfig, run_real
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -94,7 +94,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.real:
-        return run_real(args)
+        return run_real(RealEvalConfig(
+            sources=[Path(s.strip()) for s in args.real_sources.split(",") if s.strip()], backends=args.backends,
+            checkpoints=parse_checkpoints(args.checkpoint), voxel=args.real_voxel, min_points=args.real_min_points,
+            min_track_frames=args.min_track_frames,
+            detections=Path(args.real_detections) if args.real_detections else None,
+            keep_input=not args.real_generated_only, decode_density=args.decode_density, device=args.device,
+            batch_size=args.batch_size, json=args.json, plot=args.plot, plot_backends=args.plot_backends,
+            examples=args.examples,
+        ))
     if args.data is None:
         raise ConfigError("--data is required (an instance cache), unless --real")
     opts = EvalConfig(
