@@ -15,6 +15,7 @@ from pcc_ros.models import (
     TorchCompleter,
     available,
     create,
+    get_backend,
     load_completer,
     register,
     resample_cloud,
@@ -321,3 +322,17 @@ def test_backend_table_names_every_registered_class_and_owns_recipes_and_presets
     recipe = load_recipe("pointpncnet", "default", {"inpainting": False})
     assert type(recipe).__name__ == "PointPnCNetRecipe" and recipe.describe()["drop_prob"] == 0.0
     assert type(load_recipe("aml_ml", "default", {})) is type(get_backend("aml").training_recipe())
+
+
+@pytest.mark.parametrize("name", ["pointpncnet", "trapcc", "aml", "aml_ml"])
+def test_presets_sizes_and_recipes_come_from_the_base_class(name):
+    """A backend states its PRESETS and its recipe; models.base checks sizes, builds defaults, trains."""
+    cls = get_backend(name)
+    assert cls.default_config() == {"size": "default", **cls.presets["default"]}
+    with pytest.raises(ConfigError, match=r"unknown size 'huge'; choose from \['default'"):
+        cls.training_recipe("huge")
+    with pytest.raises(ConfigError, match="unknown size 'huge'"):
+        create(name, device="cpu", size="huge")
+    assert cls.recipe_factory is not None and type(cls.training_recipe()).__name__.endswith("Recipe")
+    with pytest.raises(ConfigError, match="cannot be trained"):
+        get_backend("mirror").training_recipe()

@@ -382,27 +382,16 @@ class AML(TorchCompleter):
     #: Per-instance optimisation of z instead of the amortized encoder (the ML baseline).
     inference = "aml"
 
-    def __init__(self, device: str = "auto", size: str = "default", **options: Any) -> None:
-        if size not in PRESETS:
-            raise ConfigError(f"aml: unknown size {size!r}; choose from {sorted(PRESETS)}")
+    #: The named sizes of the network.
+    presets = PRESETS
+
+    def __init__(self, device: str = "auto", **options: Any) -> None:
         #: lambda of Eq. 4/5 (set from the checkpoint; training selects it on validation).
         self.lam = 1.0
         self.ml_steps = 40
         self.ml_lr = 0.15
-        # options: hyper-parameters overriding the preset, and run-time options (batch_size, ...)
-        super().__init__(device=device, size=size, **{**PRESETS[size], **options})
-
-    @classmethod
-    def default_config(cls) -> dict[str, Any]:
-        return {"size": "default", **PRESETS["default"]}
-
-    #: The named sizes of the network.
-    presets = PRESETS
-
-    @classmethod
-    def training_recipe(cls, size: str = "default", **options: Any) -> AMLRecipe:
-        """What ``pcc train aml`` runs (:func:`training_recipe` of this module)."""
-        return training_recipe(size=size, **options)
+        # options: size (a preset), hyper-parameters overriding it, and run-time options (batch_size, ...)
+        super().__init__(device=device, **options)
 
     def build_model(self) -> AMLNet:
         if len(self.config["channels"]) != 3:
@@ -1090,6 +1079,7 @@ def select_lambda(completer: AML, instances: Sequence[Any], lambdas: Sequence[fl
     return out
 
 
+@AML.trains_with
 def training_recipe(size: str = "default", **options: Any) -> AMLRecipe:
     """The training recipe ``pcc train aml`` uses (see :mod:`pcc_ros.train`)."""
     return AMLRecipe(size=size, **options)

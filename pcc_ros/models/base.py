@@ -289,12 +289,31 @@ class Completer(abc.ABC):
     #: (see :func:`aspect_scales`); learned backends take it from their checkpoint.
     box_aspect: tuple[float, float] | None = None
     #: Named model sizes (``pcc train --config NAME``, ``size=NAME``): name -> hyper-parameters.
+    #: A backend states only this table; the base class checks sizes and builds the defaults from it.
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
+    #: ``(size, **options) -> recipe`` of ``pcc train`` (set by :meth:`trains_with`); ``None``: not trainable.
+    recipe_factory: ClassVar[Callable[..., Any] | None] = None
+
+    @classmethod
+    def check_size(cls, size: str) -> str:
+        """``size`` if it names one of :attr:`presets`, else a :class:`ConfigError` listing them."""
+        if size not in cls.presets:
+            raise ConfigError(f"{cls.name}: unknown size {size!r}; choose from {sorted(cls.presets)}")
+        return size
+
+    @classmethod
+    def trains_with(cls, factory: Callable[..., Any]) -> Callable[..., Any]:
+        """Decorator on a backend module's recipe function: ``pcc train NAME`` runs it (subclasses too)."""
+        cls.recipe_factory = staticmethod(factory)
+        return factory
 
     @classmethod
     def training_recipe(cls, size: str = "default", **options: Any) -> Any:
-        """What ``pcc train`` runs for this backend (learned backends override it); others refuse."""
-        raise ConfigError(f"backend {cls.name!r} cannot be trained with `pcc train` (no training_recipe)")
+        """What ``pcc train`` runs for this backend: its :attr:`recipe_factory` for a known size;
+        backends without one refuse."""
+        if cls.recipe_factory is None:
+            raise ConfigError(f"backend {cls.name!r} cannot be trained with `pcc train` (no training_recipe)")
+        return cls.recipe_factory(size=cls.check_size(size), **options)
 
     def __init__(self, device: str = "auto", **config: Any) -> None:
         self.device_request = device
@@ -401,8 +420,12 @@ class TorchCompleter(Completer):
 
     A subclass provides:
 
-    * ``default_config()`` -> the hyper-parameters (JSON-able) with their defaults; only
-      these keys are accepted by the constructor and stored in checkpoints;
+    * ``presets`` -> the named sizes (``default`` among them): the constructor's ``size``
+      picks one, other keys override it, and ``default_config()`` (``size`` + the ``default``
+      preset: the only keys the constructor accepts and checkpoints store) is built from it;
+      a backend without presets defines ``default_config()`` itself;
+    * a recipe function decorated ``@Backend.trains_with`` (what ``pcc train`` runs,
+      through :meth:`Completer.training_recipe`), for a trainable backend;
     * ``build_model()`` -> the ``torch.nn.Module`` for ``self.config``;
     * ``forward_batch(clouds, contexts)`` -> completions of one chunk (at most
       ``batch_size`` clouds), called under ``torch.inference_mode`` with the model in eval
@@ -430,6 +453,9 @@ class TorchCompleter(Completer):
         self, device: str = "auto", batch_size: int = 32, half_precision: bool = False, workers: int = 1,
         box_aspect: Sequence[float] | None = None, decode_density: int = 1, **config: Any
     ) -> None:
+        if self.presets:  # a named size: its preset, then the given overrides
+            size = self.check_size(config.pop("size", "default"))
+            config = {**self.presets[size], **config, "size": size}
         defaults = self.default_config()
         unknown = sorted(set(config) - set(defaults))
         if unknown:
@@ -464,9 +490,12 @@ class TorchCompleter(Completer):
         self.checkpoint_config: dict[str, Any] | None = None
 
     @classmethod
-    @abc.abstractmethod
     def default_config(cls) -> dict[str, Any]:
-        """Hyper-parameters and their defaults (JSON-able values)."""
+        """Hyper-parameters and their defaults (JSON-able values): ``size`` and the ``default``
+        preset's (a backend without :attr:`presets` defines its own)."""
+        if "default" not in cls.presets:
+            raise NotImplementedError(f"{cls.__name__}: give the class presets (with 'default') or a default_config()")
+        return {"size": "default", **cls.presets["default"]}
 
     @abc.abstractmethod
     def build_model(self) -> torch.nn.Module:

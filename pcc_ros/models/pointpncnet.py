@@ -239,25 +239,8 @@ class PointPnCNet(TorchCompleter):
     ``size`` picks a preset (``default`` or ``paper``); any other key overrides the preset.
     """
 
-    def __init__(
-        self, device: str = "auto", batch_size: int = 32, size: str = "default", workers: int = 1, **config: Any
-    ) -> None:
-        if size not in PRESETS:
-            raise ConfigError(f"pointpncnet: unknown size {size!r}; choose from {sorted(PRESETS)}")
-        config = {**PRESETS[size], **config}
-        super().__init__(device=device, batch_size=batch_size, workers=workers, size=size, **config)
-
-    @classmethod
-    def default_config(cls) -> dict[str, Any]:
-        return {"size": "default", **PRESETS["default"]}
-
     #: The named sizes of the network.
     presets = PRESETS
-
-    @classmethod
-    def training_recipe(cls, size: str = "default", **options: Any) -> PointPnCNetRecipe:
-        """What ``pcc train pointpncnet`` runs (:func:`training_recipe` of this module)."""
-        return training_recipe(size=size, **options)
 
     def build_model(self) -> PointPnCNetNet:
         cap = int(self.config["max_input_points"])
@@ -512,6 +495,7 @@ class PointPnCNetRecipe:
         return inpainting_loss(net, batch, self.options.beta, self.options.local_weight)
 
 
+@PointPnCNet.trains_with
 def training_recipe(size: str = "default", inpainting: bool = True, **options: Any) -> PointPnCNetRecipe:
     """The training recipe ``pcc train pointpncnet`` uses (see :mod:`pcc_ros.train`)."""
     return PointPnCNetRecipe(size, inpainting, TrainOptions(**options))

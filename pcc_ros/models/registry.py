@@ -8,8 +8,9 @@ torch. :func:`register` also takes a backend from outside the table at run time 
 a test's tiny network); :func:`available` lists both.
 
 What a backend knows about itself lives on its class, not in its module:
-``cls.presets`` (the named model sizes), ``cls.training_recipe(size, **options)`` (what
-``pcc train`` runs; the base class refuses, for backends without weights) and
+``cls.presets`` (the named model sizes; the base class checks sizes and builds the defaults
+from them), ``cls.training_recipe(size, **options)`` (what ``pcc train`` runs: the module's
+recipe function marked ``@Backend.trains_with``; the base class refuses backends without one) and
 ``cls.weights_name`` (a variant that loads another backend's checkpoints).
 """
 

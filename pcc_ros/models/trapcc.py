@@ -279,22 +279,8 @@ class TraPCC(TorchCompleter):
 
     uses_context = True
 
-    def __init__(self, device: str = "auto", batch_size: int = 32, size: str = "default", **config: Any) -> None:
-        if size not in PRESETS:
-            raise ConfigError(f"trapcc: unknown size {size!r}; choose from {sorted(PRESETS)}")
-        super().__init__(device=device, batch_size=batch_size, size=size, **{**PRESETS[size], **config})
-
-    @classmethod
-    def default_config(cls) -> dict[str, Any]:
-        return {"size": "default", **PRESETS["default"]}
-
     #: The named sizes of the network.
     presets = PRESETS
-
-    @classmethod
-    def training_recipe(cls, size: str = "default", **options: Any) -> TraPCCRecipe:
-        """What ``pcc train trapcc`` runs (:func:`training_recipe` of this module)."""
-        return training_recipe(size=size, **options)
 
     def build_model(self) -> TraPCCNet:
         if self.config["scene_graph"] not in SCENE_GRAPHS:
@@ -670,11 +656,11 @@ def chamfer(target: torch.Tensor, target_mask: torch.Tensor, pred: torch.Tensor,
     return torch.where(n_x > 0, loss, torch.zeros_like(loss))
 
 
+@TraPCC.trains_with
 def training_recipe(size: str = "default", **options: Any) -> TraPCCRecipe:
     """The recipe ``pcc train trapcc`` uses; model options (``scene_graph``, ``pnet``, ...) and
     training options (:class:`TrainOptions`) both come as ``--option KEY=VALUE``."""
-    if size not in PRESETS:
-        raise ConfigError(f"trapcc: unknown size {size!r}; choose from {sorted(PRESETS)}")
+    TraPCC.check_size(size)
     if options.pop("inpainting", True) is False:
         raise ConfigError("trapcc: --no-inpainting is PointPnCNet's ablation; "
                           "use --option scene_graph=none / --option pnet=false")
