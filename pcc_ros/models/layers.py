@@ -311,7 +311,7 @@ class FoldingDecoder(nn.Module):
 _EPS = 1e-9
 
 
-def _nearest(query: torch.Tensor, ref: torch.Tensor, ref_mask: torch.Tensor | None = None) -> torch.Tensor:
+def nearest(query: torch.Tensor, ref: torch.Tensor, ref_mask: torch.Tensor | None = None) -> torch.Tensor:
     """Index ``(..., M)`` of the nearest valid ``ref`` ``(..., N, 3)`` point of each ``query`` ``(..., M, 3)``.
 
     ``argmin_n |q - r_n|^2 = argmin_n (|r_n|^2 - 2 q.r_n)``: the query's own norm is constant
@@ -348,8 +348,8 @@ def weighted_chamfer(
     # backward would be as big), then the distances of the chosen pairs with autograd: the
     # gradient is exactly that of the min formulation, at a fraction of the memory.
     with torch.no_grad():
-        nn_y2x = _nearest(pred, target, target_mask)  # (..., M) nearest valid target point
-        nn_x2y = _nearest(target, pred)  # (..., N) nearest prediction of each target point
+        nn_y2x = nearest(pred, target, target_mask)  # (..., M) nearest valid target point
+        nn_x2y = nearest(target, pred)  # (..., N) nearest prediction of each target point
     near_x = torch.gather(target, -2, nn_y2x[..., None].expand(*nn_y2x.shape, 3))
     near_y = torch.gather(pred, -2, nn_x2y[..., None].expand(*nn_x2y.shape, 3))
     y2x = torch.sqrt(((pred - near_x) ** 2).sum(-1) + _EPS)

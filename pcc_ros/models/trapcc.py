@@ -56,7 +56,7 @@ from torch import nn
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.canonical import to_canonical
 from pcc_ros.models.base import SceneContext, TorchCompleter, TrainingKit, resample_cloud
-from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, _nearest, masked_mean, weighted_chamfer
+from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, masked_mean, nearest, weighted_chamfer
 from pcc_ros.models.registry import register
 
 log = logging.getLogger(__name__)
@@ -629,7 +629,7 @@ def one_sided(source: torch.Tensor, source_mask: torch.Tensor, pred: torch.Tenso
     One nearest-neighbour query (source -> prediction) instead of Chamfer's two.
     """
     with torch.no_grad():
-        idx = _nearest(source, pred)
+        idx = nearest(source, pred)
     near = torch.gather(pred, -2, idx[..., None].expand(*idx.shape, 3))
     d2 = ((source - near) ** 2).sum(-1)
     d = d2 if squared else torch.sqrt(d2 + 1e-9)
@@ -644,8 +644,8 @@ def chamfer(target: torch.Tensor, target_mask: torch.Tensor, pred: torch.Tensor,
         return weighted_chamfer(target, target_mask, pred, beta)
 
     with torch.no_grad():
-        nn_y2x = _nearest(pred, target, target_mask)
-        nn_x2y = _nearest(target, pred)
+        nn_y2x = nearest(pred, target, target_mask)
+        nn_x2y = nearest(target, pred)
     near_x = torch.gather(target, -2, nn_y2x[..., None].expand(*nn_y2x.shape, 3))
     near_y = torch.gather(pred, -2, nn_x2y[..., None].expand(*nn_x2y.shape, 3))
     y2x = ((pred - near_x) ** 2).sum(-1)
