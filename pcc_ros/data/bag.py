@@ -152,6 +152,9 @@ def _storage_errors() -> tuple[type[BaseException], ...]:
     errors: list[type[BaseException]] = [
         AnyReaderError, ReaderError, TypesysError, OSError, EOFError, struct.error, ValueError, KeyError,
         IndexError, TypeError, RuntimeError,  # lz4 raises RuntimeError on a damaged frame
+        # a damaged length field makes rosbags' mcap reader ask for petabytes in one read(): the
+        # allocation fails at once (nothing was held), so it is damage, named as such below
+        MemoryError,
     ]
     try:
         from rosbags.rosbag2 import storage_mcap
@@ -217,6 +220,8 @@ def _damaged(path: Path, exc: BaseException, opening: bool = False) -> BagError:
     elif not opening or isinstance(exc, (ReaderError, EOFError, struct.error)) or "zstd" in type(exc).__module__:
         where = next((d for f in files if f.suffix == ".mcap" and (d := mcap_chunk_damage(f))), None)
     detail = f"{type(exc).__name__}: {exc}"
+    if isinstance(exc, MemoryError):
+        detail = "a record's length field asks for more bytes than memory holds (MemoryError): the length is damaged"
     if opening:
         return BagError(
             f"{where or path}: cannot open bag ({detail})",
