@@ -999,6 +999,18 @@ def real_crops(caches: Sequence[Any], split: str = "all", min_points: int = 10) 
                      np.concatenate(sizes) if sizes else np.zeros((0, 3)))
 
 
+def _ml_completions(completer: AML, grids: torch.Tensor, clouds: Sequence[np.ndarray], aspects: np.ndarray,
+                    steps: int, lam: float) -> list[np.ndarray]:
+    """The ML baseline's (Eq. 4) completions of observation ``grids`` with prior weight ``lam``,
+    fitted and decoded in chunks of 32 (what lambda selection scores, on either domain)."""
+    outs: list[np.ndarray] = []
+    for s in range(0, len(clouds), 32):
+        z = completer.fit_latent(grids[s:s + 32, 0] > 0.5, grids[s:s + 32, 1] > 0.5, steps=steps, lam=lam)
+        with torch.inference_mode():
+            outs.extend(completer.decode_points(completer.model.decoder(z), clouds[s:s + 32], aspects[s:s + 32]))
+    return outs
+
+
 def holdout_fidelity(completer: AML, crops: RealCrops, lambdas: Sequence[float], steps: int, holdout: float,
                      seed: int, repeats: int = 3) -> dict[str, float]:
     """Per lambda: the ML baseline fitted to a seeded ``1 - holdout`` share of each real crop's
@@ -1026,11 +1038,7 @@ def holdout_fidelity(completer: AML, crops: RealCrops, lambdas: Sequence[float],
                        for s in range(0, len(kept), 32)])
     table = {}
     for lam in lambdas:  # a handful of candidates
-        outs = []
-        for s in range(0, len(kept), 32):
-            z = completer.fit_latent(x[s:s + 32, 0] > 0.5, x[s:s + 32, 1] > 0.5, steps=steps, lam=lam)
-            with torch.inference_mode():
-                outs.extend(completer.decode_points(completer.model.decoder(z), kept[s:s + 32], aspects[s:s + 32]))
+        outs = _ml_completions(completer, x, kept, aspects, steps, lam)
         dist = [float(cKDTree(o).query(h)[0].mean()) * length for o, h, length in zip(outs, held, lengths)]
         table[str(lam)] = float(np.mean(dist))
     return table
@@ -1057,11 +1065,7 @@ def select_lambda(completer: AML, instances: Sequence[Any], lambdas: Sequence[fl
     x = torch.cat([o[0] for o in observed])
     aspects = np.concatenate([o[1] for o in observed])
     for lam in lambdas:  # a handful of candidates
-        outs = []
-        for s in range(0, len(clouds), 32):
-            z = completer.fit_latent(x[s:s + 32, 0] > 0.5, x[s:s + 32, 1] > 0.5, steps=steps, lam=lam)
-            with torch.inference_mode():
-                outs.extend(completer.decode_points(completer.model.decoder(z), clouds[s:s + 32], aspects[s:s + 32]))
+        outs = _ml_completions(completer, x, clouds, aspects, steps, lam)
         cd = [instance_metrics(o, inst.reference, None, length=inst.length, with_emd=False)["cd_l1"]
               for o, inst in zip(outs, instances)]
         table[str(lam)] = float(np.mean(cd))
