@@ -7,7 +7,9 @@ import pytest
 
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import (
+    BoxCandidates,
     box_corners,
+    canonical_crops,
     crop_canonical,
     iou_3d,
     iou_bev,
@@ -95,9 +97,10 @@ def test_pairs_in_boxes_are_the_split_pairs():
     rng = np.random.default_rng(4)
     points, boxes = random_scene(rng, n_points=3000)
     point, box = pairs_in_boxes(points, boxes, margin=0.1, ground_margin=0.05)
-    assert (np.diff(point) >= 0).all()  # point order
-    for b, expected in enumerate(slow_points_in_boxes(points, boxes, 0.1, 0.05)):
-        np.testing.assert_array_equal(point[box == b], expected)
+    assert (np.diff(box) >= 0).all()  # grouped by box, boxes ascending
+    expected = slow_points_in_boxes(points, boxes, 0.1, 0.05)
+    np.testing.assert_array_equal(point, np.concatenate(expected))  # points ascending within a box
+    np.testing.assert_array_equal(box, np.repeat(np.arange(len(boxes)), [len(e) for e in expected]))
 
 
 def test_ground_margin_removes_ground_returns():
@@ -123,6 +126,89 @@ def test_nan_points_and_bad_boxes():
     assert points_in_boxes(points, Boxes.empty()) == []
     empty = points_in_boxes(np.zeros((0, 3), np.float32), boxes)
     assert len(empty) == 1 and len(empty[0]) == 0
+
+
+def test_nan_inf_points_empty_scans_zero_and_far_boxes():
+    rng = np.random.default_rng(8)
+    points, boxes = random_scene(rng, n_points=4000)
+    points[::7, 0] = np.nan  # NaN in each coordinate, and infinities
+    points[1::7, 1] = np.nan
+    points[2::7, 2] = np.nan
+    points[3::11, 0] = np.inf
+    points[4::11, 1] = -np.inf
+    fast = points_in_boxes(points, boxes, margin=0.1)
+    for f, s in zip(fast, slow_points_in_boxes(points, boxes, 0.1)):
+        np.testing.assert_array_equal(f, s)
+    assert sum(len(f) for f in fast) > 500
+    all_nan = np.full((100, 3), np.nan, np.float32)
+    assert all(len(i) == 0 for i in points_in_boxes(all_nan, boxes))
+    assert BoxCandidates(all_nan, boxes).pairs_per_box.sum() == 0  # NaN is never a candidate
+    # boxes far outside the scan: nothing inside, nothing estimated, nothing formed
+    far = Boxes(boxes.center + np.array([5000.0, -3000.0, 0.0]), boxes.size, boxes.yaw)
+    candidates = BoxCandidates(points, far, margin=1.0)
+    assert candidates.pairs_per_box.sum() == 0
+    indices, canon = canonical_crops(candidates)
+    assert len(indices) == len(far) and all(len(i) == 0 and c.shape == (0, 3) for i, c in zip(indices, canon))
+    # boxes kilometres apart (the grid coarsens to a million cells) with a scan around each
+    apart = Boxes([[0, 0, 0], [3000.0, 2000.0, 0]], [[4, 2, 2], [4, 2, 2]], [0.3, -1.0])
+    around = np.concatenate([rng.uniform(-3, 3, (2000, 3)), rng.uniform(-3, 3, (2000, 3)) + np.array([3000, 2000, 0])])
+    around = around.astype(np.float32)
+    for f, s in zip(points_in_boxes(around, apart, margin=0.2), slow_points_in_boxes(around, apart, 0.2)):
+        np.testing.assert_array_equal(f, s)
+        assert len(f) > 50
+    # empty scan, zero boxes
+    empty = np.zeros((0, 4), np.float32)
+    indices, canon = crop_canonical(empty, boxes, margin=0.1)
+    assert len(indices) == len(boxes) and all(len(i) == 0 and c.shape == (0, 3) for i, c in zip(indices, canon))
+    assert crop_canonical(points, Boxes.empty()) == ([], [])
+    point, box = pairs_in_boxes(points, Boxes.empty())
+    assert len(point) == len(box) == 0
+    assert BoxCandidates(empty, boxes).pairs_per_box.tolist() == [0] * len(boxes)
+    with pytest.raises(DataError, match="shape"):
+        BoxCandidates(np.zeros(5), boxes)
+
+
+@pytest.mark.parametrize("stack", [1, 3, 12])  # the three ways candidates expand: one box, a few, many per cell
+def test_candidate_bound_and_box_subsets(stack):
+    rng = np.random.default_rng(20 + stack)
+    points = rng.uniform([-30, -30, -2, 0], [30, 30, 2, 1], (30000, 4)).astype(np.float32)  # x, y, z, intensity
+    centres = np.repeat(rng.uniform([-25, -25, -1], [25, 25, 1], (6, 3)), stack, axis=0)
+    centres += rng.normal(0, 0.3, (6 * stack, 3))
+    boxes = Boxes(centres, rng.uniform(1.0, 5.0, (6 * stack, 3)), rng.uniform(-np.pi, np.pi, 6 * stack))
+    candidates = BoxCandidates(points, boxes, margin=0.1, ground_margin=0.2)
+    slow = slow_points_in_boxes(points, boxes, 0.1, 0.2)
+    real = np.array([len(s) for s in slow])
+    assert (candidates.pairs_per_box >= real).all() and real.sum() > 100
+    # the bound counts the points of the box's cells: within a small factor of its bounding rectangle's
+    assert candidates.pairs_per_box.sum() < 4 * real.sum() + 1000
+    for keep in (None, np.arange(len(boxes)) % 2 == 0, np.array([len(boxes) - 1]), np.zeros(len(boxes), bool)):
+        indices, canon = canonical_crops(candidates, keep)
+        chosen = np.zeros(len(boxes), bool)
+        chosen[slice(None) if keep is None else keep] = True
+        for b, (idx, c) in enumerate(zip(indices, canon)):
+            np.testing.assert_array_equal(idx, slow[b] if chosen[b] else [])
+            expected = to_canonical(points[idx], boxes.center[b], boxes.yaw[b], boxes.size[b, 0])
+            np.testing.assert_allclose(c, expected, atol=1e-5)
+
+
+def test_float64_scans_and_threads_give_the_same_crops():
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(12)
+    big, boxes = random_scene(rng, n_points=40000)
+    small = big[::13]
+    expected = {n: crop_canonical(p, boxes, 0.1, 0.05) for n, p in (("big", big), ("small", small))}
+    for f, s in zip(points_in_boxes(big.astype(np.float64), boxes, 0.1), slow_points_in_boxes(big, boxes, 0.1)):
+        np.testing.assert_array_equal(f, s)
+    # per-thread work arrays: scans of different sizes, alternately, on two threads
+    with ThreadPoolExecutor(2) as pool:
+        runs = list(pool.map(lambda n: (n, crop_canonical(big if n == "big" else small, boxes, 0.1, 0.05)),
+                             ["big", "small"] * 6))
+    for name, (indices, canon) in runs:
+        for a, b in zip(indices, expected[name][0]):
+            np.testing.assert_array_equal(a, b)
+        for a, b in zip(canon, expected[name][1]):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_crop_canonical_matches_to_canonical():

@@ -11,6 +11,9 @@ and the exact rotated test runs on those pairs.
 
 from __future__ import annotations
 
+import itertools
+import threading
+
 import numpy as np
 
 from pcc_ros.errors import DataError
@@ -81,171 +84,253 @@ def _cell_size(boxes: Boxes, cell: float | None) -> float:
     return float(cell)
 
 
-def _candidate_pairs(
-    xy: np.ndarray, boxes: Boxes, margin: float, cell: float | None, z: np.ndarray | None = None,
-    z_range: tuple[float, float] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(point index, box index) pairs whose BEV grid cell may overlap the box (a superset of
-    the pairs inside), in point order. With ``z`` and ``z_range`` (the union of the boxes'
-    height ranges), points outside that range never become candidates.
-
-    Cost: a handful of contiguous float32 passes over the scan, then work proportional to
-    the points on the boxes' grid (a lookup in a small uint8 cell table) and to the
-    candidates; boxes are only touched to build the cell -> boxes table.
-    """
-    # (B, 2) axis-aligned BEV extents of the margin-enlarged boxes (their corners: a yawed
-    # box grown by ``margin`` reaches further than its corners' extent plus ``margin``)
-    corners = _bev_corners(Boxes(boxes.center, boxes.size + 2.0 * margin, boxes.yaw))
-    lo, hi = corners.min(axis=1), corners.max(axis=1)
-    cell = _cell_size(boxes, cell)
-    origin = lo.min(axis=0)
-    n_cells = np.floor((hi.max(axis=0) - origin) / cell).astype(np.int64) + 1
-    if n_cells[0] * n_cells[1] > 1_000_000:  # boxes spread very far apart: coarser cells
-        cell *= float(np.sqrt(n_cells[0] * n_cells[1] / 1_000_000.0)) * 1.01
-        n_cells = np.floor((hi.max(axis=0) - origin) / cell).astype(np.int64) + 1
-    # The grid has a border of one empty cell on every side (the widened cell ranges below).
-    nx, ny = int(n_cells[0]) + 2, int(n_cells[1]) + 2
-    origin = origin - cell
-
-    # Cell -> boxes table in CSR form (loops over boxes are replaced by repeat/arange). The
-    # cell range of each box is widened by one cell each way and the touch test below by a
-    # hair, so a point on a cell boundary (float32 rounding) still finds its boxes.
-    c0 = np.floor((lo - origin) / cell).astype(np.int64) - 1
-    c1 = np.floor((hi - origin) / cell).astype(np.int64) + 1
-    span = c1 - c0 + 1  # (B, 2)
-    per_box = span[:, 0] * span[:, 1]
-    box_of = np.repeat(np.arange(len(boxes)), per_box)
-    local = np.arange(per_box.sum()) - np.repeat(np.cumsum(per_box) - per_box, per_box)
-    cx = c0[box_of, 0] + local // span[box_of, 1]
-    cy = c0[box_of, 1] + local % span[box_of, 1]
-    # Keep only the cells that can touch the rotated box: the cell centre within the
-    # (margin-enlarged) box grown by half a cell diagonal. Trims the AABB corners that a
-    # yawed box leaves empty, which would otherwise become candidate points.
-    ccx, ccy, _ = to_box_local(origin[0] + (cx + 0.5) * cell, origin[1] + (cy + 0.5) * cell, 0.0,
-                               boxes.center[box_of, 0], boxes.center[box_of, 1], 0.0,
-                               np.cos(boxes.yaw[box_of]), np.sin(boxes.yaw[box_of]))
-    reach = cell * np.sqrt(0.5) * 1.001 + margin
-    touch = (np.abs(ccx) <= boxes.size[box_of, 0] / 2 + reach) & (np.abs(ccy) <= boxes.size[box_of, 1] / 2 + reach)
-    touch &= (cx >= 1) & (cx < nx - 1) & (cy >= 1) & (cy < ny - 1)  # the border stays empty
-    box_of, key = box_of[touch], cx[touch] * ny + cy[touch]
-    # One pass over the scan: the cell of every point, in float32 with contiguous
-    # temporaries; comparisons (NaN compares False) keep the points on the grid (and, with
-    # ``z``, within the boxes' heights), and only those are touched again (np.take is several
-    # times faster than fancy indexing).
-    inv = np.float32(1.0 / cell)
-    with np.errstate(invalid="ignore"):
-        gx = np.subtract(xy[:, 0], np.float32(origin[0]), dtype=np.float32)
-        gx *= inv
-        gy = np.subtract(xy[:, 1], np.float32(origin[1]), dtype=np.float32)
-        gy *= inv
-        inside = gx >= 0
-        inside &= gx < nx
-        inside &= gy >= 0
-        inside &= gy < ny
-        if z is not None:
-            inside &= z >= z_range[0]
-            inside &= z <= z_range[1]
-    pts = np.flatnonzero(inside)
-    pkey = np.take(gx, pts).astype(np.int32)  # >= 0: truncation is the floor
-    pkey *= np.int32(ny)
-    pkey += np.take(gy, pts).astype(np.int32)
-    return pairs_from_cells(pts, pkey, key, box_of, nx * ny)
+_SCRATCH = threading.local()
 
 
-def pairs_from_cells(
-    point: np.ndarray, point_cell: np.ndarray, entry_cell: np.ndarray, entry_box: np.ndarray, n_cells: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Points hashed into cells meet the boxes listed per cell: every (point, box) pair with
-    the box listed in the point's cell.
+def _scratch(name: str, n: int, dtype: type) -> np.ndarray:
+    """A work array of ``n`` elements, kept by this thread from call to call.
+
+    The scan-sized temporaries of :class:`BoxCandidates` live here: a fresh half-megabyte
+    array costs more in page faults (the allocator hands large blocks back to the system
+    between frames) than the arithmetic written into it. Never returned to a caller."""
+    store = _SCRATCH.__dict__.setdefault("arrays", {})
+    array = store.get(name)
+    if array is None or len(array) < n or array.dtype != dtype:
+        array = store[name] = np.empty(n + n // 4 + 1024, dtype=dtype)
+    return array[:n]
+
+
+class BoxCandidates:
+    """One pass of a scan against a set of boxes: the points each box may contain.
+
+    The pass hashes every point into a bird's-eye-view grid over the (margin-enlarged)
+    boxes and looks its cell up in a small table of the cells each box can reach (the
+    cells of its footprint's bounding rectangle, widened by one, minus those a yawed box
+    cannot touch). What the pass leaves is a short list: the points in such cells, with
+    their cell. From it:
+
+    * :attr:`pairs_per_box` -- the (point, box) candidate pairs of each box, an upper bound
+      of the points it contains, known before any pair is formed (the pipeline's work bound);
+    * :meth:`pairs` -- the exact test on the candidates of all boxes or of a subset: the
+      pairs inside, grouped by box (ascending), points ascending within a box, and
+      optionally the points' box-frame coordinates.
+
+    Cost: ten contiguous passes over the scan (two of them strided reads of x and y, in
+    float32, into per-thread work arrays), then work proportional to the candidates. The
+    exact test runs in the scan's precision (float32 sensor data stays float32) with the
+    z bounds rounded outward-exactly, so it agrees with an exact float64 test. NaN points
+    fall in the grid's empty border: never candidates, never inside.
 
     Args:
-        point: ``(P,)`` point indices, ascending; ``point_cell``: their cells in ``[0, n_cells)``.
-        entry_cell, entry_box: ``(E,)`` the (cell, box) entries of the table, any order.
+        points: ``(N, >=3)`` scan (x, y, z first), any float dtype.
+        boxes: the boxes, in the scan's frame.
+        margin: metres added to every side of each box.
+        ground_margin: points less than this many metres above the bottom of the
+            (margin-enlarged) box are not inside.
+        cell: BEV cell in metres (default: a quarter of the median box width); speed only.
 
-    Returns ``(pair_point, pair_box)`` in point order, boxes ascending within a point (for
-    boxes listed in ascending order per cell). No Python loop: a lookup of each point's box
-    count in a small table, then a padded (cell, slot) table when a cell holds a few boxes
-    (one gather per candidate), or a CSR walk when it holds many.
+    Raises:
+        DataError: points of the wrong shape, or a box with NaN pose / non-positive size.
     """
-    order = np.argsort(entry_cell, kind="stable")
-    cell_sorted = entry_cell[order]
-    table_boxes = entry_box[order]
-    counts = np.bincount(entry_cell, minlength=n_cells)
-    starts = np.concatenate([[0], np.cumsum(counts)])
-    most = int(counts.max(initial=0))
-    counts_table = counts.astype(np.uint8 if most < 256 else np.int64)  # uint8: the lookups stay in cache
-    n_per_point = np.take(counts_table, point_cell)
-    hit = np.flatnonzero(n_per_point)
-    pts, pkey, n_per_point = np.take(point, hit), np.take(point_cell, hit), np.take(n_per_point, hit)
-    if most <= 1:  # no cell shared by two boxes: one box per point
-        return pts, np.take(table_boxes, np.take(starts, pkey)).astype(np.int64)
-    if most <= 8:
-        # A few boxes per cell at most: a padded (occupied cell, slot) -> box table; one
-        # gather of each candidate's row, the valid slots found in one pass.
-        width = 1 << (most - 1).bit_length()  # a power of two: the point is a shift away
-        occupied = np.flatnonzero(counts)
-        row_of = np.zeros(n_cells, dtype=np.int32)
-        row_of[occupied] = np.arange(len(occupied), dtype=np.int32)
-        padded = np.full((len(occupied), width), -1, dtype=np.int32)
-        padded[row_of[cell_sorted], np.arange(len(cell_sorted)) - starts[cell_sorted]] = table_boxes
-        boxes_of = np.take(padded, np.take(row_of, pkey), axis=0).reshape(-1)
-        slot = np.flatnonzero(boxes_of >= 0)
-        return np.take(pts, slot >> (width.bit_length() - 1)), np.take(boxes_of, slot).astype(np.int64)
-    # CSR walk without a Python loop (many boxes share cells).
-    n_per_point = n_per_point.astype(np.int64)
-    pair_point = np.repeat(pts, n_per_point)
-    ends = np.cumsum(n_per_point)
-    slot = np.repeat(np.take(starts, pkey) - ends + n_per_point, n_per_point) + np.arange(ends[-1])
-    return pair_point, np.take(table_boxes, slot).astype(np.int64)
+
+    def __init__(self, points: np.ndarray, boxes: Boxes, margin: float = 0.0, ground_margin: float = 0.0,
+                 cell: float | None = None) -> None:
+        pts = np.asarray(points)
+        if pts.ndim != 2 or pts.shape[1] < 3:
+            raise DataError(f"points must be (N, >=3), got shape {pts.shape}")
+        _check_boxes(boxes)
+        self.points, self.boxes = pts, boxes
+        self.margin, self.ground_margin = float(margin), float(ground_margin)
+        nb = len(boxes)
+        self._hit = np.zeros(0, np.int64)
+        self._entry_row = self._entry_box = np.zeros(0, np.int64)
+        self._n_rows = 0
+        self.pairs_per_box = np.zeros(nb, dtype=np.int64)
+        if nb == 0 or len(pts) == 0:
+            self._hit_row = np.zeros(0, np.int64)
+            return
+        grid, key, n_rows, row_dtype = self._table(boxes, self.margin, _cell_size(boxes, cell))
+        self._scan(pts, grid, key, n_rows, row_dtype)
+        per_row = np.bincount(self._hit_row, minlength=n_rows + 1)
+        self.pairs_per_box = np.bincount(self._entry_box, weights=np.take(per_row, self._entry_row),
+                                         minlength=nb).astype(np.int64)
+
+    def _table(self, boxes: Boxes, margin: float, cell: float):
+        """The grid over the boxes and its (cell, box) entries, grouped by cell (rows 1..R)."""
+        cos, sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
+        hl = boxes.size[:, 0] * 0.5 + margin
+        hw = boxes.size[:, 1] * 0.5 + margin
+        # half extents of the bounding rectangle of each margin-enlarged, yawed footprint
+        ex = np.abs(cos) * hl + np.abs(sin) * hw
+        ey = np.abs(sin) * hl + np.abs(cos) * hw
+        cx, cy = boxes.center[:, 0], boxes.center[:, 1]
+        lox, hix, loy, hiy = cx - ex, cx + ex, cy - ey, cy + ey
+        x0, y0 = float(lox.min()), float(loy.min())
+        width, height = float(hix.max()) - x0, float(hiy.max()) - y0
+        nx, ny = int(width // cell) + 1, int(height // cell) + 1
+        if nx * ny > 1_000_000:  # boxes spread very far apart: coarser cells
+            cell *= float(np.sqrt(nx * ny / 1_000_000.0)) * 1.01
+            nx, ny = int(width // cell) + 1, int(height // cell) + 1
+        # One empty cell of border on every side: points off the grid (and NaN) land there.
+        nx, ny = nx + 2, ny + 2
+        ox, oy = x0 - cell, y0 - cell
+        # Each box's cell range, widened by one cell each way (a point on a cell boundary
+        # may round into either cell), kept off the border.
+        ix0 = np.maximum(np.floor((lox - ox) / cell).astype(np.int64) - 1, 1)
+        ix1 = np.minimum(np.floor((hix - ox) / cell).astype(np.int64) + 1, nx - 2)
+        iy0 = np.maximum(np.floor((loy - oy) / cell).astype(np.int64) - 1, 1)
+        iy1 = np.minimum(np.floor((hiy - oy) / cell).astype(np.int64) + 1, ny - 2)
+        span_y = iy1 - iy0 + 1
+        per_box = (ix1 - ix0 + 1) * span_y
+        box_of = np.repeat(np.arange(len(boxes)), per_box)
+        local = np.arange(int(per_box.sum())) - np.repeat(np.cumsum(per_box) - per_box, per_box)
+        span_r = np.repeat(span_y, per_box)
+        gx = np.repeat(ix0, per_box) + local // span_r
+        gy = np.repeat(iy0, per_box) + local % span_r
+        # Keep the cells that can touch the rotated box: the cell centre within the enlarged
+        # box grown by half a cell diagonal (and a hair for rounding). Trims the corners of
+        # the bounding rectangle that a yawed box leaves empty.
+        reach = cell * np.sqrt(0.5) * 1.001
+        c_r, s_r = np.repeat(cos, per_box), np.repeat(sin, per_box)
+        lx, ly, _ = to_box_local((gx + 0.5) * cell, (gy + 0.5) * cell, 0.0,
+                                 np.repeat(cx - ox, per_box), np.repeat(cy - oy, per_box), 0.0, c_r, s_r)
+        touch = np.abs(lx) <= np.repeat(hl + reach, per_box)
+        touch &= np.abs(ly) <= np.repeat(hw + reach, per_box)
+        key = (gx * ny + gy)[touch]
+        box_of = box_of[touch]
+        n_cells = nx * ny
+        # group the entries by cell (radix sort when the cell fits 16 bits); boxes stay ascending
+        order = np.argsort(key.astype(np.uint16) if n_cells <= 65536 else key, kind="stable")
+        key, box_of = key[order], box_of[order]
+        new = np.ones(len(key), dtype=bool)
+        np.not_equal(key[1:], key[:-1], out=new[1:])
+        first = np.flatnonzero(new)
+        n_rows = len(first)
+        row_dtype = np.int16 if n_rows < 32767 else np.int32
+        row_of = np.zeros(n_cells, dtype=row_dtype)
+        row_of[key[first]] = np.arange(1, n_rows + 1, dtype=row_dtype)
+        self._entry_row, self._entry_box, self._n_rows = np.cumsum(new), box_of, n_rows
+        return (ox, oy, cell, nx, ny), row_of, n_rows, row_dtype
+
+    def _scan(self, pts: np.ndarray, grid: tuple, row_of: np.ndarray, n_rows: int, row_dtype: type) -> None:
+        """The cell of every point (float32, clamped onto the grid; NaN onto its border)
+        looked up in the table: the points in cells that some box reaches, and their rows."""
+        ox, oy, cell, nx, ny = grid
+        n = len(pts)
+        inv = np.float32(1.0 / cell)
+        g = _scratch("cell", n, np.float32)
+        key = _scratch("key", n, np.int32)
+        gy = _scratch("key_y", n, np.int32)
+        row = _scratch("row", n, row_dtype)
+        with np.errstate(invalid="ignore", over="ignore"):
+            for axis, origin, size, out in ((0, ox, nx, key), (1, oy, ny, gy)):
+                np.subtract(pts[:, axis], np.float32(origin), out=g, dtype=np.float32)
+                g *= inv
+                np.fmax(g, np.float32(0.0), out=g)  # fmax / fmin: NaN becomes 0, the border
+                np.fmin(g, np.float32(size - 1), out=g)
+                np.copyto(out, g, casting="unsafe")  # >= 0: truncation is the floor
+        key *= np.int32(ny)
+        key += gy
+        np.take(row_of, key, out=row, mode="clip")
+        self._hit = np.flatnonzero(row)
+        self._hit_row = np.take(row, self._hit)
+
+    def pairs(self, keep: np.ndarray | None = None, local: bool = False):
+        """The (point, box) pairs with the point inside the box, for every box or for the boxes
+        ``keep`` (a boolean mask or indices) selects: ``(pair_point, box_starts, xyz)``.
+
+        ``pair_point`` (int64) is grouped by box, boxes in ascending order, points ascending
+        within a box; box ``b``'s points are ``pair_point[box_starts[b]:box_starts[b + 1]]``
+        (empty for a box not selected). ``xyz`` (with ``local``): the points' coordinates in
+        their box's frame (origin at its centre, x along its heading; metres, the scan's
+        precision) as three columns, else ``None``."""
+        nb = len(self.boxes)
+        pp, pb = self._candidates(keep)
+        if len(pp) == 0:
+            empty = np.zeros(0, dtype=self.points.dtype if self.points.dtype == np.float64 else np.float32)
+            return np.zeros(0, np.int64), np.zeros(nb + 1, np.int64), (empty, empty, empty) if local else None
+        # Box-major (a stable radix sort keeps the points ascending within a box): the boxes'
+        # values then expand by np.repeat instead of a gather per pair.
+        if nb > 1:
+            order = np.argsort(pb.astype(np.int16 if nb < 32767 else np.int64), kind="stable")
+            pp = np.take(pp, order)
+        count = np.bincount(pb, minlength=nb)
+        pts = self.points
+        dt = np.float32 if pts.dtype == np.float32 else np.float64
+        boxes, margin = self.boxes, self.margin
+        half = boxes.size / 2.0
+        zlo = _round_up(boxes.center[:, 2] - half[:, 2] - margin + self.ground_margin, dt)
+        zhi = _round_down(boxes.center[:, 2] + half[:, 2] + margin, dt)
+        xyz = np.take(pts, pp, axis=0)
+        x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        if xyz.dtype != dt:
+            x, y, z = x.astype(dt), y.astype(dt), z.astype(dt)
+
+        def rep(values: np.ndarray) -> np.ndarray:
+            return np.repeat(values.astype(dt, copy=False), count)
+
+        inside = z >= rep(zlo)
+        inside &= z <= rep(zhi)
+        lx, ly, _ = to_box_local(x, y, 0, rep(boxes.center[:, 0]), rep(boxes.center[:, 1]), 0,
+                                 rep(np.cos(boxes.yaw)), rep(np.sin(boxes.yaw)))
+        inside &= np.abs(lx) <= rep(half[:, 0] + margin)
+        inside &= np.abs(ly) <= rep(half[:, 1] + margin)
+        kept = np.flatnonzero(inside)
+        starts = np.zeros(nb + 1, dtype=np.int64)
+        starts[1:] = np.searchsorted(kept, np.cumsum(count))
+        if not local:
+            return np.take(pp, kept), starts, None
+        dz = np.take(z, kept) - np.repeat(boxes.center[:, 2].astype(dt), np.diff(starts))
+        return np.take(pp, kept), starts, (np.take(lx, kept), np.take(ly, kept), dz)
+
+    def _candidates(self, keep: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """(point, box) candidate pairs in point order: each point meets the boxes of its cell."""
+        entry_row, entry_box, hit, hit_row = self._entry_row, self._entry_box, self._hit, self._hit_row
+        if keep is not None:
+            wanted = np.zeros(len(self.boxes), dtype=bool)
+            wanted[keep] = True
+            sel = np.take(wanted, entry_box)
+            entry_row, entry_box = entry_row[sel], entry_box[sel]
+        if len(entry_row) == 0 or len(hit) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        n_rows = self._n_rows
+        per_row = np.bincount(entry_row, minlength=n_rows + 1)  # boxes per row (0 for row 0)
+        most = int(per_row.max())
+        if most == 1:  # no cell shared by two boxes: one gather
+            box_of_row = np.full(n_rows + 1, -1, dtype=np.int32)
+            box_of_row[entry_row] = entry_box
+            pb = np.take(box_of_row, hit_row)
+            if keep is None:  # every row holds a box
+                return hit, pb
+            sel = np.flatnonzero(pb >= 0)
+            return np.take(hit, sel), np.take(pb, sel)
+        first = np.cumsum(per_row) - per_row  # entries are grouped by row
+        slot = np.arange(len(entry_row)) - np.take(first, entry_row)
+        if most <= 8:
+            # A few boxes per cell: a padded (row, slot) -> box table; one gather of each
+            # point's row, the filled slots found in one pass.
+            width = 1 << (most - 1).bit_length()
+            padded = np.full((n_rows + 1, width), -1, dtype=np.int32)
+            padded[entry_row, slot] = entry_box
+            boxes_of = np.take(padded, hit_row, axis=0).reshape(-1)
+            filled = np.flatnonzero(boxes_of >= 0)
+            return np.take(hit, filled >> (width.bit_length() - 1)), np.take(boxes_of, filled)
+        # Many boxes share cells: a CSR walk without a Python loop.
+        n = np.take(per_row, hit_row)
+        pp = np.repeat(hit, n)
+        ends = np.cumsum(n)
+        walk = np.repeat(np.take(first, hit_row) - ends + n, n) + np.arange(len(pp))
+        return pp, np.take(entry_box, walk)
 
 
-def _pairs_in_boxes(
-    points: np.ndarray,
-    boxes: Boxes,
-    margin: float,
-    ground_margin: float,
-    cell: float | None,
-    local: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Exact (point, box) pairs in point order, plus (``local``) the points' box-frame
-    coordinates (metres, the scan's precision)."""
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise DataError(f"points must be (N, >=3), got shape {pts.shape}")
-    _check_boxes(boxes)
-    if len(boxes) == 0 or len(pts) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)) if local else None
-    dt = np.float32 if pts.dtype == np.float32 else np.float64
-    half = boxes.size / 2.0
-    zlo = _round_up(boxes.center[:, 2] - half[:, 2] - margin + ground_margin, dt)
-    zhi = _round_down(boxes.center[:, 2] + half[:, 2] + margin, dt)
-    pair_point, pair_box = _candidate_pairs(pts[:, :2], boxes, margin, cell, pts[:, 2], (zlo.min(), zhi.max()))
-    # Per-box parameters gathered per pair with np.take; the test runs in the scan's
-    # precision (float32 for sensor data) on box-relative x/y. The z bounds are rounded
-    # outward-exactly to that precision, so the bottom / top tests (where the ground
-    # returns sit, right at the boundary) agree with an exact float64 test.
-    table = np.stack(
-        [
-            boxes.center[:, 0], boxes.center[:, 1], boxes.center[:, 2],
-            np.cos(boxes.yaw), np.sin(boxes.yaw),
-            half[:, 0] + margin, half[:, 1] + margin,
-        ],
-        axis=0,
-    ).astype(dt)
-    cx, cy, cz, c, s, hl, hw = (np.take(col, pair_box) for col in table)
-    pz = np.take(pts[:, 2], pair_point).astype(dt, copy=False)
-    # z first: a cheap test that drops most of the ground and everything above the boxes.
-    keep = pz >= np.take(zlo, pair_box)
-    keep &= pz <= np.take(zhi, pair_box)
-    lx, ly, dz = to_box_local(np.take(pts[:, 0], pair_point).astype(dt, copy=False),
-                              np.take(pts[:, 1], pair_point).astype(dt, copy=False), pz, cx, cy, cz, c, s)
-    keep &= np.abs(lx) <= hl
-    keep &= np.abs(ly) <= hw
-    keep = np.flatnonzero(keep)
-    if not local:
-        return np.take(pair_point, keep), np.take(pair_box, keep), None
-    out = np.stack([np.take(lx, keep), np.take(ly, keep), np.take(dz, keep)], axis=1)
-    return np.take(pair_point, keep), np.take(pair_box, keep), out
+def _pairs_in_boxes(points, boxes, margin, ground_margin, cell, local=True):
+    """Pairs inside (grouped by box), box starts, and optionally box-frame coordinates."""
+    return BoxCandidates(points, boxes, margin, ground_margin, cell).pairs(local=local)
+
+
+def _split(values: np.ndarray, starts: np.ndarray) -> list[np.ndarray]:
+    bounds = starts.tolist()  # plain slices: np.split costs ~10 us per piece
+    return [values[a:b] for a, b in itertools.pairwise(bounds)]
 
 
 def _group_by_box(pair_point: np.ndarray, pair_box: np.ndarray, n_boxes: int, *values: np.ndarray) -> list:
@@ -266,11 +351,12 @@ def _group_by_box(pair_point: np.ndarray, pair_box: np.ndarray, n_boxes: int, *v
 def pairs_in_boxes(
     points: np.ndarray, boxes: Boxes, margin: float = 0.0, ground_margin: float = 0.0, cell: float | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Every (point index, box index) pair with the point inside the box, in point order:
-    :func:`points_in_boxes` without the split per box (for per-box reductions with
-    ``np.bincount`` and the like). Same arguments and errors."""
-    pair_point, pair_box, _ = _pairs_in_boxes(points, boxes, margin, ground_margin, cell, local=False)
-    return pair_point, pair_box
+    """Every (point index, box index) pair with the point inside the box, grouped by box
+    (boxes ascending, points ascending within a box): :func:`points_in_boxes` without the
+    split per box (for per-box reductions with ``np.bincount``, ``np.add.reduceat`` and the
+    like). Same arguments and errors."""
+    pair_point, starts, _ = _pairs_in_boxes(points, boxes, margin, ground_margin, cell, local=False)
+    return pair_point, np.repeat(np.arange(len(boxes)), np.diff(starts))
 
 
 def points_in_boxes(
@@ -294,10 +380,26 @@ def points_in_boxes(
     Raises:
         DataError: points of the wrong shape, or a box with NaN pose / non-positive size.
     """
-    pair_point, pair_box, _ = _pairs_in_boxes(points, boxes, margin, ground_margin, cell)
     if len(boxes) == 0:
+        BoxCandidates(points, boxes)  # the same checks
         return []
-    return _group_by_box(pair_point, pair_box, len(boxes))[0]
+    pair_point, starts, _ = _pairs_in_boxes(points, boxes, margin, ground_margin, cell, local=False)
+    return _split(pair_point, starts)
+
+
+def canonical_crops(candidates: BoxCandidates, keep: np.ndarray | None = None
+                    ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """:func:`crop_canonical` from a :class:`BoxCandidates` pass (all boxes, or those ``keep``
+    selects; the others get empty crops)."""
+    boxes = candidates.boxes
+    if len(boxes) == 0:
+        return [], []
+    pair_point, starts, (lx, ly, dz) = candidates.pairs(keep, local=True)
+    length = np.repeat(boxes.size[:, 0], np.diff(starts))
+    canonical = np.empty((len(pair_point), 3), dtype=np.float32)
+    for k, column in enumerate((lx, ly, dz)):  # float64 division, then float32 (as to_canonical)
+        np.divide(column, length, out=canonical[:, k], casting="same_kind")
+    return _split(pair_point, starts), _split(canonical, starts)
 
 
 def crop_canonical(
@@ -314,12 +416,7 @@ def crop_canonical(
     once for all pairs (the exact test already needs it). Returns ``(indices, canonical)``,
     canonical points as float32 ``(n_i, 3)`` scaled by ``1 / length``.
     """
-    pair_point, pair_box, local = _pairs_in_boxes(points, boxes, margin, ground_margin, cell)
-    if len(boxes) == 0:
-        return [], []
-    canonical = (local / boxes.size[pair_box, 0:1]).astype(np.float32)
-    indices, canon = _group_by_box(pair_point, pair_box, len(boxes), canonical)
-    return indices, canon
+    return canonical_crops(BoxCandidates(points, boxes, margin, ground_margin, cell))
 
 
 # ----------------------------------------------------------------------------- IoU

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from pcc_ros.errors import MessageError
-from pcc_ros.geometry.boxes import crop_canonical
+from pcc_ros.geometry.boxes import BoxCandidates, canonical_crops, crop_canonical
 from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.models.base import SceneContext
 from pcc_ros.models.registry import get_backend, load_completer
@@ -182,20 +182,16 @@ class Pipeline:
             _count(skipped, "over max_instances", len(dropped))
             candidates = np.sort(candidates[order[: cfg.max_instances]])
         # Work bound: crop, completion and filter cost grows with the (point, box) pairs, about
-        # the points under each box's footprint. Estimated in O(points + boxes) first; beyond
+        # the points under each box's footprint. Counted before any pair is formed; beyond
         # max_crop_work the lowest-score boxes are skipped (counted), so one hostile frame
         # (hundreds of huge boxes over a dense scan) cannot stall a node or exhaust memory.
-        work = estimated_crop_pairs(points, detections[candidates], cfg.box_margin)
-        if work.sum() > cfg.max_crop_work:
-            order = np.argsort(-detections.score[candidates], kind="stable")
-            fits = np.zeros(len(candidates), dtype=bool)
-            fits[order] = np.cumsum(work[order]) <= cfg.max_crop_work
+        crop_index, canonical, fits, work = _bounded_crop(points, detections[candidates], cfg)
+        if fits is not None:
             _count(skipped, "over max_crop_work", int((~fits).sum()))
             log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
                         "lowest-score boxes", stamp_ns, int(work.sum()), len(candidates), cfg.max_crop_work,
                         int((~fits).sum()))
             candidates = candidates[fits]
-        crop_index, canonical = crop_canonical(points, detections[candidates], cfg.box_margin, cfg.ground_margin)
         counts = np.array([len(c) for c in canonical], dtype=np.int64)
         num_points[candidates] = counts
         timings["crop_ms"] = _ms(tic)
@@ -355,35 +351,40 @@ class Pipeline:
 
 
 def estimated_crop_pairs(points: np.ndarray, boxes: Boxes, margin: float = 0.0) -> np.ndarray:
-    """Per box, the number of scan points within its footprint's axis-aligned bounding
-    rectangle (an upper estimate of the points it crops), from a BEV count grid and its
-    summed-area table: ``O(points + boxes)``, whatever the boxes' sizes. The scan pass works
-    column by column (a float64 copy of x and of y, not of the (N, 2) slice: numpy reduces
-    and divides a two-column array several times slower)."""
-    if len(boxes) == 0 or len(points) == 0:
-        return np.zeros(len(boxes), dtype=np.int64)
-    x = np.array(points[:, 0], dtype=np.float64)  # copies: modified in place below
-    y = np.array(points[:, 1], dtype=np.float64)
-    lo = np.array([x.min(), y.min()])
-    hi = np.array([x.max(), y.max()])
-    cell = max(1.0, float((hi - lo).max()) / 1024.0)  # at most ~1024 x 1024 cells
-    shape = np.floor((hi - lo) / cell).astype(np.int64) + 1
-    x -= lo[0]
-    x /= cell
-    y -= lo[1]
-    y /= cell
-    key = np.floor(x, out=x).astype(np.int64) * shape[1] + np.floor(y, out=y).astype(np.int64)
-    grid = np.bincount(key, minlength=int(shape.prod())).reshape(shape)
-    table = np.zeros((shape[0] + 1, shape[1] + 1), dtype=np.int64)
-    table[1:, 1:] = grid.cumsum(axis=0).cumsum(axis=1)
-    # axis-aligned extent of the margin-enlarged, rotated footprint
-    hl, hw = boxes.size[:, 0] / 2.0 + margin, boxes.size[:, 1] / 2.0 + margin
-    c, s = np.abs(np.cos(boxes.yaw)), np.abs(np.sin(boxes.yaw))
-    half = np.stack([hl * c + hw * s, hl * s + hw * c], axis=1)
-    first = np.clip(np.floor((boxes.center[:, :2] - half - lo) / cell), 0, shape).astype(np.int64)
-    last = np.clip(np.floor((boxes.center[:, :2] + half - lo) / cell) + 1, 0, shape).astype(np.int64)
-    return (table[last[:, 0], last[:, 1]] - table[first[:, 0], last[:, 1]]
-            - table[last[:, 0], first[:, 1]] + table[first[:, 0], first[:, 1]])
+    """Per box, an upper bound of the points it crops: its candidate pairs, the scan points
+    in the bird's-eye-view cells the (margin-enlarged) box reaches
+    (:attr:`pcc_ros.geometry.boxes.BoxCandidates.pairs_per_box`): one pass over the scan,
+    ``O(points + cells)`` whatever the boxes' sizes, no pair formed."""
+    return BoxCandidates(points, boxes, margin).pairs_per_box
+
+
+def _bounded_crop(points: np.ndarray, boxes: Boxes, cfg: PipelineConfig):
+    """The crop stage: ``(indices, canonical, fits, work)`` -- the crops of the boxes within
+    ``max_crop_work`` (``fits``: which boxes, ``None`` when all fit; ``work``: the bound per box).
+
+    One :class:`~pcc_ros.geometry.boxes.BoxCandidates` pass gives the work bound and then the
+    crops of the boxes that fit. ``benchmarks/_reference.py`` swaps this module's
+    ``crop_canonical`` and ``estimated_crop_pairs`` for those of 93cd59e; then they run as
+    they did there, one after the other."""
+    shared = crop_canonical is _own_crop_canonical and estimated_crop_pairs is _own_estimated_crop_pairs
+    candidates = BoxCandidates(points, boxes, cfg.box_margin, cfg.ground_margin) if shared else None
+    work = candidates.pairs_per_box if shared else estimated_crop_pairs(points, boxes, cfg.box_margin)
+    fits = None
+    if work.sum() > cfg.max_crop_work:
+        order = np.argsort(-boxes.score, kind="stable")
+        fits = np.zeros(len(boxes), dtype=bool)
+        fits[order] = np.cumsum(work[order]) <= cfg.max_crop_work
+    if not shared:
+        chosen = boxes if fits is None else boxes[fits]
+        return (*crop_canonical(points, chosen, cfg.box_margin, cfg.ground_margin), fits, work)
+    indices, canonical = canonical_crops(candidates, fits)
+    if fits is not None:
+        kept = np.flatnonzero(fits).tolist()
+        indices, canonical = [indices[i] for i in kept], [canonical[i] for i in kept]
+    return indices, canonical, fits, work
+
+
+_own_crop_canonical, _own_estimated_crop_pairs = crop_canonical, estimated_crop_pairs
 
 
 def build_outputs(
