@@ -6,6 +6,8 @@ tests only pin the values.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -160,3 +162,65 @@ def test_multi_thread_chunking_equals_reference(monkeypatch):
     finally:
         torch.set_num_threads(threads)
     torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)
+
+
+def test_octant_pairs_are_the_region_masks_memberships_grouped_by_instance_and_octant():
+    """Points exactly on the planes and on the overlap bands' edges, empty clouds in the batch."""
+    from pcc_ros.models.pointpncnet import octant_pairs, region_masks
+
+    rng = np.random.default_rng(7)
+    overlap = 0.005
+    for _ in range(20):
+        sizes = rng.integers(0, 200, rng.integers(1, 8))
+        pts = (rng.uniform(-1, 1, (sizes.sum(), 3)) * rng.choice([1.0, 0.01], (sizes.sum(), 3))).astype(np.float32)
+        for value in (0.0, overlap, -overlap):
+            pts[rng.random(pts.shape) < 0.05] = np.float32(value)
+        point_index, local = octant_pairs(pts, sizes, overlap)
+        assert np.all(np.diff(local) >= 0)  # grouped: sorted by instance * 8 + octant
+        rows, octants = np.nonzero(region_masks(pts, overlap))
+        expected = np.repeat(np.arange(len(sizes)), sizes)[rows] * 8 + octants
+        got, want = np.lexsort((point_index, local)), np.lexsort((rows, expected))
+        np.testing.assert_array_equal(point_index[got], rows[want])
+        np.testing.assert_array_equal(local[got], expected[want])
+
+
+@pytest.mark.parametrize("rows", [1, 5, 12, 1000])
+def test_segment_chunks_hold_whole_segments(rows):
+    counts = torch.tensor([0, 3, 0, 7, 1, 0, 12, 2, 0])
+    chunks = layers._segment_chunks(counts, rows)
+    ends = set(np.cumsum(counts.numpy()).tolist())
+    assert chunks[0][0] == 0 and chunks[-1][1] == int(counts.sum())
+    assert all(b == c for (_, b), (c, _) in itertools.pairwise(chunks))  # contiguous
+    for a, b in chunks:
+        assert b in ends and a < b  # cut only between segments
+        assert b - a <= rows or (b - a) in counts.tolist()  # longer only when one segment alone is longer
+
+
+def test_chunked_encoder_with_unsorted_segments_equals_reference(monkeypatch):
+    """Unsorted segment ids take the two-pass path over all points; the value is the same."""
+    monkeypatch.setattr(layers, "CHUNK_ROWS", 5)
+    torch.manual_seed(0)
+    enc = PCNEncoder([8, 16], [32, 12])
+    points, segment = _packed(np.random.default_rng(8), [4, 0, 13, 6])
+    perm = torch.from_numpy(np.random.default_rng(9).permutation(len(points)))
+    with torch.no_grad():
+        fast = enc(points[perm], segment[perm], 5)
+        with reference_path():
+            ref = enc(points, segment, 5)
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)
+
+
+def test_untrained_pointpncnet_fast_path_equals_reference_path():
+    """The whole network (octant pairs, chunked encoders, folding) against the original path."""
+    from pcc_ros.models import create
+
+    torch.manual_seed(0)
+    completer = create("pointpncnet", device="cpu", batch_size=4)
+    rng = np.random.default_rng(10)
+    clouds = [(rng.uniform(-1, 1, (n, 3)) * [0.5, 0.2, 0.15]).astype(np.float32) for n in (3, 70, 9, 400, 1100)]
+    clouds[1][:10, 1] = 0.0  # on a plane: in two octants
+    fast = completer.complete(clouds)
+    with reference_path():
+        ref = completer.complete(clouds)
+    for a, b in zip(fast, ref):
+        np.testing.assert_allclose(a, b, rtol=0, atol=2e-5)

@@ -20,6 +20,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -116,6 +117,30 @@ def _mlp_chunk(
     return x
 
 
+def _mlp_into(
+    x: torch.Tensor,
+    linears: Sequence[nn.Linear],
+    scratch: Sequence[torch.Tensor],
+    out: torch.Tensor,
+    last_relu: bool,
+    last_bias: bool = True,
+) -> torch.Tensor:
+    """``x`` through ``linears`` (ReLU in place between them), every layer writing into a
+    preallocated buffer: ``scratch[i]`` (rows >= ``x``'s) for the hidden layers, ``out`` for
+    the last. ``last_bias=False``: the last layer's bias is left out (the caller adds it)."""
+    r = x.shape[0]
+    for i, lin in enumerate(linears):
+        last = i == len(linears) - 1
+        dest = out if last else scratch[i][:r]
+        if lin.bias is not None and not (last and not last_bias):
+            x = torch.addmm(lin.bias, x, lin.weight.t(), out=dest)
+        else:
+            x = torch.mm(x, lin.weight.t(), out=dest)
+        if not last or last_relu:
+            x.relu_()
+    return x
+
+
 def _scatter_max_(out: torch.Tensor, segment: torch.Tensor, values: torch.Tensor) -> None:
     """``out[segment[i]] = max(out[segment[i]], values[i])`` channel-wise, in place."""
     out.scatter_reduce_(0, segment[:, None].expand(-1, values.shape[1]), values, "amax")
@@ -177,40 +202,80 @@ class PCNEncoder(nn.Module):
     def _forward_chunked(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor:
         """Inference: the same function, row chunk by row chunk, pooled as it goes.
 
-        No ``(P, C)`` intermediate except the ``mlp1`` features the second pass needs. The
-        segment half of the split layer is computed once per segment with the point half's
-        bias folded in; the last layer's bias is added after the max (rounding is monotonic,
-        so ``max(a_i + b) == max(a_i) + b`` exactly).
+        Every intermediate lives in a buffer allocated once per call and reused by every
+        chunk, so the matrix products write into memory that is already in the core's cache
+        (a fresh 1 MiB output per product runs at about half the speed, measured with
+        ``pcc bench complete``). With sorted segments (packed batches) a chunk holds whole
+        segments, so both passes run on it while its ``mlp1`` features are still in cache;
+        otherwise the features of all points are kept for the second pass. The segment half
+        of the split layer is computed once per segment with the point half's bias folded
+        in; the last layer's bias is added after the max (rounding is monotonic, so
+        ``max(a_i + b) == max(a_i) + b`` exactly).
         """
         p, s = points.shape[0], num_segments
         if p == 0:
             return points.new_zeros(s, self.out_dim)
-        nonempty = (torch.bincount(segment, minlength=s) > 0)[:, None]
+        counts = torch.bincount(segment, minlength=s)
+        nonempty = (counts > 0)[:, None]
         rows = _chunk_rows(CHUNK_ROWS)
-        first = _linears(self.mlp1)
-        f = points.new_empty(p, first[-1].out_features)
-        g = points.new_full((s, f.shape[1]), -torch.inf)
-        for start in range(0, p, rows):
-            stop = min(start + rows, p)
-            fc = _mlp_chunk(points[start:stop], first, last_relu=False, out=f[start:stop])
-            _scatter_max_(g, segment[start:stop], fc)
-        g = torch.where(nonempty, g, 0.0)
-        gp = torch.addmm(self.point_proj.bias, g, self.segment_proj.weight.t())
-        rest = _linears(self.mlp2)
-        out = points.new_full((s, self.out_dim), -torch.inf)
-        wp = self.point_proj.weight.t()
-        for start in range(0, p, rows):
-            stop = min(start + rows, p)
-            seg = segment[start:stop]
-            h = gp.index_select(0, seg).addmm_(f[start:stop], wp)  # in place: no copy of the gathered rows
+        first, rest = _linears(self.mlp1), _linears(self.mlp2)
+        c1 = first[-1].out_features
+        aligned = bool((segment[1:] >= segment[:-1]).all())
+        chunks = _segment_chunks(counts, rows) if aligned else [(a, min(a + rows, p)) for a in range(0, p, rows)]
+        most = max(stop - start for start, stop in chunks)
+        hidden = [lin.out_features for lin in first[:-1]]
+        f = points.new_empty(most if aligned else p, c1)
+        g = points.new_full((s, c1), -torch.inf)
+        h = points.new_empty(most, self.point_proj.out_features)
+        inner = [points.new_empty(most, lin.out_features) for lin in rest]
+        pool = points.new_full((s, self.out_dim), -torch.inf)
+        wp, ws = self.point_proj.weight.t(), self.segment_proj.weight.t()
+        scratch = [points.new_empty(most, w) for w in hidden]
+
+        def first_pass(start: int, stop: int, dest: torch.Tensor) -> None:
+            _mlp_into(points[start:stop], first, scratch, dest, last_relu=False)
+            _scatter_max_(g, segment[start:stop], dest)
+
+        def second_pass(start: int, stop: int, fc: torch.Tensor, gp: torch.Tensor, idx: torch.Tensor) -> None:
+            r = stop - start
+            hc = torch.index_select(gp, 0, idx, out=h[:r]).addmm_(fc, wp)  # in place: no copy of the gathered rows
             if rest:
-                h.relu_()
-                h = _mlp_chunk(h, rest[:-1], last_relu=True) if len(rest) > 1 else h
-                h = torch.mm(h, rest[-1].weight.t())
-            _scatter_max_(out, seg, h)
+                hc.relu_()
+                _mlp_into(hc, rest, [b[:r] for b in inner[:-1]], inner[-1][:r], last_relu=False, last_bias=False)
+                hc = inner[-1][:r]
+            _scatter_max_(pool, segment[start:stop], hc)
+
+        if aligned:
+            for start, stop in chunks:
+                seg = segment[start:stop]
+                lo, hi = int(seg[0]), int(seg[-1]) + 1
+                fc = f[: stop - start]
+                first_pass(start, stop, fc)
+                gp = torch.addmm(self.point_proj.bias, g[lo:hi], ws)
+                second_pass(start, stop, fc, gp, seg - lo)
+        else:
+            for start, stop in chunks:
+                first_pass(start, stop, f[start:stop])
+            gp = torch.addmm(self.point_proj.bias, torch.where(nonempty, g, 0.0), ws)
+            for start, stop in chunks:
+                second_pass(start, stop, f[start:stop], gp, segment[start:stop])
         if rest and rest[-1].bias is not None:
-            out += rest[-1].bias
-        return torch.where(nonempty, out, 0.0)
+            pool += rest[-1].bias
+        return torch.where(nonempty, pool, 0.0)
+
+
+def _segment_chunks(counts: torch.Tensor, rows: int) -> list[tuple[int, int]]:
+    """Row ranges of chunks of whole segments (sorted ids with these ``counts``), each at most
+    ``rows`` rows unless one segment alone is longer (then that segment is its chunk)."""
+    ends = np.cumsum(counts.numpy())
+    ends = ends[np.r_[True, ends[1:] != ends[:-1]] & (ends > 0)]  # one end per nonempty segment
+    out, start = [], 0
+    while start < ends[-1]:
+        j = int(np.searchsorted(ends, start + rows, side="right"))
+        stop = int(ends[j - 1]) if j > 0 and ends[j - 1] > start else int(ends[np.searchsorted(ends, start, "right")])
+        out.append((start, stop))
+        start = stop
+    return out
 
 
 def set_decode_density(model: nn.Module, density: int) -> int:
@@ -290,7 +355,8 @@ class FoldingDecoder(nn.Module):
         return coarse, fine
 
     def _fold_chunked(self, code: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
-        """Inference: the folding step a few instances at a time (same operations, same order)."""
+        """Inference: the folding step a few instances at a time (same operations, same order),
+        every chunk's intermediates in buffers allocated once per call."""
         s, k = coarse.shape[:2]
         g = self.grid.shape[0]
         base = self.fold_code(code)[:, None, :] + self.fold_point(coarse)  # (S, K, H)
@@ -298,11 +364,16 @@ class FoldingDecoder(nn.Module):
         layers = _linears(self.fold_mlp)
         fine = coarse.new_empty(s, k, g, 3)
         step = max(1, _chunk_rows(DECODER_CHUNK_ROWS) // (k * g))
+        most = min(step, s) * k * g
+        h = coarse.new_empty(most, base.shape[-1])
+        scratch = [coarse.new_empty(most, lin.out_features) for lin in layers]
         for start in range(0, s, step):
             stop = min(start + step, s)
-            h = torch.add(base[start:stop, :, None, :], grid).relu_()
-            offset = _mlp_chunk(h.view(-1, h.shape[-1]), layers, last_relu=False).view(stop - start, k, g, 3)
-            torch.add(coarse[start:stop, :, None, :], offset, out=fine[start:stop])
+            r = (stop - start) * k * g
+            hc = h[:r]
+            torch.add(base[start:stop, :, None, :], grid, out=hc.view(stop - start, k, g, -1)).relu_()
+            offset = _mlp_into(hc, layers, scratch, scratch[-1][:r], last_relu=False)
+            torch.add(coarse[start:stop, :, None, :], offset.view(stop - start, k, g, 3), out=fine[start:stop])
         return fine.view(s, k * g, 3)
 
 

@@ -113,6 +113,43 @@ def region_masks(points: np.ndarray, overlap: float) -> np.ndarray:
     return np.asarray(octant_masks(points, overlap), dtype=bool)
 
 
+#: ``_OCTANT_BITS[axis, octant]``: octant ``o`` lies on the positive side of ``axis`` (the column
+#: order of :func:`pcc_ros.geometry.partitions.octant_masks`).
+_OCTANT_BITS = (np.arange(NUM_REGIONS)[None, :] >> np.arange(3)[:, None]) & 1
+
+
+def octant_pairs(points: np.ndarray, lengths: np.ndarray, overlap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every (point, octant) membership of a packed batch, grouped by instance and octant.
+
+    The same memberships as ``region_masks`` (``np.nonzero`` of it), without building and
+    scanning the ``(P, 8)`` mask: a point lies in the octant of its coordinates' signs, and
+    only points within ``overlap`` of a coordinate plane (a few per cent) belong to more.
+    Returns ``(point_index, local_segment)`` with ``local_segment = instance * 8 + octant``
+    sorted ascending (a stable radix sort), so the local encoder gets whole segments in order.
+    """
+    p = len(points)
+    segment = np.repeat(np.arange(len(lengths)), lengths)
+    x, y, z = points.T
+    core = (x >= 0).astype(np.int64) + 2 * (y >= 0) + 4 * (z >= 0)  # own octant (bit set: positive side)
+    band = (points >= -overlap) & (points < overlap)  # on both sides of a plane
+    shared = band[:, 0] | band[:, 1] | band[:, 2]
+    rows = np.flatnonzero(shared)
+    if len(rows):
+        near = points[rows]
+        sides = np.stack([near < overlap, near >= -overlap], axis=2)  # (k, 3, 2): [negative, positive] side
+        member = sides[:, 0, _OCTANT_BITS[0]] & sides[:, 1, _OCTANT_BITS[1]] & sides[:, 2, _OCTANT_BITS[2]]
+        member[np.arange(len(rows)), core[rows]] = False  # the own octant is already listed
+        extra_row, extra_octant = np.nonzero(member)
+        point_index = np.concatenate([np.arange(p), rows[extra_row]])
+        octant = np.concatenate([core, extra_octant])
+    else:
+        point_index, octant = np.arange(p), core
+    local = segment[point_index] * NUM_REGIONS + octant
+    key = local.astype(np.uint16) if len(lengths) * NUM_REGIONS <= 1 << 16 else local  # radix-sortable
+    order = np.argsort(key, kind="stable")
+    return point_index[order], local[order]
+
+
 # --------------------------------------------------------------------------- network
 
 
@@ -160,7 +197,12 @@ class PointPnCNetNet(nn.Module):
         return self.local_decoder.num_points
 
     def forward(
-        self, points: torch.Tensor, segment: torch.Tensor, regions: torch.Tensor, batch_size: int
+        self,
+        points: torch.Tensor,
+        segment: torch.Tensor,
+        regions: torch.Tensor | None,
+        batch_size: int,
+        pairs: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Complete a packed batch.
 
@@ -169,6 +211,8 @@ class PointPnCNetNet(nn.Module):
             segment: ``(P,)`` instance index of each point, sorted, in ``[0, batch_size)``.
             regions: ``(P, 8)`` bool octant membership (a point may be in two octants).
             batch_size: number of instances ``B``.
+            pairs: instead of ``regions``, its memberships as (point index, instance * 8 +
+                octant) sorted by the latter (:func:`octant_pairs`; inference).
 
         Returns:
             ``global (B, Mg, 3)``, ``local (B, 8, Ml, 3)`` and ``present (B, 8)`` (octants
@@ -176,11 +220,14 @@ class PointPnCNetNet(nn.Module):
         """
         b = batch_size
         e_g = self.global_encoder(points, segment, b)
-        point_idx, region_idx = regions.nonzero(as_tuple=True)
-        local_segment = segment[point_idx] * NUM_REGIONS + region_idx
-        if using_reference_path():  # segment_reduce needs sorted segments; the scatter max does not
-            order = torch.argsort(local_segment, stable=True)
-            point_idx, local_segment = point_idx[order], local_segment[order]
+        if pairs is not None:
+            point_idx, local_segment = pairs
+        else:
+            point_idx, region_idx = regions.nonzero(as_tuple=True)
+            local_segment = segment[point_idx] * NUM_REGIONS + region_idx
+            if using_reference_path():  # segment_reduce needs sorted segments; the scatter max does not
+                order = torch.argsort(local_segment, stable=True)
+                point_idx, local_segment = point_idx[order], local_segment[order]
         e_l = self.local_encoder(points[point_idx], local_segment, b * NUM_REGIONS).view(b, NUM_REGIONS, -1)
         counts = torch.bincount(local_segment, minlength=b * NUM_REGIONS).view(b, NUM_REGIONS)
         present = counts >= self.min_region_points
@@ -204,29 +251,43 @@ class Packed:
 
     points: torch.Tensor  # (P, 3) float32
     segment: torch.Tensor  # (P,) int64
-    regions: torch.Tensor  # (P, 8) bool
+    regions: torch.Tensor | None  # (P, 8) bool; None when ``pairs`` is given
     batch_size: int
+    #: (point index, instance * 8 + octant), sorted by the latter: ``regions`` as pairs (inference)
+    pairs: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def to(self, device: torch.device) -> Packed:
         return Packed(
             self.points.to(device, non_blocking=True),
             self.segment.to(device, non_blocking=True),
-            self.regions.to(device, non_blocking=True),
+            None if self.regions is None else self.regions.to(device, non_blocking=True),
             self.batch_size,
+            None if self.pairs is None else tuple(t.to(device, non_blocking=True) for t in self.pairs),
         )
 
 
-def pack(clouds: Sequence[np.ndarray], overlap: float, regions: Sequence[np.ndarray] | None = None) -> Packed:
-    """Concatenate clouds into a :class:`Packed` batch (octant masks computed if not given)."""
+def pack(
+    clouds: Sequence[np.ndarray],
+    overlap: float,
+    regions: Sequence[np.ndarray] | None = None,
+    pairs: bool = False,
+) -> Packed:
+    """Concatenate clouds into a :class:`Packed` batch (octant masks computed if not given).
+
+    ``pairs``: give the octant memberships as sorted :func:`octant_pairs` instead of a mask
+    (what inference uses; training keeps the mask).
+    """
     lengths = np.fromiter((len(c) for c in clouds), dtype=np.int64, count=len(clouds))
     points = np.concatenate(clouds, axis=0).astype(np.float32, copy=False) if len(clouds) else np.zeros((0, 3))
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    segment = torch.from_numpy(np.repeat(np.arange(len(clouds), dtype=np.int64), lengths))
+    if pairs and regions is None:
+        point_index, local = octant_pairs(points, lengths, overlap)
+        return Packed(torch.from_numpy(points), segment, None, len(clouds),
+                      (torch.from_numpy(point_index), torch.from_numpy(local)))
     masks = region_masks(points, overlap) if regions is None else np.concatenate(regions, axis=0)
-    return Packed(
-        torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32)),
-        torch.from_numpy(np.repeat(np.arange(len(clouds), dtype=np.int64), lengths)),
-        torch.from_numpy(np.ascontiguousarray(masks, dtype=bool)),
-        len(clouds),
-    )
+    return Packed(torch.from_numpy(points), segment, torch.from_numpy(np.ascontiguousarray(masks, dtype=bool)),
+                  len(clouds))
 
 
 # --------------------------------------------------------------------------- completer
@@ -258,8 +319,10 @@ class PointPnCNet(TorchCompleter):
         return [c if len(c) <= cap else resample_cloud(c, cap) for c in clouds]
 
     def forward_batch(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
-        packed = pack(self.prepare(clouds), float(self.config["region_overlap"])).to(self.device)
-        y_global, y_local, _ = self.model(packed.points, packed.segment, packed.regions, packed.batch_size)
+        fast = not using_reference_path()  # the original path keeps its mask and sort (the comparison)
+        packed = pack(self.prepare(clouds), float(self.config["region_overlap"]), pairs=fast).to(self.device)
+        y_global, y_local, _ = self.model(packed.points, packed.segment, packed.regions, packed.batch_size,
+                                          packed.pairs)
         out = torch.cat([y_global, y_local.flatten(1, 2)], dim=1).float().cpu().numpy()
         return list(out)
 
