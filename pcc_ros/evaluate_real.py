@@ -133,6 +133,11 @@ def real_instances(
             if len(chosen) == 0:
                 continue
             _, crops = crop_canonical(np.asarray(frame.points), chosen, margin=margin, ground_margin=ground_margin)
+            # what completion_node completes in this frame (every box with enough points, scored or not:
+            # unmatched detections and cars without a multi-view reference too) is the scene context
+            completed = np.flatnonzero([len(c) >= max(min_points, 1) for c in crops])
+            frame_scene = (chosen[completed], [np.ascontiguousarray(crops[j], dtype=np.float32) for j in completed])
+            slot_of = {int(j): s for s, j in enumerate(completed)}
             for i, crop in enumerate(crops):  # boxes of one frame
                 g = int(match[i])
                 if g < 0:
@@ -156,7 +161,8 @@ def real_instances(
                                   "size": np.asarray(chosen.size[i], dtype=np.float64),
                                   "distance": float(np.linalg.norm(center)), "track_frames": n_frames,
                                   "label": str(gt.label[g]), "frame_key": f"{source}:{frame.sequence}:{frame.index}",
-                                  "center": center, "yaw": float(chosen.yaw[i])})
+                                  "center": center, "yaw": float(chosen.yaw[i]), "frame_scene": frame_scene,
+                                  "scene_slot": slot_of[i]})
                 used += 1
         report[str(source)] = {"tracks": len(tracks), "instances": used, "boxes": boxes, "skipped": dict(skipped)}
         if used == 0:
@@ -178,13 +184,23 @@ def _bands(instances: list[dict[str, Any]], rows: list[dict[str, float]]) -> dic
 
 
 def scene_contexts(instances: list[dict[str, Any]]) -> list[Any]:
-    """One :class:`~pcc_ros.models.base.SceneContext` per instance: the other evaluated cars of
-    the same frame are its neighbours (what the pipeline gives a context-using backend)."""
+    """One :class:`~pcc_ros.models.base.SceneContext` per instance, what the pipeline gives a
+    context-using backend: every other box the node completes in the same frame is a neighbour.
+
+    Instances from :func:`real_instances` carry their frame's completed boxes and crops
+    (``frame_scene``, including unmatched detections and cars without a multi-view reference)
+    and their ``scene_slot`` in it; without them the other evaluated cars of the frame are used."""
     contexts: list[Any] = [None] * len(instances)
     groups: dict[str, list[int]] = {}
     for i, inst in enumerate(instances):
         groups.setdefault(inst["frame_key"], []).append(i)
     for members in groups.values():  # loop over frames; a handful of cars each
+        scene = instances[members[0]].get("frame_scene")
+        if scene is not None:
+            frame_contexts = SceneContext.from_frame(*scene)
+            for i in members:
+                contexts[i] = frame_contexts[instances[i]["scene_slot"]]
+            continue
         boxes = Boxes(np.stack([instances[i]["center"] for i in members]),
                       np.stack([instances[i]["size"] for i in members]),
                       np.array([instances[i]["yaw"] for i in members]),

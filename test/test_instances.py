@@ -284,3 +284,30 @@ def test_real_kitti_tracking_produces_car_tracks(shared_data, tmp_path):
     (tracks_obs,) = [v for v in tracks.values() if len(v) == max(len(x) for x in tracks.values())]
     merged = aggregate_track(cache, tracks_obs)
     assert len(merged) > 3 * np.median(cache.meta["num_points"][tracks_obs])
+
+
+def test_extract_node_crop_crops_as_completion_node(shared_data, tmp_path):
+    """`pcc extract --node-crop`: training inputs cropped with the node's box_margin / ground_margin
+    (the pipeline defaults), i.e. the same points the node completes."""
+    from pcc_ros.cli.main import main
+    from pcc_ros.data.instances import InstanceCache
+    from pcc_ros.data.sources import open_frames
+    from pcc_ros.geometry.boxes import crop_canonical
+    from pcc_ros.pipeline.config import PipelineConfig
+    from pcc_ros.types import class_mask
+
+    src = shared_data / "kitti_object"
+    assert main(["extract", str(src), "--out", str(tmp_path / "node"), "--node-crop", "--no-progress"]) == 0
+    assert main(["extract", str(src), "--out", str(tmp_path / "tight"), "--no-progress"]) == 0
+    node, tight = InstanceCache.load(tmp_path / "node"), InstanceCache.load(tmp_path / "tight")
+    cfg = PipelineConfig()
+    assert (node.index["config"]["margin"], node.index["config"]["ground_margin"]) == (cfg.box_margin,
+                                                                                       cfg.ground_margin)
+    assert tight.index["config"]["margin"] == 0.0
+    assert node.meta["num_points"].sum() > tight.meta["num_points"].sum()  # the margins hold more points
+    first_frame = node.meta["frame"][0]
+    frame = next(f for f in open_frames(src) if f.index == first_frame)
+    gt = frame.ground_truth[class_mask(frame.ground_truth.label, ("Car", "Van"))]
+    _, crops = crop_canonical(np.asarray(frame.points), gt, cfg.box_margin, cfg.ground_margin)
+    first = [len(c) for c in crops if len(c) >= 10]
+    assert first and sorted(node.meta["num_points"][node.meta["frame"] == first_frame].tolist()) == sorted(first)

@@ -135,3 +135,26 @@ def test_context_backends_get_the_other_cars_of_the_same_frame():
     assert sorted(first.neighbour_boxes.center[:, 0].tolist()) == [30.0, 40.0]
     assert first.box.center[0, 0] == 10.0
     assert [p[0, 0] for p in first.neighbour_points] == pytest.approx([0.3, 0.4])
+
+
+def test_detector_mode_contexts_hold_every_box_the_node_completes(shared_data):
+    """With detector boxes the node gives a context backend every completed detection of the frame,
+    false positives included; the evaluation does the same (not only the matched, scored ones)."""
+    from pcc_ros.evaluate_real import node_crop, real_instances, scene_contexts
+
+    instances, report = real_instances([shared_data / "kitti_tracking"], boxes="detections",
+                                       detections_dir=shared_data / "kitti_tracking/detections/pointrcnn")
+    assert report[str(shared_data / "kitti_tracking")]["skipped"]["detection_unmatched"] > 0
+    contexts = scene_contexts(instances)
+    per_frame = {}
+    for inst in instances:
+        per_frame[inst["frame_key"]] = per_frame.get(inst["frame_key"], 0) + 1
+    richer = 0
+    for inst, ctx in zip(instances, contexts):
+        boxes, crops = inst["frame_scene"]
+        assert len(ctx.neighbour_boxes) == len(boxes) - 1
+        np.testing.assert_allclose(ctx.box.center[0], inst["center"])
+        assert np.array_equal(crops[inst["scene_slot"]], inst["partial"])
+        assert all(len(c) >= node_crop()[2] for c in crops)  # completion_node's min_points
+        richer += len(boxes) > per_frame[inst["frame_key"]]
+    assert richer > 0  # unmatched detections are neighbours too

@@ -20,6 +20,7 @@ from pcc_ros.data.instances import ExtractConfig, extract_instances
 from pcc_ros.errors import ConfigError
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.models import SceneContext, create, load_completer
+from pcc_ros.models.base import aspect_scales, median_box_aspect
 from pcc_ros.models.trapcc import (
     TrainOptions,
     TraPCCRecipe,
@@ -298,6 +299,69 @@ def test_recipe_without_the_training_kit_names_itself(train_cache, tmp_path):
     with pytest.raises(ConfigError, match=r"trapcc: .*training_kit"):
         recipe.training_data(train_cache, "train")
     assert load_recipe("trapcc", "default", {"gt_dir": str(tmp_path / "gt")}).kit == training_kit()
+
+
+def test_box_aspect_training_scales_inputs_and_targets_by_their_own_boxes(train_cache, tmp_path):
+    """The node completes in the box-aspect frame: training inputs get their box's factors, every
+    pseudo-GT entry its own track's, neighbours stay in their own canonical frame (as the
+    pipeline's SceneContext gives them), and the completer validates and is saved in that frame."""
+    plain = _recipe(tmp_path).training_data(train_cache, "train", min_points=10)
+    recipe = _recipe(tmp_path, box_aspect=True)
+    data = recipe.training_data(train_cache, "train", min_points=10)
+    sel = train_cache.indices("train", min_points=10)
+    sizes = train_cache.meta["box_size"][sel]
+    aspect = median_box_aspect(sizes)
+    assert recipe.aspect == pytest.approx(aspect) and recipe.data_summary()["box_aspect"] == pytest.approx(aspect)
+    scales = aspect_scales(sizes, aspect, len(sel))
+    assert not np.allclose(scales, 1.0)  # two box shapes: each is moved onto the median
+    for i in (0, len(sel) // 2, len(sel) - 1):
+        np.testing.assert_allclose(data.clouds[i], plain.clouds[i] * scales[i], rtol=1e-6)
+    for part in ("whole", "front", "back"):
+        before, after = plain.pools.part(part), data.pools.part(part)
+        if len(before):
+            own = aspect_scales(before.size, aspect, len(before))
+            np.testing.assert_allclose(after.points, before.points * own[:, None, :], rtol=1e-6)
+    assert all(np.array_equal(a, b) for a, b in zip(data.nb_clouds, plain.nb_clouds))
+    np.testing.assert_array_equal(data.whole, plain.whole)  # retrieval itself is frame-independent
+    completer = recipe.build_completer("cpu")
+    recipe.prepare(completer, data, [], 0)
+    assert completer.box_aspect == pytest.approx(aspect)
+    assert recipe.describe()["reference_aspect"] == pytest.approx(list(aspect))
+
+
+def test_held_out_sources_are_refused_and_recorded(train_cache, tmp_path):
+    """A cache extracted from a held-out dataset (what pcc eval --real scores) cannot reach training."""
+    source = tmp_path / "real" / "kitti_tracking"
+    source.mkdir(parents=True)
+    frames = [f for f in track_frames(ellipsoid_surface(3000, VAN, np.random.default_rng(4)), VAN, "0000", "7", 4,
+                                      seed=4)]
+    held = extract_instances(frames, tmp_path / "held_cache", ExtractConfig(val_fraction=0.0, test_fraction=0.0),
+                             source=source, progress=False)
+    recipe = _recipe(tmp_path, real_data=[str(held.root)], held_out=[str(source.parent)])
+    with pytest.raises(ConfigError, match="held out"):
+        recipe.training_data(train_cache, "train")
+    recipe = _recipe(tmp_path, pool_data=[str(held.root)], held_out=[str(source)])
+    with pytest.raises(ConfigError, match="held out"):  # pools are training data too
+        recipe.training_data(train_cache, "train")
+    recipe = _recipe(tmp_path, held_out=[str(source)])
+    recipe.training_data(train_cache, "train")
+    summary = recipe.data_summary()
+    assert summary["held_out"]["sources"] == [str(source.resolve())]
+    assert summary["sources"][0]["crop"]["ground_margin"] == 0.0
+
+
+def test_pools_from_other_caches(train_cache, pool_cache, tmp_path):
+    """pool_data: targets from other crops of the data (e.g. tight ones) than the inputs."""
+    recipe = _recipe(tmp_path, pool_data=[str(pool_cache.root)])
+    data = recipe.training_data(train_cache, "train", min_points=10)
+    keys = set(data.pools.whole.key)
+    assert keys and all(k.startswith("0:") for k in keys)
+    assert recipe.data_summary()["pool_sources"] == [{"cache": str(pool_cache.root), "source": None,
+                                                      "crop": {"boxes": "ground_truth", "margin": 0.0,
+                                                               "ground_margin": 0.0, "min_points": 10}}]
+    own = _recipe(tmp_path / "own").training_data(train_cache, "train", min_points=10)  # caches without a
+    assert {k for k in own.pools.whole.key} != keys or not np.array_equal(  # source share a fingerprint
+        data.pools.whole.points, own.pools.whole.points)
 
 
 @pytest.mark.slow

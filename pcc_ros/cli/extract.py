@@ -22,6 +22,7 @@ import numpy as np
 from pcc_ros.data.instances import ExtractConfig, InstanceCache, extract_instances
 from pcc_ros.data.sources import open_frames
 from pcc_ros.errors import ConfigError
+from pcc_ros.pipeline.config import PipelineConfig
 
 log = logging.getLogger("pcc.extract")
 
@@ -40,6 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--margin", type=float, default=0.0, help="box margin, metres (default 0)")
     parser.add_argument("--ground-margin", type=float, default=0.1,
                         help="drop points this close above the box bottom (ground returns), metres (default 0.1)")
+    parser.add_argument("--node-crop", action="store_true",
+                        help="crop as completion_node does: its box_margin and ground_margin (the pipeline "
+                             "defaults) instead of --margin / --ground-margin; training inputs then look like the "
+                             "node's")
     parser.add_argument("--val-fraction", type=float, default=0.1, help="share of tracks in val (default 0.1)")
     parser.add_argument("--test-fraction", type=float, default=0.2,
                         help="share of tracks in test (default 0.2; SynthCars uses its own test sequences)")
@@ -64,8 +69,12 @@ def run(args: argparse.Namespace) -> int:
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
     if not classes:
         raise ConfigError("--classes is empty")
-    config = ExtractConfig(classes=classes, min_points=args.min_points, boxes=args.boxes, margin=args.margin,
-                           ground_margin=args.ground_margin, val_fraction=args.val_fraction,
+    margin, ground_margin = args.margin, args.ground_margin
+    if args.node_crop:
+        node = PipelineConfig()
+        margin, ground_margin = float(node.box_margin), float(node.ground_margin)
+    config = ExtractConfig(classes=classes, min_points=args.min_points, boxes=args.boxes, margin=margin,
+                           ground_margin=ground_margin, val_fraction=args.val_fraction,
                            test_fraction=args.test_fraction)
     frames = open_frames(args.source, sequence=args.sequence, detections_dir=args.detections_dir)
     cache = extract_instances(frames, args.out, config, source=args.source, synthcars=args.synthcars,

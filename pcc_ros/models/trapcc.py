@@ -43,6 +43,7 @@ fine-detail errors vanish, so the training uses the L1 forms (documented in
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -55,7 +56,14 @@ from torch import nn
 
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.canonical import to_canonical
-from pcc_ros.models.base import SceneContext, TorchCompleter, TrainingKit, resample_cloud
+from pcc_ros.models.base import (
+    SceneContext,
+    TorchCompleter,
+    TrainingKit,
+    aspect_scales,
+    median_box_aspect,
+    resample_cloud,
+)
 from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, masked_mean, nearest, weighted_chamfer
 from pcc_ros.models.registry import register
 
@@ -364,6 +372,18 @@ class TrainOptions:
     chamfer: str = "l1"
     min_points_pool: int = 1024
     size_candidates: int = 8
+    #: train in the box-aspect frame (``Completer.box_aspect``, what the pipeline completes in):
+    #: inputs and pseudo-GT scaled in y / z so their boxes have the median aspect of the ``--data``
+    #: training boxes, recorded in the checkpoint; neighbour clouds stay in their own canonical
+    #: frames, as the pipeline's :class:`SceneContext` gives them
+    box_aspect: bool = False
+    #: instance caches the pseudo-GT pools are built from instead of the training caches, e.g. the
+    #: tight crops of the same recordings when the training inputs are cropped as the node crops
+    #: (``pcc extract --node-crop``): inputs look like the node's, targets stay the car itself
+    pool_data: list[str] = field(default_factory=list)
+    #: source datasets that must not reach training (e.g. what ``pcc eval --real`` scores): a
+    #: training or pool cache extracted from one of them is refused; recorded in the checkpoint
+    held_out: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -423,6 +443,8 @@ class TraPCCRecipe:
             raise ConfigError(f"trapcc: real_share must be in [0, 1], got {self.options.real_share}")
         self.model = model
         self.data_summary_: dict[str, Any] = {}
+        #: the reference aspect (width / length, height / length) of the box-aspect frame
+        self.aspect: tuple[float, float] | None = None
         #: caches and ground-truth pools come through :class:`TrainingKit` (set by ``pcc_ros.train``)
         self.kit: TrainingKit | None = None
 
@@ -437,7 +459,15 @@ class TraPCCRecipe:
         return TraPCC(device=device, size=self.size, **self.model)
 
     def describe(self) -> dict[str, Any]:
-        return {"size": self.size, **self.model, **self.options.__dict__}
+        out = {"size": self.size, **self.model, **self.options.__dict__}
+        if self.aspect is not None:
+            out["reference_aspect"] = list(self.aspect)
+        return out
+
+    def prepare(self, completer: TraPCC, data: Any, val_instances: Any, seed: int) -> None:
+        """The completer validates (and is saved) in the frame it is trained in."""
+        if self.options.box_aspect:
+            completer.box_aspect = self.aspect
 
     def data_summary(self) -> dict[str, Any]:
         return dict(self.data_summary_)
@@ -451,22 +481,22 @@ class TraPCCRecipe:
         (see :mod:`pcc_ros.data.gt_pools`). Instances without a Whole-GT (empty pool) are left out.
         """
         kit = TrainingKit.require(self.kit, "trapcc")
-        caches = [cache]
-        for path in self.options.real_data:
-            try:
-                caches.append(kit.open_cache(Path(path)))
-            except DataError as exc:
-                raise ConfigError(f"trapcc: real_data cache {path}: {exc}") from exc
+        caches = [cache, *(self._open(kit, path, "real_data") for path in self.options.real_data)]
+        pool_caches = [self._open(kit, path, "pool_data") for path in self.options.pool_data] or caches
+        held_out = check_held_out([*caches, *pool_caches], self.options.held_out)
         pool_cfg = kit.pool_config(min_points=int(self.options.min_points_pool),
                               min_half_points=int(self.options.min_points_pool) // 2,
                               size_candidates=int(self.options.size_candidates))
         root = Path(self.options.gt_dir) if self.options.gt_dir else Path(cache.root) / "trapcc_gt"
-        pools, folder = kit.load_or_build_pools(caches, split, root, pool_cfg)
+        pools, folder = kit.load_or_build_pools(pool_caches, split, root, pool_cfg)
         if len(pools.whole) == 0:
             raise ConfigError(f"trapcc: the Whole-GT pool of split {split!r} is empty (no track aggregate passed "
                               f"the >= {pool_cfg.min_points} points + evenness test); add tracked data")
         cfg = {**PRESETS[self.size], **self.model}
         k, radius = int(cfg["k_neighbours"]), float(cfg["radius"])
+        if self.options.box_aspect and self.aspect is None:  # the main training data fixes the reference
+            self.aspect = median_box_aspect(np.asarray(cache.meta["box_size"])[cache.indices(split,
+                                                                                             min_points=min_points)])
         clouds, nb_clouds, whole, front, back, real, nbs, geos = [], [], [], [], [], [], [], []
         per_source = []
         for s, c in enumerate(caches):
@@ -487,27 +517,42 @@ class TraPCCRecipe:
                     geo[i, : len(j)] = neighbour_geometry(centers[i], yaws[i], sizes[i, 0], centers[j], yaws[j], radius)
             usable = a["whole_index"] >= 0
             sel = idx[usable]
-            clouds.extend(nb_clouds[base + int(i)] for i in sel)
+            if self.aspect is not None:  # inputs in the box-aspect frame; neighbours keep their own frame
+                scales = aspect_scales(np.asarray(sizes)[sel], self.aspect, len(sel))
+                clouds.extend(nb_clouds[base + int(i)] * sc for i, sc in zip(sel, scales))
+            else:
+                clouds.extend(nb_clouds[base + int(i)] for i in sel)
             whole.append(a["whole_index"][usable])
             front.append(a["front_index"][usable])
             back.append(a["back_index"][usable])
             nbs.append(nb_index[sel])
             geos.append(geo[sel])
             real.append(np.full(len(sel), s > 0))
-            per_source.append({"cache": str(c.root), "instances": len(sel), "real": s > 0})
+            per_source.append({"cache": str(c.root), "instances": len(sel), "real": s > 0, **cache_origin(c)})
+        gt = pools if self.aspect is None else aspect_pools(pools, self.aspect)
         data = TrainData(clouds, np.concatenate(whole), np.concatenate(front), np.concatenate(back),
-                         np.concatenate(nbs), np.concatenate(geos), nb_clouds, np.concatenate(real), pools, {})
+                         np.concatenate(nbs), np.concatenate(geos), nb_clouds, np.concatenate(real), gt, {})
         n_real = int(data.real.sum())
         share = self.options.real_share if n_real and n_real < len(data) else n_real / max(len(data), 1)
         data.summary = {
             "sources": per_source, "instances": len(data), "real_instances": n_real,
             "real_fraction_of_instances": n_real / max(len(data), 1), "real_share_of_samples": share,
             "pools": {p: pools.stats.get(p) for p in ("whole", "front", "back")},
-            "pool_folder": str(folder), "complete_shapes_used": False,
+            "pool_folder": str(folder),
+            "pool_sources": [{"cache": str(c.root), **cache_origin(c)} for c in pool_caches],
+            "held_out": held_out, "box_aspect": None if self.aspect is None else list(self.aspect),
+            "complete_shapes_used": False,
         }
         self.data_summary_ = data.summary
         log.info("trapcc training data: %s", data.summary)
         return data
+
+    @staticmethod
+    def _open(kit: TrainingKit, path: str, option: str) -> Any:
+        try:
+            return kit.open_cache(Path(path))
+        except DataError as exc:
+            raise ConfigError(f"trapcc: {option} cache {path}: {exc}") from exc
 
     # ---- batches
 
@@ -595,6 +640,45 @@ class TraPCCRecipe:
 
     def loss(self, net: nn.Module, batch: TrainBatch) -> tuple[torch.Tensor, dict[str, float]]:
         return trapcc_loss(net, batch, self.options)
+
+
+def cache_origin(cache: Any) -> dict[str, Any]:
+    """Where an instance cache came from and how it was cropped (its ``pcc extract`` record)."""
+    config = cache.index.get("config") or {}
+    return {"source": cache.index.get("source"),
+            "crop": {k: config.get(k) for k in ("boxes", "margin", "ground_margin", "min_points")}}
+
+
+def check_held_out(caches: Sequence[Any], held_out: Sequence[str]) -> dict[str, Any]:
+    """Refuse caches extracted from a held-out source; what was held out, for the checkpoint.
+
+    A cache's source (its ``pcc extract`` record) is held out when it resolves to, or lies
+    inside, one of ``held_out`` (paths; the evaluation's own datasets).
+    """
+    held = [Path(h).resolve() for h in held_out]
+    for c in caches:
+        source = cache_origin(c)["source"]
+        if source is None:
+            continue
+        src = Path(source).resolve()
+        for h in held:
+            if src == h or h in src.parents or src in h.parents:
+                raise ConfigError(f"trapcc: cache {c.root} was extracted from {source}, which is held out "
+                                  f"({h}); train without it")
+    return {"sources": [str(h) for h in held], "checked_caches": [str(c.root) for c in caches]}
+
+
+def aspect_pools(pools: Any, aspect: Sequence[float]) -> Any:
+    """The pseudo-GT pools in the box-aspect frame: each entry scaled by its own track's box
+    (``Pool.size``), i.e. every target car fills the reference box as the scaled inputs do."""
+    parts = {}
+    for name in ("whole", "front", "back"):
+        pool = pools.part(name)
+        if len(pool):
+            scales = aspect_scales(pool.size, aspect, len(pool))
+            pool = dataclasses.replace(pool, points=(pool.points * scales[:, None, :]).astype(np.float32))
+        parts[name] = pool
+    return dataclasses.replace(pools, **parts)
 
 
 def trapcc_loss(net: nn.Module, batch: TrainBatch, options: TrainOptions) -> tuple[torch.Tensor, dict[str, float]]:
