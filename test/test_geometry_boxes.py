@@ -73,7 +73,7 @@ def test_overlapping_boxes_share_points_and_cell_size_does_not_matter():
             np.testing.assert_array_equal(f, s)
 
 
-@pytest.mark.parametrize("stack", [2, 5, 12])  # a few boxes per cell, and many (the CSR walk)
+@pytest.mark.parametrize("stack", [2, 5, 12, 70])  # a few boxes per cell, more, and over 64 (the CSR walk)
 def test_stacked_boxes_each_get_their_points(stack):
     rng = np.random.default_rng(stack)
     points = rng.uniform(-4, 4, (4000, 3)).astype(np.float32)
@@ -168,7 +168,7 @@ def test_nan_inf_points_empty_scans_zero_and_far_boxes():
         BoxCandidates(np.zeros(5), boxes)
 
 
-@pytest.mark.parametrize("stack", [1, 3, 12])  # the three ways candidates expand: one box, a few, many per cell
+@pytest.mark.parametrize("stack", [1, 3, 12, 70])  # candidates expand by one box per cell, a padded table, a CSR walk
 def test_candidate_bound_and_box_subsets(stack):
     rng = np.random.default_rng(20 + stack)
     points = rng.uniform([-30, -30, -2, 0], [30, 30, 2, 1], (30000, 4)).astype(np.float32)  # x, y, z, intensity
@@ -189,6 +189,23 @@ def test_candidate_bound_and_box_subsets(stack):
             np.testing.assert_array_equal(idx, slow[b] if chosen[b] else [])
             expected = to_canonical(points[idx], boxes.center[b], boxes.yaw[b], boxes.size[b, 0])
             np.testing.assert_allclose(c, expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 1000])
+def test_pairs_tested_in_chunks_give_the_same_crops(monkeypatch, chunk):
+    import pcc_ros.geometry.boxes as boxes_module
+
+    rng = np.random.default_rng(chunk)
+    points, boxes = random_scene(rng, n_points=6000)
+    expected = crop_canonical(points, boxes, 0.1, 0.05)
+    monkeypatch.setattr(boxes_module, "_PAIR_CHUNK", chunk)  # chunk borders inside boxes, boxes inside chunks
+    indices, canon = crop_canonical(points, boxes, 0.1, 0.05)
+    slow = slow_points_in_boxes(points, boxes, 0.1, 0.05)
+    for a, b, s in zip(indices, expected[0], slow):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, s)
+    for a, b in zip(canon, expected[1]):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_float64_scans_and_threads_give_the_same_crops():

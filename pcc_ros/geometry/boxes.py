@@ -52,6 +52,7 @@ def box_corners(boxes: Boxes) -> np.ndarray:
 
 
 CELL_FRACTION = 0.25  # default BEV hash cell as a fraction of the median box width
+_PAIR_CHUNK = 16384  # candidate pairs tested at a time
 
 
 def _bev_corners(boxes: Boxes) -> np.ndarray:
@@ -149,6 +150,13 @@ class BoxCandidates:
         if nb == 0 or len(pts) == 0:
             self._hit_row = np.zeros(0, np.int64)
             return
+        # The test runs in the scan's precision (float32 for sensor data); the z bounds are
+        # rounded outward-exactly to it, so the bottom / top tests (where the ground returns
+        # sit, right at the boundary) agree with an exact float64 test.
+        self._dt = dt = np.float32 if pts.dtype == np.float32 else np.float64
+        half_z = boxes.size[:, 2] / 2.0
+        self._zlo = _round_up(boxes.center[:, 2] - half_z - self.margin + self.ground_margin, dt)
+        self._zhi = _round_down(boxes.center[:, 2] + half_z + self.margin, dt)
         grid, key, n_rows, row_dtype = self._table(boxes, self.margin, _cell_size(boxes, cell))
         self._scan(pts, grid, key, n_rows, row_dtype)
         per_row = np.bincount(self._hit_row, minlength=n_rows + 1)
@@ -213,8 +221,8 @@ class BoxCandidates:
         return (ox, oy, cell, nx, ny), row_of, n_rows, row_dtype
 
     def _scan(self, pts: np.ndarray, grid: tuple, row_of: np.ndarray, n_rows: int, row_dtype: type) -> None:
-        """The cell of every point (float32, clamped onto the grid; NaN onto its border)
-        looked up in the table: the points in cells that some box reaches, and their rows."""
+        """The cell of every point (float32, clipped onto the grid) looked up in the table:
+        the points in cells that some box reaches, and their rows."""
         ox, oy, cell, nx, ny = grid
         n = len(pts)
         inv = np.float32(1.0 / cell)
@@ -226,14 +234,22 @@ class BoxCandidates:
             for axis, origin, size, out in ((0, ox, nx, key), (1, oy, ny, gy)):
                 np.subtract(pts[:, axis], np.float32(origin), out=g, dtype=np.float32)
                 g *= inv
-                np.fmax(g, np.float32(0.0), out=g)  # fmax / fmin: NaN becomes 0, the border
-                np.fmin(g, np.float32(size - 1), out=g)
-                np.copyto(out, g, casting="unsafe")  # >= 0: truncation is the floor
-        key *= np.int32(ny)
-        key += gy
-        np.take(row_of, key, out=row, mode="clip")
-        self._hit = np.flatnonzero(row)
-        self._hit_row = np.take(row, self._hit)
+                np.clip(g, np.float32(0.0), np.float32(size - 1), out=g)
+                # >= 0: truncation is the floor. NaN stays NaN through the clip and converts to
+                # INT_MIN (x86) or 0 (ARM): the cell below is then negative or in column 0,
+                # both the empty border (a NaN point anywhere would still fail the exact test).
+                np.copyto(out, g, casting="unsafe")
+            key *= np.int32(ny)
+            key += gy
+        np.take(row_of, key, out=row, mode="clip")  # clip: out-of-range (NaN) keys to the border
+        hit = np.flatnonzero(np.not_equal(row, 0, out=_scratch("hit", n, bool)))
+        # points above or below every box are no candidates (walls, trees, kerbs under a far box)
+        z = pts[:, 2][hit]
+        with np.errstate(invalid="ignore"):
+            between = z >= self._zlo.min()
+            between &= z <= self._zhi.max()
+        self._hit = hit = hit[between]
+        self._hit_row = np.take(row, hit)
 
     def pairs(self, keep: np.ndarray | None = None, local: bool = False):
         """The (point, box) pairs with the point inside the box, for every box or for the boxes
@@ -252,36 +268,61 @@ class BoxCandidates:
         # Box-major (a stable radix sort keeps the points ascending within a box): the boxes'
         # values then expand by np.repeat instead of a gather per pair.
         if nb > 1:
-            order = np.argsort(pb.astype(np.int16 if nb < 32767 else np.int64), kind="stable")
+            order = np.argsort(pb, kind="stable")  # int16: a radix sort
             pp = np.take(pp, order)
         count = np.bincount(pb, minlength=nb)
-        pts = self.points
-        dt = np.float32 if pts.dtype == np.float32 else np.float64
+        pts, dt = self.points, self._dt
         boxes, margin = self.boxes, self.margin
         half = boxes.size / 2.0
-        zlo = _round_up(boxes.center[:, 2] - half[:, 2] - margin + self.ground_margin, dt)
-        zhi = _round_down(boxes.center[:, 2] + half[:, 2] + margin, dt)
-        xyz = np.take(pts, pp, axis=0)
-        x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-        if xyz.dtype != dt:
-            x, y, z = x.astype(dt), y.astype(dt), z.astype(dt)
-
-        def rep(values: np.ndarray) -> np.ndarray:
-            return np.repeat(values.astype(dt, copy=False), count)
-
-        inside = z >= rep(zlo)
-        inside &= z <= rep(zhi)
-        lx, ly, _ = to_box_local(x, y, 0, rep(boxes.center[:, 0]), rep(boxes.center[:, 1]), 0,
-                                 rep(np.cos(boxes.yaw)), rep(np.sin(boxes.yaw)))
-        inside &= np.abs(lx) <= rep(half[:, 0] + margin)
-        inside &= np.abs(ly) <= rep(half[:, 1] + margin)
-        kept = np.flatnonzero(inside)
+        values = np.stack([  # one row per box
+            self._zlo, self._zhi, boxes.center[:, 0], boxes.center[:, 1], np.cos(boxes.yaw), np.sin(boxes.yaw),
+            half[:, 0] + margin, half[:, 1] + margin,
+        ], axis=1).astype(dt)
+        # In chunks of pairs, every temporary in this thread's work arrays: they stay in cache
+        # and mapped (a fresh array of this size is page-faulted in afresh on every frame).
+        ends = np.cumsum(count).tolist()
+        box_of = np.repeat(np.arange(nb, dtype=np.int16 if nb < 32767 else np.int64), count)
+        size = min(len(pp), _PAIR_CHUNK)
+        index = _scratch("pair_box", size, np.intp)
+        rows = _scratch("pair_values", 8 * size, dt).reshape(size, 8)
+        xyz = _scratch("pair_points", size * pts.shape[1], pts.dtype).reshape(size, pts.shape[1])
+        dx, dy, lx, ly, tmp = (_scratch(f"pair_{k}", size, dt) for k in range(5))
+        inside, test = _scratch("pair_inside", size, bool), _scratch("pair_test", size, bool)
+        kept_parts, local_parts = [], []
+        for lo in range(0, len(pp), _PAIR_CHUNK):
+            hi = min(lo + _PAIR_CHUNK, len(pp))
+            c = hi - lo
+            if c < size:
+                index, rows, xyz = index[:c], rows[:c], xyz[:c]
+                dx, dy, lx, ly, tmp, inside, test = (a[:c] for a in (dx, dy, lx, ly, tmp, inside, test))
+            np.copyto(index, box_of[lo:hi])
+            np.take(values, index, axis=0, out=rows)  # one gather of each pair's box row
+            v = rows.T
+            np.take(pts, pp[lo:hi], axis=0, out=xyz)
+            x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+            np.greater_equal(z, v[0], out=inside)
+            inside &= np.less_equal(z, v[1], out=test)
+            # box frame as canonical.to_box_local: (cos dx + sin dy, cos dy - sin dx), same roundings
+            np.subtract(x, v[2], out=dx)
+            np.subtract(y, v[3], out=dy)
+            np.multiply(v[4], dx, out=lx)
+            lx += np.multiply(v[5], dy, out=tmp)
+            np.multiply(v[4], dy, out=ly)
+            ly -= np.multiply(v[5], dx, out=tmp)
+            inside &= np.less_equal(np.abs(lx, out=tmp), v[6], out=test)
+            inside &= np.less_equal(np.abs(ly, out=tmp), v[7], out=test)
+            kept = np.flatnonzero(inside)
+            kept_parts.append(kept + lo)
+            if local:
+                local_parts.append((np.take(lx, kept), np.take(ly, kept), np.take(z, kept).astype(dt, copy=False)))
+        kept = np.concatenate(kept_parts)
         starts = np.zeros(nb + 1, dtype=np.int64)
-        starts[1:] = np.searchsorted(kept, np.cumsum(count))
+        starts[1:] = np.searchsorted(kept, ends)
         if not local:
             return np.take(pp, kept), starts, None
-        dz = np.take(z, kept) - np.repeat(boxes.center[:, 2].astype(dt), np.diff(starts))
-        return np.take(pp, kept), starts, (np.take(lx, kept), np.take(ly, kept), dz)
+        lx, ly, dz = (np.concatenate(c) for c in zip(*local_parts))
+        dz -= np.repeat(boxes.center[:, 2].astype(dt), np.diff(starts))
+        return np.take(pp, kept), starts, (lx, ly, dz)
 
     def _candidates(self, keep: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """(point, box) candidate pairs in point order: each point meets the boxes of its cell."""
@@ -296,8 +337,9 @@ class BoxCandidates:
         n_rows = self._n_rows
         per_row = np.bincount(entry_row, minlength=n_rows + 1)  # boxes per row (0 for row 0)
         most = int(per_row.max())
+        box_dtype = np.int16 if len(self.boxes) < 32767 else np.int64
         if most == 1:  # no cell shared by two boxes: one gather
-            box_of_row = np.full(n_rows + 1, -1, dtype=np.int32)
+            box_of_row = np.full(n_rows + 1, -1, dtype=box_dtype)
             box_of_row[entry_row] = entry_box
             pb = np.take(box_of_row, hit_row)
             if keep is None:  # every row holds a box
@@ -305,22 +347,31 @@ class BoxCandidates:
             sel = np.flatnonzero(pb >= 0)
             return np.take(hit, sel), np.take(pb, sel)
         first = np.cumsum(per_row) - per_row  # entries are grouped by row
-        slot = np.arange(len(entry_row)) - np.take(first, entry_row)
-        if most <= 8:
-            # A few boxes per cell: a padded (row, slot) -> box table; one gather of each
-            # point's row, the filled slots found in one pass.
-            width = 1 << (most - 1).bit_length()
-            padded = np.full((n_rows + 1, width), -1, dtype=np.int32)
-            padded[entry_row, slot] = entry_box
-            boxes_of = np.take(padded, hit_row, axis=0).reshape(-1)
-            filled = np.flatnonzero(boxes_of >= 0)
-            return np.take(hit, filled >> (width.bit_length() - 1)), np.take(boxes_of, filled)
-        # Many boxes share cells: a CSR walk without a Python loop.
-        n = np.take(per_row, hit_row)
-        pp = np.repeat(hit, n)
-        ends = np.cumsum(n)
-        walk = np.repeat(np.take(first, hit_row) - ends + n, n) + np.arange(len(pp))
-        return pp, np.take(entry_box, walk)
+        if most > 64:  # many boxes share cells: a CSR walk without a Python loop
+            n = np.take(per_row, hit_row)
+            pp = np.repeat(hit, n)
+            ends = np.cumsum(n)
+            walk = np.repeat(np.take(first, hit_row) - ends + n, n) + np.arange(len(pp))
+            return pp, np.take(entry_box, walk)
+        # A padded (row, slot) -> box table; each point gathers its row, the filled slots are
+        # its pairs. In chunks of points, the gathered rows in this thread's work arrays.
+        width = 1 << (most - 1).bit_length()
+        shift = width.bit_length() - 1
+        padded = np.full((n_rows + 1, width), -1, dtype=box_dtype)
+        padded[entry_row, np.arange(len(entry_row)) - np.take(first, entry_row)] = entry_box
+        step = max(1, 4 * _PAIR_CHUNK // width)
+        gathered = _scratch("cand_rows", min(step, len(hit)) * width, box_dtype).reshape(-1, width)
+        filled_mask = _scratch("cand_filled", min(step, len(hit)) * width, bool)
+        points, boxes = [], []
+        for lo in range(0, len(hit), step):
+            rows = hit_row[lo:lo + step]
+            block = np.take(padded, rows, axis=0, out=gathered[:len(rows)]).reshape(-1)
+            filled = np.flatnonzero(np.greater_equal(block, 0, out=filled_mask[:len(block)]))
+            points.append(np.take(hit[lo:lo + step], filled >> shift))
+            boxes.append(np.take(block, filled))
+        if len(points) == 1:
+            return points[0], boxes[0]
+        return np.concatenate(points), np.concatenate(boxes)
 
 
 def _pairs_in_boxes(points, boxes, margin, ground_margin, cell, local=True):
