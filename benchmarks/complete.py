@@ -65,6 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", default="1,2,2x1",
                         help="thread settings: N intra-op threads, or WxN worker threads x intra-op (default 1,2,2x1)")
     parser.add_argument("--repeat", type=int, default=15, help="timed rounds (default 15)")
+    parser.add_argument("--densities", default="1,2",
+                        help="decode densities of sections 1-2 (1: as trained, where the targets are defined; "
+                             "2: completion_node's default; default 1,2)")
     parser.add_argument("--batches", default=",".join(map(str, BATCHES)), help="batch sizes of the sweep")
     parser.add_argument("--no-breakdown", action="store_true", help="skip the time breakdown (section 5)")
     parser.add_argument("--backends", default=None,
@@ -178,15 +181,21 @@ def recorded_matmuls(call: Callable[[], object]) -> list[tuple[int, int, int]]:
 
 
 def matmul_replay(shapes: list[tuple[int, int, int]], weight_layout: bool = True) -> Callable[[], None]:
-    """A callable running ``torch.mm`` at each shape in order (inputs allocated once); with
-    ``weight_layout`` the right operand is a transposed ``(N, K)`` matrix, as the network's
-    ``weight.t()`` (MKL's speed at few output columns depends on it several-fold)."""
+    """A callable running ``torch.mm`` at each shape in order; with ``weight_layout`` the right
+    operand is a transposed ``(N, K)`` matrix, as the network's ``weight.t()`` (MKL's speed at
+    few output columns depends on it several-fold). One set of operands per layer shape
+    ``K x N``, its rows sliced by every call of that shape, as the network slices its reused
+    buffers: the replay's operands stay in cache, so its rate bounds what these shapes allow."""
     import torch
 
     def right(k: int, n: int):
         return torch.randn(n, k).t() if weight_layout else torch.randn(k, n)
 
-    operands = [(torch.randn(m, k), right(k, n), torch.empty(m, n)) for m, k, n in shapes]
+    rows: dict[tuple[int, int], int] = {}
+    for m, k, n in shapes:
+        rows[k, n] = max(m, rows.get((k, n), 0))
+    sets = {(k, n): (torch.randn(m, k), right(k, n), torch.empty(m, n)) for (k, n), m in rows.items()}
+    operands = [(sets[k, n][0][:m], sets[k, n][1], sets[k, n][2][:m]) for m, k, n in shapes]
 
     def replay() -> None:
         for a, b, out in operands:
@@ -204,26 +213,32 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     replay = matmul_replay(shapes)
     alts: dict[str, Callable[[], object]] = {"network": lambda: completer.complete(batch), "matmul_replay": replay}
     reps = {shape: max(1, int(2e9 // (2 * np.prod(shape)))) for shape in CEILING_SHAPES}
-    for shape in CEILING_SHAPES:  # the ceiling as in section 2: the faster of the two shapes
-        alts[f"mm{shape}"] = matmul_replay([shape] * reps[shape], weight_layout=False)
+    for shape in CEILING_SHAPES:  # the ceiling as in section 2: the fastest of the two shapes, fresh or reused output
+        alts[f"mm{shape}_out"] = matmul_replay([shape] * reps[shape], weight_layout=False)
+        a, b = torch.randn(shape[0], shape[1]), torch.randn(shape[1], shape[2])
+        alts[f"mm{shape}"] = lambda a=a, b=b, n=reps[shape]: [torch.mm(a, b) for _ in range(n)]
     times = interleaved(alts, repeat)
     network, replayed = float(np.median(times["network"])), float(np.median(times["matmul_replay"]))
-    ceiling = max(2 * np.prod(shape) * reps[shape] / float(np.median(times[f"mm{shape}"])) / 1e9
-                  for shape in CEILING_SHAPES)
+    ceiling = max(2 * np.prod(shape) * reps[shape] / float(np.median(times[f"mm{shape}{suffix}"])) / 1e9
+                  for shape in CEILING_SHAPES for suffix in ("", "_out"))
     replay_flops = sum(2 * m * k * n for m, k, n in shapes)
-    # per shape: its share of the replayed FLOPs and its own rate (timed alone, same rounds)
-    groups: dict[tuple[int, int, int], int] = {}
-    for shape in shapes:
-        groups[shape] = groups.get(shape, 0) + 1
-    per_shape_alts = {f"{m}x{k}x{n}": matmul_replay([(m, k, n)] * count) for (m, k, n), count in groups.items()}
+    # per layer shape (in x out; the rows of a chunk vary): its share of the replayed FLOPs and its
+    # own rate (timed alone, same rounds)
+    groups: dict[tuple[int, int], list[int]] = {}
+    for m, k, n in shapes:
+        groups.setdefault((k, n), []).append(m)
+    per_shape_alts = {f"{k}x{n}": matmul_replay([(m, k, n) for m in ms]) for (k, n), ms in groups.items()}
     shape_times = interleaved(per_shape_alts, max(5, repeat // 2))
     rows = []
-    for (m, k, n), count in sorted(groups.items(), key=lambda kv: -kv[1] * np.prod(kv[0])):
-        t = float(np.median(shape_times[f"{m}x{k}x{n}"]))
-        gflops = 2 * m * k * n * count / t / 1e9
-        rows.append({"m_k_n": f"{m}x{k}x{n}", "calls": count, "flop_share": 2 * m * k * n * count / replay_flops,
-                     "ms": t * 1e3, "gflop_s": gflops, "of_ceiling": gflops / ceiling})
-    print_table("where the time goes (1 thread, batch 32): the network's matrix products replayed alone, by shape",
+    for (k, n), ms in sorted(groups.items(), key=lambda kv: -sum(kv[1]) * kv[0][0] * kv[0][1]):
+        t = float(np.median(shape_times[f"{k}x{n}"]))
+        flop = 2 * sum(ms) * k * n
+        gflops = flop / t / 1e9
+        rows.append({"k_x_n": f"{k}x{n}", "calls": len(ms), "rows_per_call": sum(ms) / len(ms),
+                     "flop_share": flop / replay_flops, "ms": t * 1e3, "gflop_s": gflops,
+                     "of_ceiling": gflops / ceiling})
+    print_table("where the time goes (1 thread, batch 32): the network's matrix products replayed alone, "
+                "by layer shape (in x out)",
                 rows)
     out = {
         "network_ms": network * 1e3, "matmul_replay_ms": replayed * 1e3, "ceiling_gflop_s": ceiling,
@@ -269,66 +284,90 @@ def run(args: argparse.Namespace) -> dict:
     completer, weights = _load_pointpncnet(args.checkpoint, 32)
     batch32 = clouds[:32]
 
-    # ---- equal outputs first
-    torch.set_num_threads(1)
-    fast_out = completer.complete(batch32)
-    with reference_path():
-        ref_out = completer.complete(batch32)
-    max_diff = max(float(np.abs(a - b).max()) for a, b in zip(fast_out, ref_out))
-    if max_diff > 1e-4:
-        raise SystemExit(f"fast and original network paths disagree: max |diff| {max_diff:.2e} m (canonical)")
-    flops = linear_flops(completer.model, lambda: completer.complete(batch32)) / len(batch32)
+    # ---- 1 + 2: original vs fast, per decode density and thread setting, with the matmul ceiling
+    # in the same rounds; outputs checked equal first and FLOPs counted at every density
+    from pcc_ros.models.layers import set_decode_density
 
     def reference(setting: tuple[int, int], batch: list) -> None:
         with reference_path():  # a process-wide switch: set it around the worker threads
             run_with(setting, completer.complete, batch)
 
-    ceiling_inputs = {shape: (torch.randn(shape[0], shape[1]), torch.randn(shape[1], shape[2]))
-                      for shape in CEILING_SHAPES}
-
-    # ---- 1 + 2: original vs fast, per thread setting, with the matmul ceiling in the same rounds
+    ceiling_inputs = {shape: (torch.randn(shape[0], shape[1]), torch.randn(shape[1], shape[2]),
+                              torch.empty(shape[0], shape[2])) for shape in CEILING_SHAPES}
     settings = parse_threads(args.threads)
-    rows, per_setting = [], {}
-    for setting in settings:
-        alts: dict[str, Callable[[], object]] = {
-            "original": lambda s=setting: reference(s, batch32),
-            "fast": lambda s=setting: run_with(s, completer.complete, batch32),
-        }
-        for shape, (a, b) in ceiling_inputs.items():
-            reps = max(1, int(2e9 // (2 * np.prod(shape))))  # ~2 GFLOP per timed call
-            alts[f"mm{shape}"] = lambda s=setting, a=a, b=b, reps=reps: run_with(
-                s, lambda _batch: [torch.mm(a, b) for _ in range(reps)], [None] * s[0])
-        times = interleaved(alts, args.repeat)
-        mm_rates = {}
-        for shape in CEILING_SHAPES:
-            reps = max(1, int(2e9 // (2 * np.prod(shape))))
-            per_call = 2 * np.prod(shape) * reps * setting[0]  # every worker runs reps matmuls
-            mm_rates[shape] = float(per_call / np.median(times[f"mm{shape}"]) / 1e9)
-        ceiling = max(mm_rates.values())
-        orig, fast = summary_ms(times["original"]), summary_ms(times["fast"])
-        fast_gflops = flops * len(batch32) / (fast["median_ms"] / 1e3) / 1e9
-        row = {
-            "threads": thread_label(setting),
-            "original_ms": orig["median_ms"], "fast_ms": fast["median_ms"],
-            "fast_min_ms": fast["min_ms"], "fast_max_ms": fast["max_ms"],
-            "original_inst_s": len(batch32) / (orig["median_ms"] / 1e3),
-            "fast_inst_s": len(batch32) / (fast["median_ms"] / 1e3),
-            "speedup": orig["median_ms"] / fast["median_ms"],
-            "gflop_s": fast_gflops,
-            "mm_gflop_s": ceiling,
-            "of_ceiling": fast_gflops / ceiling,
-        }
-        rows.append(row)
-        per_setting[row["threads"]] = {"original": orig, "fast": fast,
-                                       "matmul_gflop_s": {str(k): v for k, v in mm_rates.items()}, **row}
+    densities = [int(d) for d in args.densities.split(",") if d.strip()]
+    rows, per_setting, counts = [], {}, {}
+    for density in densities:
+        set_decode_density(completer.model, density)
+        torch.set_num_threads(1)
+        fast_out = completer.complete(batch32)
+        with reference_path():
+            ref_out = completer.complete(batch32)
+        max_diff = max(float(np.abs(a - b).max()) for a, b in zip(fast_out, ref_out))
+        if max_diff > 1e-4:
+            raise SystemExit(f"decode density {density}: fast and original network paths disagree: "
+                             f"max |diff| {max_diff:.2e} (canonical)")
+        nominal = linear_flops(completer.model, lambda: completer.complete(batch32)) / len(batch32)
+        executed = sum(2 * m * k * n for m, k, n in recorded_matmuls(lambda: completer.complete(batch32)))
+        executed /= len(batch32)
+        counts[density] = {"nominal_flops_per_instance": nominal, "executed_flops_per_instance": executed,
+                           "output_points": int(completer.num_output_points), "output_max_abs_diff": max_diff}
+        for setting in settings:
+            alts: dict[str, Callable[[], object]] = {
+                "original": lambda s=setting: reference(s, batch32),
+                "fast": lambda s=setting: run_with(s, completer.complete, batch32),
+            }
+            for shape, (a, b, o) in ceiling_inputs.items():  # fresh output and a reused one: the faster counts
+                reps = max(1, int(2e9 // (2 * np.prod(shape))))  # ~2 GFLOP per timed call
+                alts[f"mm{shape}"] = lambda s=setting, a=a, b=b, reps=reps: run_with(
+                    s, lambda _batch: [torch.mm(a, b) for _ in range(reps)], [None] * s[0])
+                outs = [o] + [torch.empty_like(o) for _ in range(setting[0] - 1)]  # one per worker
+                alts[f"mm{shape}_out"] = lambda s=setting, a=a, b=b, outs=outs, reps=reps: run_with(
+                    s, lambda part: [torch.mm(a, b, out=part[0]) for _ in range(reps)], outs)
+            times = interleaved(alts, args.repeat)
+            mm_rates = {}
+            for shape in CEILING_SHAPES:
+                reps = max(1, int(2e9 // (2 * np.prod(shape))))
+                per_call = 2 * np.prod(shape) * reps * setting[0]  # every worker runs reps matmuls
+                for suffix in ("", "_out"):
+                    mm_rates[f"{shape}{suffix}"] = float(per_call / np.median(times[f"mm{shape}{suffix}"]) / 1e9)
+            ceiling = max(mm_rates.values())
+            orig, fast = summary_ms(times["original"]), summary_ms(times["fast"])
+            fast_gflops = executed * len(batch32) / (fast["median_ms"] / 1e3) / 1e9
+            row = {
+                "density": density, "points": counts[density]["output_points"],
+                "threads": thread_label(setting),
+                "original_ms": orig["median_ms"], "fast_ms": fast["median_ms"],
+                "fast_min_ms": fast["min_ms"], "fast_max_ms": fast["max_ms"],
+                "original_inst_s": len(batch32) / (orig["median_ms"] / 1e3),
+                "fast_inst_s": len(batch32) / (fast["median_ms"] / 1e3),
+                "speedup": orig["median_ms"] / fast["median_ms"],
+                "gflop_s": fast_gflops,
+                "mm_gflop_s": ceiling,
+                "of_ceiling": fast_gflops / ceiling,
+            }
+            rows.append(row)
+            per_setting[f"d{density}/{row['threads']}"] = {"original": orig, "fast": fast,
+                                                          "matmul_gflop_s": mm_rates, **row}
+    set_decode_density(completer.model, 1)
+    flops, executed = counts[1]["nominal_flops_per_instance"], counts[1]["executed_flops_per_instance"]
+    max_diff = counts[1]["output_max_abs_diff"]
     print_table(
         f"PointPnCNet default, batch 32, {args.points if not args.data else 'cached'}-point inputs "
-        f"(median of {args.repeat} interleaved rounds; ms per batch)",
+        f"(median of {args.repeat} interleaved rounds; ms per batch; GFLOP/s of the FLOPs the fast path executes)",
         rows,
-        ["threads", "original_ms", "fast_ms", "fast_min_ms", "fast_max_ms", "original_inst_s", "fast_inst_s",
-         "speedup", "gflop_s", "mm_gflop_s", "of_ceiling"],
+        ["density", "points", "threads", "original_ms", "fast_ms", "fast_min_ms", "fast_max_ms", "original_inst_s",
+         "fast_inst_s", "speedup", "gflop_s", "mm_gflop_s", "of_ceiling"],
     )
-    best = max(rows, key=lambda r: r["fast_inst_s"])
+    for density, c in counts.items():
+        print(f"decode density {density} ({c['output_points']} points): {c['executed_flops_per_instance'] / 1e6:.1f} "
+              f"MFLOP per instance executed by the fast path (its matrix products), "
+              f"{c['nominal_flops_per_instance'] / 1e6:.1f} nominal (every nn.Linear call of the original path); "
+              f"outputs equal (max |diff| {c['output_max_abs_diff']:.1e})")
+    rows_d1 = [r for r in rows if r["density"] == 1]
+    if not rows_d1:
+        raise SystemExit("--densities must include 1 (the density the targets are defined at)")
+    best = max(rows_d1, key=lambda r: r["fast_inst_s"])
     best_setting = settings[[thread_label(s) for s in settings].index(best["threads"])]
 
     # ---- 3: batch size sweep (fast path, best thread setting)
@@ -385,13 +424,15 @@ def run(args: argparse.Namespace) -> dict:
                   f"(target <= {TARGET_AML_MS:.0f} ms): {'met' if met else 'NOT met'}")
 
     breakdown = None if args.no_breakdown else time_breakdown(completer, batch32, args.repeat,
-                                                              flops * len(batch32))
+                                                              executed * len(batch32))
 
-    at1 = next((r for r in rows if r["threads"] == "1"), rows[0])  # --threads without 1: the first
+    at1 = next((r for r in rows_d1 if r["threads"] == "1"), rows_d1[0])  # --threads without 1: the first
     results: dict[str, Any] = {
         "weights": weights,
         "inputs": str(args.data) if args.data else f"car-like clouds, {args.points} points",
-        "flops_per_instance": flops,
+        "flops_per_instance": executed,
+        "nominal_flops_per_instance": flops,
+        "densities": {str(d): c for d, c in counts.items()},
         "output_max_abs_diff": max_diff,
         "threads": per_setting,
         "best_threads": best["threads"],
@@ -409,7 +450,8 @@ def run(args: argparse.Namespace) -> dict:
     }
     met = bool(at1["speedup"] >= TARGET_SPEEDUP and best["of_ceiling"] >= TARGET_CEILING)
     results["targets"] = {"speedup_b32_min": TARGET_SPEEDUP, "of_ceiling_min": TARGET_CEILING, "met": met}
-    print(f"\n{flops / 1e6:.1f} MFLOP per instance; outputs equal (max |diff| {max_diff:.1e}).")
+    print(f"\n{executed / 1e6:.1f} MFLOP per instance executed ({flops / 1e6:.1f} nominal); outputs equal "
+          f"(max |diff| {max_diff:.1e}).")
     print(f"threads {at1['threads']}: {at1['speedup']:.2f}x the original path at batch 32; "
           f"best setting ({best['threads']}): "
           f"{best['fast_inst_s']:.0f} inst/s, {best['gflop_s']:.1f} GFLOP/s = {best['of_ceiling']:.0%} of the "

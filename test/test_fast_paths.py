@@ -52,12 +52,13 @@ def test_scatter_segment_max_gradient_matches_segment_reduce():
     assert torch.equal(grads[0], grads[1])
 
 
+@pytest.mark.parametrize("widths1", [[8, 16], [16, 8], [16]])  # composed point half (8 < 16) or not
 @pytest.mark.parametrize("widths2", [[32, 12], [12], [16, 24, 12]])
-def test_chunked_encoder_equals_reference(monkeypatch, widths2):
-    """Chunks that cut segments in the middle, empty segments, one or several mlp2 layers."""
+def test_chunked_encoder_equals_reference(monkeypatch, widths1, widths2):
+    """Segments longer than a chunk, empty segments, one or several mlp1 / mlp2 layers."""
     monkeypatch.setattr(layers, "CHUNK_ROWS", 7)
     torch.manual_seed(0)
-    enc = PCNEncoder([8, 16], widths2)
+    enc = PCNEncoder(widths1, widths2)
     points, segment = _packed(np.random.default_rng(2), [3, 0, 20, 1, 9, 0])
     with torch.no_grad():
         fast = enc(points, segment, 7)
@@ -189,11 +190,13 @@ def test_segment_chunks_hold_whole_segments(rows):
     counts = torch.tensor([0, 3, 0, 7, 1, 0, 12, 2, 0])
     chunks = layers._segment_chunks(counts, rows)
     ends = set(np.cumsum(counts.numpy()).tolist())
+    segment = np.repeat(np.arange(len(counts)), counts.numpy())
     assert chunks[0][0] == 0 and chunks[-1][1] == int(counts.sum())
-    assert all(b == c for (_, b), (c, _) in itertools.pairwise(chunks))  # contiguous
-    for a, b in chunks:
+    assert all(b == c for (_, b, _, _), (c, _, _, _) in itertools.pairwise(chunks))  # contiguous
+    for a, b, lo, hi in chunks:
         assert b in ends and a < b  # cut only between segments
         assert b - a <= rows or (b - a) in counts.tolist()  # longer only when one segment alone is longer
+        assert (lo, hi) == (segment[a], segment[b - 1] + 1)  # the chunk's segment range
 
 
 def test_chunked_encoder_with_unsorted_segments_equals_reference(monkeypatch):
@@ -210,12 +213,13 @@ def test_chunked_encoder_with_unsorted_segments_equals_reference(monkeypatch):
     torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)
 
 
-def test_untrained_pointpncnet_fast_path_equals_reference_path():
+@pytest.mark.parametrize("backend", ["pointpncnet", "trapcc"])
+def test_untrained_network_fast_path_equals_reference_path(backend):
     """The whole network (octant pairs, chunked encoders, folding) against the original path."""
     from pcc_ros.models import create
 
     torch.manual_seed(0)
-    completer = create("pointpncnet", device="cpu", batch_size=4)
+    completer = create(backend, device="cpu", batch_size=4)
     rng = np.random.default_rng(10)
     clouds = [(rng.uniform(-1, 1, (n, 3)) * [0.5, 0.2, 0.15]).astype(np.float32) for n in (3, 70, 9, 400, 1100)]
     clouds[1][:10, 1] = 0.0  # on a plane: in two octants
@@ -224,3 +228,19 @@ def test_untrained_pointpncnet_fast_path_equals_reference_path():
         ref = completer.complete(clouds)
     for a, b in zip(fast, ref):
         np.testing.assert_allclose(a, b, rtol=0, atol=2e-5)
+
+
+def test_reused_buffers_never_leak_into_returned_values():
+    """The per-thread buffers are reused by the next call: what a call returned must not change."""
+    torch.manual_seed(0)
+    enc = PCNEncoder([8, 16], [32, 12])
+    dec = FoldingDecoder(12, [16], num_coarse=5, grid_size=2, fold_widths=[10, 10], grid_scale=0.05)
+    points, segment = _packed(np.random.default_rng(11), [6, 9])
+    with torch.no_grad():
+        code = enc(points, segment, 2)
+        coarse, fine = dec(code)
+        kept = [t.clone() for t in (code, coarse, fine)]
+        enc(points * 3.0, segment, 2)  # bigger and different inputs through the same buffers
+        dec(torch.randn(7, 12))
+    for before, after in zip(kept, (code, coarse, fine)):
+        assert torch.equal(before, after)

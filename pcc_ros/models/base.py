@@ -369,8 +369,8 @@ class Completer(abc.ABC):
             array = np.asarray(out, dtype=np.float32)
             if array.ndim != 2 or array.shape[1] != 3:
                 raise BackendError(f"backend {self.name!r} returned shape {array.shape} for cloud {i}")
-            finite = np.isfinite(array).all(axis=1)
-            if not finite.all():  # a diverged network must not poison the metrics or the filter
+            if not np.isfinite(array).all():  # a diverged network must not poison the metrics or the filter
+                finite = np.isfinite(array).all(axis=1)  # per point only then: 13x slower than the flat check
                 dropped += int((~finite).sum())
                 array = array[finite]
                 if len(array) == 0:

@@ -17,6 +17,8 @@ a CPU.
 
 from __future__ import annotations
 
+import threading
+import weakref
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
@@ -98,44 +100,59 @@ def _linears(mlp: SharedMLP | None) -> list[nn.Linear]:
     return [] if mlp is None else [m for m in mlp.net if isinstance(m, nn.Linear)]
 
 
-def _mlp_chunk(
-    x: torch.Tensor, linears: Sequence[nn.Linear], last_relu: bool, out: torch.Tensor | None = None
-) -> torch.Tensor:
-    """``x`` through ``linears`` with in-place ReLUs between them (after the last if ``last_relu``).
+class _Workspace:
+    """Per-thread buffers of the inference paths, kept from call to call.
 
-    ``out``: where the last layer writes (a row slice of a preallocated tensor).
+    A fresh tensor of a few MiB costs page faults on first touch (the kernel maps and zeroes
+    its pages), several times the cost of the matrix product writing into it; the buffers
+    here are allocated once per (module, slot, thread) and reused by every later call of
+    that thread, so the node's worker threads never share one. Nothing a forward returns
+    lives here.
     """
-    for i, lin in enumerate(linears):
-        dest = out if i == len(linears) - 1 else None
-        if lin.bias is not None:
-            x = torch.addmm(lin.bias, x, lin.weight.t(), out=dest) if dest is not None else torch.addmm(
-                lin.bias, x, lin.weight.t())
-        else:
-            x = torch.mm(x, lin.weight.t(), out=dest) if dest is not None else torch.mm(x, lin.weight.t())
-        if i < len(linears) - 1 or last_relu:
-            x.relu_()
-    return x
+
+    def __init__(self) -> None:
+        self._local = threading.local()
+
+    def get(self, owner: nn.Module, slot: str, rows: int, cols: int, like: torch.Tensor) -> torch.Tensor:
+        """A ``(rows, cols)`` buffer (contents undefined) for ``owner``'s ``slot``."""
+        store = getattr(self._local, "store", None)
+        if store is None:
+            store = self._local.store = weakref.WeakKeyDictionary()
+        slots = store.setdefault(owner, {})
+        key = (slot, like.dtype, like.device, torch.is_inference_mode_enabled())
+        buf = slots.get(key)
+        if buf is None or buf.numel() < rows * cols:
+            buf = slots[key] = torch.empty(rows * cols, dtype=like.dtype, device=like.device)
+        return buf[: rows * cols].view(rows, cols)
+
+
+_workspace = _Workspace()
+
+
+def _plan(linears: Sequence[nn.Linear], last_bias: bool = True) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
+    """``(weight.t(), bias)`` of each layer, made once per call instead of once per chunk;
+    ``last_bias=False`` leaves the last layer's bias out (the caller adds it)."""
+    plan = [(lin.weight.t(), lin.bias) for lin in linears]
+    if plan and not last_bias:
+        plan[-1] = (plan[-1][0], None)
+    return plan
 
 
 def _mlp_into(
     x: torch.Tensor,
-    linears: Sequence[nn.Linear],
+    plan: Sequence[tuple[torch.Tensor, torch.Tensor | None]],
     scratch: Sequence[torch.Tensor],
     out: torch.Tensor,
     last_relu: bool,
-    last_bias: bool = True,
 ) -> torch.Tensor:
-    """``x`` through ``linears`` (ReLU in place between them), every layer writing into a
-    preallocated buffer: ``scratch[i]`` (rows >= ``x``'s) for the hidden layers, ``out`` for
-    the last. ``last_bias=False``: the last layer's bias is left out (the caller adds it)."""
+    """``x`` through the layers of ``plan`` (:func:`_plan`; ReLU in place between them), every
+    layer writing into a preallocated buffer: ``scratch[i]`` (rows >= ``x``'s) for the hidden
+    layers, ``out`` for the last."""
     r = x.shape[0]
-    for i, lin in enumerate(linears):
-        last = i == len(linears) - 1
+    for i, (wt, bias) in enumerate(plan):
+        last = i == len(plan) - 1
         dest = out if last else scratch[i][:r]
-        if lin.bias is not None and not (last and not last_bias):
-            x = torch.addmm(lin.bias, x, lin.weight.t(), out=dest)
-        else:
-            x = torch.mm(x, lin.weight.t(), out=dest)
+        x = torch.mm(x, wt, out=dest) if bias is None else torch.addmm(bias, x, wt, out=dest)
         if not last or last_relu:
             x.relu_()
     return x
@@ -202,15 +219,16 @@ class PCNEncoder(nn.Module):
     def _forward_chunked(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor:
         """Inference: the same function, row chunk by row chunk, pooled as it goes.
 
-        Every intermediate lives in a buffer allocated once per call and reused by every
-        chunk, so the matrix products write into memory that is already in the core's cache
-        (a fresh 1 MiB output per product runs at about half the speed, measured with
+        Every intermediate lives in a per-thread buffer reused by every chunk and every call
+        (:class:`_Workspace`), so the matrix products write into memory already in the core's
+        cache (a fresh 1 MiB output per product runs at about half the speed, measured with
         ``pcc bench complete``). With sorted segments (packed batches) a chunk holds whole
         segments, so both passes run on it while its ``mlp1`` features are still in cache;
-        otherwise the features of all points are kept for the second pass. The segment half
-        of the split layer is computed once per segment with the point half's bias folded
-        in; the last layer's bias is added after the max (rounding is monotonic, so
-        ``max(a_i + b) == max(a_i) + b`` exactly).
+        otherwise the features of all points are kept for the second pass. Biases are folded
+        where a max or a linear map lets them through (the same function; float rounding may
+        differ in the last bits): ``mlp1``'s last bias goes after its max (exact: rounding is
+        monotonic, ``max(a_i + b) == max(a_i) + b``) and into the split layer's once-per-segment
+        half, with the point half's bias; the last layer's bias is added after the max.
         """
         p, s = points.shape[0], num_segments
         if p == 0:
@@ -219,63 +237,89 @@ class PCNEncoder(nn.Module):
         nonempty = (counts > 0)[:, None]
         rows = _chunk_rows(CHUNK_ROWS)
         first, rest = _linears(self.mlp1), _linears(self.mlp2)
-        c1 = first[-1].out_features
         aligned = bool((segment[1:] >= segment[:-1]).all())
-        chunks = _segment_chunks(counts, rows) if aligned else [(a, min(a + rows, p)) for a in range(0, p, rows)]
-        most = max(stop - start for start, stop in chunks)
-        hidden = [lin.out_features for lin in first[:-1]]
-        f = points.new_empty(most if aligned else p, c1)
-        g = points.new_full((s, c1), -torch.inf)
-        h = points.new_empty(most, self.point_proj.out_features)
-        inner = [points.new_empty(most, lin.out_features) for lin in rest]
+        if aligned:
+            chunks = _segment_chunks(counts, rows)
+        else:
+            chunks = [(a, min(a + rows, p), 0, s) for a in range(0, p, rows)]
+        most = max(stop - start for start, stop, _, _ in chunks)
+        ws = _workspace
+        c1, hp = first[-1].out_features, self.point_proj.out_features
+        f = ws.get(self, "f", most if aligned else p, c1, points)
+        hidden = [ws.get(self, f"mlp1.{i}", most, lin.out_features, points) for i, lin in enumerate(first[:-1])]
+        h = ws.get(self, "h", most, hp, points)
+        inner = [ws.get(self, f"mlp2.{i}", most, lin.out_features, points) for i, lin in enumerate(rest)]
+        gp = ws.get(self, "gp", s, hp, points)
+        g = points.new_full((s, c1), -torch.inf)  # max of mlp1 without its last bias
         pool = points.new_full((s, self.out_dim), -torch.inf)
-        wp, ws = self.point_proj.weight.t(), self.segment_proj.weight.t()
-        scratch = [points.new_empty(most, w) for w in hidden]
+        first_plan, rest_plan = _plan(first, last_bias=False), _plan(rest, last_bias=False)
+        wp, wseg = self.point_proj.weight.t(), self.segment_proj.weight.t()
+        # h = W_p (f' + b1) + W_s (g' + b1) + b_p = W_p f' + W_s g' + const, f' and g' without b1
+        b1 = first[-1].bias
+        const = self.point_proj.bias if b1 is None else torch.addmv(
+            self.point_proj.bias, self.point_proj.weight + self.segment_proj.weight, b1)
 
         def first_pass(start: int, stop: int, dest: torch.Tensor) -> None:
-            _mlp_into(points[start:stop], first, scratch, dest, last_relu=False)
+            _mlp_into(points[start:stop], first_plan, hidden, dest, last_relu=False)
             _scatter_max_(g, segment[start:stop], dest)
 
-        def second_pass(start: int, stop: int, fc: torch.Tensor, gp: torch.Tensor, idx: torch.Tensor) -> None:
-            r = stop - start
-            hc = torch.index_select(gp, 0, idx, out=h[:r]).addmm_(fc, wp)  # in place: no copy of the gathered rows
+        def second_pass(start: int, stop: int, fc: torch.Tensor) -> None:
+            seg = segment[start:stop]
+            hc = torch.index_select(gp, 0, seg, out=h[: stop - start]).addmm_(fc, wp)  # in place: no gathered copy
             if rest:
                 hc.relu_()
-                _mlp_into(hc, rest, [b[:r] for b in inner[:-1]], inner[-1][:r], last_relu=False, last_bias=False)
-                hc = inner[-1][:r]
-            _scatter_max_(pool, segment[start:stop], hc)
+                hc = _mlp_into(hc, rest_plan, inner[:-1], inner[-1][: stop - start], last_relu=False)
+            _scatter_max_(pool, seg, hc)
 
-        if aligned:
-            for start, stop in chunks:
-                seg = segment[start:stop]
-                lo, hi = int(seg[0]), int(seg[-1]) + 1
+        w1 = first[-1].weight  # (c1, c0)
+        if aligned and len(first) > 1 and w1.shape[1] < c1:
+            # mlp1's last layer and the split layer's point half compose (no ReLU between them):
+            # W_p f' = (W_p W1) t from mlp1's last hidden features t, c0 hp instead of c1 hp
+            # multiply-adds per point (fewer whenever c0 < c1)
+            w1t, wc = w1.t(), (self.point_proj.weight @ w1).t()
+            for start, stop, lo, hi in chunks:
+                r, seg = stop - start, segment[start:stop]
+                t = _mlp_into(points[start:stop], first_plan[:-1], hidden[:-1], hidden[-1][:r], last_relu=True)
+                _scatter_max_(g, seg, torch.mm(t, w1t, out=f[:r]))
+                torch.addmm(const, g[lo:hi], wseg, out=gp[lo:hi])  # the chunk's segments are complete now
+                hc = torch.index_select(gp, 0, seg, out=h[:r]).addmm_(t, wc)
+                if rest:
+                    hc.relu_()
+                    hc = _mlp_into(hc, rest_plan, inner[:-1], inner[-1][:r], last_relu=False)
+                _scatter_max_(pool, seg, hc)
+        elif aligned:
+            for start, stop, lo, hi in chunks:
                 fc = f[: stop - start]
                 first_pass(start, stop, fc)
-                gp = torch.addmm(self.point_proj.bias, g[lo:hi], ws)
-                second_pass(start, stop, fc, gp, seg - lo)
+                torch.addmm(const, g[lo:hi], wseg, out=gp[lo:hi])  # the chunk's segments are complete now
+                second_pass(start, stop, fc)
         else:
-            for start, stop in chunks:
+            for start, stop, _, _ in chunks:
                 first_pass(start, stop, f[start:stop])
-            gp = torch.addmm(self.point_proj.bias, torch.where(nonempty, g, 0.0), ws)
-            for start, stop in chunks:
-                second_pass(start, stop, f[start:stop], gp, segment[start:stop])
+            torch.addmm(const, torch.where(nonempty, g, 0.0), wseg, out=gp)
+            for start, stop, _, _ in chunks:
+                second_pass(start, stop, f[start:stop])
         if rest and rest[-1].bias is not None:
             pool += rest[-1].bias
         return torch.where(nonempty, pool, 0.0)
 
 
-def _segment_chunks(counts: torch.Tensor, rows: int) -> list[tuple[int, int]]:
-    """Row ranges of chunks of whole segments (sorted ids with these ``counts``), each at most
-    ``rows`` rows unless one segment alone is longer (then that segment is its chunk)."""
-    ends = np.cumsum(counts.numpy())
-    ends = ends[np.r_[True, ends[1:] != ends[:-1]] & (ends > 0)]  # one end per nonempty segment
-    out, start = [], 0
+def _segment_chunks(counts: torch.Tensor, rows: int) -> list[tuple[int, int, int, int]]:
+    """Chunks of whole segments (sorted ids with these ``counts``), each at most ``rows`` rows
+    unless one segment alone is longer (then that segment is its chunk), as
+    ``(first row, stop row, first segment, stop segment)``."""
+    cum = np.cumsum(counts.numpy())
+    ends = cum[np.r_[True, cum[1:] != cum[:-1]] & (cum > 0)]  # one end per nonempty segment
+    starts, stops, start = [], [], 0
     while start < ends[-1]:
         j = int(np.searchsorted(ends, start + rows, side="right"))
         stop = int(ends[j - 1]) if j > 0 and ends[j - 1] > start else int(ends[np.searchsorted(ends, start, "right")])
-        out.append((start, stop))
+        starts.append(start)
+        stops.append(stop)
         start = stop
-    return out
+    first = np.searchsorted(cum, starts, side="right")  # the segment of each chunk's first row
+    last = np.searchsorted(cum, np.asarray(stops) - 1, side="right")  # ... and of its last row
+    return list(zip(starts, stops, first.tolist(), (last + 1).tolist(), strict=True))
 
 
 def set_decode_density(model: nn.Module, density: int) -> int:
@@ -355,25 +399,38 @@ class FoldingDecoder(nn.Module):
         return coarse, fine
 
     def _fold_chunked(self, code: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
-        """Inference: the folding step a few instances at a time (same operations, same order),
-        every chunk's intermediates in buffers allocated once per call."""
+        """Inference: the folding step a few instances at a time, intermediates in per-thread
+        buffers (:class:`_Workspace`). The last layer's bias is added to the coarse points
+        once, and each chunk's residual sum is written by the last product itself
+        (``fine = (coarse + b) + h W^T``; the same function, float rounding may differ in the
+        last bits)."""
         s, k = coarse.shape[:2]
         g = self.grid.shape[0]
-        base = self.fold_code(code)[:, None, :] + self.fold_point(coarse)  # (S, K, H)
+        hdim = self.fold_point.out_features
+        ws = _workspace
+        base = ws.get(self, "base", s * k, hdim, code)
+        torch.mm(coarse.reshape(s * k, 3), self.fold_point.weight.t(), out=base)
+        base = base.view(s, k, hdim).add_(self.fold_code(code)[:, None, :])  # (S, K, H)
         grid = self.fold_grid(self.grid)  # (G, H)
         layers = _linears(self.fold_mlp)
-        fine = coarse.new_empty(s, k, g, 3)
+        plan, last = _plan(layers[:-1]), layers[-1]
+        start_points = coarse if last.bias is None else coarse + last.bias
+        # every output point starts as its coarse point (+ the last bias): one row gather for the
+        # batch (a broadcast copy of 3-wide rows is several times slower)
+        rows = torch.arange(s * k, device=code.device)[:, None].expand(s * k, g).reshape(-1)
+        fine = torch.index_select(start_points.reshape(s * k, 3), 0, rows).view(s, k, g, 3)
         step = max(1, _chunk_rows(DECODER_CHUNK_ROWS) // (k * g))
         most = min(step, s) * k * g
-        h = coarse.new_empty(most, base.shape[-1])
-        scratch = [coarse.new_empty(most, lin.out_features) for lin in layers]
+        h = ws.get(self, "h", most, hdim, code)
+        hidden = [ws.get(self, f"fold.{i}", most, lin.out_features, code) for i, lin in enumerate(layers[:-1])]
+        wt = last.weight.t()
         for start in range(0, s, step):
             stop = min(start + step, s)
-            r = (stop - start) * k * g
+            n, r = stop - start, (stop - start) * k * g
             hc = h[:r]
-            torch.add(base[start:stop, :, None, :], grid, out=hc.view(stop - start, k, g, -1)).relu_()
-            offset = _mlp_into(hc, layers, scratch, scratch[-1][:r], last_relu=False)
-            torch.add(coarse[start:stop, :, None, :], offset.view(stop - start, k, g, 3), out=fine[start:stop])
+            torch.add(base[start:stop, :, None, :], grid, out=hc.view(n, k, g, hdim)).relu_()
+            x = _mlp_into(hc, plan, hidden, hidden[-1][:r], last_relu=True) if plan else hc
+            fine[start:stop].view(r, 3).addmm_(x, wt)
         return fine.view(s, k * g, 3)
 
 
