@@ -16,7 +16,7 @@ import numpy as np
 
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import _bev_corners, _check_boxes, _group_by_box, _round_down, _round_up, box_corners
-from pcc_ros.pipeline.filter import (
+from pcc_ros.pipeline.evidence import (
     CORE_FRACTION,
     CORE_Z,
     EVIDENCE_GROUND,

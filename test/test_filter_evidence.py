@@ -184,28 +184,190 @@ def test_node_publishes_scores_terms_markers_and_counts():
     assert values["detections_kept"] == "1" and values["detections_rejected"] == "1"
 
 
-def test_ray_index_on_the_boxes_sectors_equals_the_whole_scan(monkeypatch):
-    """The ray index keeps only the points of the boxes' azimuth sectors (when these cover
-    little of the circle): the same pairs, in the same order, as indexing the whole scan,
-    across the +-pi seam and with NaN points."""
-    import pcc_ros.pipeline.filter as filt
+def _brute_force_rays(scan: np.ndarray, boxes: Boxes) -> dict[str, np.ndarray]:
+    """n_in / n_occluded / n_stop / n_pass / n_rays by testing every point against every judged
+    box (no index), with the float64 slab arithmetic the filter documents."""
+    from pcc_ros.geometry.canonical import to_box_local
+    from pcc_ros.pipeline.evidence import CORE_FRACTION, CORE_Z, EVIDENCE_GROUND, angular_window
 
-    rng = np.random.default_rng(3)
-    scan = rng.uniform(-40.0, 40.0, (20_000, 3)).astype(np.float32)
-    scan[:, 2] = rng.uniform(-2.0, 1.0, len(scan))
+    judged = angular_window(boxes)[4]
+    p = scan[:, :3].astype(np.float64)
+    out = {k: np.zeros(len(boxes)) for k in ("n_in", "n_occluded", "n_stop", "n_pass", "n_rays")}
+    for b in np.flatnonzero(judged):  # a test: one box at a time
+        c, s = np.cos(boxes.yaw[b]), np.sin(boxes.yaw[b])
+        origin = np.array(to_box_local(0.0, 0.0, 0.0, *boxes.center[b], c, s))
+        local = to_box_local(p[:, 0], p[:, 1], p[:, 2], *boxes.center[b], c, s)
+        d = [local[a] - origin[a] for a in range(3)]
+        half = boxes.size[b] / 2
+        body = (np.array([-half[0], -half[1], -half[2] + EVIDENCE_GROUND]), half)
+        core_xy = half[:2] * np.array(CORE_FRACTION)
+        core = (np.r_[-core_xy, -half[2] + CORE_Z[0] * 2 * half[2]], np.r_[core_xy, -half[2] + CORE_Z[1] * 2 * half[2]])
+        t = {}
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for name, (lo, hi) in (("body", body), ("core", core)):
+                tmin = tmax = None
+                for a in range(3):
+                    inv = 1.0 / d[a]
+                    t1, t2 = (lo[a] - origin[a]) * inv, (hi[a] - origin[a]) * inv
+                    near, far = np.minimum(t1, t2), np.maximum(t1, t2)
+                    tmin = near if tmin is None else np.fmax(tmin, near)
+                    tmax = far if tmax is None else np.fmin(tmax, far)
+                t[name] = (tmin, tmax)
+            (tin, tout), (cin, cout) = t["body"], t["core"]
+            through = tout >= np.maximum(tin, 0.0)
+            core_hit = through & (cout >= np.maximum(cin, 0.0))
+            out["n_rays"][b] = through.sum()
+            out["n_in"][b] = (through & (tin <= 1.0) & (1.0 <= tout)).sum()
+            out["n_occluded"][b] = (through & (1.0 < tin)).sum()
+            out["n_stop"][b] = (core_hit & (tin <= 1.0) & (1.0 <= cout)).sum()
+            out["n_pass"][b] = (core_hit & (1.0 > cout)).sum()
+    return out
+
+
+def _brute_force_ground(scan: np.ndarray, boxes: Boxes) -> np.ndarray:
+    """The local ground by its definition: the 5 % quantile of the z of the points that
+    geometry.boxes.points_in_boxes finds in the widened boxes."""
+    from pcc_ros.geometry.boxes import points_in_boxes
+    from pcc_ros.pipeline.evidence import GROUND_REACH
+
+    n = len(boxes)
+    bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
+    wide = Boxes(np.c_[boxes.center[:, :2], bottom - 1.0],
+                 np.c_[boxes.size[:, :2] + 2 * GROUND_REACH, np.full(n, 4.0)], boxes.yaw)
+    out = np.full(n, np.nan)
+    for b, idx in enumerate(points_in_boxes(scan, wide)):
+        if len(idx):
+            k = int(0.05 * (len(idx) - 1))
+            out[b] = np.partition(scan[idx, 2], k)[k]
+    return out
+
+
+def _scattered_scene(seed: int, dtype=np.float32):
+    """Random returns all around the sensor (both sides of the +-pi seam), NaN rows, a return
+    at the sensor itself (paired, as arctan2(0, 0) = 0, with the box at azimuth and elevation 0),
+    and boxes near and far, overlapping, yawed, one around the sensor."""
+    rng = np.random.default_rng(seed)
+    scan = rng.uniform(-40.0, 40.0, (20_000, 3)).astype(dtype)
+    scan[:, 2] = rng.uniform(-2.5, 1.5, len(scan))
     scan[::97] = np.nan
-    boxes = Boxes([[-20.0, 0.3, -1.0], [-18.0, -0.4, -0.9], [10.0, 12.0, -1.0], [5.0, -30.0, -0.8]],
-                  [[4.2, 1.8, 1.5], [4.0, 1.8, 1.6], [4.4, 1.9, 1.4], [4.5, 1.8, 1.5]],
-                  [0.2, -1.0, 2.5, 0.7], ["Car"] * 4, [0.5] * 4)
-    x, y, z = (np.ascontiguousarray(scan[:, k]) for k in range(3))
-    window = filt._angular_window(boxes)
-    results = []
-    for share in (0.0, 2.0):  # never / always on the sectors' subset
-        monkeypatch.setattr(filt, "_SUBSET_SHARE", share)
-        results.append((filt._rays_towards(x, y, z, *window), evidence(scan, boxes).as_dict()))
-    (pairs_all, ev_all), (pairs_sub, ev_sub) = results
-    assert len(pairs_all[0]) > 100
-    for a, b in zip(pairs_all, pairs_sub):
-        np.testing.assert_array_equal(a, b)
-    for key in ev_all:
-        np.testing.assert_array_equal(ev_all[key], ev_sub[key])
+    scan[5] = 0.0
+    boxes = Boxes([[-20.0, 0.3, -1.0], [-18.0, -0.4, -0.9], [10.0, 12.0, -1.0], [5.0, -30.0, -0.8],
+                   [11.0, 12.5, -0.9], [0.5, 0.2, -1.0], [-39.0, 38.0, -1.1], [8.0, 0.2, -0.4]],
+                  [[4.2, 1.8, 1.5], [4.0, 1.8, 1.6], [4.4, 1.9, 1.4], [4.5, 1.8, 1.5], [4.1, 1.7, 1.5],
+                   [4.0, 1.8, 1.5], [4.6, 2.0, 1.7], [3.9, 1.7, 1.4]],
+                  np.r_[rng.uniform(-np.pi, np.pi, 7), -np.pi / 2], ["Car"] * 8, [0.5] * 8)
+    return scan, boxes
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_ray_and_ground_indexes_equal_testing_every_point_against_every_box(dtype):
+    """The ray index (azimuth x slope bins) and the ground query's BEV grid only choose which
+    (point, box) pairs get the exact test: the counts and ground heights equal the exact test
+    on every pair, across the +-pi seam, with NaN rows and a return at the sensor."""
+    for seed in (3, 4):
+        scan, boxes = _scattered_scene(seed, dtype)
+        ev = evidence(scan, boxes).as_dict()
+        brute = _brute_force_rays(scan, boxes)
+        assert brute["n_rays"].sum() > 500 and brute["n_pass"].sum() > 0 and brute["n_in"].sum() > 0
+        for key, value in brute.items():
+            np.testing.assert_array_equal(ev[key], value, err_msg=key)
+        np.testing.assert_array_equal(ev["ground_z"], _brute_force_ground(scan, boxes))
+        assert ev["n_rays"][5] == 0  # the box around the sensor is not judged
+
+
+def test_expected_beams_equal_a_beam_by_beam_count():
+    from pcc_ros.geometry.canonical import to_box_local
+    from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, EXPECTED_COLUMNS, angular_window
+
+    _, boxes = _scattered_scene(3)
+    got = evidence(np.zeros((0, 3), np.float32), boxes).expected
+    az_lo, az_hi, el_lo, el_hi, judged = angular_window(boxes)
+    rings = SENSOR.ring_elevations()
+    step = np.deg2rad(SENSOR.azimuth_resolution_deg)
+    for b in range(len(boxes)):
+        if not judged[b]:
+            assert got[b] == 0
+            continue
+        full = int(np.floor((az_hi[b] - az_lo[b]) / step)) + 1
+        cols = min(full, EXPECTED_COLUMNS)
+        az = az_lo[b] + (np.arange(cols) + 0.5) * step * (full / cols)
+        el = rings[(rings >= el_lo[b]) & (rings <= el_hi[b])]
+        e, a = np.meshgrid(el, az, indexing="ij")
+        c, s = np.cos(boxes.yaw[b]), np.sin(boxes.yaw[b])
+        d = to_box_local(np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e), 0.0, 0.0, 0.0, c, s)
+        origin = np.array(to_box_local(0.0, 0.0, 0.0, *boxes.center[b], c, s))
+        half = boxes.size[b] / 2
+        lo = np.array([-half[0], -half[1], -half[2] + EVIDENCE_GROUND]) - origin
+        hi = half - origin
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = [lo[k] / d[k] for k in range(3)]
+            t2 = [hi[k] / d[k] for k in range(3)]
+        tmin = np.fmax.reduce([np.minimum(p, q) for p, q in zip(t1, t2)])
+        tmax = np.fmin.reduce([np.maximum(p, q) for p, q in zip(t1, t2)])
+        hits = (tmax >= np.maximum(tmin, 0.0)).sum()
+        assert got[b] == pytest.approx(hits * full / cols, rel=1e-12, abs=1e-9), b
+        assert hits > 0 or el.size == 0
+
+
+def test_empty_scans_and_boxes_without_points():
+    """No points, only NaN points, a box far from every return: zero counts, no ground (the
+    gap term reads 0), finite terms; no boxes: empty rows."""
+    _, boxes = _scattered_scene(3)
+    nan_scan = np.full((50, 3), np.nan, np.float32)
+    for scan in (np.zeros((0, 3), np.float32), nan_scan, np.zeros((0, 4))):
+        ev = evidence(scan, boxes).as_dict()
+        for key in ("n_in", "n_stop", "n_pass", "n_occluded", "n_rays"):
+            assert (ev[key] == 0).all(), key
+        assert np.isnan(ev["ground_z"]).all() and (ev["ground_gap"] == 0).all()
+        assert all(np.isfinite(ev[k]).all() for k in ("density", "free_space"))
+        assert (ev["expected"][angular_window_judged(boxes)] > 0).any()
+    far = Boxes([[60.0, -50.0, -0.9]], [[4.2, 1.8, 1.5]], [0.4])
+    ev = evidence(cast([(CAR_LO, CAR_HI)]), far)
+    assert ev.n_in[0] == 0 and np.isnan(ev.ground_z[0]) and ev.terms["ground_gap"][0] == 0
+    empty = evidence(cast([]), Boxes.empty()).as_dict()
+    assert all(len(v) == 0 for v in empty.values())
+
+
+def angular_window_judged(boxes: Boxes) -> np.ndarray:
+    from pcc_ros.pipeline.evidence import angular_window
+
+    return angular_window(boxes)[4]
+
+
+def test_bad_input_is_a_clear_error():
+    from pcc_ros.errors import DataError
+
+    with pytest.raises(DataError, match="points must be"):
+        evidence(np.zeros((10, 2), np.float32), BOX)
+    bad = Boxes([[16.1, 0.0, np.nan]], [[4.2, 1.8, 1.5]], [0.0])
+    with pytest.raises(DataError, match="box 0 is invalid"):
+        evidence(cast([]), bad)
+
+
+def test_mismatch_work_runs_only_when_its_weight_is_non_zero():
+    """The shape-mismatch term costs a completion per box; with ``w_mismatch`` 0 (the shipped
+    presets) the pipeline neither completes for it nor computes it, with a non-zero weight it
+    does, through the configured ``filter_backend``."""
+    from pcc_ros.pipeline.core import Pipeline, PipelineConfig
+
+    calls = []
+
+    class Counting:
+        uses_context = False
+
+        def complete(self, crops, context=None, sizes=None):
+            calls.append(len(crops))
+            return [np.asarray(c, dtype=np.float32) for c in crops]
+
+    scan = cast([(CAR_LO, CAR_HI)])
+    for weight, expected_calls in ((0.0, 1), (1.5, 2)):
+        calls.clear()
+        config = PipelineConfig(backend="input", min_points=5,
+                                filter=FilterConfig(w_mismatch=weight, filter_backend="input"))
+        pipeline = Pipeline(config, completer=Counting())
+        if weight:
+            pipeline.filter_completer = Counting()  # the filter's own backend, counted
+        result = pipeline.process(scan, BOX)
+        assert len(calls) == expected_calls
+        assert np.isfinite(result.mismatch[0]) == bool(weight)
+        assert ("mismatch" in result.filter_terms and np.isfinite(result.filter_terms["mismatch"][0])) == bool(weight)
