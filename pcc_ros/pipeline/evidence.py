@@ -13,6 +13,7 @@ in float64 with the same operations, operand for operand, as the 93cd59e code ke
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -159,31 +160,84 @@ def angular_window(boxes: Boxes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
 
 
 def _runs(lo: np.ndarray, length: np.ndarray) -> np.ndarray:
-    """The concatenated ranges ``lo[i] .. lo[i] + length[i] - 1`` (int64), without a loop."""
+    """The concatenated ranges ``lo[i] .. lo[i] + length[i] - 1`` (int64), without a loop (small arrays)."""
     ends = np.cumsum(length)
     total = int(ends[-1]) if len(ends) else 0
     return np.arange(total, dtype=np.int64) + np.repeat(lo - (ends - length), length)
 
 
+class _Scratch(threading.local):
+    """Reusable per-thread buffers of the measurements. A fresh array's pages cost the kernel a
+    fault each on first touch (measured on the 2-core development VM: about 4 us per 4 KiB page,
+    i.e. milliseconds per frame for the megabytes of temporaries here, every frame once the
+    allocator has handed them back to the system); buffers kept from frame to frame are touched
+    warm. Holds a few MB per thread that measured a frame (the largest frame's sizes); a
+    buffer above :data:`_SCRATCH_MAX_BYTES` (a hostile frame) is not kept."""
+
+    def __init__(self) -> None:
+        self.buffers: dict[str, np.ndarray] = {}
+
+    def __call__(self, name: str, n: int, dtype) -> np.ndarray:
+        """A length-``n`` array of ``dtype`` (contents undefined), the same memory each call."""
+        buf = self.buffers.get(name)
+        if buf is None or buf.dtype != dtype or len(buf) < n:
+            buf = np.empty(n + n // 4 + 64, dtype)
+            if buf.nbytes <= _SCRATCH_MAX_BYTES:
+                self.buffers[name] = buf
+        return buf[:n]
+
+    def iota(self, n: int) -> np.ndarray:
+        """``arange(n)`` (int64), kept."""
+        buf = self.buffers.get("iota")
+        if buf is None or len(buf) < n:
+            buf = np.arange(n + n // 4 + 64, dtype=np.int64)
+            if buf.nbytes <= _SCRATCH_MAX_BYTES:
+                self.buffers["iota"] = buf
+        return buf[:n]
+
+    def nonzero(self, mask: np.ndarray, name: str) -> np.ndarray:
+        """``np.flatnonzero(mask)`` into a kept buffer."""
+        out = self(name, int(np.count_nonzero(mask)), np.int64)
+        return np.compress(mask, self.iota(len(mask)), out=out)
+
+    def runs(self, lo: np.ndarray, length: np.ndarray, name: str) -> np.ndarray:
+        """The concatenated ranges ``lo[i] .. lo[i] + length[i] - 1`` (int64): a step of 1
+        everywhere but at the run starts, one cumulative sum."""
+        lo, length = lo[length > 0], length[length > 0]
+        out = self(name, int(length.sum()), np.int64)
+        if len(lo):
+            out.fill(1)
+            first = np.cumsum(length) - length
+            out[first] = np.r_[lo[0], lo[1:] - (lo[:-1] + length[:-1] - 1)]
+            np.cumsum(out, out=out)
+        return out
+
+    def segments(self, length: np.ndarray, name: str) -> np.ndarray:
+        """The segment index (int32) of every element of consecutive segments of ``length``."""
+        out = self(name, int(length.sum()), np.int32)
+        nonempty = np.flatnonzero(length)
+        if len(nonempty):
+            out.fill(0)
+            out[(np.cumsum(length) - length)[nonempty]] = np.diff(nonempty, prepend=0)
+            np.cumsum(out, out=out)
+        return out
+
+
+_SCRATCH = _Scratch()
+_SCRATCH_MAX_BYTES = 64 << 20
+
+
 def _segment_counts(mask: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """True values of ``mask`` per contiguous segment ending (exclusive) at ``ends`` (int64):
-    where the segment ends fall among the true positions."""
-    return np.diff(np.searchsorted(np.flatnonzero(mask), ends), prepend=0)
+    """True values of ``mask`` per contiguous segment ending (exclusive) at ``ends`` (int64)."""
+    out = np.zeros(len(ends), dtype=np.int64)
+    starts = np.r_[0, ends[:-1]]
+    nonempty = np.flatnonzero(ends > starts)
+    if len(nonempty):
+        out[nonempty] = np.add.reduceat(mask, starts[nonempty], dtype=np.int64)
+    return out
 
 
-def _slab_axis(inv, lo, hi, tmin, tmax):
-    """One axis of the slab test (``lo``, ``hi``: the bounds relative to the ray origin, per
-    pair); the running entry / exit parameters, as the 93cd59e code: fmax / fmin skip the NaN of
-    a ray parallel to a slab starting on its plane."""
-    t1 = lo * inv
-    t2 = hi * inv
-    near, far = np.minimum(t1, t2), np.maximum(t1, t2)
-    if tmin is None:
-        return near, far
-    return np.fmax(tmin, near, out=tmin), np.fmin(tmax, far, out=tmax)
-
-
-def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged):
+def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: _Scratch):
     """The ray index: the points whose ray from the sensor lies in some judged box's angular
     window (a superset of the rays that cross the box; :func:`evidence` tests them exactly).
 
@@ -194,15 +248,13 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged):
     Python loop, and the box's slope window (with a slack far above float32 rounding) is
     tested per pair. Non-finite points never pair.
 
-    Returns ``(sub, pair_point, box_ends)``: ``sub`` the scan positions of the points that
-    entered the index, ``pair_point`` positions in ``sub``, box by box (the judged boxes in
-    order), and ``box_ends`` the end (exclusive) of each judged box's pairs.
+    Returns ``(point, box_ends)``: the scan positions of the pairs' points, box by box (the
+    judged boxes in order), and the end (exclusive) of each judged box's pairs.
     """
     boxes_idx = np.flatnonzero(judged)
     m = len(boxes_idx)
-    empty = np.zeros(0, np.int64)
     if not m or not len(x):
-        return empty, empty, np.zeros(m, np.int64)
+        return np.zeros(0, np.int64), np.zeros(m, np.int64)
     dt = x.dtype.type
     # Windows in slope space, widened by the slack; bands span the boxes' windows.
     s_lo = np.tan(el_lo[boxes_idx]) - _SLOPE_SLACK * (1.0 + np.tan(el_lo[boxes_idx]) ** 2)
@@ -214,96 +266,132 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged):
     nbins = np.minimum(b1 - b0 + 1, _AZ_BINS)
     box_of_bin = np.repeat(np.arange(m), nbins)
     az_bin = (np.repeat(b0, nbins) + _runs(np.zeros(m, np.int64), nbins)) % _AZ_BINS
+    n = len(x)
     with np.errstate(invalid="ignore"):
-        scaled = np.arctan2(y, x)
+        scaled = np.arctan2(y, x, out=ws("az", n, dt))
         scaled += dt(np.pi)
         scaled *= dt(_AZ_BINS / (2 * np.pi))
         np.fmax(scaled, 0, out=scaled)  # NaN -> 0 (band 0 below: no box)
         np.fmin(scaled, _AZ_BINS - 1, out=scaled)
-    key = scaled.astype(np.int16)
+    key = ws("key", n, np.int16)
+    np.copyto(key, scaled, casting="unsafe")  # truncation: the floor of these non-negative bins
     wanted = np.zeros(_AZ_BINS, dtype=bool)
     wanted[az_bin] = True
-    sub = np.flatnonzero(np.take(wanted, key))
-    key = np.take(key, sub)
-    xs, ys, zs = (np.take(a, sub) for a in (x, y, z))
+    sub = ws.nonzero(np.take(wanted, key, out=ws("want", n, bool), mode="clip"), "sub")
+    k = len(sub)
+    key = np.take(key, sub, out=ws("key_s", k, np.int16), mode="clip")
+    xs, ys, zs = (np.take(a, sub, out=ws(name, k, dt), mode="clip") for a, name in ((x, "xs"), (y, "ys"), (z, "zs")))
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = xs * xs
-        r += ys * ys
+        r = np.multiply(xs, xs, out=ws("r", k, dt))
+        r += np.multiply(ys, ys, out=ys)
         np.sqrt(r, out=r)
         # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e
         # index paired it with the boxes at azimuth and elevation 0); straight up / down is
         # beyond every box's window; NaN points stay NaN.
         np.fmax(r, np.finfo(dt).tiny, out=r)
         slope = np.divide(zs, r, out=r)
-        band = (slope - dt(e0)) * dt(1.0 / width)
+        band = np.subtract(slope, dt(e0), out=xs)
+        band *= dt(1.0 / width)
         band += 1
         np.fmax(band, 0, out=band)  # NaN -> band 0: no box
         np.fmin(band, _EL_BANDS + 1, out=band)
+    band16 = ws("band", k, np.int16)
+    np.copyto(band16, band, casting="unsafe")
     key *= np.int16(_EL_BANDS + 2)
-    key += band.astype(np.int16)
+    key += band16
     n_bins = _AZ_BINS * (_EL_BANDS + 2)
     order = np.argsort(key, kind="stable")
-    starts = np.zeros(n_bins + 1, dtype=np.int64)
+    starts = ws("starts", n_bins + 1, np.int64)
+    starts[0] = 0
     np.cumsum(np.bincount(key, minlength=n_bins), out=starts[1:])
     band_lo = np.clip(np.floor((s_lo - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
     band_hi = np.clip(np.floor((s_hi - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
     bins = az_bin * (_EL_BANDS + 2)
     lo = starts[bins + np.take(band_lo, box_of_bin)]
     count = starts[bins + np.take(band_hi, box_of_bin) + 1] - lo
-    pair_point = np.take(order, _runs(lo, count))
+    candidates = ws.runs(lo, count, "runs")
+    q = len(candidates)
+    pair = np.take(order, candidates, out=ws("pair", q, np.int64), mode="clip")
+    del order
+    s = np.take(slope, pair, out=ws("s", q, dt), mode="clip")
     per_box = np.bincount(box_of_bin, weights=count, minlength=m).astype(np.int64)
-    s = np.take(slope, pair_point)
+    seg = ws.segments(per_box, "seg")
+    bound = np.take(s_lo.astype(dt), seg, out=ws("bound", q, dt), mode="clip")
     with np.errstate(invalid="ignore"):
-        keep = s >= np.repeat(s_lo.astype(dt), per_box)
-        keep &= s <= np.repeat(s_hi.astype(dt), per_box)
-    kept = np.flatnonzero(keep)
-    return sub, np.take(pair_point, kept), np.searchsorted(kept, np.cumsum(per_box))
+        keep = np.greater_equal(s, bound, out=ws("keep", q, bool))
+        np.take(s_hi.astype(dt), seg, out=bound, mode="clip")
+        keep &= np.less_equal(s, bound, out=ws("keep2", q, bool))
+    kept = ws.nonzero(keep, "kept")
+    np.take(pair, kept, out=candidates[: len(kept)], mode="clip")
+    point = np.take(sub, candidates[: len(kept)], out=ws("point", len(kept), np.int64), mode="clip")
+    return point, np.searchsorted(kept, np.cumsum(per_box))
 
 
-def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window) -> tuple[np.ndarray, ...]:
+def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: _Scratch) -> tuple[np.ndarray, ...]:
     """``n_in, n_occluded, n_stop, n_pass, n_rays`` of every box (float64)."""
     n = len(boxes)
-    judged = window[4]
-    boxes_idx = np.flatnonzero(judged)
-    sub, pair_point, box_ends = _ray_pairs(x, y, z, *window)
-    zero = np.zeros(n)
-    if not len(pair_point):
-        return zero, zero.copy(), zero.copy(), zero.copy(), zero.copy()
-    per_box = np.diff(box_ends, prepend=0)
+    boxes_idx = np.flatnonzero(window[4])
+    point, box_ends = _ray_pairs(x, y, z, *window, ws)
+    if not len(point):
+        return tuple(np.zeros(n) for _ in range(5))
+    p = len(point)
+    seg = ws.segments(np.diff(box_ends, prepend=0), "r_seg")
+    f64 = np.float64
 
-    def rep(values: np.ndarray) -> np.ndarray:  # a per-box value on each of its pairs
-        return np.repeat(values[boxes_idx], per_box)
+    def rep(values: np.ndarray, out: np.ndarray) -> np.ndarray:  # a per-box value on each of its pairs
+        return np.take(values[boxes_idx], seg, out=out, mode="clip")
 
-    # Box-frame ray: origin (the sensor, one per box) + t * (point - origin); t = 1 at the return.
-    point = np.take(sub, pair_point)
-    px, py, pz = (np.take(a, point).astype(np.float64) for a in (x, y, z))
-    c, s = rep(table.cos), rep(table.sin)
-    px -= rep(boxes.center[:, 0])  # dx
-    py -= rep(boxes.center[:, 1])  # dy
-    pz -= rep(boxes.center[:, 2])  # the local z
-    lx = c * px
-    lx += s * py
-    ly = c * py
-    ly -= s * px
-    lx -= rep(table.origin[:, 0])
-    ly -= rep(table.origin[:, 1])
-    pz -= rep(table.origin[:, 2])
-    tin = tout = cin = cout = None
+    a, b, d = (ws(name, p, f64) for name in ("r_a", "r_b", "r_d"))
+    px, py, pz = (ws(name, p, f64) for name in ("r_px", "r_py", "r_pz"))
+    for column, out in ((x, px), (y, py), (z, pz)):
+        if column.dtype == f64:
+            np.take(column, point, out=out, mode="clip")
+        else:
+            np.copyto(out, np.take(column, point, out=ws("r_gather", p, column.dtype), mode="clip"))
+    # Box-frame ray: origin (the sensor, one per box) + t * (point - origin); t = 1 at the return;
+    # the operations of to_box_local, then minus the origin.
+    px -= rep(boxes.center[:, 0], a)  # dx
+    py -= rep(boxes.center[:, 1], a)  # dy
+    pz -= rep(boxes.center[:, 2], a)  # local z
+    c, s = rep(table.cos, ws("r_c", p, f64)), rep(table.sin, ws("r_s", p, f64))
+    lx = np.multiply(c, px, out=ws("r_lx", p, f64))
+    lx += np.multiply(s, py, out=a)
+    ly = np.multiply(c, py, out=ws("r_ly", p, f64))
+    ly -= np.multiply(s, px, out=a)
+    lx -= rep(table.origin[:, 0], a)
+    ly -= rep(table.origin[:, 1], a)
+    pz -= rep(table.origin[:, 2], a)
+    tin, tout, cin, cout = px, py, c, s  # free again
     with np.errstate(divide="ignore", invalid="ignore"):
-        for axis, d in enumerate((lx, ly, pz)):
-            inv = np.divide(1.0, d, out=d)
-            tin, tout = _slab_axis(inv, rep(table.body[0][:, axis]), rep(table.body[1][:, axis]), tin, tout)
-            cin, cout = _slab_axis(inv, rep(table.core[0][:, axis]), rep(table.core[1][:, axis]), cin, cout)
-    through = tout >= np.maximum(tin, 0.0)  # rays that cross the box at all
-    through_core = cout >= np.maximum(cin, 0.0)
-    through_core &= through
-    before = tin <= 1.0
-    inside = before & (1.0 <= tout)
-    inside &= through
-    occluded = (1.0 < tin) & through
-    stop = through_core & before
-    stop &= 1.0 <= cout
-    passed = through_core & (1.0 > cout)
+        for axis, direction in enumerate((lx, ly, pz)):
+            inv = np.divide(1.0, direction, out=direction)
+            for (lo, hi), tmin, tmax in ((table.body, tin, tout), (table.core, cin, cout)):
+                rep(lo[:, axis], a)
+                a *= inv  # lo * inv
+                rep(hi[:, axis], b)
+                b *= inv
+                # fmax / fmin skip the NaN of a ray parallel to a slab starting on its plane
+                if axis == 0:
+                    np.minimum(a, b, out=tmin)
+                    np.maximum(a, b, out=tmax)
+                else:
+                    np.fmax(tmin, np.minimum(a, b, out=d), out=tmin)
+                    np.fmin(tmax, np.maximum(a, b, out=a), out=tmax)
+        through = np.greater_equal(tout, np.maximum(tin, 0.0, out=a), out=ws("r_through", p, bool))
+        core = np.greater_equal(cout, np.maximum(cin, 0.0, out=a), out=ws("r_core", p, bool))
+        core &= through
+        before = np.less_equal(tin, 1.0, out=ws("r_before", p, bool))
+        flag = ws("r_flag", p, bool)
+        inside = np.less_equal(1.0, tout, out=ws("r_inside", p, bool))
+        inside &= before
+        inside &= through
+        occluded = np.less(1.0, tin, out=ws("r_occluded", p, bool))
+        occluded &= through
+        stop = np.less_equal(1.0, cout, out=ws("r_stop", p, bool))
+        stop &= core
+        stop &= before
+        passed = np.greater(1.0, cout, out=flag)
+        passed &= core
     out = []
     for mask in (inside, occluded, stop, passed, through):
         full = np.zeros(n)
@@ -313,12 +401,14 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window) -> tuple[np.nda
 
 
 def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_hi, judged,
-                    table: _BoxTable | None = None) -> np.ndarray:
+                    table: _BoxTable | None = None, ws: _Scratch | None = None) -> np.ndarray:
     """Beams of the sensor model (rings x azimuth steps) whose rays hit each box.
 
     The beams of a box are a (ring, column) grid: one row per (box, ring), the columns padded
-    to :data:`EXPECTED_COLUMNS`, so the trigonometry and the box rotation broadcast over rows and
-    columns (no per-beam gathers); padding columns do not count."""
+    to the widest box's (at most :data:`EXPECTED_COLUMNS`), so the trigonometry and the box
+    rotation broadcast over rows and columns (no per-beam gathers); padding columns do not
+    count. Same arithmetic, beam for beam, as a per-beam computation."""
+    ws = ws or _SCRATCH
     out = np.zeros(len(boxes))
     rings = sensor.ring_elevations()
     step = np.deg2rad(sensor.azimuth_resolution_deg)
@@ -334,7 +424,8 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     r_lo = np.searchsorted(rings, el_lo[idx])
     r_hi = np.searchsorted(rings, el_hi[idx], side="right")
     n_ring = np.maximum(r_hi - r_lo, 0)
-    if not n_ring.sum():
+    rows = int(n_ring.sum())
+    if not rows:
         return out
     width = int(n_az.max())
     column = np.arange(width)
@@ -345,18 +436,33 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     ce = np.cos(rings)[ring][:, None]
     box = idx[row_box]
     c, s = table.cos[box][:, None], table.sin[box][:, None]
-    dx = ce * cos_az[row_box]
-    dy = ce * sin_az[row_box]
-    direction = (c * dx + s * dy, c * dy - s * dx, np.sin(rings)[ring][:, None])
+
+    def grid(name: str) -> np.ndarray:
+        return ws(name, rows * width, np.float64).reshape(rows, width)
+
+    dx = np.multiply(ce, np.take(cos_az, row_box, axis=0, out=grid("e_x"), mode="clip"), out=grid("e_x"))
+    dy = np.multiply(ce, np.take(sin_az, row_box, axis=0, out=grid("e_y"), mode="clip"), out=grid("e_y"))
+    t1, t2, tmp = grid("e_t1"), grid("e_t2"), grid("e_tmp")
+    lx = np.multiply(c, dx, out=grid("e_lx"))
+    lx += np.multiply(s, dy, out=tmp)
+    ly = np.multiply(c, dy, out=grid("e_ly"))
+    ly -= np.multiply(s, dx, out=tmp)
+    direction = (lx, ly, np.sin(rings)[ring][:, None])
     tmin = tmax = None
     with np.errstate(divide="ignore", invalid="ignore"):
         for axis in range(3):
-            inv = 1.0 / direction[axis]
-            tmin, tmax = _slab_axis(inv, table.body[0][box, axis][:, None], table.body[1][box, axis][:, None],
-                                    tmin, tmax)
-    hit = tmax >= np.maximum(tmin, 0.0)
+            inv = np.divide(1.0, direction[axis], out=direction[axis])
+            np.multiply(table.body[0][box, axis][:, None], inv, out=t1)
+            np.multiply(table.body[1][box, axis][:, None], inv, out=t2)
+            if tmin is None:
+                tmin, tmax = np.minimum(t1, t2, out=dx), np.maximum(t1, t2, out=dy)
+            else:
+                np.fmax(tmin, np.minimum(t1, t2, out=tmp), out=tmin)
+                np.fmin(tmax, np.maximum(t1, t2, out=t1), out=tmax)
+    hit = ws("e_hit", rows * width, bool).reshape(rows, width)
+    np.greater_equal(tmax, np.maximum(tmin, 0.0, out=tmp), out=hit)
     hit &= column < n_az[row_box][:, None]
-    per_box = np.bincount(row_box, weights=hit.sum(axis=1), minlength=len(idx))
+    per_box = np.bincount(row_box, weights=np.count_nonzero(hit, axis=1), minlength=len(idx))
     out[idx] = per_box * stretch
     return out
 
@@ -370,8 +476,9 @@ def _outward(values: np.ndarray, dt: type, up: bool) -> np.ndarray:
     return np.where(out > values, np.nextafter(out, dt(-np.inf)), out)
 
 
-def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float) -> np.ndarray:
+def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch | None = None) -> np.ndarray:
     """:func:`local_ground` on the scan's coordinate columns (contiguous, one dtype)."""
+    ws = ws or _SCRATCH
     n = len(boxes)
     out = np.full(n, np.nan)
     bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
@@ -417,28 +524,36 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float) -> np.ndarray:
     touch = (np.abs(ccx) <= half[box_of, 0] + grow) & (np.abs(ccy) <= half[box_of, 1] + grow)
     box_of, key = box_of[touch], gx[touch] * ny + gy[touch]  # box-major, cells ascending
     # The points: z within the boxes' union range and on the grid, sorted by cell (radix).
+    m = len(x)
     with np.errstate(invalid="ignore"):
-        fx = x - dt(origin[0])
+        fx = np.subtract(x, dt(origin[0]), out=ws("g_fx", m, dt))
         fx *= dt(1.0 / cell)
-        fy = y - dt(origin[1])
+        fy = np.subtract(y, dt(origin[1]), out=ws("g_fy", m, dt))
         fy *= dt(1.0 / cell)
-        ok = z >= zlo.min()
-        ok &= z <= zhi.max()
-        ok &= fx >= 0
-        ok &= fx < nx
-        ok &= fy >= 0
-        ok &= fy < ny
-    pts = np.flatnonzero(ok)
-    if not len(pts):
+        ok = np.greater_equal(z, zlo.min(), out=ws("g_ok", m, bool))
+        flag = ws("g_flag", m, bool)
+        ok &= np.less_equal(z, zhi.max(), out=flag)
+        ok &= np.greater_equal(fx, 0, out=flag)
+        ok &= np.less(fx, nx, out=flag)
+        ok &= np.greater_equal(fy, 0, out=flag)
+        ok &= np.less(fy, ny, out=flag)
+    pts = ws.nonzero(ok, "g_pts")
+    k = len(pts)
+    if not k:
         return out
-    pkey = np.take(fx, pts).astype(np.int16)
+    pkey = ws("g_key", k, np.int16)
+    np.copyto(pkey, np.take(fx, pts, out=ws("g_f", k, dt), mode="clip"), casting="unsafe")  # >= 0: the floor
     pkey *= np.int16(ny)
-    pkey += np.take(fy, pts).astype(np.int16)
+    ky = ws("g_ky", k, np.int16)
+    np.copyto(ky, np.take(fy, pts, out=ws("g_f", k, dt), mode="clip"), casting="unsafe")
+    pkey += ky
     order = np.argsort(pkey, kind="stable")
     starts = np.zeros(nx * ny + 1, dtype=np.int64)
     np.cumsum(np.bincount(pkey, minlength=nx * ny), out=starts[1:])
-    pts = np.take(pts, order)
-    xs, ys, zs = (np.take(a, pts) for a in (x, y, z))
+    pts = np.take(pts, order, out=ws("g_sorted", k, np.int64), mode="clip")
+    del order
+    xs, ys, zs = (np.take(a, pts, out=ws(name, k, dt), mode="clip")
+                  for a, name in ((x, "g_xs"), (y, "g_ys"), (z, "g_zs")))
     # A box's consecutive cells are one run of the sorted points.
     if len(key):
         new = np.ones(len(key), dtype=bool)
@@ -449,42 +564,53 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float) -> np.ndarray:
     else:
         run_lo = run_hi = run_box = np.zeros(0, np.int64)
     length = run_hi - run_lo
-    pair = _runs(run_lo, length)
+    pair = ws.runs(run_lo, length, "g_pair")
+    q = len(pair)
     box_pairs = np.bincount(run_box, weights=length, minlength=n).astype(np.int64)
-    px, py, pz = (np.take(a, pair) for a in (xs, ys, zs))
+    seg = ws.segments(box_pairs, "g_seg")
+    px, py, pz = (np.take(a, pair, out=ws(name, q, dt), mode="clip") for a, name in ((xs, "g_px"), (ys, "g_py"),
+                                                                                     (zs, "g_pz")))
+    a, b = ws("g_a", q, dt), ws("g_b", q, dt)
 
-    def rep(values: np.ndarray) -> np.ndarray:
-        return np.repeat(values, box_pairs)
+    def rep(values: np.ndarray, out: np.ndarray) -> np.ndarray:
+        return np.take(values, seg, out=out, mode="clip")
 
-    keep = pz >= rep(zlo)
-    keep &= pz <= rep(zhi)
-    px -= rep(cx)  # dx
-    py -= rep(cy)  # dy
-    cb, sb = rep(c), rep(s)
-    lx = cb * px
-    lx += sb * py
-    ly = cb * py
-    ly -= sb * px
-    keep &= np.abs(lx, out=lx) <= rep(hl)
-    keep &= np.abs(ly, out=ly) <= rep(hw)
-    kept = np.flatnonzero(keep)
+    keep = np.greater_equal(pz, rep(zlo, a), out=ws("g_keep", q, bool))
+    flag = ws("g_qflag", q, bool)
+    keep &= np.less_equal(pz, rep(zhi, a), out=flag)
+    px -= rep(cx, a)  # dx
+    py -= rep(cy, a)  # dy
+    cb, sb = rep(c, ws("g_c", q, dt)), rep(s, ws("g_s", q, dt))
+    lx = np.multiply(cb, px, out=a)
+    lx += np.multiply(sb, py, out=b)
+    ly = np.multiply(cb, py, out=cb)
+    ly -= np.multiply(sb, px, out=b)
+    keep &= np.less_equal(np.abs(lx, out=lx), rep(hl, b), out=flag)
+    keep &= np.less_equal(np.abs(ly, out=ly), rep(hw, b), out=flag)
+    kept = ws.nonzero(keep, "g_kept")
     ends = np.searchsorted(kept, np.cumsum(box_pairs)).tolist()
-    members = np.take(pz, kept)
-    for b, (start, end) in enumerate(zip([0, *ends[:-1]], ends)):  # one partial sort per box (boxes, not points)
+    members = np.take(pz, kept, out=ws("g_members", len(kept), dt), mode="clip")
+    for i, (start, end) in enumerate(zip([0, *ends[:-1]], ends)):  # one partial sort per box (boxes, not points)
         if end > start:
-            k = int(quantile * (end - start - 1))
-            out[b] = np.partition(members[start:end], k)[k]
+            j = int(quantile * (end - start - 1))
+            out[i] = np.partition(members[start:end], j)[j]
     return out
 
 
-def _columns(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _columns(points: np.ndarray, ws: _Scratch | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Contiguous x, y, z columns in the scan's precision (float32 stays float32, others
     become float64): numpy's SIMD loops skip strided arrays."""
+    ws = ws or _SCRATCH
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] < 3:
         raise DataError(f"points must be (N, >=3), got shape {points.shape}")
     dt = np.float32 if points.dtype == np.float32 else np.float64
-    return tuple(np.ascontiguousarray(points[:, k], dtype=dt) for k in range(3))
+    out = []
+    for k, name in enumerate(("x", "y", "z")):
+        column = ws(name, len(points), dt)
+        np.copyto(column, points[:, k], casting="unsafe")
+        out.append(column)
+    return tuple(out)
 
 
 def local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH, quantile: float = 0.05) -> np.ndarray:
@@ -531,11 +657,12 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     table = _BoxTable(boxes)
 
     def beams_and_ground() -> tuple[np.ndarray, np.ndarray]:
-        return (_expected_beams(boxes, sensor, *window, table=table),
-                _ground(x, y, z, boxes, GROUND_REACH, 0.05))
+        ws = _SCRATCH  # this thread's buffers
+        return (_expected_beams(boxes, sensor, *window, table=table, ws=ws),
+                _ground(x, y, z, boxes, GROUND_REACH, 0.05, ws))
 
     side_job = _side_pool().submit(beams_and_ground) if workers > 1 else None
-    n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window)
+    n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
     expected, ground = side_job.result() if side_job is not None else beams_and_ground()
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
