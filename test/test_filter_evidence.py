@@ -260,10 +260,15 @@ def _scattered_scene(seed: int, dtype=np.float32):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_ray_and_ground_indexes_equal_testing_every_point_against_every_box(dtype):
-    """The ray index (azimuth x slope bins) and the ground query's BEV grid only choose which
-    (point, box) pairs get the exact test: the counts and ground heights equal the exact test
-    on every pair, across the +-pi seam, with NaN rows and a return at the sensor."""
+@pytest.mark.parametrize("share", [0.0, 2.0])
+def test_ray_and_ground_indexes_equal_testing_every_point_against_every_box(dtype, share, monkeypatch):
+    """The ray index (azimuth x slope bins; on the boxes' azimuth sectors only or on the whole
+    scan, per ``share``) and the ground query's BEV grid only choose which (point, box) pairs
+    get the exact test: the counts and ground heights equal the exact test on every pair,
+    across the +-pi seam, with NaN rows and a return at the sensor."""
+    import pcc_ros.pipeline.evidence as evidence_module
+
+    monkeypatch.setattr(evidence_module, "_SUBSET_SHARE", share)
     for seed in (3, 4):
         scan, boxes = _scattered_scene(seed, dtype)
         ev = evidence(scan, boxes).as_dict()

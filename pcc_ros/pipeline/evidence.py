@@ -95,6 +95,9 @@ _EL_BANDS = 16
 #: precision): it must stay a superset of the rays that reach a box (the exact float64 box
 #: test comes after); orders of magnitude above float32 rounding of a slope.
 _SLOPE_SLACK = 1e-4
+#: The ray index works on the points of the boxes' azimuth sectors only when these cover less
+#: than this share of the circle.
+_SUBSET_SHARE = 0.75
 #: Slack (metres) of the ground query's cell test: a point the exact test (in the scan's
 #: precision) accepts lies in a cell listed for the box even after float32 rounding.
 _GROUND_SLACK = 0.01
@@ -275,22 +278,29 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: _Scratch):
         np.fmin(scaled, _AZ_BINS - 1, out=scaled)
     key = ws("key", n, np.int16)
     np.copyto(key, scaled, casting="unsafe")  # truncation: the floor of these non-negative bins
+    # The boxes' azimuth sectors: the points outside them cannot pair (a table lookup), unless
+    # the sectors cover most of the circle (then selecting costs more than it saves).
     wanted = np.zeros(_AZ_BINS, dtype=bool)
     wanted[az_bin] = True
-    sub = ws.nonzero(np.take(wanted, key, out=ws("want", n, bool), mode="clip"), "sub")
-    k = len(sub)
-    key = np.take(key, sub, out=ws("key_s", k, np.int16), mode="clip")
-    xs, ys, zs = (np.take(a, sub, out=ws(name, k, dt), mode="clip") for a, name in ((x, "xs"), (y, "ys"), (z, "zs")))
+    if np.count_nonzero(wanted) < _SUBSET_SHARE * _AZ_BINS:
+        sub = ws.nonzero(wanted.take(key, out=ws("want", n, bool), mode="clip"), "sub")
+        k = len(sub)
+        key = key.take(sub, out=ws("key_s", k, np.int16), mode="clip")
+        xs, ys, zs = (a.take(sub, out=ws(name, k, dt), mode="clip")
+                      for a, name in ((x, "xs"), (y, "ys"), (z, "zs")))
+    else:
+        sub, k, xs, ys, zs = None, n, x, y, z  # read only below
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.multiply(xs, xs, out=ws("r", k, dt))
-        r += np.multiply(ys, ys, out=ys)
+        tmp = ws("tmp", k, dt)
+        r += np.multiply(ys, ys, out=tmp)
         np.sqrt(r, out=r)
         # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e
         # index paired it with the boxes at azimuth and elevation 0); straight up / down is
         # beyond every box's window; NaN points stay NaN.
         np.fmax(r, np.finfo(dt).tiny, out=r)
         slope = np.divide(zs, r, out=r)
-        band = np.subtract(slope, dt(e0), out=xs)
+        band = np.subtract(slope, dt(e0), out=tmp)
         band *= dt(1.0 / width)
         band += 1
         np.fmax(band, 0, out=band)  # NaN -> band 0: no box
@@ -311,19 +321,21 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: _Scratch):
     count = starts[bins + np.take(band_hi, box_of_bin) + 1] - lo
     candidates = ws.runs(lo, count, "runs")
     q = len(candidates)
-    pair = np.take(order, candidates, out=ws("pair", q, np.int64), mode="clip")
+    pair = order.take(candidates, out=ws("pair", q, np.int64), mode="clip")
     del order
-    s = np.take(slope, pair, out=ws("s", q, dt), mode="clip")
+    s = slope.take(pair, out=ws("s", q, dt), mode="clip")
     per_box = np.bincount(box_of_bin, weights=count, minlength=m).astype(np.int64)
     seg = ws.segments(per_box, "seg")
-    bound = np.take(s_lo.astype(dt), seg, out=ws("bound", q, dt), mode="clip")
+    bound = s_lo.astype(dt).take(seg, out=ws("bound", q, dt), mode="clip")
     with np.errstate(invalid="ignore"):
         keep = np.greater_equal(s, bound, out=ws("keep", q, bool))
-        np.take(s_hi.astype(dt), seg, out=bound, mode="clip")
+        s_hi.astype(dt).take(seg, out=bound, mode="clip")
         keep &= np.less_equal(s, bound, out=ws("keep2", q, bool))
     kept = ws.nonzero(keep, "kept")
-    np.take(pair, kept, out=candidates[: len(kept)], mode="clip")
-    point = np.take(sub, candidates[: len(kept)], out=ws("point", len(kept), np.int64), mode="clip")
+    pair.take(kept, out=candidates[: len(kept)], mode="clip")
+    point = candidates[: len(kept)]
+    if sub is not None:
+        point = sub.take(point, out=ws("point", len(kept), np.int64), mode="clip")
     return point, np.searchsorted(kept, np.cumsum(per_box))
 
 
@@ -339,15 +351,15 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: _Scratch) -
     f64 = np.float64
 
     def rep(values: np.ndarray, out: np.ndarray) -> np.ndarray:  # a per-box value on each of its pairs
-        return np.take(values[boxes_idx], seg, out=out, mode="clip")
+        return values[boxes_idx].take(seg, out=out, mode="clip")
 
     a, b, d = (ws(name, p, f64) for name in ("r_a", "r_b", "r_d"))
     px, py, pz = (ws(name, p, f64) for name in ("r_px", "r_py", "r_pz"))
     for column, out in ((x, px), (y, py), (z, pz)):
         if column.dtype == f64:
-            np.take(column, point, out=out, mode="clip")
+            column.take(point, out=out, mode="clip")
         else:
-            np.copyto(out, np.take(column, point, out=ws("r_gather", p, column.dtype), mode="clip"))
+            np.copyto(out, column.take(point, out=ws("r_gather", p, column.dtype), mode="clip"))
     # Box-frame ray: origin (the sensor, one per box) + t * (point - origin); t = 1 at the return;
     # the operations of to_box_local, then minus the origin.
     px -= rep(boxes.center[:, 0], a)  # dx
@@ -440,8 +452,8 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     def grid(name: str) -> np.ndarray:
         return ws(name, rows * width, np.float64).reshape(rows, width)
 
-    dx = np.multiply(ce, np.take(cos_az, row_box, axis=0, out=grid("e_x"), mode="clip"), out=grid("e_x"))
-    dy = np.multiply(ce, np.take(sin_az, row_box, axis=0, out=grid("e_y"), mode="clip"), out=grid("e_y"))
+    dx = np.multiply(ce, cos_az.take(row_box, axis=0, out=grid("e_x"), mode="clip"), out=grid("e_x"))
+    dy = np.multiply(ce, sin_az.take(row_box, axis=0, out=grid("e_y"), mode="clip"), out=grid("e_y"))
     t1, t2, tmp = grid("e_t1"), grid("e_t2"), grid("e_tmp")
     lx = np.multiply(c, dx, out=grid("e_lx"))
     lx += np.multiply(s, dy, out=tmp)
@@ -542,17 +554,17 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch |
     if not k:
         return out
     pkey = ws("g_key", k, np.int16)
-    np.copyto(pkey, np.take(fx, pts, out=ws("g_f", k, dt), mode="clip"), casting="unsafe")  # >= 0: the floor
+    np.copyto(pkey, fx.take(pts, out=ws("g_f", k, dt), mode="clip"), casting="unsafe")  # >= 0: the floor
     pkey *= np.int16(ny)
     ky = ws("g_ky", k, np.int16)
-    np.copyto(ky, np.take(fy, pts, out=ws("g_f", k, dt), mode="clip"), casting="unsafe")
+    np.copyto(ky, fy.take(pts, out=ws("g_f", k, dt), mode="clip"), casting="unsafe")
     pkey += ky
     order = np.argsort(pkey, kind="stable")
     starts = np.zeros(nx * ny + 1, dtype=np.int64)
     np.cumsum(np.bincount(pkey, minlength=nx * ny), out=starts[1:])
-    pts = np.take(pts, order, out=ws("g_sorted", k, np.int64), mode="clip")
+    pts = pts.take(order, out=ws("g_sorted", k, np.int64), mode="clip")
     del order
-    xs, ys, zs = (np.take(a, pts, out=ws(name, k, dt), mode="clip")
+    xs, ys, zs = (a.take(pts, out=ws(name, k, dt), mode="clip")
                   for a, name in ((x, "g_xs"), (y, "g_ys"), (z, "g_zs")))
     # A box's consecutive cells are one run of the sorted points.
     if len(key):
@@ -568,12 +580,12 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch |
     q = len(pair)
     box_pairs = np.bincount(run_box, weights=length, minlength=n).astype(np.int64)
     seg = ws.segments(box_pairs, "g_seg")
-    px, py, pz = (np.take(a, pair, out=ws(name, q, dt), mode="clip") for a, name in ((xs, "g_px"), (ys, "g_py"),
+    px, py, pz = (a.take(pair, out=ws(name, q, dt), mode="clip") for a, name in ((xs, "g_px"), (ys, "g_py"),
                                                                                      (zs, "g_pz")))
     a, b = ws("g_a", q, dt), ws("g_b", q, dt)
 
     def rep(values: np.ndarray, out: np.ndarray) -> np.ndarray:
-        return np.take(values, seg, out=out, mode="clip")
+        return values.take(seg, out=out, mode="clip")
 
     keep = np.greater_equal(pz, rep(zlo, a), out=ws("g_keep", q, bool))
     flag = ws("g_qflag", q, bool)
@@ -587,13 +599,15 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch |
     ly -= np.multiply(sb, px, out=b)
     keep &= np.less_equal(np.abs(lx, out=lx), rep(hl, b), out=flag)
     keep &= np.less_equal(np.abs(ly, out=ly), rep(hw, b), out=flag)
-    kept = ws.nonzero(keep, "g_kept")
-    ends = np.searchsorted(kept, np.cumsum(box_pairs)).tolist()
-    members = np.take(pz, kept, out=ws("g_members", len(kept), dt), mode="clip")
-    for i, (start, end) in enumerate(zip([0, *ends[:-1]], ends)):  # one partial sort per box (boxes, not points)
-        if end > start:
-            j = int(quantile * (end - start - 1))
-            out[i] = np.partition(members[start:end], j)[j]
+    # Non-members read +inf: the k-th smallest of a box's run is its k-th smallest member for
+    # every k below its member count (no compaction of the pairs).
+    np.copyto(pz, dt(np.inf), where=np.logical_not(keep, out=flag))
+    ends = np.cumsum(box_pairs)
+    members = _segment_counts(keep, ends).tolist()
+    for i, (start, end, count) in enumerate(zip([0, *ends[:-1].tolist()], ends.tolist(), members)):
+        if count:  # one partial sort per box (boxes, not points)
+            j = int(quantile * (count - 1))
+            out[i] = np.partition(pz[start:end], j)[j]
     return out
 
 
