@@ -6,8 +6,10 @@ under each box) on the frames of ``pcc bench pipeline`` (a SynthCars scan resize
 ``--points``, cars 1 / 5 / 20 / 50 / 100) and on a real KITTI scan (its labelled boxes, then
 car-sized boxes on random returns, as ``pcc bench crop``), against the same function as it
 was at 93cd59e (``benchmarks._reference.evidence``), timed call by call, interleaved, after
-a warm-up (min / median / max of ``--repeat`` calls each). Every output (raw counts, expected
-returns, ground heights, the derived terms) is checked bit-identical first. The machine's load
+a warm-up (min / median / max of ``--repeat`` calls each), ours also with ``workers=2`` (the
+ground and the expected returns on a second thread, as the pipeline runs it with ``workers`` >= 2).
+Every output (raw counts, expected returns, ground heights, the derived terms), of both thread
+settings, is checked bit-identical first. The machine's load
 average is recorded before and after. The filter's share of the completion stage (target
 <= 25 % at 20 cars, issue #19) is measured by ``pcc bench pipeline``.
 """
@@ -63,17 +65,22 @@ def run(args: argparse.Namespace) -> dict:
     sensor = SENSOR_PRESETS["hdl64"]
     rows = []
     for scan, points, boxes in _frames(args):
-        check_equal(evidence(points, boxes, sensor).as_dict(), reference_evidence(points, boxes, sensor).as_dict())
+        reference = reference_evidence(points, boxes, sensor).as_dict()
+        check_equal(evidence(points, boxes, sensor).as_dict(), reference)
+        check_equal(evidence(points, boxes, sensor, workers=2).as_dict(), reference)
         times = interleaved({"ours": lambda p=points, b=boxes: evidence(p, b, sensor),
+                             "ours_2": lambda p=points, b=boxes: evidence(p, b, sensor, workers=2),
                              "93cd59e": lambda p=points, b=boxes: reference_evidence(p, b, sensor)},
                             repeat=args.repeat, warmup=3)
-        ours, ref = summary_ms(times["ours"]), summary_ms(times["93cd59e"])
+        ours, two, ref = (summary_ms(times[k]) for k in ("ours", "ours_2", "93cd59e"))
         rows.append({"scan": scan, "points": len(points), "boxes": len(boxes),
                      "ours_min": ours["min_ms"], "ours_ms": ours["median_ms"], "ours_max": ours["max_ms"],
+                     "ours2_ms": two["median_ms"],
                      "ref_min": ref["min_ms"], "ref_ms": ref["median_ms"], "ref_max": ref["max_ms"],
                      "speedup": ref["median_ms"] / ours["median_ms"], "outputs": "identical"})
     print_table(f"evidence filter measurements, ms ({args.repeat} interleaved calls each: min / median / max); "
-                "ref = main at 93cd59e", rows)
+                "ours = one thread, ours2 = workers 2 (ground and expected returns on a second thread, as the "
+                "pipeline's workers >= 2); ref = main at 93cd59e", rows)
     load_after = load_average()
     print(f"load average (1 min) before / after: {load_before[0]:.2f} / {load_after[0]:.2f} on {os.cpu_count()} cores")
     return {"rows": rows, "cpu_count": os.cpu_count(), "load_average_before": load_before,
