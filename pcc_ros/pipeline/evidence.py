@@ -535,30 +535,32 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch |
     grow = cell * np.sqrt(0.5) + _GROUND_SLACK
     touch = (np.abs(ccx) <= half[box_of, 0] + grow) & (np.abs(ccy) <= half[box_of, 1] + grow)
     box_of, key = box_of[touch], gx[touch] * ny + gy[touch]  # box-major, cells ascending
-    # The points: z within the boxes' union range and on the grid, sorted by cell (radix).
+    # The points: in a cell some box lists and within the boxes' union z range, sorted by cell
+    # (radix). Off-grid points (and NaN) clamp into the grid's two-cell border, which no box
+    # lists.
     m = len(x)
+    listed = np.zeros(nx * ny, dtype=bool)
+    listed[key] = True
     with np.errstate(invalid="ignore"):
-        fx = np.subtract(x, dt(origin[0]), out=ws("g_fx", m, dt))
-        fx *= dt(1.0 / cell)
-        fy = np.subtract(y, dt(origin[1]), out=ws("g_fy", m, dt))
-        fy *= dt(1.0 / cell)
-        ok = np.greater_equal(z, zlo.min(), out=ws("g_ok", m, bool))
+        f = ws("g_f", m, dt)
+        cell_key, column = ws("g_cell", m, np.int16), ws("g_column", m, np.int16)
+        for coordinate, offset, count, index in ((x, origin[0], nx, cell_key), (y, origin[1], ny, column)):
+            np.subtract(coordinate, dt(offset), out=f)
+            f *= dt(1.0 / cell)
+            np.fmax(f, 0, out=f)  # NaN -> 0
+            np.fmin(f, count - 1, out=f)
+            np.copyto(index, f, casting="unsafe")  # truncation: the floor of these non-negative values
+        cell_key *= np.int16(ny)
+        cell_key += column
+        ok = listed.take(cell_key, out=ws("g_ok", m, bool), mode="clip")
         flag = ws("g_flag", m, bool)
+        ok &= np.greater_equal(z, zlo.min(), out=flag)
         ok &= np.less_equal(z, zhi.max(), out=flag)
-        ok &= np.greater_equal(fx, 0, out=flag)
-        ok &= np.less(fx, nx, out=flag)
-        ok &= np.greater_equal(fy, 0, out=flag)
-        ok &= np.less(fy, ny, out=flag)
     pts = ws.nonzero(ok, "g_pts")
     k = len(pts)
     if not k:
         return out
-    pkey = ws("g_key", k, np.int16)
-    np.copyto(pkey, fx.take(pts, out=ws("g_f", k, dt), mode="clip"), casting="unsafe")  # >= 0: the floor
-    pkey *= np.int16(ny)
-    ky = ws("g_ky", k, np.int16)
-    np.copyto(ky, fy.take(pts, out=ws("g_f", k, dt), mode="clip"), casting="unsafe")
-    pkey += ky
+    pkey = cell_key.take(pts, out=ws("g_key", k, np.int16), mode="clip")
     order = np.argsort(pkey, kind="stable")
     starts = np.zeros(nx * ny + 1, dtype=np.int64)
     np.cumsum(np.bincount(pkey, minlength=nx * ny), out=starts[1:])
@@ -655,9 +657,10 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
     Vectorised over (ray, box) pairs generated box by box: no loop over points or boxes; the
     pairs' geometry runs column by column in float64 on per-box values repeated over each
-    box's run. ``workers`` >= 2: the sensor model's expected returns and the local ground (a
-    query of its own over the scan) are measured on a second thread while this one follows
-    the rays (numpy releases the GIL in its loops); the values are the same either way.
+    box's run. ``workers`` >= 2: the local ground (a query of its own over the scan, about half
+    the work) is measured on a second thread while this one follows the rays and counts the
+    sensor model's expected returns (numpy releases the GIL in its loops); the values are the
+    same either way.
     """
     sensor = sensor or SensorModel()
     n = len(boxes)
@@ -670,14 +673,13 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     window = angular_window(boxes)
     table = _BoxTable(boxes)
 
-    def beams_and_ground() -> tuple[np.ndarray, np.ndarray]:
-        ws = _SCRATCH  # this thread's buffers
-        return (_expected_beams(boxes, sensor, *window, table=table, ws=ws),
-                _ground(x, y, z, boxes, GROUND_REACH, 0.05, ws))
+    def ground_job() -> np.ndarray:
+        return _ground(x, y, z, boxes, GROUND_REACH, 0.05, _SCRATCH)  # this thread's buffers
 
-    side_job = _side_pool().submit(beams_and_ground) if workers > 1 else None
+    side_job = _side_pool().submit(ground_job) if workers > 1 else None
     n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
-    expected, ground = side_job.result() if side_job is not None else beams_and_ground()
+    expected = _expected_beams(boxes, sensor, *window, table=table, ws=_SCRATCH)
+    ground = side_job.result() if side_job is not None else ground_job()
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
         _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),
