@@ -17,7 +17,6 @@ import threading
 import numpy as np
 
 from pcc_ros.errors import DataError
-from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.types import Boxes
 
 # Unit-cube corner signs in the order :func:`box_corners` documents.
@@ -99,6 +98,11 @@ def _scratch(name: str, n: int, dtype: type) -> np.ndarray:
     if array is None or len(array) < n or array.dtype != dtype:
         array = store[name] = np.empty(n + n // 4 + 1024, dtype=dtype)
     return array[:n]
+
+
+def _runs(lengths: np.ndarray) -> np.ndarray:
+    """``0 .. n - 1`` for each ``n`` of ``lengths``, concatenated."""
+    return np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
 
 
 class BoxCandidates:
@@ -188,24 +192,33 @@ class BoxCandidates:
         ix1 = np.minimum(np.floor((hix - ox) / cell).astype(np.int64) + 1, nx - 2)
         iy0 = np.maximum(np.floor((loy - oy) / cell).astype(np.int64) - 1, 1)
         iy1 = np.minimum(np.floor((hiy - oy) / cell).astype(np.int64) + 1, ny - 2)
-        span_y = iy1 - iy0 + 1
-        per_box = (ix1 - ix0 + 1) * span_y
-        box_of = np.repeat(np.arange(len(boxes)), per_box)
-        local = np.arange(int(per_box.sum())) - np.repeat(np.cumsum(per_box) - per_box, per_box)
-        span_r = np.repeat(span_y, per_box)
-        gx = np.repeat(ix0, per_box) + local // span_r
-        gy = np.repeat(iy0, per_box) + local % span_r
         # Keep the cells that can touch the rotated box: the cell centre within the enlarged
-        # box grown by half a cell diagonal (and a hair for rounding). Trims the corners of
-        # the bounding rectangle that a yawed box leaves empty.
+        # box grown by half a cell diagonal (and a hair for rounding), which trims the corners
+        # of the bounding rectangle that a yawed box leaves empty. Column by column: the centres
+        # of a column inside that rectangle are one run of cells, from two slab intervals.
         reach = cell * np.sqrt(0.5) * 1.001
-        c_r, s_r = np.repeat(cos, per_box), np.repeat(sin, per_box)
-        lx, ly, _ = to_box_local((gx + 0.5) * cell, (gy + 0.5) * cell, 0.0,
-                                 np.repeat(cx - ox, per_box), np.repeat(cy - oy, per_box), 0.0, c_r, s_r)
-        touch = np.abs(lx) <= np.repeat(hl + reach, per_box)
-        touch &= np.abs(ly) <= np.repeat(hw + reach, per_box)
-        key = (gx * ny + gy)[touch]
-        box_of = box_of[touch]
+        n_col = ix1 - ix0 + 1
+        col_box = np.repeat(np.arange(len(boxes)), n_col)
+        gx = np.repeat(ix0, n_col) + _runs(n_col)
+        dx = (gx + 0.5) * cell - np.take(cx - ox, col_box)  # column centre, box-relative
+        c, s = np.take(cos, col_box), np.take(sin, col_box)
+        # |c dx + s dy| <= hl + reach  and  |c dy - s dx| <= hw + reach,  dy = y - centre y
+        lo, hi = np.full(len(gx), -np.inf), np.full(len(gx), np.inf)
+        for k, bound, shift in ((s, hl + reach, c * dx), (c, hw + reach, -s * dx)):
+            b = np.take(bound, col_box)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t1, t2 = (-b - shift) / k, (b - shift) / k
+            flat = k == 0  # the constraint does not involve dy: all or nothing
+            ok = np.abs(shift) <= b
+            np.maximum(lo, np.where(flat, np.where(ok, -np.inf, np.inf), np.minimum(t1, t2)), out=lo)
+            np.minimum(hi, np.where(flat, np.where(ok, np.inf, -np.inf), np.maximum(t1, t2)), out=hi)
+        cy_cells = np.take((cy - oy) / cell - 0.5, col_box)  # centre y = (gy + 0.5) cell
+        y0_col, y1_col = np.take(iy0, col_box), np.take(iy1, col_box)
+        first_y = np.maximum(np.ceil(np.clip(lo / cell + cy_cells, -1.0, ny)), y0_col).astype(np.int64)
+        last_y = np.minimum(np.floor(np.clip(hi / cell + cy_cells, -1.0, ny)), y1_col).astype(np.int64)
+        n_cell = np.maximum(last_y - first_y + 1, 0)
+        box_of = np.repeat(col_box, n_cell)
+        key = np.repeat(gx * ny + first_y, n_cell) + _runs(n_cell)
         n_cells = nx * ny
         # group the entries by cell (radix sort when the cell fits 16 bits); boxes stay ascending
         order = np.argsort(key.astype(np.uint16) if n_cells <= 65536 else key, kind="stable")
