@@ -281,7 +281,7 @@ class BoxCandidates:
         # Box-major (a stable radix sort keeps the points ascending within a box): the boxes'
         # values then expand by np.repeat instead of a gather per pair.
         if nb > 1:
-            order = np.argsort(pb, kind="stable")  # int16: a radix sort
+            order = np.argsort(pb, kind="stable")  # uint8 / uint16 boxes: a radix sort
             pp = np.take(pp, order)
         count = np.bincount(pb, minlength=nb)
         pts, dt = self.points, self._dt
@@ -294,7 +294,7 @@ class BoxCandidates:
         # In chunks of pairs, every temporary in this thread's work arrays: they stay in cache
         # and mapped (a fresh array of this size is page-faulted in afresh on every frame).
         ends = np.cumsum(count).tolist()
-        box_of = np.repeat(np.arange(nb, dtype=np.int16 if nb < 32767 else np.int64), count)
+        box_of = np.repeat(np.arange(nb, dtype=pb.dtype), count)
         size = min(len(pp), _PAIR_CHUNK)
         index = _scratch("pair_box", size, np.intp)
         rows = _scratch("pair_values", 8 * size, dt).reshape(size, 8)
@@ -350,14 +350,16 @@ class BoxCandidates:
         n_rows = self._n_rows
         per_row = np.bincount(entry_row, minlength=n_rows + 1)  # boxes per row (0 for row 0)
         most = int(per_row.max())
-        box_dtype = np.int16 if len(self.boxes) < 32767 else np.int64
+        # box ids in the narrowest type, the largest value marking "no box": radix sorts later
+        box_dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if len(self.boxes) < np.iinfo(t).max)
+        none = np.iinfo(box_dtype).max
         if most == 1:  # no cell shared by two boxes: one gather
-            box_of_row = np.full(n_rows + 1, -1, dtype=box_dtype)
+            box_of_row = np.full(n_rows + 1, none, dtype=box_dtype)
             box_of_row[entry_row] = entry_box
             pb = np.take(box_of_row, hit_row)
             if keep is None:  # every row holds a box
                 return hit, pb
-            sel = np.flatnonzero(pb >= 0)
+            sel = np.flatnonzero(pb != none)
             return np.take(hit, sel), np.take(pb, sel)
         first = np.cumsum(per_row) - per_row  # entries are grouped by row
         if most > 64:  # many boxes share cells: a CSR walk without a Python loop
@@ -365,12 +367,12 @@ class BoxCandidates:
             pp = np.repeat(hit, n)
             ends = np.cumsum(n)
             walk = np.repeat(np.take(first, hit_row) - ends + n, n) + np.arange(len(pp))
-            return pp, np.take(entry_box, walk)
+            return pp, np.take(entry_box.astype(box_dtype), walk)
         # A padded (row, slot) -> box table; each point gathers its row, the filled slots are
         # its pairs. In chunks of points, the gathered rows in this thread's work arrays.
         width = 1 << (most - 1).bit_length()
         shift = width.bit_length() - 1
-        padded = np.full((n_rows + 1, width), -1, dtype=box_dtype)
+        padded = np.full((n_rows + 1, width), none, dtype=box_dtype)
         padded[entry_row, np.arange(len(entry_row)) - np.take(first, entry_row)] = entry_box
         step = max(1, 4 * _PAIR_CHUNK // width)
         gathered = _scratch("cand_rows", min(step, len(hit)) * width, box_dtype).reshape(-1, width)
@@ -379,7 +381,7 @@ class BoxCandidates:
         for lo in range(0, len(hit), step):
             rows = hit_row[lo:lo + step]
             block = np.take(padded, rows, axis=0, out=gathered[:len(rows)]).reshape(-1)
-            filled = np.flatnonzero(np.greater_equal(block, 0, out=filled_mask[:len(block)]))
+            filled = np.flatnonzero(np.not_equal(block, none, out=filled_mask[:len(block)]))
             points.append(np.take(hit[lo:lo + step], filled >> shift))
             boxes.append(np.take(block, filled))
         if len(points) == 1:
