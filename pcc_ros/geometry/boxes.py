@@ -52,6 +52,7 @@ def box_corners(boxes: Boxes) -> np.ndarray:
 
 CELL_FRACTION = 0.25  # default BEV hash cell as a fraction of the median box width
 _PAIR_CHUNK = 16384  # candidate pairs tested at a time
+_SCAN_BLOCK = 32768  # scan points hashed at a time (their temporaries stay in L2)
 
 
 def _bev_corners(boxes: Boxes) -> np.ndarray:
@@ -239,22 +240,27 @@ class BoxCandidates:
         ox, oy, cell, nx, ny = grid
         n = len(pts)
         inv = np.float32(1.0 / cell)
-        g = _scratch("cell", n, np.float32)
-        key = _scratch("key", n, np.int32)
-        gy = _scratch("key_y", n, np.int32)
+        block = min(n, _SCAN_BLOCK)
+        g = _scratch("cell", block, np.float32)
+        key = _scratch("key", block, np.int32)
+        gy = _scratch("key_y", block, np.int32)
         row = _scratch("row", n, row_dtype)
-        with np.errstate(invalid="ignore", over="ignore"):
-            for axis, origin, size, out in ((0, ox, nx, key), (1, oy, ny, gy)):
-                np.subtract(pts[:, axis], np.float32(origin), out=g, dtype=np.float32)
-                g *= inv
-                np.clip(g, np.float32(0.0), np.float32(size - 1), out=g)
-                # >= 0: truncation is the floor. NaN stays NaN through the clip and converts to
-                # INT_MIN (x86) or 0 (ARM): the cell below is then negative or in column 0,
-                # both the empty border (a NaN point anywhere would still fail the exact test).
-                np.copyto(out, g, casting="unsafe")
-            key *= np.int32(ny)
-            key += gy
-        np.take(row_of, key, out=row, mode="clip")  # clip: out-of-range (NaN) keys to the border
+        for lo in range(0, n, block):  # blocks of the scan: the temporaries stay in cache
+            hi = min(lo + block, n)
+            if hi - lo < block:
+                g, key, gy = g[:hi - lo], key[:hi - lo], gy[:hi - lo]
+            with np.errstate(invalid="ignore", over="ignore"):
+                for axis, origin, size, out in ((0, ox, nx, key), (1, oy, ny, gy)):
+                    np.subtract(pts[lo:hi, axis], np.float32(origin), out=g, dtype=np.float32)
+                    g *= inv
+                    np.clip(g, np.float32(0.0), np.float32(size - 1), out=g)
+                    # >= 0: truncation is the floor. NaN stays NaN through the clip and converts to
+                    # INT_MIN (x86) or 0 (ARM): the cell below is then negative or in column 0,
+                    # both the empty border (a NaN point anywhere would still fail the exact test).
+                    np.copyto(out, g, casting="unsafe")
+                key *= np.int32(ny)
+                key += gy
+            np.take(row_of, key, out=row[lo:hi], mode="clip")  # clip: out-of-range (NaN) keys to the border
         hit = np.flatnonzero(np.not_equal(row, 0, out=_scratch("hit", n, bool)))
         # points above or below every box are no candidates (walls, trees, kerbs under a far box)
         z = pts[:, 2][hit]
