@@ -70,7 +70,7 @@ def node_decode_density() -> int:
 def real_instances(
     sources: list[Path], min_track_frames: int = 2, min_points: int | None = None, voxel_m: float = 0.03,
     classes: tuple[str, ...] = ("Car", "Van"), boxes: str = "ground_truth", detections_dir: Path | None = None,
-    match_iou: float = 0.5,
+    match_iou: float = 0.5, matched_labels: bool = False,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Evaluation instances of the labelled real ``sources`` and a report of what was skipped.
 
@@ -85,12 +85,17 @@ def real_instances(
       crop, completion and box metrics are in the *detection's* canonical frame, and the track's
       reference is moved there (through the sensor frame, with the matched label's box).
       Unmatched detections (false positives) have no reference and are counted as skipped.
+      ``matched_labels``: crop each matched detection's *labelled* box instead (the same
+      observations as the detector rows, with the labels' boxes; the frame's scene context is then
+      the matched labels): what the detector's box errors cost, apart from which cars it finds.
 
     Each instance: ``key``, ``partial`` (canonical), ``reference`` (canonical, same frame),
     ``size`` (box l, w, h), ``distance``, ``track_frames``, ``label``, ``frame_key``, ``center``, ``yaw``.
     """
     if boxes not in ("ground_truth", "detections"):
         raise ConfigError(f"real-data boxes must be ground_truth or detections, got {boxes!r}")
+    if matched_labels and boxes != "detections":
+        raise ConfigError("--real-matched-labels needs --real-detections (the detections pick the observations)")
     margin, ground_margin, node_min = node_crop()
     min_points = node_min if min_points is None else int(min_points)
     instances: list[dict[str, Any]] = []
@@ -130,6 +135,8 @@ def real_instances(
                 if len(gt):
                     match[iou.max(axis=1) < match_iou] = -1
                 skipped["detection_unmatched"] += int((match < 0).sum())
+                if matched_labels:  # the same observations, cropped from their labelled boxes
+                    chosen, match = gt[match[match >= 0]], match[match >= 0]
             if len(chosen) == 0:
                 continue
             _, crops = crop_canonical(np.asarray(frame.points), chosen, margin=margin, ground_margin=ground_margin)
@@ -150,12 +157,12 @@ def real_instances(
                     skipped["input_too_few_points"] += 1
                     continue
                 reference, n_frames = references[key]
-                if boxes == "detections":  # the label's canonical frame -> the detection's
+                if boxes == "detections" and not matched_labels:  # the label's canonical frame -> the detection's
                     sensor = from_canonical(reference, gt.center[g], float(gt.yaw[g]), float(gt.size[g, 0]))
                     reference = to_canonical(sensor, chosen.center[i], float(chosen.yaw[i]),
                                              float(chosen.size[i, 0])).astype(np.float32)
                 center = np.asarray(chosen.center[i], dtype=np.float64)
-                suffix = "/det" if boxes == "detections" else ""
+                suffix = "/label-of-det" if matched_labels else "/det" if boxes == "detections" else ""
                 instances.append({"key": f"{source.name}:{key}@{frame.index}{suffix}",
                                   "partial": np.ascontiguousarray(crop, dtype=np.float32), "reference": reference,
                                   "size": np.asarray(chosen.size[i], dtype=np.float64),
@@ -342,6 +349,7 @@ class RealEvalConfig:
     min_points: int | None = None  # inputs with fewer points are skipped (None: completion_node's min_points)
     min_track_frames: int = 2  # observations a track needs (at least 2: a multi-view reference)
     detections: Path | None = None  # crop the inputs from these detector results instead of the labelled boxes
+    matched_labels: bool = False  # with detections: crop the matched detections' labelled boxes (same observations)
     keep_input: bool = True  # score the published, partial-preserving output (False: generated points only)
     decode_density: int | None = None  # None: completion_node's decode_density
     device: str = "auto"  # auto runs on the CPU
@@ -368,7 +376,7 @@ def run_real(opts: RealEvalConfig) -> int:
     detections = Path(opts.detections) if opts.detections else None
     boxes = "detections" if detections is not None else "ground_truth"
     instances, report = real_instances(sources, max(opts.min_track_frames, 2), opts.min_points, opts.voxel,
-                                       boxes=boxes, detections_dir=detections)
+                                       boxes=boxes, detections_dir=detections, matched_labels=opts.matched_labels)
     if not instances:
         raise DataError(f"no real instance with a multi-view reference in {', '.join(map(str, sources))}")
     log.info("evaluating %d real instance(s) of %d track(s)", len(instances),
@@ -384,7 +392,8 @@ def run_real(opts: RealEvalConfig) -> int:
               f"{v['fidelity_over_spacing']:.2f}x / generated points {v['fidelity_generated_over_spacing']:.2f}x "
               f"the input spacing (bar 2x: {'met' if v['fidelity_ok'] else 'NOT met'})")
     margin, ground_margin, _ = node_crop()
-    out = {"mode": "real", "sources": report, "voxel_m": opts.voxel, "instances": len(instances), "boxes": boxes,
+    out = {"mode": "real", "sources": report, "voxel_m": opts.voxel, "instances": len(instances),
+           "boxes": "labels of matched detections" if opts.matched_labels else boxes,
            "input_crop": {"box_margin": margin, "ground_margin": ground_margin},
            "backends": results, "criteria": verdict}
     if opts.plot:

@@ -158,3 +158,25 @@ def test_detector_mode_contexts_hold_every_box_the_node_completes(shared_data):
         assert all(len(c) >= node_crop()[2] for c in crops)  # completion_node's min_points
         richer += len(boxes) > per_frame[inst["frame_key"]]
     assert richer > 0  # unmatched detections are neighbours too
+
+
+def test_matched_labels_are_the_detector_rows_observations_with_label_boxes(shared_data):
+    """--real-matched-labels: the observations the detector found, cropped from their labelled
+    boxes, so labelled and detector rows can be compared on the same cars."""
+    from pcc_ros.errors import ConfigError
+    from pcc_ros.evaluate_real import real_instances
+
+    src, det_dir = shared_data / "kitti_tracking", shared_data / "kitti_tracking/detections/pointrcnn"
+    labels, _ = real_instances([src])
+    det, _ = real_instances([src], boxes="detections", detections_dir=det_dir)
+    paired, _ = real_instances([src], boxes="detections", detections_dir=det_dir, matched_labels=True)
+    by_key = {i["key"]: i for i in labels}
+    assert [i["key"].removesuffix("/label-of-det") for i in paired] == [i["key"].removesuffix("/det") for i in det]
+    assert len(paired) < len(labels)  # the detector misses observations the labels have
+    for inst in paired:
+        same = by_key[inst["key"].removesuffix("/label-of-det")]
+        np.testing.assert_array_equal(inst["partial"], same["partial"])
+        np.testing.assert_array_equal(inst["reference"], same["reference"])
+        np.testing.assert_allclose(inst["size"], same["size"])
+    with pytest.raises(ConfigError, match="real-detections"):
+        real_instances([src], matched_labels=True)

@@ -37,6 +37,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "to a labelled track by 3D IoU >= 0.5, instead of the labelled boxes",
     )
     parser.add_argument(
+        "--real-matched-labels", action="store_true",
+        help="--real with --real-detections: crop the labelled box of each matched detection instead (the same "
+        "observations as the detector rows, with the labels' boxes: separates the detector's box errors from "
+        "which cars it finds)",
+    )
+    parser.add_argument(
         "--real-generated-only", action="store_true",
         help="--real: score learned backends' generated points only (default: the published, partial-preserving "
         "output, plus a NAME/generated row)",
@@ -99,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
             checkpoints=parse_checkpoints(args.checkpoint), voxel=args.real_voxel, min_points=args.real_min_points,
             min_track_frames=args.min_track_frames,
             detections=Path(args.real_detections) if args.real_detections else None,
-            keep_input=not args.real_generated_only, decode_density=args.decode_density, device=args.device,
+            matched_labels=args.real_matched_labels, keep_input=not args.real_generated_only,
+            decode_density=args.decode_density, device=args.device,
             batch_size=args.batch_size, json=args.json, plot=args.plot, plot_backends=args.plot_backends,
             examples=args.examples,
         ))
