@@ -492,6 +492,13 @@ def test_shipped_weights_record_their_training_data():
     training = net.checkpoint_config["training"]
     assert training["data_summary"]["complete_shapes_used"] is False
     assert training["data_summary"]["real_instances"] > 0 and training["steps"] > 0
+    # out of sample on what `pcc eval --real` scores (KITTI tracking), trained in the node's frame and crop
+    summary = training["data_summary"]
+    assert any(h.endswith("kitti_tracking") for h in summary["held_out"]["sources"])
+    used = [s["source"] for s in summary["sources"] + summary["pool_sources"]]
+    assert used and not any("kitti_tracking" in str(s) for s in used)
+    assert summary["box_aspect"] == pytest.approx(list(net.box_aspect), abs=1e-5)
+    assert all(s["crop"]["margin"] > 0 for s in summary["sources"])  # inputs cropped as the node crops
     clouds, contexts = _frame_contexts()
     out = net.complete(clouds, contexts)
     assert [o.shape for o in out] == [(2048, 3)] * len(clouds)
