@@ -4,16 +4,21 @@ Everything runs in one process on the same inputs, interleaved round by round so
 load hits every alternative alike (this machine is shared: the load average before and after
 is recorded):
 
-1. PointPnCNet ``default`` (shipped weights) at batch 32: the original path
-   (``pcc_ros.models.layers.reference_path``: ``segment_reduce`` max-pooling, whole
-   ``(P, C)`` intermediates) against the fast path, for every ``--threads`` setting
-   (intra-op threads; ``2x1`` = two Python worker threads, one intra-op thread each, each
-   completing half the batch: inter-op parallelism). Outputs are checked equal first.
-2. The network's FLOPs per instance (every ``nn.Linear`` call on these inputs, counted by
-   forward hooks: 2 * rows * in * out) and its achieved GFLOP/s against the matmul
-   ceiling: ``torch.mm`` at the shape of the network's largest layer on a chunk
-   (1024 x 128 @ 128 x 256) and at 1024^3, timed in the same rounds with the same threads;
-   the ceiling is the faster of the two.
+1. PointPnCNet ``default`` (shipped weights) at batch 32, at every ``--densities`` decode
+   density (1: as trained, where the targets are defined; 2: ``completion_node``'s default,
+   4608 points): the original path (``pcc_ros.models.layers.reference_path``:
+   ``segment_reduce`` max-pooling, whole ``(P, C)`` intermediates, the ``(P, 8)`` octant
+   mask) against the fast path, for every ``--threads`` setting (intra-op threads; ``2x1`` =
+   two Python worker threads, one intra-op thread each, each completing half the batch:
+   inter-op parallelism). Outputs are checked equal first.
+2. FLOPs per instance, two counts: *executed* -- every ``mm`` / ``addmm`` the fast path
+   runs on these inputs (shapes recorded by ``torch.profiler``, 2 * M * K * N), what the
+   achieved GFLOP/s and the ratio use -- and *nominal* -- every ``nn.Linear`` call of the
+   original path (forward hooks, 2 * rows * in * out), the network as defined (the fast path
+   composes two layers and does fewer). The matmul ceiling: ``torch.mm`` at the shape of the
+   network's largest layer on a chunk (1024 x 128 @ 128 x 256) and at 1024^3, each with a
+   fresh and with a reused output, timed in the same rounds with the same threads; the
+   ceiling is the fastest of the four.
 3. Batch sizes 1 .. 64 with the fastest thread setting: the batch size that maximises
    instances/s.
 4. Every other registered learned backend (and the ``mirror`` baseline) at that setting, at
@@ -26,11 +31,13 @@ is recorded):
    products the fast path runs for a batch of 32 (every ``mm`` / ``addmm`` with its shapes,
    recorded once by ``torch.profiler``) are replayed alone -- the same shapes in the same order,
    the right operand a transposed weight as in the network, nothing else -- interleaved with
-   the network. The replay's rate is what the network's own
-   matrix shapes allow (thin layers: few columns or rows per call run far below the square
-   ceiling); ``1 - replay / network`` is the share of the network's time outside matrix
-   products (max-pooling scatters, gathers, ReLUs, bias broadcasts, the folding adds). Per
-   shape: calls, its rate replayed alone (a separate interleaved run) against that ceiling.
+   the network, with one set of operands per layer shape reused by every call (as the network
+   reuses its buffers). The replay's rate is what the network's own matrix shapes allow (thin
+   layers: few columns or rows per call run far below the square ceiling); ``1 - replay /
+   network`` is the share of the network's time outside matrix products (max-pooling
+   scatters, gathers, ReLUs, bias broadcasts, the folding adds, Python). Per layer shape
+   (in x out; a chunk's rows vary): calls, rows per call, its rate replayed alone (a separate
+   interleaved run) against that ceiling.
 
 Targets (issue #19): fast >= 2x the original path's instances/s at batch 32, and >= 80 % of
 the matmul ceiling.
@@ -204,6 +211,59 @@ def matmul_replay(shapes: list[tuple[int, int, int]], weight_layout: bool = True
     return replay
 
 
+def part_times(completer, batch: list, repeat: int) -> list[dict[str, Any]]:
+    """Wall time of each encoder and folding decoder of the network per batch (fast path,
+    forward hooks, median of ``repeat`` calls) and its share of the nominal FLOPs."""
+    import time
+
+    import torch
+
+    from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, reference_path
+
+    parts = [(n, m) for n, m in completer.model.named_children() if isinstance(m, PCNEncoder | FoldingDecoder)]
+    flops = dict.fromkeys([n for n, _ in parts], 0)
+    spent: dict[str, list[float]] = {n: [] for n, _ in parts}
+    start: dict[str, float] = {}
+    handles = []
+    for name, part in parts:
+        for lin in (m for m in part.modules() if isinstance(m, torch.nn.Linear)):
+            handles.append(lin.register_forward_hook(lambda mod, inputs, output, name=name: flops.__setitem__(
+                name, flops[name] + 2 * inputs[0].numel() * mod.out_features)))
+    try:
+        with reference_path():
+            completer.complete(batch)
+    finally:
+        for h in handles:
+            h.remove()
+    handles = []
+    for name, part in parts:
+        handles.append(part.register_forward_pre_hook(
+            lambda mod, inputs, name=name: start.__setitem__(name, time.perf_counter())))
+        handles.append(part.register_forward_hook(
+            lambda mod, inputs, output, name=name: spent[name].append(time.perf_counter() - start[name])))
+    total = []
+    try:
+        completer.complete(batch)
+        for name in spent:
+            spent[name].clear()
+        for _ in range(repeat):
+            tic = time.perf_counter()
+            completer.complete(batch)
+            total.append(time.perf_counter() - tic)
+    finally:
+        for h in handles:
+            h.remove()
+    whole, all_flops = float(np.median(total)), sum(flops.values())
+    rows = [{"part": name, "ms": float(np.median(spent[name])) * 1e3,
+             "time_share": float(np.median(spent[name])) / whole, "nominal_flop_share": flops[name] / all_flops}
+            for name, _ in parts]
+    rows.append({"part": "rest (packing, attention, outputs)",
+                 "ms": (whole - sum(float(np.median(spent[n])) for n, _ in parts)) * 1e3,
+                 "time_share": 1.0 - sum(float(np.median(spent[n])) for n, _ in parts) / whole,
+                 "nominal_flop_share": 0.0})
+    return rows
+
+
 def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) -> dict[str, Any]:
     """Section 5: the network against a replay of its own matrix products, one thread."""
     import torch
@@ -248,6 +308,9 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     }
     out["network_of_ceiling"] = out["network_gflop_s"] / ceiling
     out["replay_of_ceiling"] = out["replay_gflop_s"] / ceiling
+    out["parts"] = part_times(completer, batch, repeat)
+    print_table("time per part of the network (1 thread, batch 32, fast path; FLOP share of the nominal count)",
+                out["parts"])
     print(f"network {out['network_ms']:.1f} ms per batch = {out['network_gflop_s']:.1f} GFLOP/s "
           f"({out['network_of_ceiling']:.0%} of the ceiling {ceiling:.1f} GFLOP/s); its matrix products replayed "
           f"alone: {out['matmul_replay_ms']:.1f} ms = {out['replay_gflop_s']:.1f} GFLOP/s "

@@ -244,3 +244,13 @@ def test_reused_buffers_never_leak_into_returned_values():
         dec(torch.randn(7, 12))
     for before, after in zip(kept, (code, coarse, fine)):
         assert torch.equal(before, after)
+
+
+def test_workspace_keeps_small_buffers_and_drops_big_ones(monkeypatch):
+    monkeypatch.setattr(layers, "WORKSPACE_KEEP_BYTES", 4096)
+    ws, owner, like = layers._Workspace(), torch.nn.Linear(1, 1), torch.zeros(1)
+    a = ws.get(owner, "x", 10, 20, like)  # 800 bytes: kept
+    assert a.shape == (10, 20) and ws.get(owner, "x", 5, 20, like).data_ptr() == a.data_ptr()
+    assert ws.get(owner, "y", 10, 20, like).data_ptr() != a.data_ptr()  # another slot, another buffer
+    big = ws.get(owner, "x", 100, 20, like)  # 8000 bytes: fresh, not kept
+    assert big.shape == (100, 20) and ws.get(owner, "x", 100, 20, like).data_ptr() != big.data_ptr()

@@ -36,6 +36,9 @@ DECODER_CHUNK_ROWS = 4096
 #: and a barrier stalls whenever another process holds one of the cores: there, fewer and
 #: larger operators win (measured with ``pcc bench complete``), so chunks grow by this factor.
 MULTI_THREAD_CHUNK_FACTOR = 16
+#: A reused inference buffer (:class:`_Workspace`) bigger than this is not kept between calls
+#: (the ``paper`` size's wide layers in multi-thread chunks would hold hundreds of MiB).
+WORKSPACE_KEEP_BYTES = 16 << 20
 
 
 def _chunk_rows(rows: int) -> int:
@@ -122,7 +125,11 @@ class _Workspace:
         key = (slot, like.dtype, like.device, torch.is_inference_mode_enabled())
         buf = slots.get(key)
         if buf is None or buf.numel() < rows * cols:
-            buf = slots[key] = torch.empty(rows * cols, dtype=like.dtype, device=like.device)
+            buf = torch.empty(rows * cols, dtype=like.dtype, device=like.device)
+            if buf.numel() * buf.element_size() > WORKSPACE_KEEP_BYTES:  # too big to hold between calls
+                slots.pop(key, None)
+                return buf.view(rows, cols)
+            slots[key] = buf
         return buf[: rows * cols].view(rows, cols)
 
 
