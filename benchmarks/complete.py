@@ -281,6 +281,8 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     network, replayed = float(np.median(times["network"])), float(np.median(times["matmul_replay"]))
     ceiling = max(2 * np.prod(shape) * reps[shape] / float(np.median(times[f"mm{shape}{suffix}"])) / 1e9
                   for shape in CEILING_SHAPES for suffix in ("", "_out"))
+    ceiling_min = max(2 * np.prod(shape) * reps[shape] / float(np.min(times[f"mm{shape}{suffix}"])) / 1e9
+                      for shape in CEILING_SHAPES for suffix in ("", "_out"))
     replay_flops = sum(2 * m * k * n for m, k, n in shapes)
     # per layer shape (in x out; the rows of a chunk vary): its share of the replayed FLOPs and its
     # own rate (timed alone, same rounds)
@@ -308,6 +310,10 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     }
     out["network_of_ceiling"] = out["network_gflop_s"] / ceiling
     out["replay_of_ceiling"] = out["replay_gflop_s"] / ceiling
+    # the least-disturbed rounds of each (see section 1)
+    out["network_of_ceiling_min"] = flops_per_batch / float(np.min(times["network"])) / 1e9 / ceiling_min
+    out["replay_of_ceiling_min"] = replay_flops / float(np.min(times["matmul_replay"])) / 1e9 / ceiling_min
+    out["outside_matmul_share_min"] = 1.0 - float(np.min(times["matmul_replay"])) / float(np.min(times["network"]))
     out["parts"] = part_times(completer, batch, repeat)
     print_table("time per part of the network (1 thread, batch 32, fast path; FLOP share of the nominal count)",
                 out["parts"])
@@ -315,7 +321,9 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
           f"({out['network_of_ceiling']:.0%} of the ceiling {ceiling:.1f} GFLOP/s); its matrix products replayed "
           f"alone: {out['matmul_replay_ms']:.1f} ms = {out['replay_gflop_s']:.1f} GFLOP/s "
           f"({out['replay_of_ceiling']:.0%} of the ceiling: the most these shapes allow); time outside matrix "
-          f"products: {out['outside_matmul_share']:.0%} of the network's.")
+          f"products: {out['outside_matmul_share']:.0%} of the network's. Least-disturbed rounds: network "
+          f"{out['network_of_ceiling_min']:.0%}, replay {out['replay_of_ceiling_min']:.0%} of the ceiling "
+          f"{ceiling_min:.1f} GFLOP/s, outside {out['outside_matmul_share_min']:.0%}.")
     return out
 
 
@@ -388,15 +396,20 @@ def run(args: argparse.Namespace) -> dict:
                 alts[f"mm{shape}_out"] = lambda s=setting, a=a, b=b, outs=outs, reps=reps: run_with(
                     s, lambda part: [torch.mm(a, b, out=part[0]) for _ in range(reps)], outs)
             times = interleaved(alts, args.repeat)
-            mm_rates = {}
+            mm_rates, mm_best = {}, {}
             for shape in CEILING_SHAPES:
                 reps = max(1, int(2e9 // (2 * np.prod(shape))))
                 per_call = 2 * np.prod(shape) * reps * setting[0]  # every worker runs reps matmuls
                 for suffix in ("", "_out"):
                     mm_rates[f"{shape}{suffix}"] = float(per_call / np.median(times[f"mm{shape}{suffix}"]) / 1e9)
+                    mm_best[f"{shape}{suffix}"] = float(per_call / np.min(times[f"mm{shape}{suffix}"]) / 1e9)
             ceiling = max(mm_rates.values())
             orig, fast = summary_ms(times["original"]), summary_ms(times["fast"])
             fast_gflops = executed * len(batch32) / (fast["median_ms"] / 1e3) / 1e9
+            # least-disturbed rounds: the fastest network call against the fastest ceiling call
+            # (on a shared machine the median absorbs other jobs' load unevenly: a ceiling call is
+            # ~25 ms of one kind of work, a network call a mix)
+            best_of_ceiling = executed * len(batch32) / (fast["min_ms"] / 1e3) / 1e9 / max(mm_best.values())
             row = {
                 "density": density, "points": counts[density]["output_points"],
                 "threads": thread_label(setting),
@@ -408,10 +421,11 @@ def run(args: argparse.Namespace) -> dict:
                 "gflop_s": fast_gflops,
                 "mm_gflop_s": ceiling,
                 "of_ceiling": fast_gflops / ceiling,
+                "of_ceiling_min": best_of_ceiling,
             }
             rows.append(row)
-            per_setting[f"d{density}/{row['threads']}"] = {"original": orig, "fast": fast,
-                                                          "matmul_gflop_s": mm_rates, **row}
+            per_setting[f"d{density}/{row['threads']}"] = {"original": orig, "fast": fast, "matmul_gflop_s": mm_rates,
+                                                          "matmul_gflop_s_min_time": mm_best, **row}
     set_decode_density(completer.model, 1)
     flops, executed = counts[1]["nominal_flops_per_instance"], counts[1]["executed_flops_per_instance"]
     max_diff = counts[1]["output_max_abs_diff"]
@@ -420,8 +434,10 @@ def run(args: argparse.Namespace) -> dict:
         f"(median of {args.repeat} interleaved rounds; ms per batch; GFLOP/s of the FLOPs the fast path executes)",
         rows,
         ["density", "points", "threads", "original_ms", "fast_ms", "fast_min_ms", "fast_max_ms", "original_inst_s",
-         "fast_inst_s", "speedup", "gflop_s", "mm_gflop_s", "of_ceiling"],
+         "fast_inst_s", "speedup", "gflop_s", "mm_gflop_s", "of_ceiling", "of_ceiling_min"],
     )
+    print("of_ceiling: medians; of_ceiling_min: the fastest round of the network against the fastest of the "
+          "ceiling's matrix products")
     for density, c in counts.items():
         print(f"decode density {density} ({c['output_points']} points): {c['executed_flops_per_instance'] / 1e6:.1f} "
               f"MFLOP per instance executed by the fast path (its matrix products), "
@@ -506,20 +522,22 @@ def run(args: argparse.Namespace) -> dict:
         "instances_per_s_b32": best["fast_inst_s"],
         "original_instances_per_s_b32": best["original_inst_s"],
         "speedup_b32": at1["speedup"],
-        "of_ceiling": best["of_ceiling"],
+        "of_ceiling": at1["of_ceiling"],
+        "of_ceiling_min": at1["of_ceiling_min"],
+        "best_setting_of_ceiling": best["of_ceiling"],
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "load_average_before": load_before,
         "load_average_after": load_average(),
     }
-    met = bool(at1["speedup"] >= TARGET_SPEEDUP and best["of_ceiling"] >= TARGET_CEILING)
+    met = bool(at1["speedup"] >= TARGET_SPEEDUP and at1["of_ceiling"] >= TARGET_CEILING)
     results["targets"] = {"speedup_b32_min": TARGET_SPEEDUP, "of_ceiling_min": TARGET_CEILING, "met": met}
     print(f"\n{executed / 1e6:.1f} MFLOP per instance executed ({flops / 1e6:.1f} nominal); outputs equal "
           f"(max |diff| {max_diff:.1e}).")
-    print(f"threads {at1['threads']}: {at1['speedup']:.2f}x the original path at batch 32; "
-          f"best setting ({best['threads']}): "
-          f"{best['fast_inst_s']:.0f} inst/s, {best['gflop_s']:.1f} GFLOP/s = {best['of_ceiling']:.0%} of the "
-          f"matmul ceiling {best['mm_gflop_s']:.1f} GFLOP/s. Targets (>= {TARGET_SPEEDUP}x, >= "
-          f"{TARGET_CEILING:.0%}): {'met' if met else 'NOT met'}.")
+    print(f"threads {at1['threads']}: {at1['speedup']:.2f}x the original path at batch 32, "
+          f"{at1['fast_inst_s']:.0f} inst/s, {at1['gflop_s']:.1f} GFLOP/s = {at1['of_ceiling']:.0%} of the matmul "
+          f"ceiling {at1['mm_gflop_s']:.1f} GFLOP/s ({at1['of_ceiling_min']:.0%} in the least-disturbed rounds); "
+          f"best setting ({best['threads']}): {best['fast_inst_s']:.0f} inst/s. Targets (>= {TARGET_SPEEDUP}x, >= "
+          f"{TARGET_CEILING:.0%} at 1 thread): {'met' if met else 'NOT met'}.")
     print(f"load average (1 min) before / after: {load_before[0]:.2f} / {results['load_average_after'][0]:.2f} "
           f"on {os.cpu_count()} cores")
     return results
