@@ -241,27 +241,27 @@ def part_times(completer, batch: list, repeat: int) -> list[dict[str, Any]]:
             lambda mod, inputs, name=name: start.__setitem__(name, time.perf_counter())))
         handles.append(part.register_forward_hook(
             lambda mod, inputs, output, name=name: spent[name].append(time.perf_counter() - start[name])))
-    total = []
+    total, per_call = [], {name: [] for name, _ in parts}
     try:
         completer.complete(batch)
-        for name in spent:
-            spent[name].clear()
         for _ in range(repeat):
+            for name in spent:
+                spent[name].clear()
             tic = time.perf_counter()
             completer.complete(batch)
             total.append(time.perf_counter() - tic)
+            for name in spent:  # a part may run once per chunk of the batch
+                per_call[name].append(sum(spent[name]))
     finally:
         for h in handles:
             h.remove()
-    whole, all_flops = float(np.median(total)), sum(flops.values())
-    rows = [{"part": name, "ms": float(np.median(spent[name])) * 1e3,
-             "time_share": float(np.median(spent[name])) / whole, "nominal_flop_share": flops[name] / all_flops}
-            for name, _ in parts]
-    rows.append({"part": "rest (packing, attention, outputs)",
-                 "ms": (whole - sum(float(np.median(spent[n])) for n, _ in parts)) * 1e3,
-                 "time_share": 1.0 - sum(float(np.median(spent[n])) for n, _ in parts) / whole,
-                 "nominal_flop_share": 0.0})
-    return rows
+    # every part's share of each call, then the median share (robust to load that hits one call)
+    total_s = np.asarray(total)
+    shares = {name: np.asarray(per_call[name]) / total_s for name, _ in parts}
+    shares["rest (packing, attention, outputs)"] = 1.0 - sum(shares.values())
+    all_flops = sum(flops.values())
+    return [{"part": name, "ms": float(np.median(share * total_s)) * 1e3, "time_share": float(np.median(share)),
+             "nominal_flop_share": flops.get(name, 0) / all_flops} for name, share in shares.items()]
 
 
 def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) -> dict[str, Any]:
