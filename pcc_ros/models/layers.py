@@ -107,10 +107,9 @@ class _Workspace:
     """Per-thread buffers of the inference paths, kept from call to call.
 
     A fresh tensor of a few MiB costs page faults on first touch (the kernel maps and zeroes
-    its pages), several times the cost of the matrix product writing into it; the buffers
-    here are allocated once per (module, slot, thread) and reused by every later call of
-    that thread, so the node's worker threads never share one. Nothing a forward returns
-    lives here.
+    its pages) and starts cold in cache; the buffers here are allocated once per (module,
+    slot, thread) and reused by every later call of that thread, so the node's worker threads
+    never share one. Nothing a forward returns lives here.
     """
 
     def __init__(self) -> None:
@@ -228,14 +227,16 @@ class PCNEncoder(nn.Module):
 
         Every intermediate lives in a per-thread buffer reused by every chunk and every call
         (:class:`_Workspace`), so the matrix products write into memory already in the core's
-        cache (a fresh 1 MiB output per product runs at about half the speed, measured with
-        ``pcc bench complete``). With sorted segments (packed batches) a chunk holds whole
-        segments, so both passes run on it while its ``mlp1`` features are still in cache;
-        otherwise the features of all points are kept for the second pass. Biases are folded
-        where a max or a linear map lets them through (the same function; float rounding may
-        differ in the last bits): ``mlp1``'s last bias goes after its max (exact: rounding is
-        monotonic, ``max(a_i + b) == max(a_i) + b``) and into the split layer's once-per-segment
-        half, with the point half's bias; the last layer's bias is added after the max.
+        cache instead of a fresh allocation per product. With sorted segments (packed batches)
+        a chunk holds whole segments, so both passes run on it while its ``mlp1`` features are
+        still in cache, and where mlp1's last layer is narrower at its input than at its output
+        it is composed with the split layer's point half (no ReLU between them:
+        ``W_p (W_1 t + b_1) = (W_p W_1) t + W_p b_1``, fewer multiply-adds); otherwise the
+        features of all points are kept for the second pass. Biases are folded where a max or
+        a linear map lets them through (the same function; float rounding may differ in the
+        last bits): ``mlp1``'s last bias goes after its max (exact: rounding is monotonic,
+        ``max(a_i + b) == max(a_i) + b``) and into the split layer's once-per-segment half, with
+        the point half's bias; the last layer's bias is added after the max.
         """
         p, s = points.shape[0], num_segments
         if p == 0:
