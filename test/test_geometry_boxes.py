@@ -218,6 +218,14 @@ def test_float64_scans_and_threads_give_the_same_crops():
     expected = {n: crop_canonical(p, boxes, 0.1, 0.05) for n, p in (("big", big), ("small", small))}
     for f, s in zip(points_in_boxes(big.astype(np.float64), boxes, 0.1), slow_points_in_boxes(big, boxes, 0.1)):
         np.testing.assert_array_equal(f, s)
+    # views that are not C-contiguous: the first columns of a wider scan, a Fortran-order copy
+    wide = np.concatenate([big, rng.uniform(0, 1, (len(big), 2)).astype(np.float32)], axis=1)
+    for view in (wide[:, :3], np.asfortranarray(big)):
+        indices, canon = crop_canonical(view, boxes, 0.1, 0.05)
+        for a, b in zip(indices, expected["big"][0]):
+            np.testing.assert_array_equal(a, b)
+        for a, b in zip(canon, expected["big"][1]):
+            np.testing.assert_array_equal(a, b)
     # per-thread work arrays: scans of different sizes, alternately, on two threads
     with ThreadPoolExecutor(2) as pool:
         runs = list(pool.map(lambda n: (n, crop_canonical(big if n == "big" else small, boxes, 0.1, 0.05)),

@@ -291,6 +291,8 @@ class BoxCandidates:
             pp = np.take(pp, order)
         count = np.bincount(pb, minlength=nb)
         pts, dt = self.points, self._dt
+        if not pts.flags.c_contiguous:  # np.take would copy the whole array for every chunk
+            pts = np.ascontiguousarray(pts[:, :3])
         boxes, margin = self.boxes, self.margin
         half = boxes.size / 2.0
         values = np.stack([  # one row per box
