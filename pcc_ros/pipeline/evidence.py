@@ -215,16 +215,6 @@ class _Scratch(threading.local):
             np.cumsum(out, out=out)
         return out
 
-    def segments(self, length: np.ndarray, name: str) -> np.ndarray:
-        """The segment index (int32) of every element of consecutive segments of ``length``."""
-        out = self(name, int(length.sum()), np.int32)
-        nonempty = np.flatnonzero(length)
-        if len(nonempty):
-            out.fill(0)
-            out[(np.cumsum(length) - length)[nonempty]] = np.diff(nonempty, prepend=0)
-            np.cumsum(out, out=out)
-        return out
-
 
 _SCRATCH = _Scratch()
 _SCRATCH_MAX_BYTES = 64 << 20
@@ -325,11 +315,11 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: _Scratch):
     del order
     s = slope.take(pair, out=ws("s", q, dt), mode="clip")
     per_box = np.bincount(box_of_bin, weights=count, minlength=m).astype(np.int64)
-    seg = ws.segments(per_box, "seg")
-    bound = s_lo.astype(dt).take(seg, out=ws("bound", q, dt), mode="clip")
+    bound = ws("bound", q, dt)
+    np.copyto(bound, np.repeat(s_lo.astype(dt), per_box))
     with np.errstate(invalid="ignore"):
         keep = np.greater_equal(s, bound, out=ws("keep", q, bool))
-        s_hi.astype(dt).take(seg, out=bound, mode="clip")
+        np.copyto(bound, np.repeat(s_hi.astype(dt), per_box))
         keep &= np.less_equal(s, bound, out=ws("keep2", q, bool))
     kept = ws.nonzero(keep, "kept")
     pair.take(kept, out=candidates[: len(kept)], mode="clip")
@@ -347,11 +337,13 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: _Scratch) -
     if not len(point):
         return tuple(np.zeros(n) for _ in range(5))
     p = len(point)
-    seg = ws.segments(np.diff(box_ends, prepend=0), "r_seg")
     f64 = np.float64
 
+    per_box = np.diff(box_ends, prepend=0)
+
     def rep(values: np.ndarray, out: np.ndarray) -> np.ndarray:  # a per-box value on each of its pairs
-        return values[boxes_idx].take(seg, out=out, mode="clip")
+        np.copyto(out, np.repeat(values[boxes_idx], per_box))  # a transient array (cheaper than a gather)
+        return out
 
     a, b, d = (ws(name, p, f64) for name in ("r_a", "r_b", "r_d"))
     px, py, pz = (ws(name, p, f64) for name in ("r_px", "r_py", "r_pz"))
@@ -581,13 +573,13 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch |
     pair = ws.runs(run_lo, length, "g_pair")
     q = len(pair)
     box_pairs = np.bincount(run_box, weights=length, minlength=n).astype(np.int64)
-    seg = ws.segments(box_pairs, "g_seg")
     px, py, pz = (a.take(pair, out=ws(name, q, dt), mode="clip") for a, name in ((xs, "g_px"), (ys, "g_py"),
                                                                                      (zs, "g_pz")))
     a, b = ws("g_a", q, dt), ws("g_b", q, dt)
 
     def rep(values: np.ndarray, out: np.ndarray) -> np.ndarray:
-        return values.take(seg, out=out, mode="clip")
+        np.copyto(out, np.repeat(values, box_pairs))  # a transient array (cheaper than a gather)
+        return out
 
     keep = np.greater_equal(pz, rep(zlo, a), out=ws("g_keep", q, bool))
     flag = ws("g_qflag", q, bool)
