@@ -211,7 +211,8 @@ class _Scratch(threading.local):
         if len(lo):
             out.fill(1)
             first = np.cumsum(length) - length
-            out[first] = np.r_[lo[0], lo[1:] - (lo[:-1] + length[:-1] - 1)]
+            out[first[0]] = lo[0]
+            out[first[1:]] = lo[1:] - (lo[:-1] + length[:-1] - 1)
             np.cumsum(out, out=out)
         return out
 
@@ -223,7 +224,8 @@ _SCRATCH_MAX_BYTES = 64 << 20
 def _segment_counts(mask: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """True values of ``mask`` per contiguous segment ending (exclusive) at ``ends`` (int64)."""
     out = np.zeros(len(ends), dtype=np.int64)
-    starts = np.r_[0, ends[:-1]]
+    starts = np.zeros(len(ends), dtype=np.int64)
+    starts[1:] = ends[:-1]
     nonempty = np.flatnonzero(ends > starts)
     if len(nonempty):
         out[nonempty] = np.add.reduceat(mask, starts[nonempty], dtype=np.int64)
@@ -486,8 +488,11 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch |
     n = len(boxes)
     out = np.full(n, np.nan)
     bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
-    wide = Boxes(np.c_[boxes.center[:, :2], bottom - 1.0], np.c_[boxes.size[:, :2] + 2 * reach, np.full(n, 4.0)],
-                 boxes.yaw)
+    centre, size = boxes.center.copy(), boxes.size.copy()
+    centre[:, 2] = bottom - 1.0
+    size[:, :2] += 2 * reach
+    size[:, 2] = 4.0
+    wide = Boxes(centre, size, boxes.yaw)
     if not wide.valid_mask().all():
         wide.validate()
     if not len(x):
@@ -565,7 +570,9 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch |
         new = np.ones(len(key), dtype=bool)
         new[1:] = (np.diff(key) != 1) | (np.diff(box_of) != 0)
         first = np.flatnonzero(new)
-        last = np.r_[first[1:], len(key)] - 1
+        last = np.empty_like(first)
+        last[:-1] = first[1:] - 1
+        last[-1] = len(key) - 1
         run_lo, run_hi, run_box = starts[key[first]], starts[key[last] + 1], box_of[first]
     else:
         run_lo = run_hi = run_box = np.zeros(0, np.int64)
