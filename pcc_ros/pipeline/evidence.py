@@ -232,6 +232,14 @@ def _segment_counts(mask: np.ndarray, ends: np.ndarray) -> np.ndarray:
     return out
 
 
+def _clamp(values: np.ndarray, hi: int, nan: np.ndarray) -> None:
+    """``values`` clipped to ``[0, hi]`` in place, NaN to 0 (``nan``: a work mask). What
+    ``fmin(fmax(values, 0), hi)`` gives, at a third of its cost (numpy's fmax / fmin with a
+    scalar take no SIMD path)."""
+    np.clip(values, 0, hi, out=values)
+    np.copyto(values, 0, where=np.isnan(values, out=nan))
+
+
 def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: _Scratch):
     """The ray index: the points whose ray from the sensor lies in some judged box's angular
     window (a superset of the rays that cross the box; :func:`evidence` tests them exactly).
@@ -266,8 +274,7 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: _Scratch):
         scaled = np.arctan2(y, x, out=ws("az", n, dt))
         scaled += dt(np.pi)
         scaled *= dt(_AZ_BINS / (2 * np.pi))
-        np.fmax(scaled, 0, out=scaled)  # NaN -> 0 (band 0 below: no box)
-        np.fmin(scaled, _AZ_BINS - 1, out=scaled)
+        _clamp(scaled, _AZ_BINS - 1, ws("nan", n, bool))  # NaN -> 0 (band 0 below: no box)
     key = ws("key", n, np.int16)
     np.copyto(key, scaled, casting="unsafe")  # truncation: the floor of these non-negative bins
     # The boxes' azimuth sectors: the points outside them cannot pair (a table lookup), unless
@@ -290,13 +297,12 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: _Scratch):
         # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e
         # index paired it with the boxes at azimuth and elevation 0); straight up / down is
         # beyond every box's window; NaN points stay NaN.
-        np.fmax(r, np.finfo(dt).tiny, out=r)
+        np.clip(r, np.finfo(dt).tiny, np.inf, out=r)
         slope = np.divide(zs, r, out=r)
         band = np.subtract(slope, dt(e0), out=tmp)
         band *= dt(1.0 / width)
         band += 1
-        np.fmax(band, 0, out=band)  # NaN -> band 0: no box
-        np.fmin(band, _EL_BANDS + 1, out=band)
+        _clamp(band, _EL_BANDS + 1, ws("nan", k, bool))  # NaN -> band 0: no box
     band16 = ws("band", k, np.int16)
     np.copyto(band16, band, casting="unsafe")
     key *= np.int16(_EL_BANDS + 2)
@@ -544,8 +550,7 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch |
         for coordinate, offset, count, index in ((x, origin[0], nx, cell_key), (y, origin[1], ny, column)):
             np.subtract(coordinate, dt(offset), out=f)
             f *= dt(1.0 / cell)
-            np.fmax(f, 0, out=f)  # NaN -> 0
-            np.fmin(f, count - 1, out=f)
+            _clamp(f, count - 1, ws("g_nan", m, bool))  # NaN -> 0
             np.copyto(index, f, casting="unsafe")  # truncation: the floor of these non-negative values
         cell_key *= np.int16(ny)
         cell_key += column
