@@ -215,7 +215,8 @@ DESCRIPTIONS = {
     "min_points": "boxes holding fewer LiDAR points are not completed (and not judged by the filter)",
     "max_instances": "per-frame cap on completed boxes, highest detection score first",
     "box_margin": "metres added to every box side when cropping",
-    "ground_margin": "points lower than this many metres above the box bottom are ground",
+    "ground_margin": "points lower than this many metres above the bottom of the box grown by box_margin are ground "
+                     "(the defaults 0.05 and 0.1 keep returns from 5 cm below the box bottom up)",
     "batch_size": "instances per backend batch (the GPU / CPU memory knob of learned backends)",
     "workers": "CPU threads completing shares of a frame's instances, one torch thread each (1: torch's threads); "
                ">= 2 also measures the filter's ground and expected returns beside its rays",
