@@ -7,7 +7,9 @@ import pytest
 import torch
 from shapes import box_surface
 
+from pcc_ros.data.instances import ExtractConfig, extract_instances
 from pcc_ros.errors import CheckpointError, ConfigError
+from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.geometry.partitions import octant_masks
 from pcc_ros.models import create, load_completer
 from pcc_ros.models.base import resample_cloud
@@ -21,8 +23,10 @@ from pcc_ros.models.pointpncnet import (
     pack,
     region_subsets,
     remove_regions,
+    target_flags,
     training_recipe,
 )
+from pcc_ros.types import Boxes, Sample
 
 
 def car_like(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -235,6 +239,67 @@ def test_train_batch_uses_only_the_observed_views():
     seg = batch.inputs.segment.numpy()
     assert set(seg.tolist()) == {0, 1}
     assert (seg[:-1] <= seg[1:]).all()
+
+
+def _scene_frames(n_frames: int = 3) -> list[Sample]:
+    """One car per frame with a ground plane under it and clutter just outside its box: what a
+    node crop (margin, lower ground cut) holds and a tight crop does not."""
+    rng = np.random.default_rng(5)
+    size = np.array([4.4, 1.8, 1.5])
+    frames = []
+    for f in range(n_frames):
+        center, yaw = np.array([6.0 + f, 3.0, -0.9]), 0.2 * f
+        car = box_surface(rng, 1500, size / size[0] / 2 * 0.97)  # canonical, inside the box
+        ground = np.c_[rng.uniform(-0.6, 0.6, (300, 2)), np.full(300, -size[2] / 2 / size[0] + 0.01)]
+        side = np.c_[rng.uniform(-0.5, 0.5, 100), np.full(100, (size[1] / 2 + 0.05) / size[0]),
+                     rng.uniform(-0.1, 0.1, 100)]  # 5 cm beside the flank: inside a 0.1 m margin only
+        points = from_canonical(np.concatenate([car, ground, side]), center, yaw, size[0])
+        boxes = Boxes([center], [size], [yaw], label=["Car"], track_id=["1"])
+        frames.append(Sample(stamp_ns=f * 100_000_000, frame_id="velodyne",
+                             points=np.c_[points, np.zeros(len(points))].astype(np.float32), ground_truth=boxes,
+                             sequence="0000", index=f))
+    return frames
+
+
+def test_node_crop_inputs_with_tight_crop_targets(tmp_path):
+    """target_margin: the input is the node's crop, the pseudo ground truth exactly the tight crop
+    of the same observation (pcc extract's defaults), and held-out sources are refused."""
+    frames = _scene_frames()
+    split = {"val_fraction": 0.0, "test_fraction": 0.0}
+    node = extract_instances(frames, tmp_path / "node", ExtractConfig(margin=0.1, ground_margin=0.05, **split),
+                             source=tmp_path / "src" / "synth", progress=False)
+    tight = extract_instances(frames, tmp_path / "tight", ExtractConfig(**split), progress=False)
+    recipe = training_recipe(target_margin=0.0, target_ground_margin=0.1, held_out=[str(tmp_path / "held")])
+    groups = recipe.training_data(node, "train")
+    assert len(groups) == 1 and len(groups[0]) == len(frames) == len(tight)
+    for i, view in enumerate(groups[0]):
+        assert view.shape[1] == 4
+        np.testing.assert_allclose(view[:, :3], node.points(i), atol=1e-6)  # the input: the whole node crop
+        target = view[view[:, 3] > 0, :3]
+        assert 0 < len(target) < len(view)  # ground and side clutter are not targets
+        np.testing.assert_allclose(np.sort(target, axis=0), np.sort(tight.points(i), axis=0), atol=1e-5)
+    batch = make_train_batch(groups, PRESETS["default"], TrainOptions(loss_points=4096, views=3, drop_prob=0.0),
+                             np.random.default_rng(0))
+    targets = batch.target[batch.target_mask].numpy()
+    lowest = float(np.concatenate([tight.points(i) for i in range(len(tight))])[:, 2].min())
+    assert targets[:, 2].min() >= lowest - 1e-6  # no ground return reached the targets ...
+    assert batch.inputs.points.numpy()[:, 2].min() < lowest - 0.01  # ... while the input holds them
+    summary = recipe.data_summary()
+    assert summary["target_crop"] == {"margin": 0.0, "ground_margin": 0.1}
+    assert summary["sources"][0]["crop"]["margin"] == 0.1 and summary["sources"][0]["observations"] == 3
+    assert summary["held_out"]["sources"] == [str((tmp_path / "held").resolve())]
+    # a crop that lacks the targets' points, a held-out source: clear errors, no training
+    with pytest.raises(ConfigError, match="reaches outside the crop"):
+        training_recipe(target_margin=0.0, target_ground_margin=0.1).training_data(
+            extract_instances(frames, tmp_path / "low", ExtractConfig(ground_margin=0.2, **split), progress=False),
+            "train")
+    with pytest.raises(ConfigError, match=r"pointpncnet: .*held out"):
+        training_recipe(held_out=[str(tmp_path / "src")]).training_data(node, "train")
+    # the flags are the crop's test: a point on the tight box's faces is in, 1 mm outside is out
+    size = np.array([4.0, 2.0, 1.5])
+    edge = np.array([[0.5, 0.25, 0.0], [0.0, 0.0, (-0.75 + 0.1) / 4], [0.50025, 0.0, 0.0],
+                     [0.0, 0.0, (-0.75 + 0.099) / 4]])
+    np.testing.assert_array_equal(target_flags(edge, size, 0.0, 0.1), [True, True, False, False])
 
 
 @pytest.mark.slow

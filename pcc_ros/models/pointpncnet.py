@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -366,6 +366,35 @@ class TrainOptions:
     #: train in the box-aspect frame (``Completer.box_aspect``): every view's y / z scaled so its
     #: box has the median aspect of the training split's boxes, recorded in the checkpoint
     box_aspect: bool = False
+    #: inputs and targets from different crops of the same observation: ``None`` (default) uses
+    #: each view whole as the pseudo ground truth; a number takes as targets only the view's points
+    #: inside its box grown by this many metres with the lowest ``target_ground_margin`` metres
+    #: dropped, while the input keeps the whole crop. Training on node crops
+    #: (``pcc extract --node-crop``: margin 0.1, ground 0.05) with ``target_margin=0`` gives the
+    #: node's inputs (a frame of ground returns and neighbours' points included) and the tight
+    #: crops' targets (the car's own returns), so the network learns to leave the frame out.
+    target_margin: float | None = None
+    target_ground_margin: float = 0.1
+    #: source datasets (paths) that must not reach training (the real evaluation's own data): a
+    #: training cache extracted from one of them is refused; recorded in the checkpoint
+    held_out: list[str] = field(default_factory=list)
+
+
+def target_flags(points: np.ndarray, size: np.ndarray, margin: float, ground_margin: float) -> np.ndarray:
+    """Which canonical ``points`` of one observation lie inside its box grown by ``margin`` metres
+    with the lowest ``ground_margin`` metres dropped (the crop ``pcc extract --margin M
+    --ground-margin G`` makes); ``size``: the box's length, width, height in metres."""
+    length, width, height = (float(s) for s in size)
+    half = np.array([length / 2 + margin, width / 2 + margin, height / 2 + margin]) / length
+    low = (-height / 2 - margin + ground_margin) / length
+    p = np.asarray(points)
+    return (np.abs(p[:, 0]) <= half[0]) & (np.abs(p[:, 1]) <= half[1]) & (p[:, 2] >= low) & (p[:, 2] <= half[2])
+
+
+def view_targets(view: np.ndarray) -> np.ndarray:
+    """The pseudo-ground-truth points of a training view: all of an ``(N, 3)`` view, the flagged
+    rows of an ``(N, 4)`` one (fourth column: :func:`target_flags`, see ``target_margin``)."""
+    return view if view.shape[1] == 3 else view[view[:, 3] > 0, :3]
 
 
 def region_subsets(
@@ -414,8 +443,9 @@ def make_train_batch(
     For each group one view is the input (capped at ``options.input_points``, then random octant
     removal); up to ``options.views`` views (the input's own original view first) are the
     pseudo ground truth, each subsampled to at most ``options.loss_points`` points (and
-    ``options.local_loss_points`` per octant for the local loss). Only observed partial
-    clouds are used: this function never sees a complete shape.
+    ``options.local_loss_points`` per octant for the local loss). A view with a fourth column
+    is input whole and target only where that column is set (:func:`view_targets`). Only
+    observed partial clouds are used: this function never sees a complete shape.
     """
     overlap = float(cfg["region_overlap"])
     min_points = int(cfg["min_region_points"])
@@ -425,8 +455,8 @@ def make_train_batch(
         k = int(rng.integers(len(views)))
         others = [v for i, v in enumerate(views) if i != k]
         order = rng.permutation(len(others))[: max(0, options.views - 1)]
-        targets.append([views[k], *(others[i] for i in order)])
-        cloud = views[k]
+        targets.append([view_targets(views[k]), *(view_targets(others[i]) for i in order)])
+        cloud = views[k][:, :3]
         if len(cloud) > cap:
             cloud = cloud[rng.choice(len(cloud), cap, replace=False)]
         cloud, cloud_regions = remove_regions(cloud, region_masks(cloud, overlap), options.drop_prob, min_points, rng)
@@ -499,6 +529,9 @@ class PointPnCNetRecipe:
         self.inpainting = inpainting
         #: the reference aspect (width / length, height / length), from the first training data
         self.aspect: tuple[float, float] | None = None
+        #: per training cache: its origin and crop, what was kept (``data_summary``)
+        self.sources: list[dict[str, Any]] = []
+        self.held_out: dict[str, Any] = {"sources": [], "checked_caches": []}
 
     def build_completer(self, device: str) -> PointPnCNet:
         return PointPnCNet(device=device, size=self.size)
@@ -508,6 +541,40 @@ class PointPnCNetRecipe:
         if self.aspect is not None:
             out["reference_aspect"] = list(self.aspect)
         return out
+
+    def data_summary(self) -> dict[str, Any]:
+        """The caches trained on (origin, crop, observations kept), the held-out sources and the
+        target crop, for the checkpoint's ``training.data_summary``."""
+        target = None
+        if self.options.target_margin is not None:
+            target = {"margin": self.options.target_margin, "ground_margin": self.options.target_ground_margin}
+        return {"sources": list(self.sources), "target_crop": target, "held_out": dict(self.held_out),
+                "box_aspect": None if self.aspect is None else list(self.aspect), "complete_shapes_used": False}
+
+    def _check_cache(self, cache: Any) -> dict[str, Any]:
+        """Refuse a held-out cache and a cache whose crop lacks the targets' points; its origin."""
+        from pcc_ros.models.trapcc import cache_origin, check_held_out  # the one held-out rule
+
+        try:
+            held = check_held_out([cache], self.options.held_out)
+        except ConfigError as exc:
+            raise ConfigError(f"pointpncnet: {exc}".replace("pointpncnet: trapcc: ", "pointpncnet: ", 1)) from exc
+        self.held_out = {"sources": held["sources"],
+                         "checked_caches": [*self.held_out["checked_caches"], *held["checked_caches"]]}
+        origin = cache_origin(cache)
+        tm = self.options.target_margin
+        if tm is not None:
+            crop = origin["crop"]
+            margin, ground = crop.get("margin"), crop.get("ground_margin")
+            if margin is None or ground is None:
+                raise ConfigError(f"pointpncnet: target_margin needs the crop of {cache.root} (its pcc extract record "
+                                  "has no margin / ground_margin)")
+            tg = self.options.target_ground_margin
+            if tm > margin + 1e-9 or (tg - tm) < (ground - margin) - 1e-9:
+                raise ConfigError(f"pointpncnet: the target crop (margin {tm}, ground margin {tg}) reaches outside "
+                                  f"the crop of {cache.root} (margin {margin}, ground margin {ground}); extract the "
+                                  "cache with a wider crop (pcc extract --node-crop) or narrow the targets")
+        return origin
 
     def prepare(self, completer: PointPnCNet, data: Any, val_instances: Any, seed: int) -> None:
         """The completer validates (and is saved) in the frame it is trained in."""
@@ -521,21 +588,40 @@ class PointPnCNetRecipe:
         of a track); observations without a track are single-view groups. The cache holds
         no complete shapes, so none can reach training from here.
         """
+        origin = self._check_cache(cache)
         indices = cache.indices(split, min_points=min_points)
         groups = cache.multiview_groups(indices, group_size=20, min_views=1)
         grouped = np.zeros(len(cache), dtype=bool)
         for g in groups:
             grouped[g] = True
         singles = [np.array([i]) for i in indices[~grouped[indices]]]
-        if not self.options.box_aspect:
-            return [[np.array(cache.points(int(i)), dtype=np.float32) for i in g] for g in [*groups, *singles]]
         sizes = np.asarray(cache.meta["box_size"], dtype=np.float64)
-        if self.aspect is None:  # the first (main) training data fixes the reference for every cache mixed in
-            self.aspect = median_box_aspect(sizes[indices])
         scales = np.ones((len(cache), 3), dtype=np.float32)
-        scales[indices] = aspect_scales(sizes[indices], self.aspect, len(indices))
-        return [[np.array(cache.points(int(i)), dtype=np.float32) * scales[int(i)] for i in g]
-                for g in [*groups, *singles]]
+        if self.options.box_aspect:
+            if self.aspect is None:  # the first (main) training data fixes the reference for every cache mixed in
+                self.aspect = median_box_aspect(sizes[indices])
+            scales[indices] = aspect_scales(sizes[indices], self.aspect, len(indices))
+        tm, tg = self.options.target_margin, self.options.target_ground_margin
+
+        def view(i: int) -> np.ndarray:
+            points = np.asarray(cache.points(i), dtype=np.float32)
+            if tm is None:
+                return points * scales[i]
+            flags = target_flags(points, sizes[i], tm, tg)  # in the canonical frame, before the aspect
+            return np.concatenate([points * scales[i], flags[:, None].astype(np.float32)], axis=1)
+
+        out, dropped = [], 0
+        for g in [*groups, *singles]:  # loop over observations (tens of thousands); the work per point is vectorised
+            views = [view(int(i)) for i in g]
+            if tm is not None:  # a view whose target crop keeps too few points is no pseudo ground truth
+                kept = [v for v in views if int(v[:, 3].sum()) >= min_points]
+                dropped += len(views) - len(kept)
+                views = kept
+            if views:
+                out.append(views)
+        self.sources.append({"cache": str(cache.root), **origin, "split": split, "groups": len(out),
+                             "observations": sum(len(g) for g in out), "dropped_few_target_points": dropped})
+        return out
 
     def batches(
         self, groups: Sequence[Sequence[np.ndarray]], batch_size: int, cfg: dict[str, Any], rng: np.random.Generator
