@@ -12,11 +12,11 @@ and the exact rotated test runs on those pairs.
 from __future__ import annotations
 
 import itertools
-import threading
 
 import numpy as np
 
 from pcc_ros.errors import DataError
+from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
 
 # Unit-cube corner signs in the order :func:`box_corners` documents.
@@ -85,20 +85,7 @@ def _cell_size(boxes: Boxes, cell: float | None) -> float:
     return float(cell)
 
 
-_SCRATCH = threading.local()
-
-
-def _scratch(name: str, n: int, dtype: type) -> np.ndarray:
-    """A work array of ``n`` elements, kept by this thread from call to call.
-
-    The scan-sized temporaries of :class:`BoxCandidates` live here: a fresh half-megabyte
-    array costs more in page faults (the allocator hands large blocks back to the system
-    between frames) than the arithmetic written into it. Never returned to a caller."""
-    store = _SCRATCH.__dict__.setdefault("arrays", {})
-    array = store.get(name)
-    if array is None or len(array) < n or array.dtype != dtype:
-        array = store[name] = np.empty(n + n // 4 + 1024, dtype=dtype)
-    return array[:n]
+_SCRATCH = Scratch()  # the scan-sized temporaries of BoxCandidates (pcc_ros.scratch); never returned
 
 
 def _runs(lengths: np.ndarray) -> np.ndarray:
@@ -241,10 +228,10 @@ class BoxCandidates:
         n = len(pts)
         inv = np.float32(1.0 / cell)
         block = min(n, _SCAN_BLOCK)
-        g = _scratch("cell", block, np.float32)
-        key = _scratch("key", block, np.int32)
-        gy = _scratch("key_y", block, np.int32)
-        row = _scratch("row", n, row_dtype)
+        g = _SCRATCH("cell", block, np.float32)
+        key = _SCRATCH("key", block, np.int32)
+        gy = _SCRATCH("key_y", block, np.int32)
+        row = _SCRATCH("row", n, row_dtype)
         for lo in range(0, n, block):  # blocks of the scan: the temporaries stay in cache
             hi = min(lo + block, n)
             if hi - lo < block:
@@ -261,7 +248,7 @@ class BoxCandidates:
                 key *= np.int32(ny)
                 key += gy
             np.take(row_of, key, out=row[lo:hi], mode="clip")  # clip: out-of-range (NaN) keys to the border
-        hit = np.flatnonzero(np.not_equal(row, 0, out=_scratch("hit", n, bool)))
+        hit = np.flatnonzero(np.not_equal(row, 0, out=_SCRATCH("hit", n, bool)))
         # points above or below every box are no candidates (walls, trees, kerbs under a far box)
         z = pts[:, 2][hit]
         with np.errstate(invalid="ignore"):
@@ -304,11 +291,11 @@ class BoxCandidates:
         ends = np.cumsum(count).tolist()
         box_of = np.repeat(np.arange(nb, dtype=pb.dtype), count)
         size = min(len(pp), _PAIR_CHUNK)
-        index = _scratch("pair_box", size, np.intp)
-        rows = _scratch("pair_values", 8 * size, dt).reshape(size, 8)
-        xyz = _scratch("pair_points", size * pts.shape[1], pts.dtype).reshape(size, pts.shape[1])
-        dx, dy, lx, ly, tmp = (_scratch(f"pair_{k}", size, dt) for k in range(5))
-        inside, test = _scratch("pair_inside", size, bool), _scratch("pair_test", size, bool)
+        index = _SCRATCH("pair_box", size, np.intp)
+        rows = _SCRATCH("pair_values", 8 * size, dt).reshape(size, 8)
+        xyz = _SCRATCH("pair_points", size * pts.shape[1], pts.dtype).reshape(size, pts.shape[1])
+        dx, dy, lx, ly, tmp = (_SCRATCH(f"pair_{k}", size, dt) for k in range(5))
+        inside, test = _SCRATCH("pair_inside", size, bool), _SCRATCH("pair_test", size, bool)
         kept_parts, local_parts = [], []
         for lo in range(0, len(pp), _PAIR_CHUNK):
             hi = min(lo + _PAIR_CHUNK, len(pp))
@@ -383,8 +370,8 @@ class BoxCandidates:
         padded = np.full((n_rows + 1, width), none, dtype=box_dtype)
         padded[entry_row, np.arange(len(entry_row)) - np.take(first, entry_row)] = entry_box
         step = max(1, 4 * _PAIR_CHUNK // width)
-        gathered = _scratch("cand_rows", min(step, len(hit)) * width, box_dtype).reshape(-1, width)
-        filled_mask = _scratch("cand_filled", min(step, len(hit)) * width, bool)
+        gathered = _SCRATCH("cand_rows", min(step, len(hit)) * width, box_dtype).reshape(-1, width)
+        filled_mask = _SCRATCH("cand_filled", min(step, len(hit)) * width, bool)
         points, boxes = [], []
         for lo in range(0, len(hit), step):
             rows = hit_row[lo:lo + step]

@@ -13,7 +13,6 @@ in float64 with the same operations, operand for operand, as the 93cd59e code ke
 
 from __future__ import annotations
 
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -22,6 +21,7 @@ import numpy as np
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import box_corners
 from pcc_ros.geometry.canonical import to_box_local
+from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
 
 
@@ -169,56 +169,7 @@ def _runs(lo: np.ndarray, length: np.ndarray) -> np.ndarray:
     return np.arange(total, dtype=np.int64) + np.repeat(lo - (ends - length), length)
 
 
-class _Scratch(threading.local):
-    """Reusable per-thread buffers of the measurements. A fresh array's pages cost the kernel a
-    fault each on first touch (measured on the 2-core development VM: about 4 us per 4 KiB page,
-    i.e. milliseconds per frame for the megabytes of temporaries here, every frame once the
-    allocator has handed them back to the system); buffers kept from frame to frame are touched
-    warm. Holds a few MB per thread that measured a frame (the largest frame's sizes); a
-    buffer above :data:`_SCRATCH_MAX_BYTES` (a hostile frame) is not kept."""
-
-    def __init__(self) -> None:
-        self.buffers: dict[str, np.ndarray] = {}
-
-    def __call__(self, name: str, n: int, dtype) -> np.ndarray:
-        """A length-``n`` array of ``dtype`` (contents undefined), the same memory each call."""
-        buf = self.buffers.get(name)
-        if buf is None or buf.dtype != dtype or len(buf) < n:
-            buf = np.empty(n + n // 4 + 64, dtype)
-            if buf.nbytes <= _SCRATCH_MAX_BYTES:
-                self.buffers[name] = buf
-        return buf[:n]
-
-    def iota(self, n: int) -> np.ndarray:
-        """``arange(n)`` (int64), kept."""
-        buf = self.buffers.get("iota")
-        if buf is None or len(buf) < n:
-            buf = np.arange(n + n // 4 + 64, dtype=np.int64)
-            if buf.nbytes <= _SCRATCH_MAX_BYTES:
-                self.buffers["iota"] = buf
-        return buf[:n]
-
-    def nonzero(self, mask: np.ndarray, name: str) -> np.ndarray:
-        """``np.flatnonzero(mask)`` into a kept buffer."""
-        out = self(name, int(np.count_nonzero(mask)), np.int64)
-        return np.compress(mask, self.iota(len(mask)), out=out)
-
-    def runs(self, lo: np.ndarray, length: np.ndarray, name: str) -> np.ndarray:
-        """The concatenated ranges ``lo[i] .. lo[i] + length[i] - 1`` (int64): a step of 1
-        everywhere but at the run starts, one cumulative sum."""
-        lo, length = lo[length > 0], length[length > 0]
-        out = self(name, int(length.sum()), np.int64)
-        if len(lo):
-            out.fill(1)
-            first = np.cumsum(length) - length
-            out[first[0]] = lo[0]
-            out[first[1:]] = lo[1:] - (lo[:-1] + length[:-1] - 1)
-            np.cumsum(out, out=out)
-        return out
-
-
-_SCRATCH = _Scratch()
-_SCRATCH_MAX_BYTES = 64 << 20
+_SCRATCH = Scratch()  # this module's work arrays (pcc_ros.scratch)
 
 
 def _segment_counts(mask: np.ndarray, ends: np.ndarray) -> np.ndarray:
@@ -240,7 +191,7 @@ def _clamp(values: np.ndarray, hi: int, nan: np.ndarray) -> None:
     np.copyto(values, 0, where=np.isnan(values, out=nan))
 
 
-def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: _Scratch):
+def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
     """The ray index: the points whose ray from the sensor lies in some judged box's angular
     window (a superset of the rays that cross the box; :func:`evidence` tests them exactly).
 
@@ -337,7 +288,7 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: _Scratch):
     return point, np.searchsorted(kept, np.cumsum(per_box))
 
 
-def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: _Scratch) -> tuple[np.ndarray, ...]:
+def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) -> tuple[np.ndarray, ...]:
     """``n_in, n_occluded, n_stop, n_pass, n_rays`` of every box (float64)."""
     n = len(boxes)
     boxes_idx = np.flatnonzero(window[4])
@@ -413,7 +364,7 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: _Scratch) -
 
 
 def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_hi, judged,
-                    table: _BoxTable | None = None, ws: _Scratch | None = None) -> np.ndarray:
+                    table: _BoxTable | None = None, ws: Scratch | None = None) -> np.ndarray:
     """Beams of the sensor model (rings x azimuth steps) whose rays hit each box.
 
     The beams of a box are a (ring, column) grid: one row per (box, ring), the columns padded
@@ -488,7 +439,7 @@ def _outward(values: np.ndarray, dt: type, up: bool) -> np.ndarray:
     return np.where(out > values, np.nextafter(out, dt(-np.inf)), out)
 
 
-def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch | None = None) -> np.ndarray:
+def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | None = None) -> np.ndarray:
     """:func:`local_ground` on the scan's coordinate columns (contiguous, one dtype)."""
     ws = ws or _SCRATCH
     n = len(boxes)
@@ -617,7 +568,7 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: _Scratch |
     return out
 
 
-def _columns(points: np.ndarray, ws: _Scratch | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _columns(points: np.ndarray, ws: Scratch | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Contiguous x, y, z columns in the scan's precision (float32 stays float32, others
     become float64): numpy's SIMD loops skip strided arrays."""
     ws = ws or _SCRATCH
