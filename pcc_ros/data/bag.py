@@ -261,16 +261,26 @@ def open_bag(path: str | Path) -> BagReader:
 
 
 def iter_messages(reader: AnyReader, path: str | Path, connections: Iterable) -> Iterator[tuple]:
-    """``reader.messages(connections=...)`` with storage damage raised as :class:`BagError`."""
-    messages = reader.messages(connections=list(connections))
+    """``reader.messages(connections=...)`` with storage damage raised as :class:`BagError`.
+
+    A read to the end also checks that every connection gave as many messages as the bag's
+    index lists (``msgcount``): a damaged MCAP summary can make the reader skip a whole chunk
+    without any error, which would otherwise be silent data loss."""
+    connections = list(connections)
+    messages = reader.messages(connections=connections)
+    seen: Counter = Counter()
     while True:
         try:
             item = next(messages)
         except StopIteration:
-            return
+            break
         except _storage_errors() as exc:
             raise _damaged(Path(path), exc) from exc
+        seen[item[0].id] += 1
         yield item
+    missing = [f"{c.topic} {seen[c.id]} of {c.msgcount}" for c in connections if seen[c.id] < (c.msgcount or 0)]
+    if missing:
+        raise BagError(f"{path}: damaged: fewer messages readable than its index lists ({', '.join(missing)})")
 
 
 @dataclass
