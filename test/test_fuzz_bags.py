@@ -121,6 +121,7 @@ def test_flip_inside_an_mcap_chunk_is_named_with_its_offset(bags, tmp_path, capl
 @given(position=st.floats(0.0, 1.0, exclude_max=True), mask=st.integers(1, 255))
 @example(position=0.99694, mask=1)  # a damaged length field in the summary: rosbags asked for petabytes
 @example(position=0.99582, mask=1)  # a damaged chunk index: rosbags skipped a chunk without any error
+@example(position=0.99419, mask=128)  # a damaged index offset: OverflowError from a seek
 def test_any_single_byte_flip_is_harmless_or_named(bags, frames, tmp_path_factory, position, mask):
     """A flip anywhere in the file: either the frames read back identical, or a named BagError."""
     bag = shutil.copytree(bags["mcap"], tmp_path_factory.mktemp("flip") / "bag")

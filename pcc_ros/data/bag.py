@@ -155,6 +155,8 @@ def _storage_errors() -> tuple[type[BaseException], ...]:
         # a damaged length field makes rosbags' mcap reader ask for petabytes in one read(): the
         # allocation fails at once (nothing was held), so it is damage, named as such below
         MemoryError,
+        # a damaged offset or count in an MCAP index can exceed what a seek / slice accepts
+        OverflowError,
     ]
     try:
         from rosbags.rosbag2 import storage_mcap
@@ -310,7 +312,7 @@ def decode(reader: AnyReader, raw, connection, time_ns: int, path: str | Path):
     """Deserialize one message; :class:`BagError` naming bag, topic and bag time when it cannot be."""
     try:
         return reader.deserialize(raw, connection.msgtype)
-    except (*_storage_errors(), AssertionError, UnicodeDecodeError, OverflowError) as exc:
+    except (*_storage_errors(), AssertionError, UnicodeDecodeError) as exc:
         raise BagError(
             f"{path}: {connection.topic} message at bag time {time_ns} is undecodable "
             f"({type(exc).__name__}: {exc})"
