@@ -47,6 +47,7 @@ from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import crop_canonical, iou_3d
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.geometry.partitions import front_back_masks
+from pcc_ros.geometry.segments import positions_in_runs
 from pcc_ros.types import Boxes, Sample, class_mask
 
 log = logging.getLogger("pcc.extract")
@@ -457,7 +458,7 @@ class InstanceCache:
         self._shards = shards
         sizes = np.array([len(off) - 1 for _, off in shards], dtype=np.int64)
         self._shard_of = np.repeat(np.arange(len(shards)), sizes)
-        self._row = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+        self._row = positions_in_runs(sizes)
 
     @classmethod
     def load(cls, path: str | Path, mmap: bool = True) -> InstanceCache:

@@ -16,6 +16,7 @@ import itertools
 import numpy as np
 
 from pcc_ros.errors import DataError
+from pcc_ros.geometry.segments import positions_in_runs
 from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
 
@@ -86,11 +87,6 @@ def _cell_size(boxes: Boxes, cell: float | None) -> float:
 
 
 _SCRATCH = Scratch()  # the scan-sized temporaries of BoxCandidates (pcc_ros.scratch); never returned
-
-
-def _runs(lengths: np.ndarray) -> np.ndarray:
-    """``0 .. n - 1`` for each ``n`` of ``lengths``, concatenated."""
-    return np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
 
 
 class BoxCandidates:
@@ -187,7 +183,7 @@ class BoxCandidates:
         reach = cell * np.sqrt(0.5) * 1.001
         n_col = ix1 - ix0 + 1
         col_box = np.repeat(np.arange(len(boxes)), n_col)
-        gx = np.repeat(ix0, n_col) + _runs(n_col)
+        gx = np.repeat(ix0, n_col) + positions_in_runs(n_col)
         dx = (gx + 0.5) * cell - np.take(cx - ox, col_box)  # column centre, box-relative
         c, s = np.take(cos, col_box), np.take(sin, col_box)
         # |c dx + s dy| <= hl + reach  and  |c dy - s dx| <= hw + reach,  dy = y - centre y
@@ -206,7 +202,7 @@ class BoxCandidates:
         last_y = np.minimum(np.floor(np.clip(hi / cell + cy_cells, -1.0, ny)), y1_col).astype(np.int64)
         n_cell = np.maximum(last_y - first_y + 1, 0)
         box_of = np.repeat(col_box, n_cell)
-        key = np.repeat(gx * ny + first_y, n_cell) + _runs(n_cell)
+        key = np.repeat(gx * ny + first_y, n_cell) + positions_in_runs(n_cell)
         n_cells = nx * ny
         # group the entries by cell (radix sort when the cell fits 16 bits); boxes stay ascending
         order = np.argsort(key.astype(np.uint16) if n_cells <= 65536 else key, kind="stable")
@@ -392,21 +388,6 @@ def _pairs_in_boxes(points, boxes, margin, ground_margin, cell, local=True):
 def _split(values: np.ndarray, starts: np.ndarray) -> list[np.ndarray]:
     bounds = starts.tolist()  # plain slices: np.split costs ~10 us per piece
     return [values[a:b] for a, b in itertools.pairwise(bounds)]
-
-
-def _group_by_box(pair_point: np.ndarray, pair_box: np.ndarray, n_boxes: int, *values: np.ndarray) -> list:
-    """Split pair arrays per box; point indices stay ascending inside each box."""
-    key = pair_box.astype(np.int16 if n_boxes < 32767 else np.int64)  # int16: radix sort
-    order = np.argsort(key, kind="stable")
-    ends = np.cumsum(np.bincount(pair_box, minlength=n_boxes)).tolist()
-    starts = [0, *ends[:-1]]
-
-    def split(a: np.ndarray) -> list[np.ndarray]:  # plain slices: np.split costs ~10 us per piece
-        return [a[s:e] for s, e in zip(starts, ends)]
-
-    out = [split(np.take(pair_point, order))]
-    out.extend(split(np.take(v, order, axis=0)) for v in values)
-    return out
 
 
 def pairs_in_boxes(

@@ -37,6 +37,7 @@ import numpy as np
 
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.sampling import cloud_seed
+from pcc_ros.geometry.segments import positions_in_runs
 
 
 @dataclass(frozen=True)
@@ -199,7 +200,7 @@ def ray_voxels(
         if total == 0:
             continue
         seg = np.repeat(np.arange(len(o)), n_axis)
-        offset = np.arange(total) - np.repeat(np.cumsum(n_axis) - n_axis, n_axis)
+        offset = positions_in_runs(n_axis)
         plane = first[seg, axis] + offset
         t = (plane - o[seg, axis]) / d[seg, axis]
         point = o[seg] + t[:, None] * d[seg]

@@ -21,6 +21,7 @@ import numpy as np
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import box_corners
 from pcc_ros.geometry.canonical import to_box_local
+from pcc_ros.geometry.segments import positions_in_runs
 from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
 
@@ -162,13 +163,6 @@ def angular_window(boxes: Boxes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
     return az_lo, az_hi, el_lo, el_hi, outside
 
 
-def _runs(lo: np.ndarray, length: np.ndarray) -> np.ndarray:
-    """The concatenated ranges ``lo[i] .. lo[i] + length[i] - 1`` (int64), without a loop (small arrays)."""
-    ends = np.cumsum(length)
-    total = int(ends[-1]) if len(ends) else 0
-    return np.arange(total, dtype=np.int64) + np.repeat(lo - (ends - length), length)
-
-
 _SCRATCH = Scratch()  # this module's work arrays (pcc_ros.scratch)
 
 
@@ -219,7 +213,7 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
     b1 = np.floor((az_hi[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) + 1
     nbins = np.minimum(b1 - b0 + 1, _AZ_BINS)
     box_of_bin = np.repeat(np.arange(m), nbins)
-    az_bin = (np.repeat(b0, nbins) + _runs(np.zeros(m, np.int64), nbins)) % _AZ_BINS
+    az_bin = (np.repeat(b0, nbins) + positions_in_runs(nbins)) % _AZ_BINS
     n = len(x)
     with np.errstate(invalid="ignore"):
         scaled = np.arctan2(y, x, out=ws("az", n, dt))
@@ -395,7 +389,7 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     azimuth = az_lo[idx][:, None] + (column + 0.5) * step * stretch[:, None]  # (boxes, columns)
     cos_az, sin_az = np.cos(azimuth), np.sin(azimuth)
     row_box = np.repeat(np.arange(len(idx)), n_ring)  # one row per (box, ring)
-    ring = np.repeat(r_lo, n_ring) + _runs(np.zeros(len(idx), np.int64), n_ring)
+    ring = np.repeat(r_lo, n_ring) + positions_in_runs(n_ring)
     ce = np.cos(rings)[ring][:, None]
     box = idx[row_box]
     c, s = table.cos[box][:, None], table.sin[box][:, None]
@@ -481,7 +475,7 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     extent = c1 - c0 + 1
     per_box = extent[:, 0] * extent[:, 1]
     box_of = np.repeat(np.arange(n), per_box)
-    local = _runs(np.zeros(n, np.int64), per_box)
+    local = positions_in_runs(per_box)
     gx = c0[box_of, 0] + local // extent[box_of, 1]
     gy = c0[box_of, 1] + local % extent[box_of, 1]
     ccx, ccy, _ = to_box_local(origin[0] + (gx + 0.5) * cell, origin[1] + (gy + 0.5) * cell, 0.0,
