@@ -3,7 +3,7 @@ verbatim (names unchanged) as the "today's pipeline" side of ``pcc bench pipelin
 reference of ``pcc bench filter``; nothing else uses it.
 
 :func:`original_geometry` swaps it into the pipeline for the duration of a block: the
-crop (``crop_canonical``), the work estimate (``estimated_crop_pairs``) and the evidence
+crop stage (``bounded_crop``: the work estimate ``estimated_crop_pairs``, then ``crop_canonical``) and the evidence
 filter's measurements (``evidence``). Not thread-safe: a process-wide switch for benchmarks.
 """
 
@@ -54,14 +54,24 @@ def original_geometry() -> Iterator[None]:
     import pcc_ros.pipeline.core as pipeline_module
     import pcc_ros.pipeline.filter as filter_module
 
-    saved = (pipeline_module.crop_canonical, pipeline_module.estimated_crop_pairs, filter_module.evidence)
-    pipeline_module.crop_canonical = crop_canonical
-    pipeline_module.estimated_crop_pairs = estimated_crop_pairs
+    saved = (pipeline_module._bounded_crop, filter_module.evidence)
+    pipeline_module._bounded_crop = bounded_crop
     filter_module.evidence = lambda points, boxes, sensor=None, workers=1: evidence(points, boxes, sensor)  # 1 thread
     try:
         yield
     finally:
-        pipeline_module.crop_canonical, pipeline_module.estimated_crop_pairs, filter_module.evidence = saved
+        pipeline_module._bounded_crop, filter_module.evidence = saved
+
+
+def bounded_crop(points: np.ndarray, boxes: Boxes, cfg):
+    """The crop stage as at 93cd59e: the work estimate, then the crop of the boxes that fit
+    (the budget rule itself is unchanged: ``pipeline.core.crop_budget``)."""
+    from pcc_ros.pipeline.core import crop_budget
+
+    work = estimated_crop_pairs(points, boxes, cfg.box_margin)
+    fits = crop_budget(work, boxes, cfg.max_crop_work)
+    chosen = boxes if fits is None else boxes[fits]
+    return (*crop_canonical(points, chosen, cfg.box_margin, cfg.ground_margin), fits, work)
 
 
 def points_in_boxes(points: np.ndarray, boxes: Boxes, margin: float = 0.0, ground_margin: float = 0.0,

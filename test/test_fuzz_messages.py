@@ -14,11 +14,11 @@ from hypothesis import strategies as st
 from test_msg_detections import array_of, detection
 
 from pcc_ros.errors import MessageError
-from pcc_ros.geometry.boxes import points_in_boxes
+from pcc_ros.geometry.boxes import BoxCandidates, points_in_boxes
 from pcc_ros.msg.detections import DEFAULT_LIMITS, decode_detection_array
 from pcc_ros.msg.pointcloud2 import FLOAT32, INT16, create_cloud, read_xyz
 from pcc_ros.msg.typestore import new_message
-from pcc_ros.pipeline.core import Pipeline, PipelineConfig, estimated_crop_pairs
+from pcc_ros.pipeline.core import Pipeline, PipelineConfig
 
 STAMP = 1_700_000_000_000_000_000
 
@@ -150,7 +150,7 @@ def test_work_estimate_bounds_the_real_crop(seed, n, margin):
     points = rng.uniform(-40, 40, (5000, 3)).astype(np.float32)
     boxes = Boxes(rng.uniform(-45, 45, (n, 3)), rng.uniform(0.1, 30, (n, 3)), rng.uniform(-4, 4, n))
     real = np.array([len(i) for i in points_in_boxes(points, boxes, margin)])
-    assert (estimated_crop_pairs(points, boxes, margin) >= real).all()
+    assert (BoxCandidates(points, boxes, margin).pairs_per_box >= real).all()
 
 
 # ----------------------------------------------------------------------------- PointCloud2

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from pcc_ros.errors import MessageError
-from pcc_ros.geometry.boxes import BoxCandidates, canonical_crops, crop_canonical
+from pcc_ros.geometry.boxes import BoxCandidates, canonical_crops
 from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.models.base import SceneContext
 from pcc_ros.models.registry import get_backend, load_completer
@@ -350,41 +350,32 @@ class Pipeline:
         return result, originals
 
 
-def estimated_crop_pairs(points: np.ndarray, boxes: Boxes, margin: float = 0.0) -> np.ndarray:
-    """Per box, an upper bound of the points it crops: its candidate pairs, the scan points
-    in the bird's-eye-view cells the (margin-enlarged) box reaches
-    (:attr:`pcc_ros.geometry.boxes.BoxCandidates.pairs_per_box`): one pass over the scan,
-    ``O(points + cells)`` whatever the boxes' sizes, no pair formed."""
-    return BoxCandidates(points, boxes, margin).pairs_per_box
+def crop_budget(work: np.ndarray, boxes: Boxes, max_work: int) -> np.ndarray | None:
+    """Which boxes the crop stage takes when their work bounds ``work`` sum past ``max_work``:
+    the highest-scoring ones whose running total stays within it (``None``: all of them)."""
+    if work.sum() <= max_work:
+        return None
+    order = np.argsort(-boxes.score, kind="stable")
+    fits = np.zeros(len(boxes), dtype=bool)
+    fits[order] = np.cumsum(work[order]) <= max_work
+    return fits
 
 
 def _bounded_crop(points: np.ndarray, boxes: Boxes, cfg: PipelineConfig):
     """The crop stage: ``(indices, canonical, fits, work)`` -- the crops of the boxes within
     ``max_crop_work`` (``fits``: which boxes, ``None`` when all fit; ``work``: the bound per box).
 
-    One :class:`~pcc_ros.geometry.boxes.BoxCandidates` pass gives the work bound and then the
-    crops of the boxes that fit. ``benchmarks/_reference.py`` swaps this module's
-    ``crop_canonical`` and ``estimated_crop_pairs`` for those of 93cd59e; then they run as
-    they did there, one after the other."""
-    shared = crop_canonical is _own_crop_canonical and estimated_crop_pairs is _own_estimated_crop_pairs
-    candidates = BoxCandidates(points, boxes, cfg.box_margin, cfg.ground_margin) if shared else None
-    work = candidates.pairs_per_box if shared else estimated_crop_pairs(points, boxes, cfg.box_margin)
-    fits = None
-    if work.sum() > cfg.max_crop_work:
-        order = np.argsort(-boxes.score, kind="stable")
-        fits = np.zeros(len(boxes), dtype=bool)
-        fits[order] = np.cumsum(work[order]) <= cfg.max_crop_work
-    if not shared:
-        chosen = boxes if fits is None else boxes[fits]
-        return (*crop_canonical(points, chosen, cfg.box_margin, cfg.ground_margin), fits, work)
+    One :class:`~pcc_ros.geometry.boxes.BoxCandidates` pass gives the work bound (its
+    ``pairs_per_box``, known before any pair is formed) and then the crops of the boxes that
+    fit. (``benchmarks/_reference.py`` swaps this function for the crop of 93cd59e.)"""
+    candidates = BoxCandidates(points, boxes, cfg.box_margin, cfg.ground_margin)
+    work = candidates.pairs_per_box
+    fits = crop_budget(work, boxes, cfg.max_crop_work)
     indices, canonical = canonical_crops(candidates, fits)
     if fits is not None:
         kept = np.flatnonzero(fits).tolist()
         indices, canonical = [indices[i] for i in kept], [canonical[i] for i in kept]
     return indices, canonical, fits, work
-
-
-_own_crop_canonical, _own_estimated_crop_pairs = crop_canonical, estimated_crop_pairs
 
 
 def build_outputs(
