@@ -316,7 +316,7 @@ def _segment_chunks(counts: torch.Tensor, rows: int) -> list[tuple[int, int, int
     """Chunks of whole segments (sorted ids with these ``counts``), each at most ``rows`` rows
     unless one segment alone is longer (then that segment is its chunk), as
     ``(first row, stop row, first segment, stop segment)``."""
-    cum = np.cumsum(counts.numpy())
+    cum = np.cumsum(counts.cpu().numpy())  # the counts may live on the GPU
     ends = cum[np.r_[True, cum[1:] != cum[:-1]] & (cum > 0)]  # one end per nonempty segment
     starts, stops, start = [], [], 0
     while start < ends[-1]:
