@@ -5,10 +5,11 @@ y left, z up, scaled isotropically by ``1 / box length`` so the car spans about
 [-0.5, 0.5] in x. Every completion backend consumes and produces canonical clouds;
 this module is the only place that converts, so the two directions cannot drift.
 
-:func:`to_box_local` is the package's one box-frame transform (points relative to a box
-centre, rotated by minus its yaw): the canonical frame is it scaled by ``1 / length``, the
-points-in-boxes test (``geometry/boxes``) and the filter's ray geometry (``filter.py``) call
-it on per-pair columns.
+:func:`to_box_local` is the box-frame transform (points relative to a box centre, rotated
+by minus its yaw): the canonical frame is it scaled by ``1 / length``. The scan-sized hot
+loops (the exact test of ``geometry/boxes.BoxCandidates`` and the filter's measurements in
+``pipeline/evidence``) write the same rotation inline into their reused work arrays instead,
+to avoid its temporaries.
 """
 
 from __future__ import annotations
