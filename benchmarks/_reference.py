@@ -15,7 +15,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from pcc_ros.errors import DataError
-from pcc_ros.geometry.boxes import _bev_corners, _check_boxes, _round_down, _round_up, box_corners
+from pcc_ros.geometry.boxes import _bev_corners, _check_boxes, box_corners, round_down_to, round_up_to
 from pcc_ros.pipeline.evidence import (
     CORE_FRACTION,
     CORE_Z,
@@ -178,8 +178,8 @@ def _pairs_in_boxes(
     # returns sit, right at the boundary) agree with an exact float64 test.
     dt = np.float32 if pts.dtype == np.float32 else np.float64
     half = boxes.size / 2.0
-    zlo = _round_up(boxes.center[:, 2] - half[:, 2] - margin + ground_margin, dt)
-    zhi = _round_down(boxes.center[:, 2] + half[:, 2] + margin, dt)
+    zlo = round_up_to(boxes.center[:, 2] - half[:, 2] - margin + ground_margin, dt)
+    zhi = round_down_to(boxes.center[:, 2] + half[:, 2] + margin, dt)
     table = np.stack(
         [
             boxes.center[:, 0], boxes.center[:, 1], boxes.center[:, 2],

@@ -61,13 +61,13 @@ def _bev_corners(boxes: Boxes) -> np.ndarray:
     return box_corners(boxes)[:, :4, :2]
 
 
-def _round_up(values: np.ndarray, dt: type) -> np.ndarray:
+def round_up_to(values: np.ndarray, dt: type) -> np.ndarray:
     """Smallest ``dt`` numbers >= ``values`` (so ``p >= bound`` is exact for ``dt`` points)."""
     out = values.astype(dt)
     return np.where(out < values, np.nextafter(out, dt(np.inf)), out)
 
 
-def _round_down(values: np.ndarray, dt: type) -> np.ndarray:
+def round_down_to(values: np.ndarray, dt: type) -> np.ndarray:
     """Largest ``dt`` numbers <= ``values``."""
     out = values.astype(dt)
     return np.where(out > values, np.nextafter(out, dt(-np.inf)), out)
@@ -143,8 +143,8 @@ class BoxCandidates:
         # sit, right at the boundary) agree with an exact float64 test.
         self._dt = dt = np.float32 if pts.dtype == np.float32 else np.float64
         half_z = boxes.size[:, 2] / 2.0
-        self._zlo = _round_up(boxes.center[:, 2] - half_z - self.margin + self.ground_margin, dt)
-        self._zhi = _round_down(boxes.center[:, 2] + half_z + self.margin, dt)
+        self._zlo = round_up_to(boxes.center[:, 2] - half_z - self.margin + self.ground_margin, dt)
+        self._zhi = round_down_to(boxes.center[:, 2] + half_z + self.margin, dt)
         grid, key, n_rows, row_dtype = self._table(boxes, self.margin, _cell_size(boxes, cell))
         self._scan(pts, grid, key, n_rows, row_dtype)
         per_row = np.bincount(self._hit_row, minlength=n_rows + 1)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pcc_ros.errors import ConfigError, DataError
-from pcc_ros.geometry.boxes import box_corners
+from pcc_ros.geometry.boxes import box_corners, round_down_to, round_up_to
 from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.geometry.segments import positions_in_runs
 from pcc_ros.scratch import Scratch
@@ -424,15 +424,6 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     return out
 
 
-def _outward(values: np.ndarray, dt: type, up: bool) -> np.ndarray:
-    """``values`` rounded to ``dt`` outward: the smallest ``dt`` numbers >= them (``up``) or the
-    largest <= them, so a test of ``dt`` points against them equals the exact float64 test."""
-    out = values.astype(dt)
-    if up:
-        return np.where(out < values, np.nextafter(out, dt(np.inf)), out)
-    return np.where(out > values, np.nextafter(out, dt(-np.inf)), out)
-
-
 def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | None = None) -> np.ndarray:
     """:func:`local_ground` on the scan's coordinate columns (contiguous, one dtype)."""
     ws = ws or _SCRATCH
@@ -452,8 +443,8 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     half = wide.size / 2.0
     # The test of a point against a box runs in the scan's precision, on box-relative x / y,
     # the z bounds rounded outward (as geometry.boxes.points_in_boxes, which this reproduces).
-    zlo = _outward(wide.center[:, 2] - half[:, 2], dt, up=True)
-    zhi = _outward(wide.center[:, 2] + half[:, 2], dt, up=False)
+    zlo = round_up_to(wide.center[:, 2] - half[:, 2], dt)
+    zhi = round_down_to(wide.center[:, 2] + half[:, 2], dt)
     cx, cy = wide.center[:, 0].astype(dt), wide.center[:, 1].astype(dt)
     cos64, sin64 = np.cos(wide.yaw), np.sin(wide.yaw)
     c, s = cos64.astype(dt), sin64.astype(dt)
