@@ -338,7 +338,7 @@ def test_held_out_sources_are_refused_and_recorded(train_cache, tmp_path):
     held = extract_instances(frames, tmp_path / "held_cache", ExtractConfig(val_fraction=0.0, test_fraction=0.0),
                              source=source, progress=False)
     recipe = _recipe(tmp_path, real_data=[str(held.root)], held_out=[str(source.parent)])
-    with pytest.raises(ConfigError, match="held out"):
+    with pytest.raises(ConfigError, match=r"^trapcc: cache .*held out"):
         recipe.training_data(train_cache, "train")
     recipe = _recipe(tmp_path, pool_data=[str(held.root)], held_out=[str(source)])
     with pytest.raises(ConfigError, match="held out"):  # pools are training data too

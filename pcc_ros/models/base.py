@@ -265,6 +265,33 @@ class TrainingKit:
         return kit
 
 
+def cache_origin(cache: Any) -> dict[str, Any]:
+    """Where an instance cache came from and how it was cropped (its ``pcc extract`` record)."""
+    config = cache.index.get("config") or {}
+    return {"source": cache.index.get("source"),
+            "crop": {k: config.get(k) for k in ("boxes", "margin", "ground_margin", "min_points")}}
+
+
+def check_held_out(caches: Sequence[Any], held_out: Sequence[str], who: str) -> dict[str, Any]:
+    """Refuse caches extracted from a held-out source; what was held out, for the checkpoint.
+
+    A cache's source (its ``pcc extract`` record) is held out when it resolves to, or lies
+    inside, one of ``held_out`` (paths; the evaluation's own datasets). ``who`` (the recipe's
+    backend) starts the :class:`ConfigError`.
+    """
+    held = [Path(h).resolve() for h in held_out]
+    for c in caches:
+        source = cache_origin(c)["source"]
+        if source is None:
+            continue
+        src = Path(source).resolve()
+        for h in held:
+            if src == h or h in src.parents or src in h.parents:
+                raise ConfigError(f"{who}: cache {c.root} was extracted from {source}, which is held out "
+                                  f"({h}); train without it")
+    return {"sources": [str(h) for h in held], "checked_caches": [str(c.root) for c in caches]}
+
+
 # --------------------------------------------------------------------------- completers
 
 

@@ -43,6 +43,8 @@ from pcc_ros.models.base import (
     SceneContext,
     TorchCompleter,
     aspect_scales,
+    cache_origin,
+    check_held_out,
     median_box_aspect,
     resample_cloud,
 )
@@ -553,12 +555,7 @@ class PointPnCNetRecipe:
 
     def _check_cache(self, cache: Any) -> dict[str, Any]:
         """Refuse a held-out cache and a cache whose crop lacks the targets' points; its origin."""
-        from pcc_ros.models.trapcc import cache_origin, check_held_out  # the one held-out rule
-
-        try:
-            held = check_held_out([cache], self.options.held_out)
-        except ConfigError as exc:
-            raise ConfigError(f"pointpncnet: {exc}".replace("pointpncnet: trapcc: ", "pointpncnet: ", 1)) from exc
+        held = check_held_out([cache], self.options.held_out, "pointpncnet")
         self.held_out = {"sources": held["sources"],
                          "checked_caches": [*self.held_out["checked_caches"], *held["checked_caches"]]}
         origin = cache_origin(cache)

@@ -61,6 +61,8 @@ from pcc_ros.models.base import (
     TorchCompleter,
     TrainingKit,
     aspect_scales,
+    cache_origin,
+    check_held_out,
     median_box_aspect,
     resample_cloud,
 )
@@ -483,7 +485,7 @@ class TraPCCRecipe:
         kit = TrainingKit.require(self.kit, "trapcc")
         caches = [cache, *(self._open(kit, path, "real_data") for path in self.options.real_data)]
         pool_caches = [self._open(kit, path, "pool_data") for path in self.options.pool_data] or caches
-        held_out = check_held_out([*caches, *pool_caches], self.options.held_out)
+        held_out = check_held_out([*caches, *pool_caches], self.options.held_out, "trapcc")
         pool_cfg = kit.pool_config(min_points=int(self.options.min_points_pool),
                               min_half_points=int(self.options.min_points_pool) // 2,
                               size_candidates=int(self.options.size_candidates))
@@ -640,32 +642,6 @@ class TraPCCRecipe:
 
     def loss(self, net: nn.Module, batch: TrainBatch) -> tuple[torch.Tensor, dict[str, float]]:
         return trapcc_loss(net, batch, self.options)
-
-
-def cache_origin(cache: Any) -> dict[str, Any]:
-    """Where an instance cache came from and how it was cropped (its ``pcc extract`` record)."""
-    config = cache.index.get("config") or {}
-    return {"source": cache.index.get("source"),
-            "crop": {k: config.get(k) for k in ("boxes", "margin", "ground_margin", "min_points")}}
-
-
-def check_held_out(caches: Sequence[Any], held_out: Sequence[str]) -> dict[str, Any]:
-    """Refuse caches extracted from a held-out source; what was held out, for the checkpoint.
-
-    A cache's source (its ``pcc extract`` record) is held out when it resolves to, or lies
-    inside, one of ``held_out`` (paths; the evaluation's own datasets).
-    """
-    held = [Path(h).resolve() for h in held_out]
-    for c in caches:
-        source = cache_origin(c)["source"]
-        if source is None:
-            continue
-        src = Path(source).resolve()
-        for h in held:
-            if src == h or h in src.parents or src in h.parents:
-                raise ConfigError(f"trapcc: cache {c.root} was extracted from {source}, which is held out "
-                                  f"({h}); train without it")
-    return {"sources": [str(h) for h in held], "checked_caches": [str(c.root) for c in caches]}
 
 
 def aspect_pools(pools: Any, aspect: Sequence[float]) -> Any:
