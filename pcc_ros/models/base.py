@@ -292,6 +292,70 @@ def check_held_out(caches: Sequence[Any], held_out: Sequence[str], who: str) -> 
     return {"sources": [str(h) for h in held], "checked_caches": [str(c.root) for c in caches]}
 
 
+@dataclass
+class CacheTrainOptions:
+    """The training options of every recipe that trains on instance caches (PointPnCNet's and
+    TraPCC's ``TrainOptions`` extend it; all are stored in the checkpoint's ``training.recipe``)."""
+
+    #: train in the box-aspect frame (:attr:`Completer.box_aspect`, what the pipeline completes in):
+    #: every training input and target scaled in y / z so its own box has the median aspect of the
+    #: main training data's boxes (:func:`aspect_scales`), that reference recorded in the checkpoint
+    box_aspect: bool = False
+    #: source datasets (paths) that must not reach training (the real evaluation's own data, e.g.
+    #: what ``pcc eval --real`` scores): a cache extracted from one of them is refused
+    #: (:func:`check_held_out`); recorded in the checkpoint
+    held_out: list[str] = field(default_factory=list)
+
+
+class CacheRecipe:
+    """What the recipes that train on instance caches share: the size and options, the reference
+    aspect of the box-aspect frame, the held-out check, ``describe()`` and ``prepare()``.
+
+    A subclass names its backend (:attr:`name`), adds its own settings to ``describe()`` through
+    :meth:`settings`, and calls :meth:`fix_aspect` on its main training data's box sizes
+    and :meth:`check_held_out` on every cache it trains from.
+    """
+
+    #: the backend, in errors and the held-out check
+    name: ClassVar[str] = ""
+
+    def __init__(self, size: str, options: CacheTrainOptions) -> None:
+        self.size = size
+        self.options = options
+        #: the reference aspect (width / length, height / length), from the first training data
+        self.aspect: tuple[float, float] | None = None
+
+    def settings(self) -> dict[str, Any]:
+        """What ``describe()`` records between the size and the options (a subclass's own)."""
+        return {}
+
+    def describe(self) -> dict[str, Any]:
+        out = {"size": self.size, **self.settings(), **self.options.__dict__}
+        if self.aspect is not None:
+            out["reference_aspect"] = list(self.aspect)
+        return out
+
+    def aspect_record(self) -> list[float] | None:
+        """The reference aspect as the checkpoint's data summary records it."""
+        return None if self.aspect is None else list(self.aspect)
+
+    def fix_aspect(self, sizes: np.ndarray) -> tuple[float, float] | None:
+        """With ``box_aspect``: the reference aspect, fixed by the first call (the main training data's
+        ``(N, 3)`` box ``sizes``) for every cache mixed in later; ``None`` without ``box_aspect``."""
+        if self.options.box_aspect and self.aspect is None:
+            self.aspect = median_box_aspect(sizes)
+        return self.aspect
+
+    def check_held_out(self, caches: Sequence[Any]) -> dict[str, Any]:
+        """:func:`check_held_out` of ``caches`` against the ``held_out`` option, in this backend's name."""
+        return check_held_out(caches, self.options.held_out, self.name)
+
+    def prepare(self, completer: TorchCompleter, data: Any, val_instances: Any, seed: int) -> None:
+        """The completer validates (and is saved) in the frame it is trained in."""
+        if self.options.box_aspect:
+            completer.box_aspect = self.aspect
+
+
 # --------------------------------------------------------------------------- completers
 
 

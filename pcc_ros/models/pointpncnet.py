@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -40,12 +40,12 @@ from torch import nn
 from pcc_ros.errors import ConfigError
 from pcc_ros.geometry.partitions import octant_masks
 from pcc_ros.models.base import (
+    CacheRecipe,
+    CacheTrainOptions,
     SceneContext,
     TorchCompleter,
     aspect_scales,
     cache_origin,
-    check_held_out,
-    median_box_aspect,
     resample_cloud,
 )
 from pcc_ros.models.layers import (
@@ -353,8 +353,9 @@ def remove_regions(
 
 
 @dataclass
-class TrainOptions:
-    """Training hyper-parameters of PointPnCNet (stored in the checkpoint's ``training``)."""
+class TrainOptions(CacheTrainOptions):
+    """Training hyper-parameters of PointPnCNet (stored in the checkpoint's ``training``; its ``box_aspect``
+    and ``held_out`` are :class:`~pcc_ros.models.base.CacheTrainOptions`)."""
 
     drop_prob: float = 0.2
     beta: float = 0.25
@@ -365,9 +366,6 @@ class TrainOptions:
     #: cap on training input points (``None``: the model's ``max_input_points``); a lower cap
     #: trades a little density for speed on a CPU, the max-pooled encoder does not care much.
     input_points: int | None = None
-    #: train in the box-aspect frame (``Completer.box_aspect``): every view's y / z scaled so its
-    #: box has the median aspect of the training split's boxes, recorded in the checkpoint
-    box_aspect: bool = False
     #: inputs and targets from different crops of the same observation: ``None`` (default) uses
     #: each view whole as the pseudo ground truth; a number takes as targets only the view's points
     #: inside its box grown by this many metres with the lowest ``target_ground_margin`` metres
@@ -377,9 +375,6 @@ class TrainOptions:
     #: crops' targets (the car's own returns), so the network learns to leave the frame out.
     target_margin: float | None = None
     target_ground_margin: float = 0.1
-    #: source datasets (paths) that must not reach training (the real evaluation's own data): a
-    #: training cache extracted from one of them is refused; recorded in the checkpoint
-    held_out: list[str] = field(default_factory=list)
 
 
 def target_flags(points: np.ndarray, size: np.ndarray, margin: float, ground_margin: float) -> np.ndarray:
@@ -516,21 +511,20 @@ def inpainting_loss(
     return loss, stats
 
 
-class PointPnCNetRecipe:
+class PointPnCNetRecipe(CacheRecipe):
     """What ``pcc train pointpncnet`` needs: model, loss and batch sampler.
 
     ``pcc_ros.train`` is generic: it asks the backend class for ``training_recipe(...)``
     (:meth:`PointPnCNet.training_recipe`) and drives any object with this shape.
     """
 
+    name = "pointpncnet"
+
     def __init__(self, size: str, inpainting: bool = True, options: TrainOptions | None = None) -> None:
-        self.size = size
-        self.options = options or TrainOptions()
+        super().__init__(size, options or TrainOptions())
         if not inpainting:
             self.options.drop_prob = 0.0
         self.inpainting = inpainting
-        #: the reference aspect (width / length, height / length), from the first training data
-        self.aspect: tuple[float, float] | None = None
         #: per training cache: its origin and crop, what was kept (``data_summary``)
         self.sources: list[dict[str, Any]] = []
         self.held_out: dict[str, Any] = {"sources": [], "checked_caches": []}
@@ -538,11 +532,8 @@ class PointPnCNetRecipe:
     def build_completer(self, device: str) -> PointPnCNet:
         return PointPnCNet(device=device, size=self.size)
 
-    def describe(self) -> dict[str, Any]:
-        out = {"size": self.size, "inpainting": self.inpainting, **self.options.__dict__}
-        if self.aspect is not None:
-            out["reference_aspect"] = list(self.aspect)
-        return out
+    def settings(self) -> dict[str, Any]:
+        return {"inpainting": self.inpainting}
 
     def data_summary(self) -> dict[str, Any]:
         """The caches trained on (origin, crop, observations kept), the held-out sources and the
@@ -551,11 +542,11 @@ class PointPnCNetRecipe:
         if self.options.target_margin is not None:
             target = {"margin": self.options.target_margin, "ground_margin": self.options.target_ground_margin}
         return {"sources": list(self.sources), "target_crop": target, "held_out": dict(self.held_out),
-                "box_aspect": None if self.aspect is None else list(self.aspect), "complete_shapes_used": False}
+                "box_aspect": self.aspect_record(), "complete_shapes_used": False}
 
     def _check_cache(self, cache: Any) -> dict[str, Any]:
         """Refuse a held-out cache and a cache whose crop lacks the targets' points; its origin."""
-        held = check_held_out([cache], self.options.held_out, "pointpncnet")
+        held = self.check_held_out([cache])
         self.held_out = {"sources": held["sources"],
                          "checked_caches": [*self.held_out["checked_caches"], *held["checked_caches"]]}
         origin = cache_origin(cache)
@@ -573,11 +564,6 @@ class PointPnCNetRecipe:
                                   "cache with a wider crop (pcc extract --node-crop) or narrow the targets")
         return origin
 
-    def prepare(self, completer: PointPnCNet, data: Any, val_instances: Any, seed: int) -> None:
-        """The completer validates (and is saved) in the frame it is trained in."""
-        if self.options.box_aspect:
-            completer.box_aspect = self.aspect
-
     def training_data(self, cache: Any, split: str, min_points: int = 10) -> list[list[np.ndarray]]:
         """Groups of canonical partial views from an instance cache (``pcc_ros.data.instances``).
 
@@ -594,10 +580,9 @@ class PointPnCNetRecipe:
         singles = [np.array([i]) for i in indices[~grouped[indices]]]
         sizes = np.asarray(cache.meta["box_size"], dtype=np.float64)
         scales = np.ones((len(cache), 3), dtype=np.float32)
-        if self.options.box_aspect:
-            if self.aspect is None:  # the first (main) training data fixes the reference for every cache mixed in
-                self.aspect = median_box_aspect(sizes[indices])
-            scales[indices] = aspect_scales(sizes[indices], self.aspect, len(indices))
+        aspect = self.fix_aspect(sizes[indices])  # the first (main) training data fixes it for every cache mixed in
+        if aspect is not None:
+            scales[indices] = aspect_scales(sizes[indices], aspect, len(indices))
         tm, tg = self.options.target_margin, self.options.target_ground_margin
 
         def view(i: int) -> np.ndarray:

@@ -57,13 +57,13 @@ from torch import nn
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.canonical import to_canonical
 from pcc_ros.models.base import (
+    CacheRecipe,
+    CacheTrainOptions,
     SceneContext,
     TorchCompleter,
     TrainingKit,
     aspect_scales,
     cache_origin,
-    check_held_out,
-    median_box_aspect,
     resample_cloud,
 )
 from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, masked_mean, nearest, weighted_chamfer
@@ -346,8 +346,11 @@ class TraPCC(TorchCompleter):
 
 
 @dataclass
-class TrainOptions:
-    """Training options of TraPCC (stored in the checkpoint's ``training.recipe``)."""
+class TrainOptions(CacheTrainOptions):
+    """Training options of TraPCC (stored in the checkpoint's ``training.recipe``; ``box_aspect`` and
+    ``held_out`` are :class:`~pcc_ros.models.base.CacheTrainOptions`'s: with ``box_aspect`` the pseudo-GT
+    is scaled like the inputs, while neighbour clouds stay in their own canonical frames, as the
+    pipeline's :class:`SceneContext` gives them; the held-out check covers the pool caches too)."""
 
     #: extra instance caches trained on together with ``--data`` (e.g. real KITTI / nuScenes)
     real_data: list[str] = field(default_factory=list)
@@ -374,18 +377,10 @@ class TrainOptions:
     chamfer: str = "l1"
     min_points_pool: int = 1024
     size_candidates: int = 8
-    #: train in the box-aspect frame (``Completer.box_aspect``, what the pipeline completes in):
-    #: inputs and pseudo-GT scaled in y / z so their boxes have the median aspect of the ``--data``
-    #: training boxes, recorded in the checkpoint; neighbour clouds stay in their own canonical
-    #: frames, as the pipeline's :class:`SceneContext` gives them
-    box_aspect: bool = False
     #: instance caches the pseudo-GT pools are built from instead of the training caches, e.g. the
     #: tight crops of the same recordings when the training inputs are cropped as the node crops
     #: (``pcc extract --node-crop``): inputs look like the node's, targets stay the car itself
     pool_data: list[str] = field(default_factory=list)
-    #: source datasets that must not reach training (e.g. what ``pcc eval --real`` scores): a
-    #: training or pool cache extracted from one of them is refused; recorded in the checkpoint
-    held_out: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -431,22 +426,20 @@ class TrainBatch:
         return TrainBatch(*t, self.batch_size, None if self.neighbours is None else self.neighbours.to(device), *rest)
 
 
-class TraPCCRecipe:
+class TraPCCRecipe(CacheRecipe):
     """What ``pcc train trapcc`` needs (see :mod:`pcc_ros.train`)."""
 
+    name = "trapcc"
     default_lr = 5e-4
 
     def __init__(self, size: str = "default", options: TrainOptions | None = None, **model: Any) -> None:
-        self.size = size
-        self.options = options or TrainOptions()
+        super().__init__(size, options or TrainOptions())
         if self.options.chamfer not in ("l1", "l2"):
             raise ConfigError(f"trapcc: chamfer must be l1 or l2, got {self.options.chamfer!r}")
         if not 0.0 <= self.options.real_share <= 1.0:
             raise ConfigError(f"trapcc: real_share must be in [0, 1], got {self.options.real_share}")
         self.model = model
         self.data_summary_: dict[str, Any] = {}
-        #: the reference aspect (width / length, height / length) of the box-aspect frame
-        self.aspect: tuple[float, float] | None = None
         #: caches and ground-truth pools come through :class:`TrainingKit` (set by ``pcc_ros.train``)
         self.kit: TrainingKit | None = None
 
@@ -460,16 +453,8 @@ class TraPCCRecipe:
     def build_completer(self, device: str) -> TraPCC:
         return TraPCC(device=device, size=self.size, **self.model)
 
-    def describe(self) -> dict[str, Any]:
-        out = {"size": self.size, **self.model, **self.options.__dict__}
-        if self.aspect is not None:
-            out["reference_aspect"] = list(self.aspect)
-        return out
-
-    def prepare(self, completer: TraPCC, data: Any, val_instances: Any, seed: int) -> None:
-        """The completer validates (and is saved) in the frame it is trained in."""
-        if self.options.box_aspect:
-            completer.box_aspect = self.aspect
+    def settings(self) -> dict[str, Any]:
+        return dict(self.model)
 
     def data_summary(self) -> dict[str, Any]:
         return dict(self.data_summary_)
@@ -485,7 +470,7 @@ class TraPCCRecipe:
         kit = TrainingKit.require(self.kit, "trapcc")
         caches = [cache, *(self._open(kit, path, "real_data") for path in self.options.real_data)]
         pool_caches = [self._open(kit, path, "pool_data") for path in self.options.pool_data] or caches
-        held_out = check_held_out([*caches, *pool_caches], self.options.held_out, "trapcc")
+        held_out = self.check_held_out([*caches, *pool_caches])
         pool_cfg = kit.pool_config(min_points=int(self.options.min_points_pool),
                               min_half_points=int(self.options.min_points_pool) // 2,
                               size_candidates=int(self.options.size_candidates))
@@ -496,9 +481,8 @@ class TraPCCRecipe:
                               f"the >= {pool_cfg.min_points} points + evenness test); add tracked data")
         cfg = {**PRESETS[self.size], **self.model}
         k, radius = int(cfg["k_neighbours"]), float(cfg["radius"])
-        if self.options.box_aspect and self.aspect is None:  # the main training data fixes the reference
-            self.aspect = median_box_aspect(np.asarray(cache.meta["box_size"])[cache.indices(split,
-                                                                                             min_points=min_points)])
+        if self.options.box_aspect:  # the main training data fixes the reference
+            self.fix_aspect(np.asarray(cache.meta["box_size"])[cache.indices(split, min_points=min_points)])
         clouds, nb_clouds, whole, front, back, real, nbs, geos = [], [], [], [], [], [], [], []
         per_source = []
         for s, c in enumerate(caches):
@@ -542,7 +526,7 @@ class TraPCCRecipe:
             "pools": {p: pools.stats.get(p) for p in ("whole", "front", "back")},
             "pool_folder": str(folder),
             "pool_sources": [{"cache": str(c.root), **cache_origin(c)} for c in pool_caches],
-            "held_out": held_out, "box_aspect": None if self.aspect is None else list(self.aspect),
+            "held_out": held_out, "box_aspect": self.aspect_record(),
             "complete_shapes_used": False,
         }
         self.data_summary_ = data.summary
