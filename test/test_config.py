@@ -85,3 +85,15 @@ def test_overrides_are_checked_like_the_file(tmp_path):
     with pytest.raises(ConfigError, match=r"completion\.yaml: parameter 'device' must be a string"):
         load_parameters(None, False, device=3)
     assert load_parameters(None, False, device=None)["device"] == load_parameters()["device"]  # None: the file's
+
+
+def test_a_file_is_parsed_once_and_an_override_does_not_hide_its_bad_value(tmp_path, monkeypatch):
+    path = tmp_path / "bad.yaml"
+    path.write_text("/**/completion_node:\n  ros__parameters:\n    backend: 3\n")
+    with pytest.raises(ConfigError, match=r"bad\.yaml: parameter 'backend' must be a string"):
+        load_parameters(path, backend="mirror")  # the file is what a node would refuse
+    path.write_text("/**/other_node:\n  ros__parameters:\n    min_points: 7\n")
+    parses = []
+    monkeypatch.setattr(yaml, "safe_load", lambda text: parses.append(text) or yaml.load(text, yaml.SafeLoader))
+    values = load_parameters(path, backend="mirror")  # no completion_node block: the file's first block
+    assert values["min_points"] == 7 and values["backend"] == "mirror" and len(parses) == 1

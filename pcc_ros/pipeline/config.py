@@ -164,17 +164,32 @@ def read_parameters(path: str | Path, node_name: str | None = None) -> dict[str,
     block of the file is read.
     """
     path = Path(path)
+    return _node_block(_read_document(path), path, node_name)
+
+
+def _read_document(path: Path) -> dict[str, Any]:
+    """A parameter file's YAML: a non-empty map of node blocks, or a :class:`ConfigError` naming the file."""
     try:
         document = yaml.safe_load(path.read_text()) or {}
     except (OSError, yaml.YAMLError) as exc:
         raise ConfigError(f"{path}: cannot read parameter file ({exc})") from exc
     if not isinstance(document, dict) or not document:
         raise ConfigError(f"{path}: no node in parameter file")
+    return document
+
+
+def _block_keys(node_name: str) -> list[str]:
+    """The keys of a parameter file that apply to ``node_name``, least specific first."""
+    return ["/**", f"/**/{node_name}", node_name, f"/{node_name}"]
+
+
+def _node_block(document: dict[str, Any], path: Path, node_name: str | None) -> dict[str, Any]:
+    """:func:`read_parameters` of a parsed file."""
     if node_name is None:
         keys = [next(iter(document))]
         node_name = keys[0].rsplit("/", 1)[-1]
     else:
-        keys = ["/**", f"/**/{node_name}", node_name, f"/{node_name}"]
+        keys = _block_keys(node_name)
     values: dict[str, Any] = {}
     found = False
     for key in keys:
@@ -432,19 +447,21 @@ def unknown_parameters(names) -> list[str]:
     )
 
 
-def node_parameters(values: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Every node parameter: the defaults of the parameter table overridden by ``values``.
+def node_parameters(values: dict[str, Any] | None = None, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Every node parameter: the defaults of the parameter table overridden by ``values``, then
+    by ``overrides`` (both checked, e.g. a file's values and the command line's).
 
     Each value is checked against its spec (type, range, choices); an unknown name or a bad
     value raises :class:`ConfigError` naming the parameter.
     """
     specs = parameter_specs()
-    values = {k: v for k, v in (values or {}).items() if k not in ROS_OWN_PARAMETERS}
-    unknown = unknown_parameters(values)
+    layers = [{k: v for k, v in (given or {}).items() if k not in ROS_OWN_PARAMETERS} for given in (values, overrides)]
+    unknown = unknown_parameters([name for layer in layers for name in layer])
     if unknown:
         raise ConfigError(f"unknown node parameter(s): {unknown} (see docs/nodes.md for the list)")
     merged = {name: spec.default for name, spec in specs.items()}
-    merged.update({name: check_value(specs[name], value) for name, value in values.items()})
+    for layer in layers:
+        merged.update({name: check_value(specs[name], value) for name, value in layer.items()})
     merged["classes"] = list(merged["classes"])
     return merged
 
@@ -477,10 +494,17 @@ def shipped_config_dir() -> Path:
 def load_file(path: str | Path, node_name: str | None = None) -> dict[str, Any]:
     """The checked node parameters of a YAML parameter file (its ``node_name`` blocks when the
     file has them, else its first block); errors name the file."""
-    path = Path(path)
-    values = read_parameters(path, node_name if node_name and _has_block(path, node_name) else None)
+    return _checked_file(Path(path), node_name)
+
+
+def _checked_file(path: Path, node_name: str | None, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """:func:`load_file` with ``overrides`` on top of the file's values, every value checked once."""
+    document = _read_document(path)
+    if node_name and not any(key in document for key in _block_keys(node_name)):
+        node_name = None  # a file without the node's blocks: its first block
+    values = _node_block(document, path, node_name)
     try:
-        return node_parameters(values)
+        return node_parameters(values, overrides)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from exc
 
@@ -490,16 +514,12 @@ def load_parameters(config: str | Path | None = None, with_filter: bool = False,
     YAML file (default: the shipped one) plus ``overrides`` (``None`` values ignored).
 
     Every value goes through the nodes' own parameter check, so a file a node would refuse
-    (unknown key, wrong type, value out of range) is refused here with the same message.
+    (unknown key, wrong type, value out of range) is refused here with the same message, also
+    where an override replaces the bad value.
     """
     mode = "filter" if with_filter else "completion"
     path = Path(config) if config is not None else shipped_config_dir() / CONFIG_FILES[mode]
-    values = load_file(path, NODE_NAMES[mode])
-    values.update({k: v for k, v in overrides.items() if v is not None})
-    try:
-        return node_parameters(values)
-    except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from exc
+    return _checked_file(path, NODE_NAMES[mode], {k: v for k, v in overrides.items() if v is not None})
 
 
 def load_config(
@@ -508,12 +528,3 @@ def load_config(
     """The :class:`PipelineConfig` and ``sync_slop`` of :func:`load_parameters`."""
     values = load_parameters(config, with_filter, **overrides)
     return pipeline_config(values), float(values["sync_slop"])
-
-
-def _has_block(path: Path, node_name: str) -> bool:
-    try:
-        document = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError):
-        return True  # read_parameters names the problem
-    keys = ("/**", f"/**/{node_name}", node_name, f"/{node_name}")
-    return not isinstance(document, dict) or any(k in document for k in keys)
