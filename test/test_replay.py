@@ -81,3 +81,19 @@ def test_cli_replay_with_filter(kitti_bag, tmp_path, capsys):
 def test_shipped_config_loads_with_overrides():
     config, slop = load_config(None, with_filter=True, backend="mirror")
     assert config.backend == "mirror" and config.filter.match_threshold == 0.3 and slop > 0
+
+
+def test_a_bag_without_tf_loads_no_transforms_and_warns_nothing(kitti_bag, caplog):
+    """The KITTI sample has no /tf: reading its (empty) set of transform topics reads nothing.
+
+    rosbags reads *every* topic when asked for an empty list of connections; replay and the
+    demo then decoded each scan as a transform and warned once per message."""
+    from pcc_ros.data.bag import iter_messages, open_bag
+    from pcc_ros.runtime.bag import load_transforms
+    from pcc_ros.runtime.local import LocalGraph
+
+    with open_bag(kitti_bag) as reader:
+        assert list(iter_messages(reader, kitti_bag, [])) == []
+    caplog.set_level("WARNING")
+    assert load_transforms(LocalGraph(), kitti_bag) == 0
+    assert not [r for r in caplog.records if "transforms" in r.getMessage()]

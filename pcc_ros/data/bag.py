@@ -269,6 +269,8 @@ def iter_messages(reader: AnyReader, path: str | Path, connections: Iterable) ->
     index lists (``msgcount``): a damaged MCAP summary can make the reader skip a whole chunk
     without any error, which would otherwise be silent data loss."""
     connections = list(connections)
+    if not connections:  # rosbags reads every topic for an empty list; none asked for is none read
+        return
     messages = reader.messages(connections=connections)
     seen: Counter = Counter()
     while True:
