@@ -29,6 +29,7 @@ from pcc_ros.paths import shared_data_dir
 from pcc_ros.pipeline.config import load_config
 from pcc_ros.pipeline.core import Pipeline
 from pcc_ros.pipeline.filter import FilterConfig
+from pcc_ros.plotting import label_boxes
 from pcc_ros.runtime.bag import replay_bag
 from pcc_ros.tables import print_table
 from pcc_ros.types import Boxes, class_mask
@@ -197,31 +198,35 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(11, 9))
+    fig, ax = plt.subplots(figsize=(11, 9), dpi=110)  # the saved dpi: labels are placed in display space
     pts = frame.points
     near = (np.abs(pts[:, 0]) < 50) & (np.abs(pts[:, 1]) < 40) & (pts[:, 2] > -1.5)
     ax.scatter(pts[near, 0], pts[near, 1], s=0.2, c="0.7", linewidths=0, label="scan (ground removed)")
     done = result.completed_instance >= 0
+    # Completions in colours the box outlines do not use (green / orange / purple / red / grey mean decisions).
+    palette = np.array(["tab:blue", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"])
     ax.scatter(result.completed_points[done, 0], result.completed_points[done, 1], s=0.5,
-               c=result.completed_instance[done] % 10, cmap="tab10", linewidths=0)
+               c=palette[result.completed_instance[done] % len(palette)], linewidths=0)
     truth = truly_vehicle(result.detections, frame.ground_truth)
     styles = {
-        (True, False): ("tab:green", "-", "true, kept"),
-        (True, True): ("tab:orange", "-", "true, rejected"),
-        (False, False): ("tab:purple", "--", "false, kept"),
-        (False, True): ("tab:red", "--", "false, rejected"),
+        (True, "kept"): ("tab:green", "-", "true, kept"),
+        (True, "rejected"): ("tab:orange", "-", "true, rejected"),
+        (False, "kept"): ("tab:purple", "--", "false, kept"),
+        (False, "rejected"): ("tab:red", "--", "false, rejected"),
+        (True, "skipped"): ("0.35", ":", "not judged (skipped)"),
+        (False, "skipped"): ("0.35", ":", "not judged (skipped)"),
     }
     corners = box_corners(result.detections)[:, [0, 1, 2, 3, 0], :2] if len(result.detections) else []
     # The number the filter decided on: p_false (evidence rule) or the mismatch (trapcc rule).
     judged = result.filter_score if result.filter_score is not None else result.mismatch
-    used = set()
+    used, texts, colors = set(), [], []
     for i, c in enumerate(corners):
-        key = (bool(truth[i]), result.status[i] == "rejected")
+        key = (bool(truth[i]), str(result.status[i]))
         color, ls, name = styles[key]
-        ax.plot(c[:, 0], c[:, 1], color=color, ls=ls, lw=1.6, label=None if key in used else name)
-        used.add(key)
-        if np.isfinite(judged[i]):
-            ax.text(c[0, 0], c[0, 1], f"{judged[i]:.2f}", fontsize=7, color=color, clip_on=True)
+        ax.plot(c[:, 0], c[:, 1], color=color, ls=ls, lw=1.6, zorder=4, label=None if name in used else name)
+        used.add(name)
+        texts.append(f"{judged[i]:.2f}" if np.isfinite(judged[i]) else None)
+        colors.append(color)
     ax.plot([0], [0], marker=">", color="k", ms=10)
     ax.set_aspect("equal")
     ax.set_xlim(-50, 50)
@@ -230,6 +235,7 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
     ax.set_ylabel("y left (m)")
     ax.set_title(f"{title}\ncoloured points: completions; numbers: the filter's score (p_false, or mismatch)")
     ax.legend(loc="upper right", fontsize=8, markerscale=8)
+    label_boxes(ax, np.asarray(corners), texts, colors)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)

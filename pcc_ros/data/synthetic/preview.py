@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pcc_ros.geometry.boxes import box_corners
+from pcc_ros.plotting import label_boxes
 from pcc_ros.types import Boxes
 
 
@@ -36,7 +37,7 @@ def render_bev(
     """Write the BEV PNG: points by height, GT green, true detections blue, false red (with scores)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig, ax = plt.subplots(figsize=(11, 11))
+    fig, ax = plt.subplots(figsize=(11, 11), dpi=110)  # the saved dpi: labels are placed in display space
     sel = (np.abs(points[:, 0]) < extent) & (np.abs(points[:, 1]) < extent)
     p = points[sel]
     ax.scatter(p[:, 0], p[:, 1], s=0.15, c=np.clip(p[:, 2], -1.8, 1.0), cmap="Greys", vmin=-2.5, vmax=1.0,
@@ -48,10 +49,6 @@ def render_bev(
     true, false = detections[detection_true], detections[~detection_true]
     _outline(ax, true, "tab:blue", 1.0, "--", label=f"true detections ({len(true)})")
     _outline(ax, false, "tab:red", 1.2, "--", label=f"false detections ({len(false)})")
-    for boxes, color in ((true, "tab:blue"), (false, "tab:red")):
-        for c, s in zip(boxes.center, boxes.score):
-            if abs(c[0]) < extent and abs(c[1]) < extent:
-                ax.text(c[0], c[1] + 1.2, f"{s:.2f}", color=color, fontsize=7, ha="center")
     ax.plot([0], [0], marker=">", color="k", ms=10)
     ax.set_xlim(-extent, extent)
     ax.set_ylim(-extent, extent)
@@ -61,6 +58,10 @@ def render_bev(
     ax.set_title(title)
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
+    inside = (np.abs(detections.center[:, 0]) < extent) & (np.abs(detections.center[:, 1]) < extent)
+    shown = detections[inside]
+    label_boxes(ax, box_corners(shown)[:, 4:, :2], [f"{s:.2f}" for s in shown.score],
+                np.where(detection_true[inside], "tab:blue", "tab:red"))  # scores beside the boxes, none hidden
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

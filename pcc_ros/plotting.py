@@ -1,0 +1,92 @@
+"""Matplotlib helpers shared by the PNGs the tools write (``pcc demo``, SynthCars previews).
+
+:func:`label_boxes` puts one text label beside each box of a bird's-eye view so that no label
+sits inside a box (on top of that car's points, where a label in the box's colour vanishes),
+over another box, over another label or outside the axes: a row of parked cars or two
+overlapping detections still get every label, readable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+#: Where a label may go relative to its box's bird's-eye-view extent, tried in this order:
+#: (x anchor 0..1 over the box, y anchor, horizontal alignment, vertical alignment, x / y
+#: direction of the offset). Above first, then below, right, left, then the four corners.
+_SPOTS = (
+    (0.5, 1.0, "center", "bottom", 0, 1),
+    (0.5, 0.0, "center", "top", 0, -1),
+    (1.0, 0.5, "left", "center", 1, 0),
+    (0.0, 0.5, "right", "center", -1, 0),
+    (1.0, 1.0, "left", "bottom", 1, 1),
+    (0.0, 1.0, "right", "bottom", -1, 1),
+    (1.0, 0.0, "left", "top", 1, -1),
+    (0.0, 0.0, "right", "top", -1, -1),
+)
+
+
+def _overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Overlap areas of one display rectangle ``a`` (x0, y0, x1, y1) with rectangles ``b`` (M, 4)."""
+    if len(b) == 0:
+        return np.zeros(0)
+    w = np.minimum(a[2], b[:, 2]) - np.maximum(a[0], b[:, 0])
+    h = np.minimum(a[3], b[:, 3]) - np.maximum(a[1], b[:, 1])
+    return np.clip(w, 0, None) * np.clip(h, 0, None)
+
+
+def label_boxes(ax, corners: np.ndarray, texts: Sequence[str | None], colors: Sequence, fontsize: float = 7,
+                gap_px: float = 3.0) -> list:
+    """Draw ``texts[i]`` beside box ``i`` (``corners``: (N, K, 2) bird's-eye-view corners in data
+    units; ``None`` draws nothing) and return the text artists.
+
+    Each label takes the first spot around its box (above, below, right, left, the corners;
+    then the same twice as far out) that overlaps no box, no label placed before it, not the
+    legend and stays inside the axes; where every spot collides, the one with the least overlap. Call it after
+    the axes' limits, aspect and legend are set (it measures in display space)."""
+    fig = ax.figure
+    ax.apply_aspect()
+    renderer = fig.canvas.get_renderer()
+    to_display = ax.transData.transform
+    corners = np.asarray(corners, dtype=float).reshape(len(texts), -1, 2) if len(texts) else np.zeros((0, 4, 2))
+    shown = np.stack([to_display(c) for c in corners]) if len(corners) else np.zeros((0, 4, 2))
+    boxes = np.concatenate([shown.min(axis=1), shown.max(axis=1)], axis=1) if len(shown) else np.zeros((0, 4))
+    frame = ax.get_window_extent(renderer).extents
+    legend = ax.get_legend()  # drawn before: its corner is taken as well
+    placed: list[np.ndarray] = [np.array(legend.get_window_extent(renderer).extents)] if legend else []
+    artists = []
+    pad = 2.0  # pixels of the label's background beyond its glyphs
+    for i, text in enumerate(texts):
+        if text is None:
+            continue
+        x0, y0, x1, y1 = boxes[i]
+        artist = ax.text(0, 0, text, fontsize=fontsize, color=colors[i], zorder=6, clip_on=True,
+                         bbox={"boxstyle": f"square,pad={pad / fontsize:.3f}", "fc": "white", "ec": "none",
+                               "alpha": 0.8})
+        best, best_cost = None, np.inf
+        for reach in (1.0, 2.5):
+            for fx, fy, ha, va, dx, dy in _SPOTS:
+                anchor = np.array([x0 + fx * (x1 - x0) + dx * gap_px * reach,
+                                   y0 + fy * (y1 - y0) + dy * gap_px * reach])
+                artist.set_position(ax.transData.inverted().transform(anchor))
+                artist.set_ha(ha)
+                artist.set_va(va)
+                extent = np.asarray(artist.get_window_extent(renderer).extents) + np.array([-pad, -pad, pad, pad])
+                outside = max(frame[0] - extent[0], 0) + max(extent[2] - frame[2], 0) \
+                    + max(frame[1] - extent[1], 0) + max(extent[3] - frame[3], 0)
+                cost = (_overlap(extent, boxes).sum() + _overlap(extent, np.array(placed).reshape(-1, 4)).sum()
+                        + 1e3 * outside)
+                if cost < best_cost:
+                    best, best_cost = (artist.get_position(), ha, va, extent), cost
+                if cost == 0:
+                    break
+            if best_cost == 0:
+                break
+        position, ha, va, extent = best
+        artist.set_position(position)
+        artist.set_ha(ha)
+        artist.set_va(va)
+        placed.append(extent)
+        artists.append(artist)
+    return artists
