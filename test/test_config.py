@@ -81,6 +81,20 @@ def test_a_bad_file_is_refused_naming_the_file_and_the_parameter(tmp_path, line,
         node_parameters(read_parameters(path))  # what the node core does with the same values
 
 
+@pytest.mark.parametrize(("text", "message"), [
+    ("/**/completion_node:\n  ros__parameters:\n    min_points: [1\n", r"bad\.yaml:4:1: not valid YAML \(expected ','"),
+    ("/**/completion_node:\n\tros__parameters: {}\n", r"bad\.yaml:2:1: not valid YAML \(found character '\\t'"),
+    (None, r"bad\.yaml: cannot read parameter file \(No such file or directory\) — check the path"),
+])
+def test_an_unreadable_file_is_one_line_naming_file_and_line(tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    if text is not None:
+        path.write_text(text)
+    with pytest.raises(ConfigError, match=message) as caught:
+        load_parameters(path)
+    assert "\n" not in str(caught.value)
+
+
 def test_overrides_are_checked_like_the_file(tmp_path):
     with pytest.raises(ConfigError, match=r"completion\.yaml: parameter 'device' must be a string"):
         load_parameters(None, False, device=3)

@@ -171,8 +171,12 @@ def _read_document(path: Path) -> dict[str, Any]:
     """A parameter file's YAML: a non-empty map of node blocks, or a :class:`ConfigError` naming the file."""
     try:
         document = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read parameter file ({exc})") from exc
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read parameter file ({exc.strerror or exc}) — check the path") from exc
+    except yaml.YAMLError as exc:  # one line: where and what, not PyYAML's multi-line report
+        mark = getattr(exc, "problem_mark", None)
+        raise ConfigError(f"{path}{f':{mark.line + 1}:{mark.column + 1}' if mark else ''}: not valid YAML "
+                          f"({getattr(exc, 'problem', None) or exc}) — fix the file") from exc
     if not isinstance(document, dict) or not document:
         raise ConfigError(f"{path}: no node in parameter file")
     return document
