@@ -224,6 +224,7 @@ GENERATED_SUFFIX = "/generated"
 def evaluate_real(
     instances: list[dict[str, Any]], backends: list[str], checkpoints: dict[str, Path], device: str = "cpu",
     batch_size: int = 32, progress: bool = True, keep_input: bool = True, decode_density: int | None = None,
+    strict: bool = False,
 ) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
     """Complete every instance with every backend (batched, with the boxes' sizes) and score it.
 
@@ -233,7 +234,9 @@ def evaluate_real(
     Row ``NAME/generated`` scores the generated points alone (the network's own shape, what the
     filter's mismatch term reads). ``keep_input=False`` scores only the generated points, as
     ``NAME``. Backends that read scene context (TraPCC) get the other evaluated cars of the
-    frame as neighbours. ``decode_density``: the learned backends' (default: the node's)."""
+    frame as neighbours. ``decode_density``: the learned backends' (default: the node's).
+    A backend that does not load (no or a damaged checkpoint) is skipped with a warning, or
+    with ``strict`` (the backends and checkpoints the user named) raises."""
     results: dict[str, Any] = {}
     completions: dict[str, list[np.ndarray]] = {}
     partials = [i["partial"] for i in instances]
@@ -246,6 +249,8 @@ def evaluate_real(
             options = {"batch_size": batch_size, "decode_density": density} if cls.learned else {}
             completer = load_completer(name, checkpoints.get(name), device=device, **options)
         except (CheckpointError, BackendError) as exc:
+            if strict or name in checkpoints:
+                raise
             log.warning("%s: skipped (%s)", name, exc)
             results[name] = {"skipped": str(exc)}
             continue
@@ -383,7 +388,8 @@ def run_real(opts: RealEvalConfig) -> int:
              len({i["key"].split("@")[0] for i in instances}))
     device = "cpu" if opts.device == "auto" else opts.device
     results, completions = evaluate_real(instances, backends, checkpoints, device, opts.batch_size,
-                                         keep_input=opts.keep_input, decode_density=opts.decode_density)
+                                         keep_input=opts.keep_input, decode_density=opts.decode_density,
+                                         strict=bool(opts.backends))
     print_real_tables(results)
     verdict = criteria(results)
     for name, v in verdict.items():

@@ -180,3 +180,34 @@ def test_matched_labels_are_the_detector_rows_observations_with_label_boxes(shar
         np.testing.assert_allclose(inst["size"], same["size"])
     with pytest.raises(ConfigError, match="real-detections"):
         real_instances([src], matched_labels=True)
+
+
+def test_a_named_backend_that_does_not_load_is_an_error_not_a_skip(tmp_path, monkeypatch):
+    """`--backends pointpncnet --checkpoint pointpncnet=PATH` with a missing or damaged PATH fails
+    naming it (it used to print empty tables and exit 0); only the default 'every available
+    backend' run skips a backend whose shipped weights do not load."""
+    import pcc_ros.evaluate_real as er
+    from pcc_ros.errors import CheckpointError
+
+    missing = {"pointpncnet": tmp_path / "nope.safetensors"}
+    with pytest.raises(CheckpointError, match=r"nope\.safetensors"):  # a named checkpoint: always an error
+        er.evaluate_real([], ["input", "pointpncnet"], missing, progress=False)
+
+    def no_weights(name, checkpoint=None, **options):
+        raise CheckpointError(f"{name}.safetensors: checkpoint weights not found")
+
+    monkeypatch.setattr(er, "load_completer", no_weights)
+    results, _ = er.evaluate_real([], ["pointpncnet"], {}, progress=False)  # every available backend: skipped
+    assert "not found" in results["pointpncnet"]["skipped"]
+    with pytest.raises(CheckpointError, match=r"pointpncnet\.safetensors"):  # --backends named it: an error
+        er.evaluate_real([], ["pointpncnet"], {}, progress=False, strict=True)
+
+
+def test_pcc_eval_real_with_a_missing_checkpoint_fails_naming_it(shared_data, tmp_path, caplog):
+    from pcc_ros.cli.main import main
+
+    out = tmp_path / "real.json"
+    rc = main(["eval", "--real", "--real-sources", str(shared_data / "kitti_tracking"), "--backends", "pointpncnet",
+               "--checkpoint", f"pointpncnet={tmp_path / 'nope.safetensors'}", "--json", str(out)])
+    assert rc == 1 and "nope.safetensors" in caplog.text and "not found" in caplog.text
+    assert not out.exists()
