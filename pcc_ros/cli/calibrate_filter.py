@@ -16,6 +16,7 @@ import numpy as np
 
 from pcc_ros.detection_eval import default_config, load_kitti, parse_frames, write_json
 from pcc_ros.errors import ConfigError
+from pcc_ros.files import write_text
 from pcc_ros.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
 from pcc_ros.pipeline.filter import TERMS, FilterConfig
 
@@ -44,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, help="write the calibrated node YAML here")
     parser.add_argument(
         "--preset", choices=tuple(PRESETS), default="kitti",
-        help="what --out is for: kitti (the fitted sensor and score mapping) | nuscenes (HDL-32E sensor model, "
+        help="what --out is for: kitti (the fitted sensor model; writes score_mapping: identity, the shipped "
+        "files' convention: run a logit detector with score_mapping:=sigmoid) | nuscenes (HDL-32E sensor model, "
         "probability scores; the same physics weights: no real nuScenes detections to fit on)",
     )
     parser.add_argument("--json", type=Path, help="write weights, data sizes and the cross-validated figures here")
@@ -115,8 +117,10 @@ def run(args: argparse.Namespace) -> int:
         text = preset_yaml(args.base_config or default_config(), result["bias"], result["weights"], result["threshold"],
                            values, header)
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-        log.info("wrote %s", args.out)
+        write_text(args.out, text)
+        log.info("wrote %s (score_mapping: %s%s)", args.out, values["score_mapping"],
+                 "; these logits need score_mapping:=sigmoid / --score-mapping sigmoid where it is used"
+                 if values["score_mapping"] != args.score_mapping else "")
     if args.json:
         write_json(args.json, payload)
     return 0
