@@ -146,26 +146,63 @@ def run_with(setting: tuple[int, int], fn: Callable[[list], object], batch: list
         t.join()
 
 
-def linear_flops(model, call: Callable[[], object]) -> int:
-    """FLOPs of every ``nn.Linear`` call during ``call()`` (2 * rows * in * out), original path."""
+def linear_flops_by(parts: dict[str, Any], call: Callable[[], object]) -> dict[str, int]:
+    """FLOPs of every ``nn.Linear`` call inside each of ``parts`` (name -> module) during ``call()``
+    (2 * rows * in * out), on the original path: the network as defined."""
     import torch
 
     from pcc_ros.models.layers import reference_path
 
-    total = [0]
+    total = dict.fromkeys(parts, 0)
 
-    def hook(module, inputs, output):
+    def hook(module, inputs, output, name: str) -> None:
         rows = inputs[0].numel() // module.in_features
-        total[0] += 2 * rows * module.in_features * module.out_features
+        total[name] += 2 * rows * module.in_features * module.out_features
 
-    handles = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, torch.nn.Linear)]
+    handles = [lin.register_forward_hook(lambda m, i, o, name=name: hook(m, i, o, name))
+               for name, part in parts.items() for lin in part.modules() if isinstance(lin, torch.nn.Linear)]
     try:
         with reference_path():
             call()
     finally:
         for h in handles:
             h.remove()
-    return total[0]
+    return total
+
+
+def linear_flops(model, call: Callable[[], object]) -> int:
+    """FLOPs of every ``nn.Linear`` call during ``call()`` (2 * rows * in * out), original path."""
+    return linear_flops_by({"model": model}, call)["model"]
+
+
+def ceiling_calls(setting: tuple[int, int] = (1, 1)) -> dict[str, tuple[Callable[[], object], float]]:
+    """The matmul ceiling's calls, to time in the same rounds as what is compared with it:
+    ``torch.mm`` at each of :data:`CEILING_SHAPES` with a fresh and with a reused output, ~2
+    GFLOP per call, every worker of ``setting`` running them all; name -> (call, FLOPs per call)."""
+    import torch
+
+    workers = setting[0]
+    calls: dict[str, tuple[Callable[[], object], float]] = {}
+    for shape in CEILING_SHAPES:
+        m, k, n = shape
+        a, b = torch.randn(m, k), torch.randn(k, n)
+        reps = max(1, int(2e9 // (2 * m * k * n)))
+        flops = 2.0 * m * k * n * reps * workers
+        outs = [torch.empty(m, n) for _ in range(workers)]  # one reused output per worker
+        calls[f"mm{shape}"] = (lambda a=a, b=b, reps=reps: run_with(
+            setting, lambda _part: [torch.mm(a, b) for _ in range(reps)], [None] * workers), flops)
+        calls[f"mm{shape}_out"] = (lambda a=a, b=b, reps=reps, outs=outs: run_with(
+            setting, lambda part: [torch.mm(a, b, out=part[0]) for _ in range(reps)], outs), flops)
+    return calls
+
+
+def ceiling_rates(calls: dict[str, tuple[Callable[[], object], float]],
+                  times: dict[str, np.ndarray]) -> tuple[dict[str, float], dict[str, float]]:
+    """GFLOP/s of each ceiling call (names without the ``mm`` prefix) from its median and from
+    its fastest round; the ceiling is the highest of each."""
+    median = {name[2:]: flops / float(np.median(times[name])) / 1e9 for name, (_, flops) in calls.items()}
+    fastest = {name[2:]: flops / float(np.min(times[name])) / 1e9 for name, (_, flops) in calls.items()}
+    return median, fastest
 
 
 def recorded_matmuls(call: Callable[[], object]) -> list[tuple[int, int, int]]:
@@ -216,25 +253,12 @@ def part_times(completer, batch: list, repeat: int) -> list[dict[str, Any]]:
     forward hooks, median of ``repeat`` calls) and its share of the nominal FLOPs."""
     import time
 
-    import torch
-
-    from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, reference_path
+    from pcc_ros.models.layers import FoldingDecoder, PCNEncoder
 
     parts = [(n, m) for n, m in completer.model.named_children() if isinstance(m, PCNEncoder | FoldingDecoder)]
-    flops = dict.fromkeys([n for n, _ in parts], 0)
+    flops = linear_flops_by(dict(parts), lambda: completer.complete(batch))
     spent: dict[str, list[float]] = {n: [] for n, _ in parts}
     start: dict[str, float] = {}
-    handles = []
-    for name, part in parts:
-        for lin in (m for m in part.modules() if isinstance(m, torch.nn.Linear)):
-            handles.append(lin.register_forward_hook(lambda mod, inputs, output, name=name: flops.__setitem__(
-                name, flops[name] + 2 * inputs[0].numel() * mod.out_features)))
-    try:
-        with reference_path():
-            completer.complete(batch)
-    finally:
-        for h in handles:
-            h.remove()
     handles = []
     for name, part in parts:
         handles.append(part.register_forward_pre_hook(
@@ -272,17 +296,12 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     shapes = recorded_matmuls(lambda: completer.complete(batch))
     replay = matmul_replay(shapes)
     alts: dict[str, Callable[[], object]] = {"network": lambda: completer.complete(batch), "matmul_replay": replay}
-    reps = {shape: max(1, int(2e9 // (2 * np.prod(shape)))) for shape in CEILING_SHAPES}
-    for shape in CEILING_SHAPES:  # the ceiling as in section 2: the fastest of the two shapes, fresh or reused output
-        alts[f"mm{shape}_out"] = matmul_replay([shape] * reps[shape], weight_layout=False)
-        a, b = torch.randn(shape[0], shape[1]), torch.randn(shape[1], shape[2])
-        alts[f"mm{shape}"] = lambda a=a, b=b, n=reps[shape]: [torch.mm(a, b) for _ in range(n)]
+    ceiling_set = ceiling_calls()  # as in section 2: the fastest of the two shapes, fresh or reused output
+    alts.update({name: call for name, (call, _) in ceiling_set.items()})
     times = interleaved(alts, repeat)
     network, replayed = float(np.median(times["network"])), float(np.median(times["matmul_replay"]))
-    ceiling = max(2 * np.prod(shape) * reps[shape] / float(np.median(times[f"mm{shape}{suffix}"])) / 1e9
-                  for shape in CEILING_SHAPES for suffix in ("", "_out"))
-    ceiling_min = max(2 * np.prod(shape) * reps[shape] / float(np.min(times[f"mm{shape}{suffix}"])) / 1e9
-                      for shape in CEILING_SHAPES for suffix in ("", "_out"))
+    rates, fastest = ceiling_rates(ceiling_set, times)
+    ceiling, ceiling_min = max(rates.values()), max(fastest.values())
     replay_flops = sum(2 * m * k * n for m, k, n in shapes)
     # per layer shape (in x out; the rows of a chunk vary): its share of the replayed FLOPs and its
     # own rate (timed alone, same rounds)
@@ -363,8 +382,6 @@ def run(args: argparse.Namespace) -> dict:
         with reference_path():  # a process-wide switch: set it around the worker threads
             run_with(setting, completer.complete, batch)
 
-    ceiling_inputs = {shape: (torch.randn(shape[0], shape[1]), torch.randn(shape[1], shape[2]),
-                              torch.empty(shape[0], shape[2])) for shape in CEILING_SHAPES}
     settings = parse_threads(args.threads)
     densities = [int(d) for d in args.densities.split(",") if d.strip()]
     rows, per_setting, counts = [], {}, {}
@@ -388,21 +405,10 @@ def run(args: argparse.Namespace) -> dict:
                 "original": lambda s=setting: reference(s, batch32),
                 "fast": lambda s=setting: run_with(s, completer.complete, batch32),
             }
-            for shape, (a, b, o) in ceiling_inputs.items():  # fresh output and a reused one: the faster counts
-                reps = max(1, int(2e9 // (2 * np.prod(shape))))  # ~2 GFLOP per timed call
-                alts[f"mm{shape}"] = lambda s=setting, a=a, b=b, reps=reps: run_with(
-                    s, lambda _batch: [torch.mm(a, b) for _ in range(reps)], [None] * s[0])
-                outs = [o] + [torch.empty_like(o) for _ in range(setting[0] - 1)]  # one per worker
-                alts[f"mm{shape}_out"] = lambda s=setting, a=a, b=b, outs=outs, reps=reps: run_with(
-                    s, lambda part: [torch.mm(a, b, out=part[0]) for _ in range(reps)], outs)
+            ceiling_set = ceiling_calls(setting)  # fresh output and a reused one: the faster counts
+            alts.update({name: call for name, (call, _) in ceiling_set.items()})
             times = interleaved(alts, args.repeat)
-            mm_rates, mm_best = {}, {}
-            for shape in CEILING_SHAPES:
-                reps = max(1, int(2e9 // (2 * np.prod(shape))))
-                per_call = 2 * np.prod(shape) * reps * setting[0]  # every worker runs reps matmuls
-                for suffix in ("", "_out"):
-                    mm_rates[f"{shape}{suffix}"] = float(per_call / np.median(times[f"mm{shape}{suffix}"]) / 1e9)
-                    mm_best[f"{shape}{suffix}"] = float(per_call / np.min(times[f"mm{shape}{suffix}"]) / 1e9)
+            mm_rates, mm_best = ceiling_rates(ceiling_set, times)
             ceiling = max(mm_rates.values())
             orig, fast = summary_ms(times["original"]), summary_ms(times["fast"])
             fast_gflops = executed * len(batch32) / (fast["median_ms"] / 1e3) / 1e9

@@ -56,7 +56,7 @@ def test_scatter_segment_max_gradient_matches_segment_reduce():
 @pytest.mark.parametrize("widths2", [[32, 12], [12], [16, 24, 12]])
 def test_chunked_encoder_equals_reference(monkeypatch, widths1, widths2):
     """Segments longer than a chunk, empty segments, one or several mlp1 / mlp2 layers."""
-    monkeypatch.setattr(layers, "CHUNK_ROWS", 7)
+    monkeypatch.setattr(layers, "CHUNK_BYTES", 2000)  # a few rows per chunk
     torch.manual_seed(0)
     enc = PCNEncoder(widths1, widths2)
     points, segment = _packed(np.random.default_rng(2), [3, 0, 20, 1, 9, 0])
@@ -89,7 +89,7 @@ def test_training_path_is_differentiable_and_equals_reference():
 
 
 def test_chunked_folding_decoder_equals_reference(monkeypatch):
-    monkeypatch.setattr(layers, "DECODER_CHUNK_ROWS", 30)  # 30 // 20 points = 1 instance per chunk
+    monkeypatch.setattr(layers, "CHUNK_BYTES", 2800)  # 30 rows (23 floats each) // 20 points = 1 instance
     torch.manual_seed(0)
     dec = FoldingDecoder(12, [16], num_coarse=5, grid_size=2, fold_widths=[10, 10], grid_scale=0.05)
     code = torch.randn(3, 12)
@@ -99,6 +99,43 @@ def test_chunked_folding_decoder_equals_reference(monkeypatch):
             ref_coarse, ref_fine = dec(code)
     assert torch.equal(coarse, ref_coarse)
     torch.testing.assert_close(fine, ref_fine, rtol=1e-6, atol=1e-7)
+
+
+def test_folding_decoder_writes_into_a_strided_output(monkeypatch):
+    """``out``: a view of a bigger tensor, one code per row or several (the octants of a car)."""
+    monkeypatch.setattr(layers, "CHUNK_BYTES", 2800)  # several chunks
+    torch.manual_seed(0)
+    dec = FoldingDecoder(12, [16], num_coarse=5, grid_size=2, fold_widths=[10, 10], grid_scale=0.05)
+    code = torch.randn(6, 12)
+    with torch.no_grad(), reference_path():
+        _, ref = dec(code)  # (6, 20, 3)
+    for per_row in (1, 2, 3):
+        for fast in (True, False):
+            big = torch.full((6 // per_row, 7 + per_row * 20, 3), 9.0)
+            out = big[:, 7:]  # strided: the first 7 points of each row belong to someone else
+            with torch.no_grad(), reference_path(not fast):
+                _, fine = dec(code, out)
+            assert fine is out
+            torch.testing.assert_close(out.reshape(6, 20, 3), ref, rtol=1e-6, atol=1e-7)
+            assert torch.equal(big[:, :7], torch.full((6 // per_row, 7, 3), 9.0))  # untouched
+    with torch.no_grad(), pytest.raises(ValueError, match="out of shape"):
+        dec(code, torch.empty(4, 30, 3))  # 6 codes do not split into 4 rows
+
+
+def test_encoder_folded_constants_follow_parameter_updates():
+    """The composed weight and constant are kept between calls, until a parameter changes in place."""
+    torch.manual_seed(0)
+    enc = PCNEncoder([8, 16], [32, 12])
+    points, segment = _packed(np.random.default_rng(12), [7, 20, 3])
+    with torch.no_grad():
+        first = enc(points, segment, 3)
+        for p in (enc.point_proj.weight, enc.mlp1.net[-1].bias, enc.segment_proj.weight):
+            p.mul_(1.5)  # what an optimizer step or load_state_dict does: in place
+            fast = enc(points, segment, 3)
+            with reference_path():
+                ref = enc(points, segment, 3)
+            torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)
+        assert not torch.allclose(fast, first)
 
 
 @pytest.mark.slow
@@ -147,7 +184,7 @@ def test_worker_threads_return_the_same_completions_in_order():
 
 def test_multi_thread_chunking_equals_reference(monkeypatch):
     """With several intra-op threads the chunks grow (fewer barriers); values stay the same."""
-    monkeypatch.setattr(layers, "CHUNK_ROWS", 3)
+    monkeypatch.setattr(layers, "CHUNK_BYTES", 3 * 4 * (8 + 16 + 32 + 12))  # 3 rows
     monkeypatch.setattr(layers, "MULTI_THREAD_CHUNK_FACTOR", 4)  # 12-row chunks
     torch.manual_seed(0)
     enc = PCNEncoder([8, 16], [32, 12])
@@ -201,7 +238,7 @@ def test_segment_chunks_hold_whole_segments(rows):
 
 def test_chunked_encoder_with_unsorted_segments_equals_reference(monkeypatch):
     """Unsorted segment ids take the two-pass path over all points; the value is the same."""
-    monkeypatch.setattr(layers, "CHUNK_ROWS", 5)
+    monkeypatch.setattr(layers, "CHUNK_BYTES", 5 * 4 * (8 + 16 + 32 + 12))  # 5 rows
     torch.manual_seed(0)
     enc = PCNEncoder([8, 16], [32, 12])
     points, segment = _packed(np.random.default_rng(8), [4, 0, 13, 6])

@@ -26,12 +26,13 @@ import numpy as np
 import torch
 from torch import nn
 
-#: Rows per chunk of the fused inference path: a chunk's widest intermediate (rows x 256
-#: float32 = 1 MiB at 1024 rows) stays in a core's L2 cache instead of a (P, C) tensor that
-#: makes a round trip through memory (and page faults on every fresh allocation).
-CHUNK_ROWS = 1024
-#: Rows (output points) per chunk of the folding decoder's inference path.
-DECODER_CHUNK_ROWS = 4096
+#: Bytes of intermediates per chunk of the fused inference paths (one thread): a chunk's
+#: features (every layer's output for its rows, float32) stay in a core's L2 cache (2 MiB here)
+#: instead of ``(P, C)`` tensors that make a round trip through memory; a chunk's rows follow
+#: from the widths (the global encoder ~1100 rows, the narrow local one ~2000, the folding
+#: decoders 4096 / 9216 output points; measured with ``pcc bench complete``: narrower layers
+#: gain from longer chunks, fewer operators per point).
+CHUNK_BYTES = 5 << 19
 #: With several intra-op threads every operator is a parallel region ending in a barrier,
 #: and a barrier stalls whenever another process holds one of the cores: there, fewer and
 #: larger operators win (measured with ``pcc bench complete``), so chunks grow by this factor.
@@ -43,6 +44,11 @@ WORKSPACE_KEEP_BYTES = 16 << 20
 
 def _chunk_rows(rows: int) -> int:
     return rows if torch.get_num_threads() == 1 else rows * MULTI_THREAD_CHUNK_FACTOR
+
+
+def _rows_for(widths: Sequence[int]) -> int:
+    """Rows per chunk when each row has float32 intermediates of these ``widths`` (:data:`CHUNK_BYTES`)."""
+    return _chunk_rows(max(1, CHUNK_BYTES // (4 * max(1, sum(widths)))))
 
 _reference = False
 
@@ -164,11 +170,6 @@ def _mlp_into(
     return x
 
 
-def _scatter_max_(out: torch.Tensor, segment: torch.Tensor, values: torch.Tensor) -> None:
-    """``out[segment[i]] = max(out[segment[i]], values[i])`` channel-wise, in place."""
-    out.scatter_reduce_(0, segment[:, None].expand(-1, values.shape[1]), values, "amax")
-
-
 class SharedMLP(nn.Module):
     """Point-wise MLP (the 1x1 convolution of PointNet/PCN) over the last dimension.
 
@@ -243,8 +244,9 @@ class PCNEncoder(nn.Module):
             return points.new_zeros(s, self.out_dim)
         counts = torch.bincount(segment, minlength=s)
         nonempty = (counts > 0)[:, None]
-        rows = _chunk_rows(CHUNK_ROWS)
         first, rest = _linears(self.mlp1), _linears(self.mlp2)
+        rows = _rows_for([lin.out_features for lin in first] + [self.point_proj.out_features] +
+                         [lin.out_features for lin in rest])
         aligned = bool((segment[1:] >= segment[:-1]).all())
         if aligned:
             chunks = _segment_chunks(counts, rows)
@@ -253,48 +255,54 @@ class PCNEncoder(nn.Module):
         most = max(stop - start for start, stop, _, _ in chunks)
         ws = _workspace
         c1, hp = first[-1].out_features, self.point_proj.out_features
-        f = ws.get(self, "f", most if aligned else p, c1, points)
+        w1 = first[-1].weight  # (c1, c0)
+        composed = aligned and len(first) > 1 and w1.shape[1] < c1
         hidden = [ws.get(self, f"mlp1.{i}", most, lin.out_features, points) for i, lin in enumerate(first[:-1])]
         h = ws.get(self, "h", most, hp, points)
-        inner = [ws.get(self, f"mlp2.{i}", most, lin.out_features, points) for i, lin in enumerate(rest)]
+        inner = [ws.get(self, f"mlp2.{i}", most, lin.out_features, points) for i, lin in enumerate(rest[:-1])]
+        if not composed:  # (the composed path writes mlp1's output and mlp2's last into one buffer)
+            f = ws.get(self, "f", most if aligned else p, c1, points)
+            inner += [ws.get(self, f"mlp2.{len(rest) - 1}", most, self.out_dim, points)] if rest else []
         gp = ws.get(self, "gp", s, hp, points)
         g = points.new_full((s, c1), -torch.inf)  # max of mlp1 without its last bias
         pool = points.new_full((s, self.out_dim), -torch.inf)
         first_plan, rest_plan = _plan(first, last_bias=False), _plan(rest, last_bias=False)
         wp, wseg = self.point_proj.weight.t(), self.segment_proj.weight.t()
-        # h = W_p (f' + b1) + W_s (g' + b1) + b_p = W_p f' + W_s g' + const, f' and g' without b1
-        b1 = first[-1].bias
-        const = self.point_proj.bias if b1 is None else torch.addmv(
-            self.point_proj.bias, self.point_proj.weight + self.segment_proj.weight, b1)
+        wc, const = self._folded(composed)
+        idx = segment[:, None]  # the scatters' index, expanded to each width once per call
+        idx_g, idx_pool = idx.expand(p, c1), idx.expand(p, self.out_dim)
 
         def first_pass(start: int, stop: int, dest: torch.Tensor) -> None:
             _mlp_into(points[start:stop], first_plan, hidden, dest, last_relu=False)
-            _scatter_max_(g, segment[start:stop], dest)
+            g.scatter_reduce_(0, idx_g[start:stop], dest, "amax")
 
         def second_pass(start: int, stop: int, fc: torch.Tensor) -> None:
-            seg = segment[start:stop]
-            hc = torch.index_select(gp, 0, seg, out=h[: stop - start]).addmm_(fc, wp)  # in place: no gathered copy
+            hc = torch.index_select(gp, 0, segment[start:stop], out=h[: stop - start]).addmm_(fc, wp)  # in place
             if rest:
                 hc.relu_()
                 hc = _mlp_into(hc, rest_plan, inner[:-1], inner[-1][: stop - start], last_relu=False)
-            _scatter_max_(pool, seg, hc)
+            pool.scatter_reduce_(0, idx_pool[start:stop], hc, "amax")
 
-        w1 = first[-1].weight  # (c1, c0)
-        if aligned and len(first) > 1 and w1.shape[1] < c1:
+        if composed:
             # mlp1's last layer and the split layer's point half compose (no ReLU between them):
             # W_p f' = (W_p W1) t from mlp1's last hidden features t, c0 hp instead of c1 hp
-            # multiply-adds per point (fewer whenever c0 < c1)
-            w1t, wc = w1.t(), (self.point_proj.weight @ w1).t()
+            # multiply-adds per point (fewer whenever c0 < c1). f' is dead before the chunk's
+            # last layer writes, so the two share one buffer (a smaller working set in cache).
+            w1t = w1.t()
+            out_buf = ws.get(self, "out", most, max(c1, self.out_dim), points).view(-1)
+            hidden_plan, t_buf = first_plan[:-1], hidden[:-1]
             for start, stop, lo, hi in chunks:
-                r, seg = stop - start, segment[start:stop]
-                t = _mlp_into(points[start:stop], first_plan[:-1], hidden[:-1], hidden[-1][:r], last_relu=True)
-                _scatter_max_(g, seg, torch.mm(t, w1t, out=f[:r]))
+                r = stop - start
+                t = _mlp_into(points[start:stop], hidden_plan, t_buf, hidden[-1][:r], last_relu=True)
+                fc = torch.mm(t, w1t, out=out_buf[: r * c1].view(r, c1))
+                g.scatter_reduce_(0, idx_g[start:stop], fc, "amax")
                 torch.addmm(const, g[lo:hi], wseg, out=gp[lo:hi])  # the chunk's segments are complete now
-                hc = torch.index_select(gp, 0, seg, out=h[:r]).addmm_(t, wc)
+                hc = torch.index_select(gp, 0, segment[start:stop], out=h[:r]).addmm_(t, wc)
                 if rest:
                     hc.relu_()
-                    hc = _mlp_into(hc, rest_plan, inner[:-1], inner[-1][:r], last_relu=False)
-                _scatter_max_(pool, seg, hc)
+                    hc = _mlp_into(hc, rest_plan, inner, out_buf[: r * self.out_dim].view(r, self.out_dim),
+                                   last_relu=False)
+                pool.scatter_reduce_(0, idx_pool[start:stop], hc, "amax")
         elif aligned:
             for start, stop, lo, hi in chunks:
                 fc = f[: stop - start]
@@ -309,7 +317,25 @@ class PCNEncoder(nn.Module):
                 second_pass(start, stop, f[start:stop])
         if rest and rest[-1].bias is not None:
             pool += rest[-1].bias
-        return torch.where(nonempty, pool, 0.0)
+        return pool.masked_fill_(~nonempty, 0.0)
+
+    def _folded(self, composed: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
+        """The folded constants of :meth:`_forward_chunked`: ``(W_p W1)^T`` (``composed``; else
+        None) and the per-segment half's constant ``b_p + (W_p + W_s) b1``, computed once and
+        kept until a parameter they depend on changes (its storage or its in-place version)."""
+        last = _linears(self.mlp1)[-1]
+        deps = (self.point_proj.weight, self.point_proj.bias, self.segment_proj.weight, last.weight, last.bias)
+        key = (composed, *((None, 0) if t is None else (t.data_ptr(), t._version) for t in deps))
+        cached = self.__dict__.get("_folded_cache")
+        if cached is not None and cached[0] == key:
+            return cached[1], cached[2]
+        with torch.no_grad():
+            wc = (self.point_proj.weight @ last.weight).t() if composed else None  # a transposed weight
+            b1 = last.bias
+            const = self.point_proj.bias.clone() if b1 is None else torch.addmv(
+                self.point_proj.bias, self.point_proj.weight + self.segment_proj.weight, b1)
+        self.__dict__["_folded_cache"] = (key, wc, const)
+        return wc, const
 
 
 def _segment_chunks(counts: torch.Tensor, rows: int) -> list[tuple[int, int, int, int]]:
@@ -345,6 +371,14 @@ def folding_grid(size: int, scale: float) -> torch.Tensor:
     t = torch.linspace(-scale, scale, size)
     gx, gy = torch.meshgrid(t, t, indexing="ij")
     return torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=1)
+
+
+def _fits(out: torch.Tensor, codes: int, points: int) -> bool:
+    """``out`` can hold ``codes`` decoded clouds of ``points`` points as ``(codes / m, m * points, 3)``."""
+    rows = out.shape[0] if out.dim() == 3 else -1
+    if rows <= 0 or out.shape[2] != 3:
+        return rows == 0 and codes == 0
+    return codes % rows == 0 and out.shape[1] == codes // rows * points
 
 
 class FoldingDecoder(nn.Module):
@@ -391,12 +425,20 @@ class FoldingDecoder(nn.Module):
         self.grid = folding_grid(size, self.grid_scale).to(self.grid.device, self.grid.dtype)
         self.num_points = self.num_coarse * self.grid.shape[0]
 
-    def forward(self, code: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``code`` ``(S, code_dim)`` -> ``(coarse (S, K, 3), fine (S, K*G, 3))``."""
+    def forward(self, code: torch.Tensor, out: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``code`` ``(S, code_dim)`` -> ``(coarse (S, K, 3), fine (S, K*G, 3))``.
+
+        ``out``: where ``fine`` is written, ``(S / m, m * K * G, 3)`` for a divisor ``m`` of ``S``
+        (``m`` consecutive codes per row: PointPnCNet's eight octants of a car), possibly a strided
+        view of a bigger tensor (the completer's output); ``fine`` is then ``out`` itself.
+        """
         s = code.shape[0]
         coarse = self.fc(code).view(s, self.num_coarse, 3)
+        if out is not None and not _fits(out, s, self.num_points):
+            raise ValueError(f"FoldingDecoder: out of shape {tuple(out.shape)} for {s} codes of "
+                             f"{self.num_points} points")
         if _fast_inference(self):
-            return coarse, self._fold_chunked(code, coarse)
+            return coarse, self._fold_chunked(code, coarse, out)
         h = (
             self.fold_code(code)[:, None, None, :]
             + self.fold_point(coarse)[:, :, None, :]
@@ -404,14 +446,17 @@ class FoldingDecoder(nn.Module):
         )
         offset = self.fold_mlp(torch.relu(h))
         fine = (coarse[:, :, None, :] + offset).reshape(s, -1, 3)
-        return coarse, fine
+        if out is None:
+            return coarse, fine
+        return coarse, out.copy_(fine.view(out.shape))
 
-    def _fold_chunked(self, code: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
+    def _fold_chunked(self, code: torch.Tensor, coarse: torch.Tensor, out: torch.Tensor | None) -> torch.Tensor:
         """Inference: the folding step a few instances at a time, intermediates in per-thread
-        buffers (:class:`_Workspace`). The last layer's bias is added to the coarse points
-        once, and each chunk's residual sum is written by the last product itself
-        (``fine = (coarse + b) + h W^T``; the same function, float rounding may differ in the
-        last bits)."""
+        buffers (:class:`_Workspace`). The last layer (a few output columns, where a product
+        ``rows x C @ C x 3`` runs far below the matmul rate) is computed transposed, ``W h^T``
+        ``(3, rows)``, and the residual sum ``fine = (coarse + b) + h W^T`` is one broadcast add
+        from it and the coarse points straight into the output (the same function; float
+        rounding may differ in the last bits)."""
         s, k = coarse.shape[:2]
         g = self.grid.shape[0]
         hdim = self.fold_point.out_features
@@ -422,24 +467,24 @@ class FoldingDecoder(nn.Module):
         grid = self.fold_grid(self.grid)  # (G, H)
         layers = _linears(self.fold_mlp)
         plan, last = _plan(layers[:-1]), layers[-1]
-        start_points = coarse if last.bias is None else coarse + last.bias
-        # every output point starts as its coarse point (+ the last bias): one row gather for the
-        # batch (a broadcast copy of 3-wide rows is several times slower)
-        rows = torch.arange(s * k, device=code.device)[:, None].expand(s * k, g).reshape(-1)
-        fine = torch.index_select(start_points.reshape(s * k, 3), 0, rows).view(s, k, g, 3)
-        step = max(1, _chunk_rows(DECODER_CHUNK_ROWS) // (k * g))
+        start_points = (coarse if last.bias is None else coarse + last.bias)[:, :, None, :]  # (S, K, 1, 3)
+        if out is None:
+            out = torch.empty(s, k * g, 3, dtype=coarse.dtype, device=coarse.device)
+        m = s // out.shape[0] if out.shape[0] else 1  # codes per row of out
+        step = max(1, _rows_for([hdim, *(lin.out_features for lin in layers)]) // (k * g * m)) * m
         most = min(step, s) * k * g
         h = ws.get(self, "h", most, hdim, code)
         hidden = [ws.get(self, f"fold.{i}", most, lin.out_features, code) for i, lin in enumerate(layers[:-1])]
-        wt = last.weight.t()
         for start in range(0, s, step):
             stop = min(start + step, s)
             n, r = stop - start, (stop - start) * k * g
             hc = h[:r]
             torch.add(base[start:stop, :, None, :], grid, out=hc.view(n, k, g, hdim)).relu_()
             x = _mlp_into(hc, plan, hidden, hidden[-1][:r], last_relu=True) if plan else hc
-            fine[start:stop].view(r, 3).addmm_(x, wt)
-        return fine.view(s, k * g, 3)
+            yt = torch.mm(last.weight, x.t(), out=ws.get(self, "yt", 3, r, code))  # (3, r)
+            dest = out[start // m : stop // m].view(n // m, m, k, g, 3)
+            torch.add(start_points[start:stop].view(n // m, m, k, 1, 3), yt.t().view(n // m, m, k, g, 3), out=dest)
+        return out
 
 
 # --------------------------------------------------------------------------- losses

@@ -38,7 +38,7 @@ import torch
 from torch import nn
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.geometry.partitions import octant_masks
+from pcc_ros.geometry.partitions import octant_index, octant_masks
 from pcc_ros.models.base import (
     CacheRecipe,
     CacheTrainOptions,
@@ -115,31 +115,24 @@ def region_masks(points: np.ndarray, overlap: float) -> np.ndarray:
     return np.asarray(octant_masks(points, overlap), dtype=bool)
 
 
-#: ``_OCTANT_BITS[axis, octant]``: octant ``o`` lies on the positive side of ``axis`` (the column
-#: order of :func:`pcc_ros.geometry.partitions.octant_masks`).
-_OCTANT_BITS = (np.arange(NUM_REGIONS)[None, :] >> np.arange(3)[:, None]) & 1
-
-
 def octant_pairs(points: np.ndarray, lengths: np.ndarray, overlap: float) -> tuple[np.ndarray, np.ndarray]:
     """Every (point, octant) membership of a packed batch, grouped by instance and octant.
 
     The same memberships as ``region_masks`` (``np.nonzero`` of it), without building and
-    scanning the ``(P, 8)`` mask: a point lies in the octant of its coordinates' signs, and
-    only points within ``overlap`` of a coordinate plane (a few per cent) belong to more.
+    scanning the ``(P, 8)`` mask for every point: a point lies in its own octant
+    (:func:`~pcc_ros.geometry.partitions.octant_index`), and only points within ``overlap`` of a
+    coordinate plane (a few per cent) belong to more, which
+    :func:`~pcc_ros.geometry.partitions.octant_masks` lists for those rows alone.
     Returns ``(point_index, local_segment)`` with ``local_segment = instance * 8 + octant``
     sorted ascending (a stable radix sort), so the local encoder gets whole segments in order.
     """
     p = len(points)
     segment = np.repeat(np.arange(len(lengths)), lengths)
-    x, y, z = points.T
-    core = (x >= 0).astype(np.int64) + 2 * (y >= 0) + 4 * (z >= 0)  # own octant (bit set: positive side)
+    core = octant_index(points)
     band = (points >= -overlap) & (points < overlap)  # on both sides of a plane
-    shared = band[:, 0] | band[:, 1] | band[:, 2]
-    rows = np.flatnonzero(shared)
+    rows = np.flatnonzero(band[:, 0] | band[:, 1] | band[:, 2])
     if len(rows):
-        near = points[rows]
-        sides = np.stack([near < overlap, near >= -overlap], axis=2)  # (k, 3, 2): [negative, positive] side
-        member = sides[:, 0, _OCTANT_BITS[0]] & sides[:, 1, _OCTANT_BITS[1]] & sides[:, 2, _OCTANT_BITS[2]]
+        member = octant_masks(points[rows], overlap)
         member[np.arange(len(rows)), core[rows]] = False  # the own octant is already listed
         extra_row, extra_octant = np.nonzero(member)
         point_index = np.concatenate([np.arange(p), rows[extra_row]])
@@ -205,6 +198,7 @@ class PointPnCNetNet(nn.Module):
         regions: torch.Tensor | None,
         batch_size: int,
         pairs: tuple[torch.Tensor, torch.Tensor] | None = None,
+        out: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Complete a packed batch.
 
@@ -215,6 +209,8 @@ class PointPnCNetNet(nn.Module):
             batch_size: number of instances ``B``.
             pairs: instead of ``regions``, its memberships as (point index, instance * 8 +
                 octant) sorted by the latter (:func:`octant_pairs`; inference).
+            out: ``(B, Mg + 8 Ml, 3)``, where both decoders write (the global points, then the
+                octants'); the returned clouds are then views of it.
 
         Returns:
             ``global (B, Mg, 3)``, ``local (B, 8, Ml, 3)`` and ``present (B, 8)`` (octants
@@ -239,11 +235,12 @@ class PointPnCNetNet(nn.Module):
         any_present = present.any(1, keepdim=True)
         fused = torch.where(any_present, torch.maximum(e_g, p_l), e_g)
 
-        _, y_global = self.global_decoder(fused)
+        mg = self.num_global_points
+        _, y_global = self.global_decoder(fused, None if out is None else out[:, :mg])
         code = torch.cat(
             [fused[:, None, :].expand(b, NUM_REGIONS, self.embed_dim), self.one_hot[None].expand(b, -1, -1)], dim=2
         ).reshape(b * NUM_REGIONS, -1)
-        _, y_local = self.local_decoder(code)
+        _, y_local = self.local_decoder(code, None if out is None else out[:, mg:])
         return y_global, y_local.view(b, NUM_REGIONS, -1, 3), present
 
 
@@ -323,10 +320,9 @@ class PointPnCNet(TorchCompleter):
     def forward_batch(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
         fast = not using_reference_path()  # the original path keeps its mask and sort (the comparison)
         packed = pack(self.prepare(clouds), float(self.config["region_overlap"]), pairs=fast).to(self.device)
-        y_global, y_local, _ = self.model(packed.points, packed.segment, packed.regions, packed.batch_size,
-                                          packed.pairs)
-        out = torch.cat([y_global, y_local.flatten(1, 2)], dim=1).float().cpu().numpy()
-        return list(out)
+        out = torch.empty(packed.batch_size, self.num_output_points, 3, device=self.device)
+        self.model(packed.points, packed.segment, packed.regions, packed.batch_size, packed.pairs, out=out)
+        return list(out.float().cpu().numpy())
 
 
 # --------------------------------------------------------------------------- training
