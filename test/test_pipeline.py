@@ -180,3 +180,38 @@ def test_shipped_backend_scores_false_detections_higher_on_synthcars(tmp_path):
         false_scores += result.mismatch[judged & ~truth].tolist()
     assert len(true_scores) > 10 and len(false_scores) > 2
     assert np.median(false_scores) > np.median(true_scores) + 0.2
+
+
+@pytest.mark.parametrize(("workers", "torch_threads", "expected"), [(1, 1, 1), (1, 2, 2), (3, 1, 3)])
+def test_filter_measures_on_as_many_threads_as_the_completion(monkeypatch, workers, torch_threads, expected):
+    """The evidence filter runs on the completion's CPU threads: ``workers``, or torch's intra-op
+    threads when ``workers`` is 1; its terms do not depend on that."""
+    import torch
+
+    import pcc_ros.pipeline.filter as filter_module
+
+    calls = []
+    measure = filter_module.evidence
+
+    def spy(points, boxes, sensor=None, workers=1):
+        calls.append(workers)
+        return measure(points, boxes, sensor, workers=workers)
+
+    monkeypatch.setattr(filter_module, "evidence", spy)
+    points, boxes = make_frame()
+    cfg = PipelineConfig(backend="input", min_points=10, workers=workers)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(torch_threads)
+    try:
+        result = Pipeline(cfg, completer=load_completer("input")).process(points, boxes)
+    finally:
+        torch.set_num_threads(previous)
+    assert calls == [expected]
+    single = Pipeline(PipelineConfig(backend="input", min_points=10, workers=1), completer=load_completer("input"))
+    torch.set_num_threads(1)
+    try:
+        reference = single.process(points, boxes)
+    finally:
+        torch.set_num_threads(previous)
+    np.testing.assert_array_equal(result.filter_score, reference.filter_score)
+    assert list(result.status) == list(reference.status)

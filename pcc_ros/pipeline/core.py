@@ -228,7 +228,7 @@ class Pipeline:
             judged_idx = candidates
             if len(judged_idx):
                 part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
-                                    workers=cfg.workers)
+                                    workers=filter_threads(cfg))
                 terms = {k: np.full(n, np.nan) for k in part}
                 for k, v in part.items():
                     terms[k][judged_idx] = v
@@ -359,6 +359,16 @@ def crop_budget(work: np.ndarray, boxes: Boxes, max_work: int) -> np.ndarray | N
     fits = np.zeros(len(boxes), dtype=bool)
     fits[order] = np.cumsum(work[order]) <= max_work
     return fits
+
+
+def filter_threads(cfg: PipelineConfig) -> int:
+    """CPU threads of the filter's measurements: as many as the completion had -- ``workers``,
+    or torch's intra-op threads when ``workers`` is 1 (the completion then runs on those)."""
+    if cfg.workers > 1:
+        return cfg.workers
+    import torch  # the completion's runtime (loaded with the backends)
+
+    return max(1, torch.get_num_threads())
 
 
 def _bounded_crop(points: np.ndarray, boxes: Boxes, cfg: PipelineConfig):

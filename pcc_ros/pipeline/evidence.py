@@ -189,10 +189,11 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
     """The ray index: the points whose ray from the sensor lies in some judged box's angular
     window (a superset of the rays that cross the box; :func:`evidence` tests them exactly).
 
-    One pass over the scan in its own precision gives every point's azimuth bin; only the
-    points in a bin some box needs (its azimuth sector, widened by one bin each way) go on:
-    their slope ``z / r`` (monotone in elevation), a radix sort into (azimuth, slope band)
-    bins; each box's azimuth bins expand into the contiguous run of its bands without a
+    Passes over the scan in its own precision give every point's azimuth bin and slope
+    ``z / r`` (monotone in elevation; contiguous passes cost less than gathering a subset's
+    coordinates); only the (azimuth, slope band) keys of the points in a bin some box needs
+    (its azimuth sector, widened by one bin each way) go into a radix sort; each box's
+    azimuth bins expand into the contiguous run of its bands without a
     Python loop, and the box's slope window (with a slack far above float32 rounding) is
     tested per pair. Non-finite points never pair.
 
@@ -222,36 +223,33 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
         _clamp(scaled, _AZ_BINS - 1, ws("nan", n, bool))  # NaN -> 0 (band 0 below: no box)
     key = ws("key", n, np.int16)
     np.copyto(key, scaled, casting="unsafe")  # truncation: the floor of these non-negative bins
-    # The boxes' azimuth sectors: the points outside them cannot pair (a table lookup), unless
-    # the sectors cover most of the circle (then selecting costs more than it saves).
-    wanted = np.zeros(_AZ_BINS, dtype=bool)
-    wanted[az_bin] = True
-    if np.count_nonzero(wanted) < _SUBSET_SHARE * _AZ_BINS:
-        sub = ws.nonzero(wanted.take(key, out=ws("want", n, bool), mode="clip"), "sub")
-        k = len(sub)
-        key = key.take(sub, out=ws("key_s", k, np.int16), mode="clip")
-        xs, ys, zs = (a.take(sub, out=ws(name, k, dt), mode="clip")
-                      for a, name in ((x, "xs"), (y, "ys"), (z, "zs")))
-    else:
-        sub, k, xs, ys, zs = None, n, x, y, z  # read only below
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.multiply(xs, xs, out=ws("r", k, dt))
-        tmp = ws("tmp", k, dt)
-        r += np.multiply(ys, ys, out=tmp)
+        r = np.multiply(x, x, out=ws("r", n, dt))
+        tmp = ws("tmp", n, dt)
+        r += np.multiply(y, y, out=tmp)
         np.sqrt(r, out=r)
         # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e
         # index paired it with the boxes at azimuth and elevation 0); straight up / down is
         # beyond every box's window; NaN points stay NaN.
         np.clip(r, np.finfo(dt).tiny, np.inf, out=r)
-        slope = np.divide(zs, r, out=r)
+        slope = np.divide(z, r, out=r)
         band = np.subtract(slope, dt(e0), out=tmp)
         band *= dt(1.0 / width)
         band += 1
-        _clamp(band, _EL_BANDS + 1, ws("nan", k, bool))  # NaN -> band 0: no box
-    band16 = ws("band", k, np.int16)
+        _clamp(band, _EL_BANDS + 1, ws("nan", n, bool))  # NaN -> band 0: no box
+    band16 = ws("band", n, np.int16)
     np.copyto(band16, band, casting="unsafe")
+    # The boxes' azimuth sectors: the points outside them cannot pair (a table lookup), unless
+    # the sectors cover most of the circle (then selecting costs more than it saves).
+    wanted = np.zeros(_AZ_BINS, dtype=bool)
+    wanted[az_bin] = True
+    sub = None
+    if np.count_nonzero(wanted) < _SUBSET_SHARE * _AZ_BINS:
+        sub = ws.nonzero(wanted.take(key, out=ws("want", n, bool), mode="clip"), "sub")
     key *= np.int16(_EL_BANDS + 2)
     key += band16
+    if sub is not None:
+        key = key.take(sub, out=ws("key_s", len(sub), np.int16), mode="clip")
     n_bins = _AZ_BINS * (_EL_BANDS + 2)
     order = np.argsort(key, kind="stable")
     starts = ws("starts", n_bins + 1, np.int64)
@@ -266,19 +264,15 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
     q = len(candidates)
     pair = order.take(candidates, out=ws("pair", q, np.int64), mode="clip")
     del order
+    if sub is not None:  # positions in the scan
+        pair = sub.take(pair, out=ws("pair_scan", q, np.int64), mode="clip")
     s = slope.take(pair, out=ws("s", q, dt), mode="clip")
     per_box = np.bincount(box_of_bin, weights=count, minlength=m).astype(np.int64)
-    bound = ws("bound", q, dt)
-    np.copyto(bound, np.repeat(s_lo.astype(dt), per_box))
     with np.errstate(invalid="ignore"):
-        keep = np.greater_equal(s, bound, out=ws("keep", q, bool))
-        np.copyto(bound, np.repeat(s_hi.astype(dt), per_box))
-        keep &= np.less_equal(s, bound, out=ws("keep2", q, bool))
+        keep = np.greater_equal(s, np.repeat(s_lo.astype(dt), per_box), out=ws("keep", q, bool))
+        keep &= np.less_equal(s, np.repeat(s_hi.astype(dt), per_box), out=ws("keep2", q, bool))
     kept = ws.nonzero(keep, "kept")
-    pair.take(kept, out=candidates[: len(kept)], mode="clip")
-    point = candidates[: len(kept)]
-    if sub is not None:
-        point = sub.take(point, out=ws("point", len(kept), np.int64), mode="clip")
+    point = pair.take(kept, out=candidates[: len(kept)], mode="clip")
     return point, np.searchsorted(kept, np.cumsum(per_box))
 
 
@@ -294,39 +288,31 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
 
     per_box = np.diff(box_ends, prepend=0)
 
-    def rep(values: np.ndarray, out: np.ndarray) -> np.ndarray:  # a per-box value on each of its pairs
-        np.copyto(out, np.repeat(values[boxes_idx], per_box))  # a transient array (cheaper than a gather)
-        return out
+    def rep(values: np.ndarray) -> np.ndarray:  # a per-box value on each of its pairs
+        return np.repeat(values[boxes_idx], per_box)  # a transient array (cheaper than a gather)
 
     a, b, d = (ws(name, p, f64) for name in ("r_a", "r_b", "r_d"))
     px, py, pz = (ws(name, p, f64) for name in ("r_px", "r_py", "r_pz"))
-    for column, out in ((x, px), (y, py), (z, pz)):
-        if column.dtype == f64:
-            column.take(point, out=out, mode="clip")
-        else:
-            np.copyto(out, column.take(point, out=ws("r_gather", p, column.dtype), mode="clip"))
     # Box-frame ray: origin (the sensor, one per box) + t * (point - origin); t = 1 at the return;
-    # the operations of to_box_local, then minus the origin.
-    px -= rep(boxes.center[:, 0], a)  # dx
-    py -= rep(boxes.center[:, 1], a)  # dy
-    pz -= rep(boxes.center[:, 2], a)  # local z
-    c, s = rep(table.cos, ws("r_c", p, f64)), rep(table.sin, ws("r_s", p, f64))
+    # the operations of to_box_local (on the point in float64), then minus the origin.
+    for column, centre, out in ((x, 0, px), (y, 1, py), (z, 2, pz)):
+        gathered = column.take(point, out=ws("r_gather", p, column.dtype), mode="clip")
+        np.subtract(gathered, rep(boxes.center[:, centre]), out=out, dtype=f64)  # dx, dy, local z
+    c, s = rep(table.cos), rep(table.sin)
     lx = np.multiply(c, px, out=ws("r_lx", p, f64))
     lx += np.multiply(s, py, out=a)
     ly = np.multiply(c, py, out=ws("r_ly", p, f64))
     ly -= np.multiply(s, px, out=a)
-    lx -= rep(table.origin[:, 0], a)
-    ly -= rep(table.origin[:, 1], a)
-    pz -= rep(table.origin[:, 2], a)
-    tin, tout, cin, cout = px, py, c, s  # free again
+    lx -= rep(table.origin[:, 0])
+    ly -= rep(table.origin[:, 1])
+    pz -= rep(table.origin[:, 2])
+    tin, tout, cin, cout = px, py, ws("r_cin", p, f64), ws("r_cout", p, f64)  # px, py free again
     with np.errstate(divide="ignore", invalid="ignore"):
         for axis, direction in enumerate((lx, ly, pz)):
             inv = np.divide(1.0, direction, out=direction)
             for (lo, hi), tmin, tmax in ((table.body, tin, tout), (table.core, cin, cout)):
-                rep(lo[:, axis], a)
-                a *= inv  # lo * inv
-                rep(hi[:, axis], b)
-                b *= inv
+                np.multiply(rep(lo[:, axis]), inv, out=a)  # lo * inv
+                np.multiply(rep(hi[:, axis]), inv, out=b)
                 # fmax / fmin skip the NaN of a ray parallel to a slab starting on its plane
                 if axis == 0:
                     np.minimum(a, b, out=tmin)
@@ -525,22 +511,21 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
                                                                                      (zs, "g_pz")))
     a, b = ws("g_a", q, dt), ws("g_b", q, dt)
 
-    def rep(values: np.ndarray, out: np.ndarray) -> np.ndarray:
-        np.copyto(out, np.repeat(values, box_pairs))  # a transient array (cheaper than a gather)
-        return out
+    def rep(values: np.ndarray) -> np.ndarray:
+        return np.repeat(values, box_pairs)  # a transient array (cheaper than a gather)
 
-    keep = np.greater_equal(pz, rep(zlo, a), out=ws("g_keep", q, bool))
+    keep = np.greater_equal(pz, rep(zlo), out=ws("g_keep", q, bool))
     flag = ws("g_qflag", q, bool)
-    keep &= np.less_equal(pz, rep(zhi, a), out=flag)
-    px -= rep(cx, a)  # dx
-    py -= rep(cy, a)  # dy
-    cb, sb = rep(c, ws("g_c", q, dt)), rep(s, ws("g_s", q, dt))
+    keep &= np.less_equal(pz, rep(zhi), out=flag)
+    px -= rep(cx)  # dx
+    py -= rep(cy)  # dy
+    cb, sb = rep(c), rep(s)
     lx = np.multiply(cb, px, out=a)
     lx += np.multiply(sb, py, out=b)
     ly = np.multiply(cb, py, out=cb)
     ly -= np.multiply(sb, px, out=b)
-    keep &= np.less_equal(np.abs(lx, out=lx), rep(hl, b), out=flag)
-    keep &= np.less_equal(np.abs(ly, out=ly), rep(hw, b), out=flag)
+    keep &= np.less_equal(np.abs(lx, out=lx), rep(hl), out=flag)
+    keep &= np.less_equal(np.abs(ly, out=ly), rep(hw), out=flag)
     # Non-members read +inf: the k-th smallest of a box's run is its k-th smallest member for
     # every k below its member count (no compaction of the pairs).
     np.copyto(pz, dt(np.inf), where=np.logical_not(keep, out=flag))
