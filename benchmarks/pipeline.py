@@ -10,8 +10,9 @@ arrays), frame after frame.
 1. Headline, 20 cars / 120k points, three alternatives interleaved frame by frame in one
    process on the same messages, for each thread setting (torch intra-op threads, and
    ``WxN``: ``W`` completion workers with ``N`` intra-op threads each, the pipeline's
-   ``workers`` parameter, which also runs the filter's ground and expected-returns terms on a second
-   thread):
+   ``workers`` parameter; the filter measures on as many threads as the completion has
+   (``pipeline.core.filter_threads``), its ground and expected-returns terms on a second thread
+   when that is 2 or more):
 
    * ``original`` -- today's pipeline: the network's original path
      (``pcc_ros.models.layers.reference_path``) and the crop, work estimate and evidence

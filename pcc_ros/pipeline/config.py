@@ -238,7 +238,7 @@ DESCRIPTIONS = {
                      "(the defaults 0.05 and 0.1 keep returns from 5 cm below the box bottom up)",
     "batch_size": "instances per backend batch (the GPU / CPU memory knob of learned backends)",
     "workers": "CPU threads completing shares of a frame's instances, one torch thread each (1: torch's threads); "
-               ">= 2 also measures the filter's ground and expected returns beside its rays",
+               "the filter measures on as many (2 or more: its ground and expected returns beside its rays)",
     "decode_density": "folding decoders (pointpncnet, trapcc) decode this many times finer per grid axis: denser "
     "completions (2: 2.25x the points)",
     "include_input_points": "also publish the raw scan points (instance -1, source observed) in the completed cloud",
