@@ -376,3 +376,46 @@ def test_mismatch_work_runs_only_when_its_weight_is_non_zero():
         assert len(calls) == expected_calls
         assert np.isfinite(result.mismatch[0]) == bool(weight)
         assert ("mismatch" in result.filter_terms and np.isfinite(result.filter_terms["mismatch"][0])) == bool(weight)
+
+
+def test_run_quantiles_equal_a_partition_of_each_run():
+    """The ground's per-box quantile (a sampled threshold, then only the values under it, or the
+    threshold itself on flat ground, or the whole run when the sample missed) equals
+    np.partition of each run: random runs, ties, flat runs, empty and member-less runs, runs
+    whose members the sample skips, and runs whose sample holds only their smallest values."""
+    from pcc_ros.pipeline.evidence import SAMPLE_STRIDE, run_quantiles
+
+    rng = np.random.default_rng(7)
+    runs = []
+    for kind in ["random", "ties", "flat", "empty", "none", "skipped", "low_sample"] * 6:
+        size = int(rng.integers(1, 3000)) if kind != "empty" else 0
+        v = rng.normal(-1.7, 0.3, size).astype(np.float32)
+        m = rng.random(size) < 0.7
+        if kind == "ties":
+            v = np.round(v, 1)
+        elif kind == "flat":
+            v[:] = np.float32(-1.73)
+            v[: size // 50] -= 0.5  # a few returns below the road
+        elif kind == "none":
+            m[:] = False
+        elif kind == "skipped":
+            m[::SAMPLE_STRIDE] = False
+        elif kind == "low_sample":
+            m[:] = True
+            v = np.sort(v)[::-1].copy()
+            v[::SAMPLE_STRIDE] = np.sort(v[::SAMPLE_STRIDE])[:len(v[::SAMPLE_STRIDE])] - 10.0
+        runs.append((v, m))
+    values = np.concatenate([v for v, _ in runs]).astype(np.float32)
+    member = np.concatenate([m for _, m in runs])
+    values[~member] = np.inf
+    ends = np.cumsum([len(v) for v, _ in runs])
+    members = np.array([m.sum() for _, m in runs])
+    for quantile in (0.05, 0.5, 0.0):
+        got = run_quantiles(values.copy(), member, ends, members, quantile)
+        for b, (v, m) in enumerate(runs):
+            if not m.any():
+                assert np.isnan(got[b])
+                continue
+            k = int(quantile * (m.sum() - 1))
+            lo = ends[b] - len(v)
+            assert got[b] == np.partition(values[lo:ends[b]], k)[k], (b, quantile)

@@ -530,11 +530,57 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     # every k below its member count (no compaction of the pairs).
     np.copyto(pz, dt(np.inf), where=np.logical_not(keep, out=flag))
     ends = np.cumsum(box_pairs)
-    members = _segment_counts(keep, ends).tolist()
-    for i, (start, end, count) in enumerate(zip([0, *ends[:-1].tolist()], ends.tolist(), members)):
-        if count:  # one partial sort per box (boxes, not points)
-            j = int(quantile * (count - 1))
-            out[i] = np.partition(pz[start:end], j)[j]
+    members = _segment_counts(keep, ends)
+    judged = np.flatnonzero(members)
+    out[judged] = run_quantiles(pz, keep, ends, members, quantile, ws)[judged]
+    return out
+
+
+#: Stride of the sample :func:`run_quantiles` takes its thresholds from.
+SAMPLE_STRIDE = 8
+
+
+def run_quantiles(values, member, ends, members, quantile: float, ws: Scratch | None = None) -> np.ndarray:
+    """Per run of ``values`` (laid end to end, ending at ``ends``; the non-``member`` values
+    +inf) with ``members`` > 0: its ``int(quantile * (members - 1))``-th smallest value, what
+    ``np.partition`` of the whole run gives (NaN for runs without members).
+
+    A threshold per run from every :data:`SAMPLE_STRIDE`-th value (about twice the wanted
+    rank in the sample), then one vectorised count of the run's values below and at it: when
+    the wanted rank falls among the values equal to the threshold (flat ground), that is the
+    answer; when below, only the values under the threshold (a small share) are partitioned;
+    otherwise (a sample that missed, rare) the whole run. Exact in every case."""
+    ws = ws or _SCRATCH
+    n = len(ends)
+    starts = ends - np.diff(ends, prepend=0)
+    rank = (quantile * (members - 1).astype(np.float64)).astype(np.int64)  # int(): truncation
+    threshold = np.full(n, np.inf)
+    bounds = list(zip(starts.tolist(), ends.tolist()))
+    for b in np.flatnonzero(members).tolist():  # one small partial sort per box (boxes, not points)
+        lo, hi = bounds[b]
+        sampled = int(np.count_nonzero(member[lo:hi:SAMPLE_STRIDE]))
+        if sampled:
+            k = min(2 * int(quantile * (sampled - 1)) + 2, sampled - 1)
+            threshold[b] = np.partition(values[lo:hi:SAMPLE_STRIDE], k)[k]
+    dt = values.dtype.type
+    lengths = ends - starts
+    limit = np.repeat(threshold.astype(dt), lengths)
+    q = len(values)
+    below = np.less(values, limit, out=ws("q_below", q, bool))  # members only (the others are +inf)
+    under = _segment_counts(below, ends)
+    at = _segment_counts(np.less_equal(values, limit, out=ws("q_at", q, bool)), ends)
+    out = np.full(n, np.nan)
+    finite = np.isfinite(threshold)
+    flat = finite & (under <= rank) & (rank < at)
+    out[flat] = threshold[flat]
+    chosen = values.take(ws.nonzero(below, "q_below_idx"), mode="clip")  # run by run
+    chosen_end = np.cumsum(under)
+    for b in np.flatnonzero(finite & (rank < under)).tolist():
+        part = chosen[chosen_end[b] - under[b]:chosen_end[b]]
+        out[b] = np.partition(part, rank[b])[rank[b]]
+    for b in np.flatnonzero((members > 0) & ~flat & ~(finite & (rank < under))).tolist():  # the sample missed
+        lo, hi = bounds[b]
+        out[b] = np.partition(values[lo:hi], rank[b])[rank[b]]
     return out
 
 
