@@ -26,3 +26,13 @@ def test_demo_runs_end_to_end(tmp_path, shared_data, capsys):
     for png in (out / "synthcars_demo.png", out / "kitti_demo.png"):
         assert png.stat().st_size > 10_000
     assert "SynthCars completion vs true shapes" in capsys.readouterr().out
+
+
+def test_demo_with_a_kitti_folder_that_is_not_there_fails_naming_it(tmp_path, caplog):
+    """`--kitti PATH` asked for by name: a missing PATH is an error before any work, not a demo
+    that quietly leaves out its real-data half and exits 0."""
+    out = tmp_path / "demo"
+    code = main(["demo", "--out", str(out), "--backend", "mirror", "--frames", "2", "--kitti", str(tmp_path / "nope")])
+    assert code == 1
+    assert "nope" in caplog.text and "no KITTI tracking data" in caplog.text
+    assert not (out / "demo.json").exists()
