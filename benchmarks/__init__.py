@@ -19,6 +19,8 @@ import importlib.util
 import pkgutil
 from pathlib import Path
 
+from pcc_ros.tables import plain_text
+
 
 def available() -> list[str]:
     """Benchmark names: every module of this package except the shared helpers."""
@@ -42,7 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def benchmark_parser(name: str, module) -> argparse.ArgumentParser:
     """The full parser of one benchmark (common options plus the module's own)."""
-    parser = argparse.ArgumentParser(prog=f"pcc bench {name}", description=(module.__doc__ or name).strip())
+    parser = argparse.ArgumentParser(  # the docstring's own paragraphs and lists, as written
+        prog=f"pcc bench {name}", description=plain_text((module.__doc__ or name).strip()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--json", type=Path, help="write the results to this JSON file")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     if hasattr(module, "add_arguments"):

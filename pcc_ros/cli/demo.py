@@ -13,13 +13,14 @@ from pcc_ros.demo import DemoConfig, demo
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
+    parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
     parser.add_argument("--backend", help="completion backend (default: the shipped config's)")
     parser.add_argument("--checkpoint", help="checkpoint of the backend (default: shipped weights)")
-    parser.add_argument("--frames", type=int, default=10, help="SynthCars frames")
-    parser.add_argument("--seed", type=int, default=2026, help="SynthCars seed")
+    parser.add_argument("--frames", type=int, default=10, help="SynthCars frames per sequence (default 10)")
+    parser.add_argument("--seed", type=int, default=2026, help="SynthCars seed (default 2026)")
     parser.add_argument("--kitti", type=Path, help="KITTI tracking root (default: ../shared/data/kitti_tracking)")
-    parser.add_argument("--baselines", default="input,mirror", help="baselines shown beside the backend")
+    parser.add_argument("--baselines", default="input,mirror",
+                        help="baselines shown beside the backend (default input,mirror)")
 
 
 def run(args: argparse.Namespace) -> int:

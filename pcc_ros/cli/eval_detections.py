@@ -1,4 +1,4 @@
-"""``pcc eval detections``: does the detection filter earn its place? The yardstick.
+"""Detection AP and the filter's operating curve against points-in-box and score (``pcc eval detections``).
 
 The command half of :mod:`pcc_ros.detection_eval` (which says what is measured): flags in,
 the library's loading, evaluation, report, plot and JSON out.

@@ -18,6 +18,7 @@ import traceback
 
 from pcc_ros import __version__
 from pcc_ros.errors import PccError
+from pcc_ros.tables import plain_text
 
 # name -> (module, one-line help). Keep sorted by workflow order.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -55,6 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pcc",
         description="pcc_ros offline tools: datasets, bags, training, evaluation, benchmarks.",
+        epilog="`pcc COMMAND --help` lists a command's options; `pcc eval detections` is `pcc eval-detections`. "
+        "Errors are one line (ERROR pcc: <file>: <what> — <what to do>); --debug adds the traceback. "
+        "The ROS 2 nodes: completion_node / detection_filter_node --help. Docs: README.md and docs/.",
     )
     parser.add_argument("--version", action="version", version=f"pcc_ros {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -62,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, text) in available_commands().items():
         module = importlib.import_module(module_name)
-        command = sub.add_parser(name, help=text, description=(module.__doc__ or text).strip().splitlines()[0])
+        summary = (module.__doc__ or text).strip().splitlines()[0]
+        command = sub.add_parser(name, help=text, description=plain_text(summary))
         module.add_arguments(command)
         command.set_defaults(_module=module)
     return parser

@@ -16,7 +16,9 @@ from pcc_ros.tables import print_table
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", type=Path, help="input rosbag2 (MCAP or sqlite3)")
     parser.add_argument("--out", type=Path, required=True, help="output bag")
-    parser.add_argument("--config", type=Path, help="node parameter YAML (default: the shipped config/*.yaml)")
+    parser.add_argument("--config", type=Path,
+                        help="node parameter YAML (default: the shipped completion.yaml; with --filter "
+                        "detection_filter.yaml)")
     parser.add_argument("--backend", help="override the config's backend")
     parser.add_argument("--checkpoint", help="override the config's checkpoint")
     parser.add_argument("--device", help="auto | cpu | cuda | cuda:N")
@@ -24,10 +26,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--score-mapping", choices=("identity", "sigmoid"),
         help="override the config's score_mapping (sigmoid for logits, e.g. PointRCNN)",
     )
-    parser.add_argument("--filter", action="store_true", help="also record the detection filter's outputs")
-    parser.add_argument("--points-topic", default="/points")
-    parser.add_argument("--detections-topic", default="/detections", help="e.g. /ground_truth to complete GT boxes")
-    parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    parser.add_argument("--filter", action="store_true",
+                        help="run with the detection filter node's parameters and also record its outputs "
+                        "(/detections_filtered, /detections_rejected, /filter_markers)")
+    parser.add_argument("--points-topic", default="/points", help="PointCloud2 topic of the bag (default /points)")
+    parser.add_argument("--detections-topic", default="/detections",
+                        help="Detection3DArray topic (default /detections; /ground_truth completes the labelled boxes)")
+    parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
+                        help="output bag storage (default mcap)")
     parser.add_argument("--no-copy-inputs", action="store_true", help="write only the pipeline outputs")
     parser.add_argument("--force", action="store_true", help="replace an existing output bag")
 
