@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -78,3 +79,24 @@ def test_completion_node_publishes_completed_cloud():
             if n is not None:
                 n.destroy_node()
         rclpy.try_shutdown()
+
+
+@pytest.mark.parametrize(("ros_args", "expected"), [
+    (["--params-file", "{tmp}/bad.yaml"], "bad.yaml:4:1: not valid YAML"),
+    (["--params-file", "{tmp}/missing.yaml"], "missing.yaml: cannot read parameter file (No such file or directory)"),
+    (["-p"], "Couldn't parse trailing -p flag"),
+])
+def test_a_bad_ros_args_line_stops_the_node_with_one_line_not_a_traceback(tmp_path, ros_args, expected):
+    """rclpy.init refuses a malformed parameter file or --ros-args line with its own RCLError; the
+    node says which file and line (as pcc replay does) and exits 1 instead of a Python traceback."""
+    require_rclpy()
+    (tmp_path / "bad.yaml").write_text("/**/completion_node:\n  ros__parameters:\n    min_points: [1\n")
+    code = "import sys; from pcc_ros.nodes.completion_node import main; sys.exit(main())"
+    args = [a.format(tmp=tmp_path) for a in ros_args]
+    out = subprocess.run([sys.executable, "-c", code, "--ros-args", *args], capture_output=True, text=True,
+                         timeout=120, cwd=tmp_path)
+    text = out.stdout + out.stderr
+    assert out.returncode == 1, text
+    assert "Traceback" not in text and expected in text, text
+    fatal = [line for line in text.splitlines() if "FATAL" in line]
+    assert len(fatal) == 1 and "/project/src" not in fatal[0], text

@@ -9,6 +9,9 @@ its siblings are the only ones that import rclpy.
 from __future__ import annotations
 
 import importlib
+import itertools
+import re
+import sys
 
 import rclpy
 from rcl_interfaces.msg import (
@@ -26,7 +29,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.time import Time
 
 from pcc_ros.errors import ConfigError, PccError
-from pcc_ros.pipeline.config import ParameterSpec, parameter_table
+from pcc_ros.pipeline.config import ParameterSpec, parameter_table, read_parameters
 from pcc_ros.runtime.base import QoS, Transform
 from pcc_ros.runtime.node import NodeCore, unknown_parameters
 
@@ -161,9 +164,25 @@ class PipelineNode(Node):
         super().destroy_node()
 
 
+def startup_error(exc: BaseException, argv: list[str]) -> str:
+    """One line for an ``rclpy.init`` failure: a ``--params-file`` that does not read names its
+    file and line as ``pcc replay`` does; anything else is rcl's text without its C source places."""
+    files = [value for flag, value in itertools.pairwise(argv) if flag == "--params-file"]
+    for path in files:
+        try:
+            read_parameters(path)
+        except ConfigError as problem:
+            return str(problem)
+    return re.sub(r",? at /\S+", "", str(exc)).strip() + " — check the --ros-args"
+
+
 def run(node_name: str, mode: str, args: list[str] | None = None) -> int:
     """``main()`` of both nodes: init, spin, clean shutdown on Ctrl-C / external shutdown."""
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except RuntimeError as exc:  # rclpy's RCLError (not exported): a bad --ros-args line or parameter file
+        rclpy.logging.get_logger(node_name).fatal(startup_error(exc, sys.argv if args is None else list(args)))
+        return 1
     node = None
     try:
         node = PipelineNode(node_name, mode)
