@@ -226,7 +226,7 @@ def flatten_parameters(values: dict[str, Any], prefix: str = "") -> dict[str, An
 RELIABILITIES = ("reliable", "best_effort")
 
 DESCRIPTIONS = {
-    "backend": "completion backend registered in pcc_ros.models (pointpncnet, input, densify, mirror)",
+    "backend": "completion backend (pcc_ros.models registry: pointpncnet, trapcc, aml, aml_ml, input, densify, mirror)",
     "checkpoint": "path of a .safetensors checkpoint; empty = the shipped default of the backend",
     "device": "auto, cpu, cuda or cuda:N (auto = the first GPU when CUDA is available)",
     "half_precision": "network weights and activations in float16 on CUDA, bfloat16 on CPU (learned backends)",
