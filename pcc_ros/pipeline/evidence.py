@@ -493,8 +493,6 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     np.cumsum(np.bincount(pkey, minlength=nx * ny), out=starts[1:])
     pts = pts.take(order, out=ws("g_sorted", k, np.int64), mode="clip")
     del order
-    xs, ys, zs = (a.take(pts, out=ws(name, k, dt), mode="clip")
-                  for a, name in ((x, "g_xs"), (y, "g_ys"), (z, "g_zs")))
     # A box's consecutive cells are one run of the sorted points.
     if len(key):
         new = np.ones(len(key), dtype=bool)
@@ -510,8 +508,9 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     pair = ws.runs(run_lo, length, "g_pair")
     q = len(pair)
     box_pairs = np.bincount(run_box, weights=length, minlength=n).astype(np.int64)
-    px, py, pz = (a.take(pair, out=ws(name, q, dt), mode="clip") for a, name in ((xs, "g_px"), (ys, "g_py"),
-                                                                                     (zs, "g_pz")))
+    pair = pts.take(pair, out=ws("g_pair_scan", q, np.int64), mode="clip")  # positions in the scan
+    px, py, pz = (a.take(pair, out=ws(name, q, dt), mode="clip") for a, name in ((x, "g_px"), (y, "g_py"),
+                                                                                   (z, "g_pz")))
     a, b = ws("g_a", q, dt), ws("g_b", q, dt)
 
     def rep(values: np.ndarray) -> np.ndarray:
