@@ -41,11 +41,14 @@ evaluation module; training batches come from the instance cache, which holds no
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import os
 import platform
 import time
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -121,11 +124,47 @@ def load_recipe(backend: str, size: str, options: dict[str, Any]) -> Any:
     cls = get_backend(backend)  # ConfigError for unknown names
     try:
         recipe = cls.training_recipe(size=size, **options)  # the base class refuses backends without weights
-    except TypeError as exc:
+    except (TypeError, ValueError) as exc:  # an unknown key, or a value a recipe cannot convert
         raise ConfigError(f"backend {backend!r}: invalid training options {sorted(options)}: {exc}") from exc
+    check_option_types(getattr(recipe, "options", None), backend)
     if hasattr(recipe, "kit"):  # a recipe that reads caches gets them (and validation) from here
         recipe.kit = training_kit()
     return recipe
+
+
+def _accepts(kind: Any, value: Any) -> bool | None:
+    """Whether ``value`` fits the annotation ``kind`` (None: a kind this check does not know)."""
+    if kind is type(None):
+        return value is None
+    if kind is bool:
+        return isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if kind is float:  # JSON writes 1.0 as 1: an integer is a float option's value too
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is str:
+        return isinstance(value, str)
+    if typing.get_origin(kind) in (list, tuple):
+        return isinstance(value, (list, tuple))
+    return None
+
+
+def check_option_types(options: Any, backend: str) -> None:
+    """Every field of a recipe's options dataclass against its annotation, so ``--option views=abc``
+    is refused naming the option and the type it needs, not a TypeError deep in training."""
+    if not dataclasses.is_dataclass(options):
+        return
+    hints = typing.get_type_hints(type(options))
+    for item in dataclasses.fields(options):
+        kind = hints.get(item.name)
+        kinds = typing.get_args(kind) if isinstance(kind, types.UnionType) or typing.get_origin(kind) is typing.Union \
+            else (kind,)
+        verdicts = [_accepts(k, getattr(options, item.name)) for k in kinds]
+        if None in verdicts or any(verdicts):
+            continue
+        names = " or ".join("null" if k is type(None) else getattr(k, "__name__", str(k)) for k in kinds)
+        raise ConfigError(f"backend {backend!r}: --option {item.name}={json.dumps(getattr(options, item.name))} "
+                          f"must be {names}")
 
 
 def training_kit() -> TrainingKit:

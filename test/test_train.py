@@ -130,6 +130,27 @@ def test_options_schedule_and_recipe_errors():
         load_recipe("pointpncnet", "default", {"bogus": 1})
 
 
+@pytest.mark.parametrize(("backend", "options", "message"), [
+    ("pointpncnet", {"views": "abc"}, r"--option views=\"abc\" must be int"),
+    ("pointpncnet", {"views": 2.5}, r"--option views=2.5 must be int"),
+    ("pointpncnet", {"box_aspect": 1}, r"--option box_aspect=1 must be bool"),
+    ("pointpncnet", {"input_points": "many"}, r"--option input_points=\"many\" must be int or null"),
+    ("trapcc", {"real_share": "half"}, r"invalid training options \['real_share'\]"),  # its own range check
+    ("trapcc", {"whole_loss_points": "two"}, r"--option whole_loss_points=\"two\" must be int"),
+    ("aml", {"real_repeat": "abc"}, r"invalid training options \['real_repeat'\]"),
+])
+def test_a_training_option_of_the_wrong_type_is_refused_naming_it(backend, options, message):
+    """`pcc train pointpncnet --option views=abc` was an internal TypeError at the first step."""
+    with pytest.raises(ConfigError, match=message):
+        load_recipe(backend, "default", options)
+
+
+def test_training_options_of_the_right_type_pass():
+    recipe = load_recipe("pointpncnet", "default", {"views": 2, "drop_prob": 0, "input_points": None,
+                                                    "box_aspect": True, "held_out": ["a"]})
+    assert recipe.options.views == 2 and recipe.options.drop_prob == 0
+
+
 @pytest.mark.slow
 def test_torchrun_two_processes_gloo(tiny_cache, tmp_path):
     """DistributedDataParallel under torchrun (two CPU processes, gloo): rank 0 writes one run."""
