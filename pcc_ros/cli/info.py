@@ -145,6 +145,8 @@ def format_summary(s: dict) -> str:
         "topics:",
     ]
     width = max((len(t) for t in s["topics"]), default=0)
+    type_width = max((len(t["type"]) for t in s["topics"].values()), default=0)
+    count_width = max((len(str(t["count"])) for t in s["topics"].values()), default=0)
     for name, t in sorted(s["topics"].items()):
         extra = ""
         if "points_per_scan" in t:
@@ -156,7 +158,8 @@ def format_summary(s: dict) -> str:
         frames = ",".join(t["frame_ids"]) or "-"
         if t.get("undecodable"):
             extra += f"  UNDECODABLE {t['undecodable']}"
-        lines.append(f"  {name.ljust(width)}  {t['type']}  {t['count']} msgs  frame {frames}{extra}")
+        lines.append(f"  {name.ljust(width)}  {t['type'].ljust(type_width)}  {str(t['count']).rjust(count_width)} msgs"
+                     f"  frame {frames}{extra}")
     if s["tf"]:
         lines.append("tf:")
         lines.extend(f"  {e['topic']}: {e['parent']} -> {e['child']}" for e in s["tf"])
