@@ -16,7 +16,7 @@ from pcc_ros.data.bag import read_frames
 from pcc_ros.data.bag_writer import write_bag
 from pcc_ros.data.kitti import KittiObject, KittiTracking
 from pcc_ros.data.nuscenes import NuScenes
-from pcc_ros.data.sources import kind_of, open_frames
+from pcc_ros.data.sources import count_frames, kind_of, open_frames
 from pcc_ros.errors import DataError
 from pcc_ros.types import Sample
 
@@ -110,6 +110,16 @@ def test_bare_storage_file_and_sources(shared_data, tmp_path):
     assert next(open_frames(shared_data / "kitti_tracking", sequence="0000")).index == 0
     with pytest.raises(DataError, match="not a bag"):
         kind_of(shared_data / "nuscenes_sample")
+
+
+def test_count_frames_is_what_open_frames_yields(shared_data, tmp_path):
+    """The total of `pcc extract`'s progress bar (it had none: no ETA), from the index / file names."""
+    write_bag(KittiObject(shared_data / "kitti_object").frames(stop=3), tmp_path / "bag", progress=False)
+    for path, sequence in ((tmp_path / "bag", None), (tmp_path / "bag" / "bag.mcap", None),
+                           (shared_data / "kitti_object", None), (shared_data / "kitti_tracking", None),
+                           (shared_data / "kitti_tracking", "0000")):
+        assert count_frames(path, sequence) == sum(1 for _ in open_frames(path, sequence=sequence)), path
+    assert count_frames(shared_data / "nuscenes_mini") is None  # not known without reading the tables
 
 
 def test_refuses_overwrite_and_force_replaces(shared_data, tmp_path, caplog):

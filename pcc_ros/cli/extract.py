@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pcc_ros.data.instances import ExtractConfig, InstanceCache, extract_instances
-from pcc_ros.data.sources import open_frames
+from pcc_ros.data.sources import count_frames, open_frames
 from pcc_ros.errors import ConfigError
 from pcc_ros.pipeline.config import PipelineConfig
 
@@ -77,8 +77,9 @@ def run(args: argparse.Namespace) -> int:
                            ground_margin=ground_margin, val_fraction=args.val_fraction,
                            test_fraction=args.test_fraction)
     frames = open_frames(args.source, sequence=args.sequence, detections_dir=args.detections_dir)
+    total = None if args.no_progress else count_frames(args.source, args.sequence)  # the bar's total and ETA
     cache = extract_instances(frames, args.out, config, source=args.source, synthcars=args.synthcars,
-                              force=args.force, progress=not args.no_progress)
+                              force=args.force, progress=not args.no_progress, total=total)
     info = cache.info()
     log.info("%s: %d instances of %d tracks (%s)", args.out, info["instances"], info["tracks"],
              ", ".join(f"{k} {v}" for k, v in info["splits"].items()))

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
-from pcc_ros.data.bag import read_frames
+from pcc_ros.data.bag import open_bag, read_frames
 from pcc_ros.data.kitti import KittiObject, KittiTracking
 from pcc_ros.data.nuscenes import NuScenes
 from pcc_ros.errors import DataError
@@ -39,6 +39,25 @@ def kind_of(path: str | Path) -> str:
     if path.is_dir() and any((v / "scene.json").exists() for v in path.glob("v1.0-*")):
         return "nuscenes"
     raise DataError(f"{path}: not a bag, KITTI tracking / object directory or nuScenes root")
+
+
+def count_frames(path: str | Path, sequence: str | None = None) -> int | None:
+    """How many frames :func:`open_frames` will yield, for a progress bar's total, from the
+    bag's index or the KITTI scan files (no scan is read); ``None`` where it is not known
+    cheaply (nuScenes)."""
+    path = Path(path)
+    kind = kind_of(path)
+    if kind == "bag":
+        with open_bag(path) as reader:
+            return sum(c.msgcount or 0 for c in reader.connections if c.topic == "/points") or None
+    split = path / "training" if (path / "training" / "velodyne").is_dir() else path
+    velodyne = split / "velodyne"
+    if kind == "kitti-tracking":
+        folders = [velodyne / sequence] if sequence else [d for d in velodyne.iterdir() if d.is_dir()]
+        return sum(len(list(folder.glob("*.bin"))) for folder in folders if folder.is_dir())
+    if kind == "kitti-object":
+        return len(list(velodyne.glob("*.bin")))
+    return None
 
 
 def open_frames(
