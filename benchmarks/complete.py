@@ -36,8 +36,9 @@ is recorded):
    layers: few columns or rows per call run far below the square ceiling); ``1 - replay /
    network`` is the share of the network's time outside matrix products (max-pooling
    scatters, gathers, ReLUs, bias broadcasts, the folding adds, Python). Per layer shape
-   (in x out; a chunk's rows vary): calls, rows per call, its rate replayed alone (a separate
-   interleaved run) against that ceiling.
+   (in x out; a chunk's rows vary; the folding decoders' 3-wide last layers run transposed,
+   ``W h^T``, and show as in x rows, 3 rows per call): calls, rows per call, its rate
+   replayed alone (a separate interleaved run) against that ceiling.
 
 Targets (issue #19): fast >= 2x the original path's instances/s at batch 32, and >= 80 % of
 the matmul ceiling.
@@ -319,7 +320,7 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
                      "flop_share": flop / replay_flops, "ms": t * 1e3, "gflop_s": gflops,
                      "of_ceiling": gflops / ceiling})
     print_table("where the time goes (1 thread, batch 32): the network's matrix products replayed alone, "
-                "by layer shape (in x out)",
+                "by layer shape (in x out; the decoders' transposed 3-wide last layers: in x rows)",
                 rows)
     out = {
         "network_ms": network * 1e3, "matmul_replay_ms": replayed * 1e3, "ceiling_gflop_s": ceiling,
