@@ -38,7 +38,12 @@ is recorded):
    scatters, gathers, ReLUs, bias broadcasts, the folding adds, Python). Per layer shape
    (in x out; a chunk's rows vary; the folding decoders' 3-wide last layers run transposed,
    ``W h^T``, and show as in x rows, 3 rows per call): calls, rows per call, its rate
-   replayed alone (a separate interleaved run) against that ceiling.
+   replayed alone (a separate interleaved run) against that ceiling. Then every operator the
+   network runs (``torch.profiler`` over ``--repeat`` batches, top-level ``aten`` operators with
+   their children, so an ``addmm``'s bias copy counts as the product): ms per batch, calls and
+   share, grouped as matrix products, max-pooling scatters, gathers, elementwise passes and
+   copies, and the rest (views, allocations, index bookkeeping); the profiler's own cost per
+   call inflates the many small operators, so the shares, not the sums, are the figure.
 
 Targets (issue #19): fast >= 2x the original path's instances/s at batch 32, and >= 80 % of
 the matmul ceiling.
@@ -289,6 +294,47 @@ def part_times(completer, batch: list, repeat: int) -> list[dict[str, Any]]:
              "nominal_flop_share": flops.get(name, 0) / all_flops} for name, share in shares.items()]
 
 
+#: How :func:`op_profile` groups the network's operators.
+OP_GROUPS = {
+    "matrix products": ("aten::mm", "aten::addmm", "aten::addmm_", "aten::linear", "aten::matmul", "aten::addmv"),
+    "max-pooling scatters": ("aten::scatter_reduce_", "aten::scatter_reduce", "aten::segment_reduce"),
+    "gathers": ("aten::index_select", "aten::index"),
+    "elementwise passes and copies": ("aten::add", "aten::add_", "aten::relu_", "aten::relu", "aten::clamp_min_",
+                                      "aten::mul", "aten::where", "aten::masked_fill_", "aten::masked_fill",
+                                      "aten::cat", "aten::copy_", "aten::softmax", "aten::sum", "aten::maximum"),
+}
+
+
+def op_profile(call: Callable[[], object], repeat: int) -> dict[str, Any]:
+    """Every top-level ``aten`` operator ``call()`` runs (``torch.profiler``, ``repeat`` calls):
+    ms per call (with its children: an ``addmm``'s bias copy counts as the product), calls per
+    call and share of the profiled operator time; by operator and by :data:`OP_GROUPS`."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(repeat):
+            call()
+    spent: dict[str, float] = {}
+    calls: dict[str, int] = {}
+    for event in prof.events():
+        if event.cpu_parent is None and event.name.startswith("aten::"):
+            spent[event.name] = spent.get(event.name, 0.0) + event.cpu_time_total / 1e3 / repeat
+            calls[event.name] = calls.get(event.name, 0) + 1
+    total = sum(spent.values()) or 1.0
+    group_of = {op: group for group, ops in OP_GROUPS.items() for op in ops}
+    groups: dict[str, dict[str, float]] = {}
+    for op, ms in spent.items():
+        row = groups.setdefault(group_of.get(op, "rest (views, allocations, bookkeeping)"), {"ms": 0.0, "calls": 0})
+        row["ms"] += ms
+        row["calls"] += calls[op] // repeat
+    ops = [{"op": op, "ms": ms, "calls": calls[op] // repeat, "share": ms / total,
+            "group": group_of.get(op, "rest (views, allocations, bookkeeping)")}
+           for op, ms in sorted(spent.items(), key=lambda kv: -kv[1])]
+    by_group = [{"group": g, "ms": r["ms"], "calls": r["calls"], "share": r["ms"] / total}
+                for g, r in sorted(groups.items(), key=lambda kv: -kv[1]["ms"])]
+    return {"groups": by_group, "ops": ops, "profiled_ms": total}
+
+
 def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) -> dict[str, Any]:
     """Section 5: the network against a replay of its own matrix products, one thread."""
     import torch
@@ -337,6 +383,10 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     out["parts"] = part_times(completer, batch, repeat)
     print_table("time per part of the network (1 thread, batch 32, fast path; FLOP share of the nominal count)",
                 out["parts"])
+    out["operators"] = op_profile(lambda: completer.complete(batch), repeat)
+    print_table(f"the network's operators by kind (torch.profiler, {repeat} batches; ms per batch with the "
+                "profiler's overhead, share of the profiled operator time)", out["operators"]["groups"])
+    print_table("its 12 costliest operators", out["operators"]["ops"][:12], ["op", "group", "ms", "calls", "share"])
     print(f"network {out['network_ms']:.1f} ms per batch = {out['network_gflop_s']:.1f} GFLOP/s "
           f"({out['network_of_ceiling']:.0%} of the ceiling {ceiling:.1f} GFLOP/s); its matrix products replayed "
           f"alone: {out['matmul_replay_ms']:.1f} ms = {out['replay_gflop_s']:.1f} GFLOP/s "
