@@ -17,7 +17,7 @@ from pcc_ros.pipeline.config import check_value, parameter_table
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig, build_outputs
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, QoS, Transform
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
-from pcc_ros.runtime.node import NodeCore, node_parameters, unknown_parameters
+from pcc_ros.runtime.node import OUTPUTS, NodeCore, node_parameters, output_names, unknown_parameters
 from pcc_ros.types import Boxes
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
@@ -118,6 +118,39 @@ def test_filter_node_publishes_kept_and_rejected_and_markers(graph):
     assert "c" in ids_rejected and "a" in ids_kept
     assert sorted(ids_kept + ids_rejected) == ["a", "b", "c"]
     assert core.frames == 1
+
+
+@pytest.mark.parametrize(("mode", "outputs"), [
+    ("completion", None), ("filter", None), ("filter", output_names("filter", with_completion=True)),
+])
+def test_a_node_builds_only_what_it_publishes(graph, monkeypatch, mode, outputs):
+    """Every published message equals the full build_outputs of the frame, and the outputs a node
+    does not publish are never built: a completion node neither copies nor moves the detection
+    messages (here in another frame than the scan), a filter node makes no completed cloud."""
+    import pcc_ros.pipeline.core as core_module
+
+    graph.set_transform("velodyne", "base_link", Transform((1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+    cloud, dets = _messages(1_000_000_000, frame="base_link")
+    transform = graph.transforms.lookup("velodyne", "base_link", 1_000_000_000)
+    result, originals = Pipeline(PipelineConfig(backend="mirror")).process_messages(cloud, dets, transform)
+    expected = build_outputs(result, originals, detections_header=cloud.header)
+    assert set(expected) == {*OUTPUTS["completion"], *OUTPUTS["filter"]}
+
+    names = output_names(mode) if outputs is None else outputs
+    built: list[str] = []
+    for name in ("transform_detections", "completed_cloud_array", "filter_texts"):
+        original = getattr(core_module, name)
+        monkeypatch.setattr(core_module, name, lambda *a, _f=original, _n=name, **k: built.append(_n) or _f(*a, **k))
+    core = NodeCore(LocalRuntime(graph, f"{mode}_node"), f"{mode}_node", mode, {"backend": "mirror"}, threaded=False,
+                    outputs=outputs)
+    got = {name: _tap(graph, f"/{name}", msgtype) for name, msgtype in core.outputs.items()}
+    _send(LocalRuntime(graph, "driver"), cloud, dets)
+    assert core.frames == 1 and list(core.outputs) == names
+    for name, msgtype in core.outputs.items():
+        assert len(got[name]) == 1 and _wire(got[name][0], msgtype) == _wire(expected[name], msgtype), name
+    assert ("transform_detections" in built) == ("detections_filtered" in names)
+    assert ("completed_cloud_array" in built) == ("completed" in names)
+    assert ("filter_texts" in built) == ("filter_markers" in names)
 
 
 def test_pairing_respects_slop_and_counts_drops(graph):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -310,7 +310,9 @@ class Pipeline:
                             outside, float(boxes.score[(boxes.score < 0) | (boxes.score > 1)][0]),
                             self.scores_outside_unit)
 
-    def process_messages(self, cloud_msg, detections_msg, transform=None) -> tuple[FrameResult, Any]:
+    def process_messages(
+        self, cloud_msg, detections_msg, transform=None, with_originals: bool = True
+    ) -> tuple[FrameResult, list | None]:
         """Decode a PointCloud2 and a Detection3DArray (any message classes) and run the frame.
 
         Invalid detections (NaN pose, non-positive size) are dropped with a warning and
@@ -321,7 +323,9 @@ class Pipeline:
         as the node core looks it up): the decoded boxes are moved once, and the republished
         detection messages are moved with them; without it such a frame is a ``MessageError``.
         Returns the result and the valid subset of ``detections_msg.detections``, in the
-        order of ``result.detections`` (so the outputs republish the original messages).
+        order of ``result.detections`` (so the outputs republish the original messages);
+        ``with_originals=False`` (a caller that republishes no detection message): ``None``,
+        and no message is copied or moved.
         """
         for what, msg in (("scan", cloud_msg), ("detections", detections_msg)):
             if stamp_to_ns(msg.header.stamp) < 0:
@@ -338,9 +342,11 @@ class Pipeline:
             detections_msg, skip_invalid=True, limits=self.config.detection_limits(), transform=transform
         )
         self._check_score_range(boxes)
-        originals = [d for d, ok in zip(detections_msg.detections, valid) if ok]
-        if transform is not None:
-            originals = transform_detections(originals, transform, cloud_frame)
+        originals = None
+        if with_originals:
+            originals = [d for d, ok in zip(detections_msg.detections, valid) if ok]
+            if transform is not None:
+                originals = transform_detections(originals, transform, cloud_frame)
         decode_ms = _ms(tic)
         result = self.process(
             points, boxes, stamp_to_ns(cloud_msg.header.stamp), str(cloud_msg.header.frame_id)
@@ -388,13 +394,21 @@ def _bounded_crop(points: np.ndarray, boxes: Boxes, cfg: PipelineConfig):
     return indices, canonical, fits, work
 
 
+#: The outputs :func:`build_outputs` makes (default topic names), in the order it makes them.
+OUTPUT_NAMES = ("completed", "completed_markers", "filter_markers", "detections_filtered", "detections_rejected")
+#: The outputs that republish the input detection messages (:meth:`Pipeline.process_messages`'s originals).
+DETECTION_OUTPUTS = ("detections_filtered", "detections_rejected")
+
+
 def build_outputs(
     result: FrameResult,
     original_detections: Sequence | None = None,
     classes: Callable[[str], type] | None = None,
     detections_header=None,
+    names: Collection[str] = OUTPUT_NAMES,
 ) -> dict[str, Any]:
-    """The messages a node publishes for one frame, keyed by default topic name.
+    """The messages a node publishes for one frame, keyed by default topic name: those of
+    ``names`` (default every one; a node asks for the ones it publishes, nothing else is built).
 
     ``completed`` (PointCloud2 of :data:`COMPLETED_CLOUD_DTYPE`: x, y, z, instance, rgb,
     score, source), ``completed_markers`` (MarkerArray: boxes coloured by filter decision,
@@ -403,20 +417,26 @@ def build_outputs(
     (Detection3DArray: the original detection messages when given, so every hypothesis and
     id survives untouched, else re-encoded from the boxes).
     """
-    edges = box_edge_points(result.detections, classes)  # both marker arrays draw the same boxes
-    outputs = {
-        "completed": create_cloud(completed_cloud_array(result), None, result.frame_id, result.stamp_ns, classes),
-        "completed_markers": marker_array_from_boxes(
-            result.detections, result.frame_id, result.stamp_ns, status=result.status, ns="pcc", classes=classes,
-            edge_points=edges,
-        ),
-        "filter_markers": marker_array_from_boxes(
-            result.detections, result.frame_id, result.stamp_ns, status=result.status, ns="pcc_filter",
-            classes=classes, texts=filter_texts(result), edge_points=edges,
-        ),
-    }
+    unknown = sorted(set(names) - set(OUTPUT_NAMES))
+    if unknown:
+        raise ValueError(f"unknown output(s) {unknown}; known: {list(OUTPUT_NAMES)}")
+    outputs: dict[str, Any] = {}
+    if "completed" in names:
+        outputs["completed"] = create_cloud(completed_cloud_array(result), None, result.frame_id, result.stamp_ns,
+                                            classes)
+    markers = [(name, ns) for name, ns in (("completed_markers", "pcc"), ("filter_markers", "pcc_filter"))
+               if name in names]
+    edges = box_edge_points(result.detections, classes) if markers else None  # both marker arrays draw the same boxes
+    for name, ns in markers:
+        texts = filter_texts(result) if name == "filter_markers" else None
+        outputs[name] = marker_array_from_boxes(
+            result.detections, result.frame_id, result.stamp_ns, status=result.status, ns=ns, classes=classes,
+            texts=texts, edge_points=edges,
+        )
     keep = result.keep
     for topic, mask in (("detections_filtered", keep), ("detections_rejected", ~keep)):
+        if topic not in names:
+            continue
         if original_detections is not None:
             header = detections_header or make_header(result.frame_id, result.stamp_ns, classes)
             chosen = [d for d, m in zip(original_detections, mask) if m]

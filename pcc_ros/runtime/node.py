@@ -33,7 +33,7 @@ from pcc_ros.pipeline.config import (
     pipeline_config,
     unknown_parameters,
 )
-from pcc_ros.pipeline.core import FrameResult, Pipeline, build_outputs
+from pcc_ros.pipeline.core import DETECTION_OUTPUTS, FrameResult, Pipeline, build_outputs
 from pcc_ros.pipeline.filter import decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
@@ -154,6 +154,8 @@ class NodeCore:
         self.topics = {name: remap.get(name, name) for name in [*INPUTS, *names]}
         #: Default output name -> message type, in publishing order: the one topic table.
         self.outputs = {name: every[name] for name in names}
+        #: Publishes detection messages: the pipeline keeps (and moves) the received ones for them.
+        self._republishes_detections = any(name in DETECTION_OUTPUTS for name in names)
 
         self.publishers = {
             name: runtime.create_publisher(self.topics[name], msgtype, qos_of(values, "outputs"))
@@ -311,7 +313,8 @@ class NodeCore:
             transform = self._lookup(target, source, stamp_to_ns(detections.header.stamp))
             if transform is None:
                 return None
-        result, originals = pipeline.process_messages(cloud, detections, transform=transform)
+        result, originals = pipeline.process_messages(cloud, detections, transform=transform,
+                                                      with_originals=self._republishes_detections)
         header = cloud.header
         if output_frame and output_frame != result.frame_id:
             moved = self._to_output_frame(result, originals, output_frame)
@@ -319,7 +322,8 @@ class NodeCore:
                 return None
             result, originals = moved
             header = make_header(output_frame, result.stamp_ns, self.runtime.classes)
-        outputs = build_outputs(result, originals, self.runtime.classes, detections_header=header)
+        outputs = build_outputs(result, originals, self.runtime.classes, detections_header=header,
+                                names=self.publishers)
         published = {name: outputs[name] for name in self.publishers}
         for name, msg in published.items():
             self.publishers[name].publish(msg)
@@ -360,7 +364,7 @@ class NodeCore:
         moved = replace(
             result, frame_id=frame, detections=transform_boxes(result.detections, matrix), completed_points=points
         )
-        return moved, transform_detections(originals, tf, frame)
+        return moved, None if originals is None else transform_detections(originals, tf, frame)
 
     # ------------------------------------------------------------- diagnostics
 
