@@ -54,6 +54,18 @@ def test_replay_writes_node_topics_matching_the_pipeline(kitti_bag, tmp_path):
     assert sum(len(m.detections) for m in topics["/detections_filtered"]) == summary.kept
 
 
+def test_replay_opens_the_bag_once(kitti_bag, tmp_path, monkeypatch):
+    """Topic check, transforms and messages come from one open reader."""
+    import pcc_ros.runtime.bag as replay_module
+
+    opened = []
+    real_open = replay_module.open_bag
+    monkeypatch.setattr(replay_module, "open_bag", lambda path: opened.append(path) or real_open(path))
+    pipeline = Pipeline(PipelineConfig(backend="input"), completer=load_completer("input"))
+    summary = replay_bag(kitti_bag, tmp_path / "out", pipeline, progress=False)
+    assert summary.frames == 3 and opened == [kitti_bag]
+
+
 def test_pairs_report_unpaired_messages(kitti_bag):
     """Replay pairs with the node's own pairer; its summary reports what stayed unpaired."""
     pipeline = Pipeline(PipelineConfig(backend="input"), completer=load_completer("input"))
@@ -92,8 +104,8 @@ def test_a_bag_without_tf_loads_no_transforms_and_warns_nothing(kitti_bag, caplo
     from pcc_ros.runtime.bag import load_transforms
     from pcc_ros.runtime.local import LocalGraph
 
+    caplog.set_level("WARNING")
     with open_bag(kitti_bag) as reader:
         assert list(iter_messages(reader, kitti_bag, [])) == []
-    caplog.set_level("WARNING")
-    assert load_transforms(LocalGraph(), kitti_bag) == 0
+        assert load_transforms(LocalGraph(), reader, kitti_bag) == 0
     assert not [r for r in caplog.records if "transforms" in r.getMessage()]

@@ -85,28 +85,19 @@ COPIED_TOPICS = {
 }
 
 
-def load_transforms(graph: LocalGraph, bag: str | Path) -> int:
-    """Every transform of the bag's ``/tf`` and ``/tf_static`` into ``graph.transforms``
-    (undecodable messages skipped and logged); returns how many were loaded."""
+def load_transforms(graph: LocalGraph, reader, bag: str | Path) -> int:
+    """Every transform of the open bag's ``/tf`` and ``/tf_static`` into ``graph.transforms``
+    (undecodable messages skipped and logged); returns how many were loaded. The topics' types
+    are the caller's to check (:func:`replay_bag` checks them with the rest)."""
     loaded = 0
-    with open_bag(bag) as reader:
-        check_topic_types(reader, bag, {TF_TOPIC: TFMESSAGE, TF_STATIC_TOPIC: TFMESSAGE})
-        connections = [c for c in reader.connections if c.topic in (TF_TOPIC, TF_STATIC_TOPIC)]
-        for connection, time_ns, raw in iter_messages(reader, bag, connections):
-            try:
-                msg = decode(reader, raw, connection, time_ns, bag)
-                loaded += graph.transforms.add_message(msg, static=connection.topic == TF_STATIC_TOPIC)
-            except (PccError, AttributeError) as exc:
-                log.warning("%s: a %s message left out of the transforms: %s", bag, connection.topic, exc)
+    connections = [c for c in reader.connections if c.topic in (TF_TOPIC, TF_STATIC_TOPIC)]
+    for connection, time_ns, raw in iter_messages(reader, bag, connections):
+        try:
+            msg = decode(reader, raw, connection, time_ns, bag)
+            loaded += graph.transforms.add_message(msg, static=connection.topic == TF_STATIC_TOPIC)
+        except (PccError, AttributeError) as exc:
+            log.warning("%s: a %s message left out of the transforms: %s", bag, connection.topic, exc)
     return loaded
-
-
-def parameters_of(pipeline: Pipeline, slop_s: float | None = None) -> dict[str, Any]:
-    """Node parameters that build ``pipeline``'s config (node-only ones at their defaults)."""
-    values = {**pipeline.config.as_parameters(), **NODE_DEFAULTS}
-    if slop_s is not None:
-        values["sync_slop"] = float(slop_s)
-    return values
 
 
 def replay_bag(
@@ -116,7 +107,6 @@ def replay_bag(
     with_filter: bool = True,
     points_topic: str = "/points",
     detections_topic: str = "/detections",
-    slop_s: float | None = None,
     storage: str = "mcap",
     force: bool = False,
     copy_inputs: bool = True,
@@ -126,61 +116,60 @@ def replay_bag(
 ) -> ReplaySummary:
     """Run the node core over ``bag``; write what it publishes to ``out`` (None: don't write).
 
-    The node is built from ``parameters`` (node parameters, e.g. :func:`load_parameters`),
-    else from ``pipeline``'s config (with ``slop_s`` as ``sync_slop``); a given ``pipeline``
-    is used as it is (its loaded backend). ``with_filter`` runs the filter node and records
-    the completion outputs as well. ``on_result(result, cloud_msg, detections_msg)`` is
-    called for each published frame (the demo and evaluation use it). A frame the node
-    refuses (malformed message, unknown transform) is logged, counted and skipped.
+    The node is built from ``parameters`` (node parameters, e.g. :func:`load_parameters`: pairing
+    and queues, ``sync_slop`` among them), else from ``pipeline``'s config with the node-only
+    parameters at their defaults; a given ``pipeline`` is used as it is (its loaded backend).
+    ``with_filter`` runs the filter node and records the completion outputs as well.
+    ``on_result(result, cloud_msg, detections_msg)`` is called for each published frame (the
+    demo and evaluation use it). A frame the node refuses (malformed message, unknown
+    transform) is logged, counted and skipped. The bag is opened once: its topics are checked,
+    its transforms loaded, then its messages played.
     """
     if parameters is None:
         if pipeline is None:
             raise ConfigError("replay_bag needs a pipeline or node parameters")
-        parameters = parameters_of(pipeline, slop_s)
-    elif slop_s is not None:
-        parameters = {**parameters, "sync_slop": float(slop_s)}
+        parameters = {**pipeline.config.as_parameters(), **NODE_DEFAULTS}
     if pipeline is None:  # the backend loads first: a bad checkpoint is named before the bag is read
         pipeline = Pipeline(pipeline_config(node_parameters(parameters)))
     mode = "filter" if with_filter else "completion"
     summary = ReplaySummary()
-    with open_bag(bag) as reader:  # a missing topic is named before anything is written
+    with open_bag(bag) as reader:
         paired = {points_topic: POINTCLOUD2, detections_topic: DETECTION3DARRAY}
+        # a missing topic, or one of another type (/tf too), is named before anything is written
         check_topic_types(reader, bag, {**paired, **COPIED_TOPICS}, required=paired)
         start_ns = reader.start_time
+        graph = LocalGraph(simulated=True)
+        graph.advance_to(start_ns)  # before any timer exists: the clock starts at the bag's first message
+        load_transforms(graph, reader, bag)
 
-    graph = LocalGraph(simulated=True)
-    graph.advance_to(start_ns)  # before any timer exists: the clock starts at the bag's first message
-    load_transforms(graph, bag)
+        def record(result, cloud, detections) -> None:
+            summary.add(result)
+            if on_result is not None:
+                on_result(result, cloud, detections)
 
-    def record(result, cloud, detections) -> None:
-        summary.add(result)
-        if on_result is not None:
-            on_result(result, cloud, detections)
+        core = NodeCore(
+            LocalRuntime(graph, NODE_NAMES[mode]), NODE_NAMES[mode], mode, parameters, pipeline=pipeline,
+            threaded=False, remap={"points": points_topic, "detections": detections_topic},
+            outputs=output_names(mode, with_completion=with_filter), on_result=record,
+        )
+        player = LocalRuntime(graph, "pcc_replay")
+        publishers = {
+            points_topic: player.create_publisher(points_topic, POINTCLOUD2, RELIABLE),
+            detections_topic: player.create_publisher(detections_topic, DETECTION3DARRAY, RELIABLE),
+        }
+        now = {"bag_ns": start_ns}
+        context = atomic_bag(out, storage=storage, force=force) if out is not None else nullcontext(None)
+        with context as writer:
+            if writer is not None:  # the node's outputs, at the bag time of the message that completed the pair
+                def recorder(topic: str, msgtype: str):
+                    return lambda msg: writer.write(topic, msgtype, msg, now["bag_ns"])
 
-    core = NodeCore(
-        LocalRuntime(graph, NODE_NAMES[mode]), NODE_NAMES[mode], mode, parameters, pipeline=pipeline,
-        threaded=False, remap={"points": points_topic, "detections": detections_topic},
-        outputs=output_names(mode, with_completion=True), on_result=record,
-    )
-    player = LocalRuntime(graph, "pcc_replay")
-    publishers = {
-        points_topic: player.create_publisher(points_topic, POINTCLOUD2, RELIABLE),
-        detections_topic: player.create_publisher(detections_topic, DETECTION3DARRAY, RELIABLE),
-    }
-    now = {"bag_ns": start_ns}
-    context = atomic_bag(out, storage=storage, force=force) if out is not None else nullcontext(None)
-    with context as writer:
-        if writer is not None:  # the node's outputs, recorded at the bag time of the message that completed the pair
-            def recorder(topic: str, msgtype: str):
-                return lambda msg: writer.write(topic, msgtype, msg, now["bag_ns"])
-
-            for name, msgtype in core.outputs.items():
-                topic = resolve_topic(core.topics[name])
-                player.create_subscription(topic, msgtype, recorder(topic, msgtype), SENSOR_DATA)
-        copied = set(COPIED_TOPICS) if writer is not None and copy_inputs else set()
-        first_problem = ""
-        with open_bag(bag) as reader:
-            wanted = set(publishers) | copied | (set(paired) if writer is not None and copy_inputs else set())
+                for name, msgtype in core.outputs.items():
+                    topic = resolve_topic(core.topics[name])
+                    player.create_subscription(topic, msgtype, recorder(topic, msgtype), SENSOR_DATA)
+            copied = set(COPIED_TOPICS) if writer is not None and copy_inputs else set()
+            first_problem = ""
+            wanted = set(publishers) | copied
             connections = [c for c in reader.connections if c.topic in wanted]
             total = sum(c.msgcount for c in connections)
             messages = iter_messages(reader, bag, connections)
@@ -204,16 +193,16 @@ def replay_bag(
                     now["bag_ns"] = time_ns
                     graph.advance_to(time_ns)
                     publishers[topic].publish(msg)
-        stats = core.pairer.stats
-        left, right = core.pairer.pending()  # never paired before the bag ended
-        summary.unpaired_clouds = stats.dropped_clouds + left
-        summary.unpaired_detections = stats.dropped_detections + right
-        summary.skipped_frames = core.failures
-        summary.first_skip_reason = core.first_failure
-        core.shutdown()
-        if summary.frames == 0 and out is not None:  # inside the block: the output is not committed
-            raise DataError(_no_frame_reason(bag, summary, float(core.parameters["sync_slop"]), first_problem),
-                            hint="nothing was written; `pcc info` shows the bag's topics, counts and damage")
+            stats = core.pairer.stats
+            left, right = core.pairer.pending()  # never paired before the bag ended
+            summary.unpaired_clouds = stats.dropped_clouds + left
+            summary.unpaired_detections = stats.dropped_detections + right
+            summary.skipped_frames = core.failures
+            summary.first_skip_reason = core.first_failure
+            core.shutdown()
+            if summary.frames == 0 and out is not None:  # inside the block: the output is not committed
+                raise DataError(_no_frame_reason(bag, summary, float(core.parameters["sync_slop"]), first_problem),
+                                hint="nothing was written; `pcc info` shows the bag's topics, counts and damage")
     return summary
 
 
