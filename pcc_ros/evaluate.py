@@ -43,8 +43,6 @@ from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.metrics import METRICS, instance_metrics, to_metres, unit_label
 from pcc_ros.models import get_backend, load_completer
 from pcc_ros.models.base import SceneContext
-from pcc_ros.models.checkpoint import load_config
-from pcc_ros.models.registry import default_checkpoint
 from pcc_ros.tables import metric_cell, print_table
 
 log = logging.getLogger("pcc.eval")
@@ -446,13 +444,12 @@ def fingerprint(instances: Sequence[EvalInstance], settings: dict[str, Any]) -> 
     return digest.hexdigest()[:16]
 
 
-def _checkpoint_stamp(name: str, path: Path | None) -> str | None:
-    """What identifies the weights a learned backend ran with: the weights' sha256 recorded
-    in the checkpoint config (the shipped default's when no path is given)."""
-    path = path or default_checkpoint(name)
-    if path is None:
+def checkpoint_stamp(completer: Any) -> str | None:
+    """What identifies the weights a learned backend runs with: the weights' sha256 and box aspect
+    recorded in the checkpoint config it was loaded from (``None`` for a backend without weights)."""
+    config = getattr(completer, "checkpoint_config", None)
+    if config is None:
         return None
-    config = load_config(path)
     aspect = config.get("box_aspect")
     return str(config.get("sha256")) + ("" if aspect is None else f":{json.dumps(aspect, sort_keys=True)}")
 
@@ -517,7 +514,7 @@ def evaluate(
         cls = get_backend(name)
         options = {"batch_size": batch_size, "decode_density": decode_density} if cls.learned else {}
         completer = load_completer(name, checkpoints.get(name), device=device, **options)
-        stamp = _checkpoint_stamp(name, checkpoints.get(name)) if cls.learned else None
+        stamp = checkpoint_stamp(completer) if cls.learned else None
         old = reusable.get(name)
         if old is not None and old.get("checkpoint_stamp") == stamp:
             log.info("%s: reusing the results already in the JSON (same instances and settings)", name)
@@ -557,9 +554,11 @@ def example_indices(instances: Sequence[EvalInstance], count: int) -> list[int]:
     return [int(order[i]) for i in np.linspace(0, len(order) - 1, count).round().astype(int)]
 
 
-def _write_json(path: Path, results: dict[str, Any]) -> None:
+def write_results(path: Path, results: dict[str, Any]) -> None:
+    """An evaluation's results as JSON (``pcc eval``, ``pcc eval --real``): indented, NaN refused,
+    numpy scalars as numbers; the folder made if needed, the file written atomically."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    files.write_json(path, results, indent=2, allow_nan=False)
+    files.write_json(path, results, indent=2, allow_nan=False, default=float)
 
 
 def _previous_results(path: Path | None) -> dict[str, Any] | None:
@@ -621,7 +620,7 @@ def evaluate_cache(opts: EvalConfig) -> tuple[dict[str, Any], str]:
 
     def save(partial: dict[str, Any]) -> None:
         if opts.json:
-            _write_json(opts.json, {**header, **partial})
+            write_results(opts.json, {**header, **partial})
 
     results, kept = evaluate(
         instances, reference, backends, opts.checkpoints,
@@ -636,6 +635,6 @@ def evaluate_cache(opts: EvalConfig) -> tuple[dict[str, Any], str]:
         results["plot"] = {"path": str(opts.plot), "instances": [instances[i].key for i in picks]}
         log.info("wrote %s", opts.plot)
     if opts.json:
-        _write_json(opts.json, results)
+        write_results(opts.json, results)
         log.info("wrote %s", opts.json)
     return results, reference

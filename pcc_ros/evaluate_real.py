@@ -23,7 +23,6 @@ Example::
 
 from __future__ import annotations
 
-import json
 import logging
 from collections import Counter
 from dataclasses import dataclass, field
@@ -33,11 +32,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pcc_ros import files
 from pcc_ros.data.sources import open_frames
 from pcc_ros.data.track_aggregate import collect_tracks
 from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
-from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS
+from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS, write_results
 from pcc_ros.geometry.boxes import crop_canonical, iou_3d
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.metrics.realdata import REAL_METRICS, draw_three_views, mean_rows, real_instance_metrics
@@ -422,7 +420,6 @@ def run_real(opts: RealEvalConfig) -> int:
         out["plot"] = {"path": str(opts.plot), "instances": [instances[p]["key"] for p in picks]}
         log.info("wrote %s", opts.plot)
     if opts.json:
-        opts.json.parent.mkdir(parents=True, exist_ok=True)
-        files.write_json(opts.json, json.loads(json.dumps(out, default=float)), indent=2, allow_nan=False)
+        write_results(opts.json, out)
         log.info("wrote %s", opts.json)
     return 0

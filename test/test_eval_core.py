@@ -123,3 +123,14 @@ def test_cli_helpers():
     np.testing.assert_array_equal(sub, select_indices(100, 10, 1))
     with pytest.raises(ConfigError, match="not evaluated"):
         evaluate(make_instances(1), "ground_truth", ["input"], {"pointpncnet": "x"}, progress=False)
+
+
+def test_checkpoint_stamp_is_the_loaded_checkpoint_s_weights_and_aspect():
+    """The stamp a resumed pcc eval compares: what the completer was loaded from, not a second read."""
+    from pcc_ros.evaluate import checkpoint_stamp
+    from pcc_ros.models.registry import default_checkpoint, load_completer
+
+    config = json.loads(default_checkpoint("pointpncnet").with_suffix(".json").read_text())
+    stamp = checkpoint_stamp(load_completer("pointpncnet", device="cpu"))
+    assert stamp == f"{config['sha256']}:{json.dumps(config['box_aspect'], sort_keys=True)}"
+    assert checkpoint_stamp(load_completer("mirror")) is None

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from pcc_ros.data.kitti import split_dir
 from pcc_ros.detection_eval import default_config, load_kitti, parse_frames, write_json
 from pcc_ros.errors import ConfigError
 from pcc_ros.files import write_text
@@ -53,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _synth_frames(root: Path, per_sequence: int):
-    split = root / "training" if (root / "training").is_dir() else root
+    split = split_dir(root, "training")
     frames = []
     for seq in sorted(p.name for p in (split / "velodyne").iterdir() if p.is_dir()):
         frames += load_kitti(root, root / "detections" / "synthetic", seq, slice(0, per_sequence))
