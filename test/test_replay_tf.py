@@ -16,6 +16,7 @@ from rosbags.highlevel import AnyReader
 from shapes import box_surface
 
 from pcc_ros.cli.main import main as pcc
+from pcc_ros.data.bag import ReadStats, read_frames
 from pcc_ros.data.bag_writer import atomic_bag, tf_message
 from pcc_ros.geometry.boxes import points_in_boxes
 from pcc_ros.geometry.rotations import quaternion_from_yaw, rotation_z
@@ -159,6 +160,37 @@ def test_completed_points_land_in_the_correctly_transformed_boxes(bag, tmp_path)
             assert len(mine) > 100 and len(inside) == len(mine), (k, i, len(mine) - len(inside))
 
 
+def test_read_frames_moves_boxes_into_the_scan_frame_and_takes_the_pose_from_the_tf_tree(bag):
+    """The offline reader takes the node's tf path too: boxes stamped in odom come out in the
+    scan's frame (moved at their stamp, as replay and a live node move them), the pose is
+    odom <- velodyne interpolated between the /tf samples around the scan, and the static
+    mount is the frame's sensor_to_base."""
+    frames = list(read_frames(bag))
+    assert [f.stamp_ns for f in frames] == STAMPS
+    for k, frame in enumerate(frames):
+        _, truth = scene(k)
+        assert frame.frame_id == "velodyne"
+        np.testing.assert_allclose(frame.detections.center, truth.center, atol=1e-9)
+        np.testing.assert_allclose(np.cos(frame.detections.yaw - truth.yaw), 1.0, atol=1e-12)
+        np.testing.assert_allclose(frame.pose, (odom_from_base(STAMPS[k]) @ MOUNT).matrix(), atol=1e-9)
+        np.testing.assert_allclose(frame.extras["sensor_to_base"], MOUNT.matrix(), atol=1e-12)
+
+
+def test_read_frames_skips_a_frame_whose_boxes_cannot_be_moved(tmp_path):
+    """Boxes in a frame the tf tree does not reach: that frame is skipped and counted, not read in the wrong frame."""
+    path = tmp_path / "no_tf"
+    points, boxes = scene(0)
+    with atomic_bag(path) as writer:
+        for k, stamp in enumerate(STAMPS[:2]):
+            writer.write("/points", CLOUD, create_cloud(points, ["x", "y", "z"], "velodyne", stamp), stamp)
+            writer.write("/detections", DETS, detection_array_from_boxes(boxes, "odom" if k else "velodyne", stamp),
+                         stamp)
+    stats = ReadStats()
+    frames = list(read_frames(path, stats=stats))
+    assert [f.stamp_ns for f in frames] == STAMPS[:1] and stats.malformed["/points"] == 1
+    assert "no transform 'odom' -> 'velodyne'" in stats.first_problem
+
+
 def test_buffer_chains_interpolates_and_refuses_extrapolation():
     buffer = TransformBuffer()
     buffer.set_transform("base_link", "velodyne", MOUNT)
@@ -176,6 +208,10 @@ def test_buffer_chains_interpolates_and_refuses_extrapolation():
                                (odom_from_base(1_030_000_000) @ MOUNT).inverse().matrix(), atol=1e-9)
     assert not buffer.set_transform("odom", "base_link", Transform((0.0, 0.0, np.nan), (0.0, 0.0, 0.0, 1.0)), 5)
     assert buffer.invalid == 1
+    buffer.set_transform("odom", "base_link", odom_from_base(990_000_000), 990_000_000)
+    buffer.forget_before(between)  # what a lookup at `between` or later needs stays
+    np.testing.assert_allclose(buffer.lookup("velodyne", "odom", between).matrix(), expected.matrix(), atol=1e-9)
+    assert buffer.lookup("velodyne", "odom", 995_000_000) is None  # before the kept samples now
 
 
 def test_moved_detections_keep_every_hypothesis_and_turn_their_covariance():

@@ -7,10 +7,14 @@ whether the bag came from ``pcc convert`` or from ``ros2 bag record``:
   from its header; all numeric count-1 fields become float32 columns, x, y, z first;
   points with a non-finite coordinate are dropped, as organized sensor clouds pad with NaN);
 - ``Detection3DArray`` messages on the detections / ground-truth topics join the frame
-  whose header stamp they carry;
-- the pose is ``odom <- sensor`` composed from ``/tf`` (dynamic, same stamp, or the latest
-  one within ``window_ns`` before) and ``/tf_static``; ``extras["sensor_to_base"]`` is the
-  static ``base_link <- sensor`` when the bag has one;
+  whose header stamp they carry; boxes in another frame than the scan are moved into the
+  scan's frame at that stamp, as the node core moves them (a frame whose transform is
+  unknown is skipped as malformed);
+- ``/tf`` and ``/tf_static`` go into a :class:`~pcc_ros.msg.transforms.TransformBuffer`, the
+  tf tree the nodes and ``pcc replay`` use: the pose is its ``odom <- sensor`` at the scan's
+  stamp (a ``/tf`` sample at that stamp, or the interpolation of the two around it; ``None``
+  when odom is not reachable then), and ``extras["sensor_to_base"]`` is the static
+  ``base_link <- sensor`` when the bag has one;
 - ``sequence`` / ``index`` come from the ``pcc_ros.frames`` custom data that
   :func:`pcc_ros.data.bag_writer.write_bag` stores, else ``""`` / the frame's ordinal.
 
@@ -38,13 +42,11 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag2 import ReaderError
 from rosbags.typesys.base import TypesysError
-from scipy.spatial.transform import Rotation
 
 from pcc_ros.data.bag_writer import (
     BASE_FRAME,
@@ -57,15 +59,18 @@ from pcc_ros.data.bag_writer import (
     TF_TOPIC,
 )
 from pcc_ros.errors import BagError, DataError, PccError
-from pcc_ros.msg.detections import boxes_from_detection_array
+from pcc_ros.msg.detections import decode_detection_array
 from pcc_ros.msg.pointcloud2 import read_xyz
 from pcc_ros.msg.stamps import stamp_to_ns
+from pcc_ros.msg.transforms import TransformBuffer, frame_name
 from pcc_ros.msg.typestore import get_typestore
 from pcc_ros.types import Sample
 
 log = logging.getLogger(__name__)
 
 _NUMERIC_DATATYPES = range(1, 9)
+#: How far before the oldest pending stamp :func:`read_frames` keeps ``/tf`` samples (tf2's default cache).
+TF_CACHE_NS = 10_000_000_000
 
 
 @dataclass
@@ -76,19 +81,19 @@ class _Group:
     cloud: object = None
     detections: object = None
     ground_truth: object = None
-    tf: dict = field(default_factory=dict)
 
 
-def transform_to_matrix(transform) -> np.ndarray:
-    """``4x4`` of a ``geometry_msgs/Transform``."""
-    t, q = transform.translation, transform.rotation
-    out = np.eye(4)
-    quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
-    if not (np.isfinite(quat).all() and np.linalg.norm(quat) > 1e-9):
-        raise DataError(f"transform has an invalid rotation {quat.tolist()}")
-    out[:3, :3] = Rotation.from_quat(quat).as_matrix()
-    out[:3, 3] = [t.x, t.y, t.z]
-    return out
+def _boxes_in(msg, frame_id: str, tf: TransformBuffer):
+    """The boxes of a Detection3DArray in the scan's frame ``frame_id``: boxes given in another
+    frame are moved by ``tf`` at the array's stamp, as the node core moves them (replay, live)."""
+    source = str(msg.header.frame_id)
+    transform = None
+    if source and frame_name(source) != frame_name(frame_id):
+        transform = tf.lookup(frame_id, source, stamp_to_ns(msg.header.stamp))
+        if transform is None:
+            raise DataError(f"boxes in frame '{source}' but no transform '{source}' -> '{frame_id}' at their stamp "
+                            "in the bag's /tf and /tf_static")
+    return decode_detection_array(msg, transform=transform)[0]
 
 
 def cloud_fields(msg) -> tuple[str, ...]:
@@ -117,34 +122,6 @@ def _frame_names(runs: list[tuple[str, int, int]]) -> Iterator[tuple[str, int]]:
     while True:  # frames beyond the recorded runs (or a bag without them)
         yield "", ordinal
         ordinal += 1
-
-
-class _Tf:
-    """Static edges, and dynamic edges by child frame with their stamps."""
-
-    def __init__(self) -> None:
-        self.static: dict[str, tuple[str, np.ndarray]] = {}
-        self.latest: dict[str, tuple[int, str, np.ndarray]] = {}
-
-    def chain(self, frame_id: str, stamp: int, group_tf: dict, window_ns: int) -> np.ndarray | None:
-        """``odom <- frame_id`` through at most 16 edges, or None if it needs no dynamic edge / is broken."""
-        matrix, current, dynamic = np.eye(4), frame_id, False
-        for _ in range(16):
-            if current == ODOM_FRAME:
-                return matrix if dynamic else None
-            if current in group_tf:
-                parent, edge = group_tf[current]
-                dynamic = True
-            elif current in self.latest and 0 <= stamp - self.latest[current][0] <= window_ns:
-                _, parent, edge = self.latest[current]
-                dynamic = True
-            elif current in self.static:
-                parent, edge = self.static[current]
-            else:
-                return None
-            matrix = edge @ matrix
-            current = parent
-        return None
 
 
 def _storage_errors() -> tuple[type[BaseException], ...]:
@@ -371,7 +348,7 @@ def read_frames(
         check_topic_types(reader, path, expected, required=[points_topic])
         connections = [c for c in reader.connections if c.topic in expected]
         names = _frame_names(_bag_frames_runs(reader))
-        tf = _Tf()
+        tf = TransformBuffer()
         groups: dict[int, _Group] = {}
         orphans = 0
 
@@ -388,7 +365,7 @@ def read_frames(
                     continue
                 name = next(names)
                 try:
-                    frame = _frame(group, stamp, tf, window_ns, *name, path)
+                    frame = _frame(group, stamp, tf, *name, path)
                 except DataError as exc:
                     stats.note("malformed", points_topic, str(exc))
                     log.warning("skipped %s", exc)
@@ -401,26 +378,24 @@ def read_frames(
             try:
                 msg = decode(reader, raw, connection, time_ns, path)
                 if topic in (TF_TOPIC, TF_STATIC_TOPIC):
-                    edges = [(t.child_frame_id, t.header.frame_id, transform_to_matrix(t.transform),
-                              stamp_to_ns(t.header.stamp)) for t in msg.transforms]
+                    refused = tf.invalid
+                    tf.add_message(msg, static=topic == TF_STATIC_TOPIC)
+                    if tf.invalid > refused:
+                        raise DataError(f"{path}: {topic} message at bag time {time_ns}: "
+                                        f"{tf.invalid - refused} transform(s) not rigid, left out")
                 else:
                     stamp = stamp_to_ns(msg.header.stamp)
             except PccError as exc:
                 stats.note("undecodable", topic, str(exc))
                 log.warning("skipped: %s", exc)
                 continue
-            if topic in (TF_TOPIC, TF_STATIC_TOPIC):
-                for child, parent, matrix, edge_stamp in edges:
-                    if topic == TF_STATIC_TOPIC:
-                        tf.static[child] = (parent, matrix)
-                    else:
-                        groups.setdefault(edge_stamp, _Group(time_ns)).tf[child] = (parent, matrix)
-                        tf.latest[child] = (edge_stamp, parent, matrix)
-            else:
+            if topic not in (TF_TOPIC, TF_STATIC_TOPIC):
                 group = groups.setdefault(stamp, _Group(time_ns))
                 slot = {points_topic: "cloud", detections_topic: "detections", ground_truth_topic: "ground_truth"}
                 setattr(group, slot[topic], msg)
             yield from flush(time_ns - window_ns - 1)
+            if groups:  # /tf samples older than tf2's cache before the pending scans are needed no more
+                tf.forget_before(min(groups) - TF_CACHE_NS)
         yield from flush(None)
         if orphans:
             log.warning("%s: %d stamps had boxes but no %s scan", path, orphans, points_topic)
@@ -433,19 +408,21 @@ def read_frames(
             )
 
 
-def _frame(group: _Group, stamp: int, tf: _Tf, window_ns: int, sequence: str, index: int, path: Path) -> Sample:
+def _frame(group: _Group, stamp: int, tf: TransformBuffer, sequence: str, index: int, path: Path) -> Sample:
     cloud = group.cloud
     frame_id = str(cloud.header.frame_id)
     try:
         fields = cloud_fields(cloud)
         points = read_xyz(cloud, extra_fields=fields[3:])
-        detections = None if group.detections is None else boxes_from_detection_array(group.detections)
-        truth = None if group.ground_truth is None else boxes_from_detection_array(group.ground_truth)
+        detections, truth = (None if msg is None else _boxes_in(msg, frame_id, tf)
+                             for msg in (group.detections, group.ground_truth))
     except PccError as exc:
         raise DataError(f"{path}: frame at stamp {stamp}: {exc}") from exc
     extras: dict = {}
-    if frame_id in tf.static and tf.static[frame_id][0] == BASE_FRAME:
-        extras["sensor_to_base"] = tf.static[frame_id][1]
+    mount = tf.static_edge(frame_id)
+    if mount is not None and mount[0] == BASE_FRAME:
+        extras["sensor_to_base"] = mount[1].matrix()
+    pose = tf.lookup(ODOM_FRAME, frame_id, stamp)
     return Sample(
         stamp_ns=stamp,
         frame_id=frame_id,
@@ -453,7 +430,7 @@ def _frame(group: _Group, stamp: int, tf: _Tf, window_ns: int, sequence: str, in
         fields=fields,
         detections=detections,
         ground_truth=truth,
-        pose=tf.chain(frame_id, stamp, group.tf, window_ns),
+        pose=None if pose is None else pose.matrix(),
         sequence=sequence,
         index=index,
         extras=extras,

@@ -51,6 +51,12 @@ class _Series:
         self.stamps.insert(k, stamp_ns)
         self.transforms.insert(k, transform)
 
+    def forget_before(self, stamp_ns: int) -> None:
+        """Drop the samples older than the newest one at or before ``stamp_ns``."""
+        k = bisect.bisect_right(self.stamps, stamp_ns) - 1
+        if k > 0:
+            del self.stamps[:k], self.transforms[:k]
+
     def at(self, stamp_ns: int) -> Transform | None:
         if stamp_ns == 0:
             return self.transforms[-1]
@@ -104,6 +110,16 @@ class TransformBuffer:
             stamp = None if static else stamp_to_ns(stamped.header.stamp)
             added += self.set_transform(stamped.header.frame_id, stamped.child_frame_id, transform, stamp)
         return added
+
+    def forget_before(self, stamp_ns: int) -> None:
+        """Drop the dynamic samples no lookup at ``stamp_ns`` or later needs (a reader streaming a long
+        bag keeps its memory bounded, as tf2's buffer keeps a limited cache)."""
+        for series in self._dynamic.values():
+            series.forget_before(stamp_ns)
+
+    def static_edge(self, child: str) -> tuple[str, Transform] | None:
+        """The static edge ``parent <- child`` (``/tf_static``) as ``(parent, transform)``, or None."""
+        return self._static.get(frame_name(child))
 
     def frames(self) -> set[str]:
         """Every frame named by an edge."""
