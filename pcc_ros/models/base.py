@@ -305,6 +305,9 @@ class CacheTrainOptions:
     #: what ``pcc eval --real`` scores): a cache extracted from one of them is refused
     #: (:func:`check_held_out`); recorded in the checkpoint
     held_out: list[str] = field(default_factory=list)
+    #: cap on training input points (``None``: the model's ``max_input_points``): a lower cap makes
+    #: CPU training steps cheaper, and the max-pooled encoders care little about density
+    input_points: int | None = None
 
 
 class CacheRecipe:

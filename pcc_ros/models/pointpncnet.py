@@ -350,8 +350,8 @@ def remove_regions(
 
 @dataclass
 class TrainOptions(CacheTrainOptions):
-    """Training hyper-parameters of PointPnCNet (stored in the checkpoint's ``training``; its ``box_aspect``
-    and ``held_out`` are :class:`~pcc_ros.models.base.CacheTrainOptions`)."""
+    """Training hyper-parameters of PointPnCNet (stored in the checkpoint's ``training``; its ``box_aspect``,
+    ``held_out`` and ``input_points`` are :class:`~pcc_ros.models.base.CacheTrainOptions`)."""
 
     drop_prob: float = 0.2
     beta: float = 0.25
@@ -359,9 +359,6 @@ class TrainOptions(CacheTrainOptions):
     local_loss_points: int = 64
     views: int = 4
     local_weight: float = 1.0
-    #: cap on training input points (``None``: the model's ``max_input_points``); a lower cap
-    #: trades a little density for speed on a CPU, the max-pooled encoder does not care much.
-    input_points: int | None = None
     #: inputs and targets from different crops of the same observation: ``None`` (default) uses
     #: each view whole as the pseudo ground truth; a number takes as targets only the view's points
     #: inside its box grown by this many metres with the lowest ``target_ground_margin`` metres

@@ -347,10 +347,11 @@ class TraPCC(TorchCompleter):
 
 @dataclass
 class TrainOptions(CacheTrainOptions):
-    """Training options of TraPCC (stored in the checkpoint's ``training.recipe``; ``box_aspect`` and
-    ``held_out`` are :class:`~pcc_ros.models.base.CacheTrainOptions`'s: with ``box_aspect`` the pseudo-GT
-    is scaled like the inputs, while neighbour clouds stay in their own canonical frames, as the
-    pipeline's :class:`SceneContext` gives them; the held-out check covers the pool caches too)."""
+    """Training options of TraPCC (stored in the checkpoint's ``training.recipe``; ``box_aspect``,
+    ``held_out`` and ``input_points`` are :class:`~pcc_ros.models.base.CacheTrainOptions`'s: with
+    ``box_aspect`` the pseudo-GT is scaled like the inputs, while neighbour clouds stay in their own
+    canonical frames, as the pipeline's :class:`SceneContext` gives them; the held-out check covers
+    the pool caches too)."""
 
     #: extra instance caches trained on together with ``--data`` (e.g. real KITTI / nuScenes)
     real_data: list[str] = field(default_factory=list)
@@ -368,9 +369,6 @@ class TrainOptions(CacheTrainOptions):
     weight_partial: float = 1.0
     weight_whole: float = 1.0
     weight_input: float = 1.0
-    #: cap on training input points (``None``: the model's ``max_input_points``); the max-pooled
-    #: encoders care little about density, and a lower cap makes CPU training steps cheaper
-    input_points: int | None = None
     #: random point dropout of training inputs (probability of thinning an input to 20-100 %)
     input_dropout: float = 0.5
     #: Chamfer form of the loss terms: "l1" (Euclidean) or "l2" (squared, the paper's Eq. 1-2)
