@@ -10,8 +10,12 @@ a warm-up (min / median / max of ``--repeat`` calls each), ours also with ``work
 ground and the expected returns on a second thread, as the pipeline runs it with ``workers`` >= 2).
 Every output (raw counts, expected returns, ground heights, the derived terms), of both thread
 settings, is checked bit-identical first. The machine's load
-average is recorded before and after. The filter's share of the completion stage (target
-<= 25 % at 20 cars, issue #19) is measured by ``pcc bench pipeline``.
+average is recorded before and after. Last, the thread grain: the same numpy work on one thread
+and split over two (a pool thread beside the calling one), interleaved, in calls of the filter's
+grain (250 ``np.multiply`` of 50k doubles per half, about 15 us each) and in large calls (3
+``np.sort`` of 100k doubles per half): whether two Python threads issuing such calls run in
+parallel on this machine (``workers=2`` can gain only if the small calls do). The filter's share
+of the completion stage (target <= 25 % at 20 cars, issue #19) is measured by ``pcc bench pipeline``.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--points", type=int, default=120_000, help="points of the SynthCars frames (default 120000)")
     parser.add_argument("--kitti-boxes", default="5,30", help="box counts on the real KITTI scan ('' = none)")
     parser.add_argument("--repeat", type=int, default=30, help="timed calls of each (interleaved)")
+    parser.add_argument("--grain-repeat", type=int, default=40, help="timed calls of the thread-grain check (0: skip)")
 
 
 def _frames(args: argparse.Namespace):
@@ -57,6 +62,44 @@ def check_equal(ours: dict[str, np.ndarray], theirs: dict[str, np.ndarray]) -> N
             raise SystemExit(f"evidence differs from the 93cd59e reference in {key!r} (max |diff| {worst:.3g})")
 
 
+def thread_grain(repeat: int) -> list[dict]:
+    """Milliseconds of the same numpy work on one thread and split over two, in small calls (the
+    filter's grain) and in large ones, interleaved (min / median)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(0)
+    small = [[rng.normal(size=50_000) for _ in range(3)] for _ in range(2)]
+    large = [rng.normal(size=100_000) for _ in range(2)]
+
+    def many_small(arrays):  # 250 calls of about 15 us
+        a, b, out = arrays
+        for _ in range(250):
+            np.multiply(a, b, out=out)
+
+    def few_large(values):  # 3 calls of a few ms (np.sort copies)
+        for _ in range(3):
+            np.sort(values)
+
+    rows = []
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for grain, fn, halves in (("250 calls of ~15 us", many_small, small), ("3 calls of ~3 ms", few_large, large)):
+            def one_thread(fn=fn, halves=halves):
+                fn(halves[0])
+                fn(halves[1])
+
+            def two_threads(fn=fn, halves=halves):
+                other = pool.submit(fn, halves[1])
+                fn(halves[0])
+                other.result()
+
+            times = interleaved({"one": one_thread, "two": two_threads}, repeat=repeat, warmup=2)
+            one, two = summary_ms(times["one"]), summary_ms(times["two"])
+            rows.append({"grain": grain, "one_min": one["min_ms"], "one_ms": one["median_ms"],
+                         "two_min": two["min_ms"], "two_ms": two["median_ms"],
+                         "gain_min": one["min_ms"] / two["min_ms"]})
+    return rows
+
+
 def run(args: argparse.Namespace) -> dict:
     from benchmarks._reference import evidence as reference_evidence
     from pcc_ros.pipeline.filter import SENSOR_PRESETS, evidence
@@ -75,13 +118,17 @@ def run(args: argparse.Namespace) -> dict:
         ours, two, ref = (summary_ms(times[k]) for k in ("ours", "ours_2", "93cd59e"))
         rows.append({"scan": scan, "points": len(points), "boxes": len(boxes),
                      "ours_min": ours["min_ms"], "ours_ms": ours["median_ms"], "ours_max": ours["max_ms"],
-                     "ours2_ms": two["median_ms"],
+                     "ours2_min": two["min_ms"], "ours2_ms": two["median_ms"],
                      "ref_min": ref["min_ms"], "ref_ms": ref["median_ms"], "ref_max": ref["max_ms"],
                      "speedup": ref["median_ms"] / ours["median_ms"], "outputs": "identical"})
     print_table(f"evidence filter measurements, ms ({args.repeat} interleaved calls each: min / median / max); "
                 "ours = one thread, ours2 = workers 2 (ground and expected returns on a second thread, as the "
                 "pipeline's workers >= 2); ref = main at 93cd59e", rows)
+    grain = thread_grain(args.grain_repeat) if args.grain_repeat > 0 else []
+    if grain:
+        print_table(f"thread grain: the same numpy work on one thread and split over two, ms ({args.grain_repeat} "
+                    "interleaved calls each: min / median; gain = one / two, minima)", grain)
     load_after = load_average()
     print(f"load average (1 min) before / after: {load_before[0]:.2f} / {load_after[0]:.2f} on {os.cpu_count()} cores")
-    return {"rows": rows, "cpu_count": os.cpu_count(), "load_average_before": load_before,
+    return {"rows": rows, "thread_grain": grain, "cpu_count": os.cpu_count(), "load_average_before": load_before,
             "load_average_after": load_after}
