@@ -131,7 +131,7 @@ def run_synthcars(opts: DemoConfig, config) -> dict:
     root = opts.out / "synthcars"
     meta = generate(root, sequences=2, frames=opts.frames, seed=opts.seed, test_fraction=0.5, progress=True)
     sequence = meta["splits"]["test"][0]
-    bag = opts.out / "synthcars_test.mcap"
+    bag = opts.out / "synthcars_test"  # a rosbag2 folder, like the replayed ones beside it
     frames = KittiTracking(root / "training").frames(sequence, detections_dir=root / "detections" / "synthetic")
     write_bag(frames, bag, force=True, progress=False)
     frames_by_stamp = {f.stamp_ns: f for f in read_frames(bag)}
@@ -170,7 +170,7 @@ def run_kitti(opts: DemoConfig, config) -> dict | None:
         log.warning("no KITTI tracking data at %s: real-data part skipped (pass --kitti ROOT)", root)
         return None
     detections = root / "detections" / "pointrcnn"
-    bag = opts.out / "kitti_0000.mcap"
+    bag = opts.out / "kitti_0000"
     frames = KittiTracking(root / "training").frames("0000", detections_dir=detections if detections.is_dir() else None)
     write_bag(frames, bag, force=True, progress=False)
     frames_by_stamp = {f.stamp_ns: f for f in read_frames(bag)}
