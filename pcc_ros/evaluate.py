@@ -98,23 +98,6 @@ def select_indices(n: int, max_instances: int | None, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, max_instances, replace=False))
 
 
-def load_instances(
-    path: Path,
-    split: str,
-    max_instances: int | None,
-    seed: int,
-    reference: str = "auto",
-    min_track_frames: int = 2,
-    gt_free: bool = False,
-) -> tuple[list[EvalInstance], str]:
-    """Instances of ``split`` from the cache at ``path`` and the reference mode used.
-
-    The only place that opens the instance cache (``pcc_ros.data.instances``).
-    """
-    cache = InstanceCache.load(path)
-    return instances_from_cache(cache, split, max_instances, seed, reference, min_track_frames, gt_free=gt_free)
-
-
 def instances_from_cache(
     cache: Any,
     split: str,
@@ -608,9 +591,9 @@ def evaluate_cache(opts: EvalConfig) -> tuple[dict[str, Any], str]:
         raise ConfigError(f"--backends lists a backend twice: {opts.backends}")
     if not opts.data.exists():
         raise DataError(f"{opts.data}: instance cache not found (write one with `pcc extract`)")
-    instances, reference = load_instances(
-        opts.data, opts.split, opts.max_instances, opts.seed, opts.reference, opts.min_track_frames,
-        gt_free=opts.gt_free,
+    instances, reference = instances_from_cache(
+        InstanceCache.load(opts.data), opts.split, opts.max_instances, opts.seed, opts.reference,
+        opts.min_track_frames, gt_free=opts.gt_free,
     )
     if not instances:
         raise DataError(f"{opts.data}: no usable instances in split {opts.split!r}")
