@@ -250,16 +250,15 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
     key += band16
     if sub is not None:
         key = key.take(sub, out=ws("key_s", len(sub), np.int16), mode="clip")
-    n_bins = _AZ_BINS * (_EL_BANDS + 2)
     order = np.argsort(key, kind="stable")
-    starts = ws("starts", n_bins + 1, np.int64)
-    starts[0] = 0
-    np.cumsum(np.bincount(key, minlength=n_bins), out=starts[1:])
     band_lo = np.clip(np.floor((s_lo - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
     band_hi = np.clip(np.floor((s_hi - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
     bins = az_bin * (_EL_BANDS + 2)
-    lo = starts[bins + np.take(band_lo, box_of_bin)]
-    count = starts[bins + np.take(band_hi, box_of_bin) + 1] - lo
+    # Each (box, azimuth bin)'s bands are one range of the sorted keys: its bounds by binary
+    # search (int16 queries: the keys are not converted), not a count of every bin.
+    ordered = key.take(order, out=ws("key_sorted", len(key), np.int16), mode="clip")
+    lo = np.searchsorted(ordered, (bins + np.take(band_lo, box_of_bin)).astype(np.int16), side="left")
+    count = np.searchsorted(ordered, (bins + np.take(band_hi, box_of_bin)).astype(np.int16), side="right") - lo
     candidates = ws.runs(lo, count, "runs")
     q = len(candidates)
     pair = order.take(candidates, out=ws("pair", q, np.int64), mode="clip")
@@ -489,8 +488,7 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
         return out
     pkey = cell_key.take(pts, out=ws("g_key", k, np.int16), mode="clip")
     order = np.argsort(pkey, kind="stable")
-    starts = np.zeros(nx * ny + 1, dtype=np.int64)
-    np.cumsum(np.bincount(pkey, minlength=nx * ny), out=starts[1:])
+    ordered = pkey.take(order, out=ws("g_key_sorted", k, np.int16), mode="clip")
     pts = pts.take(order, out=ws("g_sorted", k, np.int64), mode="clip")
     del order
     # A box's consecutive cells are one run of the sorted points.
@@ -501,7 +499,10 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
         last = np.empty_like(first)
         last[:-1] = first[1:] - 1
         last[-1] = len(key) - 1
-        run_lo, run_hi, run_box = starts[key[first]], starts[key[last] + 1], box_of[first]
+        # the run's bounds in the sorted points by binary search (int16 queries: no conversion)
+        run_lo = np.searchsorted(ordered, key[first].astype(np.int16), side="left")
+        run_hi = np.searchsorted(ordered, key[last].astype(np.int16), side="right")
+        run_box = box_of[first]
     else:
         run_lo = run_hi = run_box = np.zeros(0, np.int64)
     length = run_hi - run_lo
