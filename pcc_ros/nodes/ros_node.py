@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import itertools
+import logging
 import re
 import sys
 
@@ -116,6 +117,31 @@ class RclpyRuntime:
         return Transform((t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
 
 
+class RclpyLogHandler(logging.Handler):
+    """The package's Python ``logging`` records (the message and pipeline layers: skipped
+    detections, scores outside [0, 1], the crop work bound) on the node's rclpy logger, so
+    they carry the node's name and ROS severity and reach ``/rosout`` like the node's own lines
+    (without it they went to stderr as bare text, and not at all to ``/rosout``)."""
+
+    def __init__(self, logger) -> None:
+        super().__init__()
+        self.logger = logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = self.format(record)
+            if record.levelno >= logging.ERROR:
+                self.logger.error(text)
+            elif record.levelno >= logging.WARNING:
+                self.logger.warning(text)
+            elif record.levelno >= logging.INFO:
+                self.logger.info(text)
+            else:
+                self.logger.debug(text)
+        except Exception:  # logging must never take a frame down
+            self.handleError(record)
+
+
 def descriptor(spec: ParameterSpec) -> ParameterDescriptor:
     """The rclpy descriptor of a parameter: description, type, range, read-only flag."""
     out = ParameterDescriptor(
@@ -140,6 +166,8 @@ class PipelineNode(Node):
         """``node_options`` go to ``rclpy.node.Node`` (e.g. ``parameter_overrides`` in tests)."""
         super().__init__(node_name, **node_options)
         self.mode = mode
+        self._log_handler = RclpyLogHandler(self.get_logger())
+        logging.getLogger("pcc_ros").addHandler(self._log_handler)
         for spec in parameter_table():
             default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
             try:
@@ -160,7 +188,9 @@ class PipelineNode(Node):
         return SetParametersResult(successful=result.successful, reason=result.reason)
 
     def destroy_node(self) -> None:
-        self.core.shutdown()
+        logging.getLogger("pcc_ros").removeHandler(self._log_handler)
+        if hasattr(self, "core"):
+            self.core.shutdown()
         super().destroy_node()
 
 

@@ -59,6 +59,9 @@ class PipelineConfig:
     #: its generated points, i.e. ``Completer.complete(..., keep_input=True)`` in the sensor frame
     include_observed_points: bool = True
     class_thresholds: str = ""
+    #: detector class ids -> names before ``classes`` and ``class_thresholds`` match them
+    #: (numeric ids of OpenPCDet / mmdetection3d wrappers), see :func:`parse_class_map`
+    class_map: str = ""
     max_box_size: float = 40.0
     max_box_range: float = 1000.0
     max_box_tilt: float = 0.35
@@ -76,6 +79,7 @@ class PipelineConfig:
             raise ConfigError(f"decode_density must be in 1..8, got {self.decode_density}")
         object.__setattr__(self, "classes", tuple(str(c) for c in self.classes))
         parse_class_thresholds(self.class_thresholds)  # refuse a malformed map now, not per frame
+        parse_class_map(self.class_map)
         self.detection_limits()  # refuse implausible box bounds now, not per frame
 
     def detection_limits(self):
@@ -84,6 +88,13 @@ class PipelineConfig:
             max_size=float(self.max_box_size), max_range=float(self.max_box_range),
             max_tilt=float(self.max_box_tilt),
         )
+
+    def map_labels(self, labels: np.ndarray) -> np.ndarray:
+        """``labels`` with the class ids ``class_map`` names replaced by their names (others as given)."""
+        mapping = parse_class_map(self.class_map)
+        if not mapping or not len(labels):
+            return labels
+        return np.array([mapping.get(str(v).strip(), v) for v in labels], dtype=object)
 
     def detection_thresholds(self, labels: np.ndarray) -> np.ndarray:
         """The filter's detection-score threshold of each label: ``class_thresholds`` where it
@@ -152,6 +163,29 @@ def parse_class_thresholds(text: str) -> dict[str, float]:
                 "entries separated by commas (e.g. 'Van:0.6, Truck:0.7')"
             )
         out[name.strip()] = threshold
+    return out
+
+
+def parse_class_map(text: str) -> dict[str, str]:
+    """``"1:Car, 2:Pedestrian"`` -> ``{"1": "Car", "2": "Pedestrian"}`` (``""`` -> ``{}``): the
+    detector's class ids (e.g. the numeric labels of OpenPCDet / mmdetection3d ROS wrappers) and
+    the names ``classes`` and ``class_thresholds`` know them by.
+
+    Raises :class:`ConfigError` naming the bad entry (no colon, an empty id or name, an id
+    given two different names).
+    """
+    out: dict[str, str] = {}
+    for entry in str(text).split(","):
+        entry = entry.strip()
+        if not entry:
+            continue
+        class_id, sep, name = (part.strip() for part in entry.partition(":"))
+        if not sep or not class_id or not name or ":" in name or out.get(class_id, name) != name:
+            raise ConfigError(
+                f"class_map: bad entry {entry!r}; expected 'id:Name' entries separated by commas, each id once "
+                "(e.g. '1:Car, 2:Pedestrian, 3:Cyclist' for OpenPCDet's KITTI labels)"
+            )
+        out[class_id] = name
     return out
 
 
@@ -244,6 +278,8 @@ DESCRIPTIONS = {
     "include_input_points": "also publish the raw scan points (instance -1, source observed) in the completed cloud",
     "include_observed_points": "partial-preserving output: each completed car's own LiDAR points (its instance, "
     "source = observed) with its generated points",
+    "class_map": "detector class ids -> names, 'id:Name' entries separated by commas (e.g. '1:Car, 2:Pedestrian, "
+    "3:Cyclist' for OpenPCDet's KITTI model); applied before classes and class_thresholds match; '' = ids as given",
     "class_thresholds": "per-class detection_threshold, 'Class:threshold' entries separated by commas "
     "(e.g. 'Van:0.6, Truck:0.7'); other classes use detection_threshold",
     "max_box_size": "metres; detections with a longer side are skipped (logged with their id)",

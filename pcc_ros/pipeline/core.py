@@ -331,7 +331,7 @@ class Pipeline:
             if stamp_to_ns(msg.header.stamp) < 0:
                 raise MessageError(f"{what} stamp {stamp_to_ns(msg.header.stamp)} ns is negative (before 1970)")
         cloud_frame, boxes_frame = str(cloud_msg.header.frame_id), str(detections_msg.header.frame_id)
-        if boxes_frame and boxes_frame != cloud_frame and transform is None:
+        if boxes_frame and not same_frame(boxes_frame, cloud_frame) and transform is None:
             raise MessageError(
                 f"detections are in frame '{boxes_frame}' but the scan is in '{cloud_frame}': "
                 "transform them first (the nodes do it with tf2)"
@@ -341,6 +341,8 @@ class Pipeline:
         boxes, valid = decode_detection_array(
             detections_msg, skip_invalid=True, limits=self.config.detection_limits(), transform=transform
         )
+        if self.config.class_map:  # detector ids -> names, before classes / class_thresholds match
+            boxes = replace(boxes, label=self.config.map_labels(boxes.label))
         self._check_score_range(boxes)
         originals = None
         if with_originals:
@@ -354,6 +356,12 @@ class Pipeline:
         result.timings_ms = {"decode_ms": decode_ms, **result.timings_ms}
         _count(result.skipped, "invalid detection", int((~valid).sum()))
         return result, originals
+
+
+def same_frame(a: str, b: str) -> bool:
+    """Frame ids naming one frame: equal but for a leading '/' (ROS 1 drivers and converted
+    bags write ``/velodyne``; tf2 in ROS 2 names the same frame ``velodyne``)."""
+    return str(a).lstrip("/") == str(b).lstrip("/")
 
 
 def crop_budget(work: np.ndarray, boxes: Boxes, max_work: int) -> np.ndarray | None:

@@ -33,12 +33,15 @@ from pcc_ros.pipeline.config import (
     pipeline_config,
     unknown_parameters,
 )
-from pcc_ros.pipeline.core import DETECTION_OUTPUTS, FrameResult, Pipeline, build_outputs
+from pcc_ros.pipeline.core import DETECTION_OUTPUTS, FrameResult, Pipeline, build_outputs, same_frame
 from pcc_ros.pipeline.filter import decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
+from pcc_ros.types import class_mask
 
 MODES = ("completion", "filter")
+#: At most this many distinct class ids outside ``classes`` are reported (hostile labels stay bounded).
+_REPORTED_CLASSES = 64
 
 #: Default topics (relative names, remappable) -> message type, per mode.
 INPUTS = {"points": "sensor_msgs/msg/PointCloud2", "detections": "vision_msgs/msg/Detection3DArray"}
@@ -148,6 +151,11 @@ class NodeCore:
             raise ConfigError(f"scan_timeout must be > 0, not {values['scan_timeout']}")
         self._no_transform_logged: set[tuple[str, str]] = set()
         self.decisions = {"kept": 0, "rejected": 0, "skipped": 0}  # filter mode: totals
+        #: detections skipped per reason ("other class", "invalid detection", ...), all frames
+        self.skipped_totals: dict[str, int] = {}
+        self._other_classes: set[str] = set()  # class ids outside `classes` already reported
+        self.unpaired = 0  # messages that arrived with no partner within sync_slop queued
+        self.unpaired_gap_ms = float("nan")  # the last such message's nearest stamp gap
         self.last_decisions = dict(self.decisions)
         self.latency_ms: list[float] = []
         remap = remap or {}
@@ -234,6 +242,8 @@ class NodeCore:
             self.output_frame = str(values["output_frame"])
             self.pairer.slop_ns = int(float(values["sync_slop"]) * 1e9)
             self.parameter_changes += 1
+            if {"classes", "class_map"} & set(changed):
+                self._other_classes = set()  # report the class ids the new setting leaves out
         summary = ", ".join(f"{n}={v!r}" for n, v in sorted(changed.items()))
         self.log.info(f"parameters changed: {summary}" + (" (backend reloaded)" if reload else ""))
         if "output_frame" in changed:
@@ -275,11 +285,57 @@ class NodeCore:
             return
         pair = add(stamp, msg)
         if pair is None:
+            self._check_unpaired(stamp, left=add == self.pairer.add_left)
             return
         if self.threaded:
             self.slot.put(pair)
         else:
             self._process_logged(*pair)
+
+    def _check_unpaired(self, stamp: int, left: bool) -> None:
+        """A message with no partner within ``sync_slop`` although the other stream has messages
+        queued: stamps that never pair (a detector that restamps with its own clock, a slop too
+        small) would otherwise only show as dropped counts. Counted; logged at the 1st, 10th,
+        100th ... occurrence with the gap."""
+        gap = self.pairer.nearest_gap(stamp, left)
+        if gap is None or gap <= self.pairer.slop_ns:
+            return
+        self.unpaired += 1
+        self.unpaired_gap_ms = gap / 1e6
+        if str(self.unpaired).rstrip("0") == "1":  # 1, 10, 100, ...
+            what, other = ("scan", "detections") if left else ("detections", "scan")
+            self.log.warning(
+                f"{what} stamped {stamp / 1e9:.3f}: no {other} within sync_slop {self.pairer.slop_ns / 1e9:g} s "
+                f"(nearest queued: {gap / 1e6:.0f} ms away; {self.unpaired} such messages so far): unpaired "
+                "messages are dropped (dropped_clouds / dropped_detections on /diagnostics). Does the detector "
+                "copy the scan's header stamp? If it restamps, raise sync_slop."
+            )
+
+    def _report_other_classes(self, labels: np.ndarray, classes) -> None:
+        """Say once per class id that detections outside ``classes`` are passed over (a detector
+        whose ids the node does not know would otherwise be silently ignored: nothing completed,
+        nothing judged)."""
+        if not len(labels) or len(self._other_classes) >= _REPORTED_CLASSES:
+            return
+        new = sorted({str(v) for v in labels[~class_mask(labels, classes)]} - self._other_classes)
+        if not new:
+            return
+        self._other_classes.update(new)
+        effect = "not completed" if self.mode == "completion" else "passed on unjudged"
+        numeric = [v for v in new if v.strip().lstrip("+-").isdigit()]
+        if numeric:
+            self.log.warning(
+                f"detections of class id(s) {numeric} are not in classes {list(classes)}: {effect}. Numeric ids "
+                "come from the detector's class list: map them with class_map (OpenPCDet: '1:Car'; "
+                "mmdetection3d nuScenes: '0:car', its KITTI 3-class model: '2:Car'; check your model's "
+                "class names). Counted as skipped_other_class on /diagnostics"
+            )
+        names = [v for v in new if v not in numeric]
+        if names:
+            self.log.info(
+                f"detections of class(es) {names} are not in classes {list(classes)}: {effect} (counted as "
+                "skipped_other_class on /diagnostics; add a class to classes to include it)"
+            )
 
     def _work(self) -> None:
         while self._running:
@@ -309,14 +365,14 @@ class NodeCore:
         pipeline, output_frame = self.pipeline, self.output_frame  # one consistent set per frame
         transform = None
         source, target = detections.header.frame_id, cloud.header.frame_id
-        if source and source != target:  # detections in another frame: moved once, after decoding
+        if source and not same_frame(source, target):  # detections in another frame: moved once, after decoding
             transform = self._lookup(target, source, stamp_to_ns(detections.header.stamp))
             if transform is None:
                 return None
         result, originals = pipeline.process_messages(cloud, detections, transform=transform,
                                                       with_originals=self._republishes_detections)
         header = cloud.header
-        if output_frame and output_frame != result.frame_id:
+        if output_frame and not same_frame(output_frame, result.frame_id):
             moved = self._to_output_frame(result, originals, output_frame)
             if moved is None:
                 return None
@@ -336,13 +392,17 @@ class NodeCore:
         del self.latency_ms[:-200]
         if result.skipped:
             self.log.debug(f"frame {result.stamp_ns}: skipped {result.skipped}")
+            for reason, n in result.skipped.items():
+                self.skipped_totals[reason] = self.skipped_totals.get(reason, 0) + n
+        self._report_other_classes(result.detections.label, pipeline.config.classes)
         if self.on_result is not None:
             self.on_result(result, cloud, detections)
         return published
 
     def _lookup(self, target: str, source: str, stamp_ns: int):
         """The runtime's transform, or None (counted; the reason logged once per frame pair)."""
-        tf = self.runtime.lookup_transform(target, source, stamp_ns)
+        # tf2 in ROS 2 refuses frame ids with a leading '/' (ROS 1 drivers, converted bags): strip it
+        tf = self.runtime.lookup_transform(target.lstrip("/"), source.lstrip("/"), stamp_ns)
         if tf is None:
             self.no_transform += 1
             self._failed(f"no transform '{source}' -> '{target}'")
@@ -385,6 +445,9 @@ class NodeCore:
             "scans_received": self.scans,
             "detections_received": self.detection_arrays,
             "detections_without_scans": self.detections_without_scans,
+            "unpaired_stamps": self.unpaired,
+            "unpaired_stamp_gap_ms": f"{self.unpaired_gap_ms:.1f}",
+            **{f"skipped_{reason.replace(' ', '_')}": n for reason, n in sorted(self.skipped_totals.items())},
             "latency_p50_ms": f"{np.percentile(latency, 50):.1f}",
             "latency_p95_ms": f"{np.percentile(latency, 95):.1f}",
         }

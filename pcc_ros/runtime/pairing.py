@@ -55,6 +55,13 @@ class StampPairer(Generic[T, U]):
         with self._lock:
             return self._add(self._right, self._left, stamp_ns, item, left=False)
 
+    def nearest_gap(self, stamp_ns: int, left: bool) -> int | None:
+        """Smallest |stamp difference| (ns) between ``stamp_ns`` and the unmatched items of the
+        other stream (``left``: the stamp is a left item's), or None when that queue is empty."""
+        with self._lock:
+            other = self._right if left else self._left
+            return min((abs(stamp - stamp_ns) for stamp, _ in other), default=None)
+
     def pending(self) -> tuple[int, int]:
         """Unmatched (left, right) items still queued."""
         with self._lock:

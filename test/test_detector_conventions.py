@@ -1,0 +1,190 @@
+"""What real detector stacks send: numeric class ids, restamped detections, ROS 1 frame ids.
+
+The node core on the in-process graph (the same :class:`NodeCore` the rclpy nodes host), and
+one in-process rclpy node under real rclpy with real KITTI PointRCNN boxes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import pytest
+from conftest import require_rclpy
+
+from pcc_ros.errors import ConfigError
+from pcc_ros.msg.detections import detection_array_from_boxes
+from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
+from pcc_ros.pipeline.config import PipelineConfig, parse_class_map
+from pcc_ros.pipeline.core import Pipeline
+from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
+from pcc_ros.runtime.local import LocalGraph, LocalRuntime
+from pcc_ros.runtime.node import NodeCore
+from pcc_ros.types import Boxes
+
+CLOUD = "sensor_msgs/msg/PointCloud2"
+DETS = "vision_msgs/msg/Detection3DArray"
+
+
+def _scene(labels=("1", "1")):
+    rng = np.random.default_rng(0)
+    car1 = rng.uniform([-2, -0.85, -0.7], [2, 0.85, 0.7], size=(400, 3)) + np.array([10, 0, -0.8])
+    car2 = rng.uniform([-2, -0.8, -0.7], [2, 0.8, 0.7], size=(300, 3)) + np.array([6, 5, -0.8])
+    points = np.concatenate([car1, car2]).astype(np.float32)
+    boxes = Boxes([[10, 0, -0.8], [6, 5, -0.8]], [[4.2, 1.8, 1.5], [4.2, 1.7, 1.5]], [0.0, 0.1],
+                  list(labels), [0.9, 0.8], ["a", "b"])
+    return points, boxes
+
+
+def _messages(stamp_ns, labels=("1", "1"), det_stamp_ns=None, det_frame="velodyne"):
+    points, boxes = _scene(labels)
+    cloud = create_cloud(points, ["x", "y", "z"], "velodyne", stamp_ns)
+    dets = detection_array_from_boxes(boxes, det_frame, stamp_ns if det_stamp_ns is None else det_stamp_ns)
+    return cloud, dets
+
+
+def _graph_node(mode="completion", **params):
+    graph = LocalGraph(simulated=True)
+    core = NodeCore(LocalRuntime(graph, f"{mode}_node"), f"{mode}_node", mode, {"backend": "mirror", **params},
+                    threaded=False)
+    driver = LocalRuntime(graph, "driver")
+    pubs = (driver.create_publisher("/points", CLOUD, SENSOR_DATA),
+            driver.create_publisher("/detections", DETS, RELIABLE))
+    return graph, core, pubs
+
+
+def test_class_map_parses_and_refuses_bad_entries():
+    assert parse_class_map("") == {}
+    assert parse_class_map(" 1:Car, 2:Pedestrian ,3:Cyclist") == {"1": "Car", "2": "Pedestrian", "3": "Cyclist"}
+    for bad in ("1", "1:", ":Car", "1:Car, 1:Van", "1:a:b"):
+        with pytest.raises(ConfigError, match="class_map: bad entry"):
+            PipelineConfig(backend="mirror", class_map=bad)
+
+
+def test_numeric_class_ids_are_completed_only_through_class_map():
+    cloud, dets = _messages(1_000_000_000)
+    plain, _ = Pipeline(PipelineConfig(backend="mirror")).process_messages(cloud, dets)
+    assert plain.skipped == {"other class": 2} and not len(plain.completed_points)
+
+    mapped = Pipeline(PipelineConfig(backend="mirror", class_map="1:Car, 2:Pedestrian"))
+    result, originals = mapped.process_messages(cloud, dets)
+    assert "other class" not in result.skipped and len(result.completed_points) > 0
+    assert list(result.detections.label) == ["Car", "Car"]  # markers name the class
+    assert [d.results[0].hypothesis.class_id for d in originals] == ["1", "1"]  # republished as the detector sent
+    # class_thresholds match the mapped names
+    cfg = PipelineConfig(backend="mirror", class_map="1:Car", class_thresholds="Car:0.7")
+    assert cfg.detection_thresholds(cfg.map_labels(np.array(["1", "2"], dtype=object))).tolist() == [0.7, 0.5]
+
+
+def test_numeric_class_ids_are_reported_once_then_counted(caplog):
+    graph, core, (pub_cloud, pub_dets) = _graph_node()
+    completed = []
+    LocalRuntime(graph, "probe").create_subscription("/completed", CLOUD, completed.append, RELIABLE)
+    with caplog.at_level(logging.INFO):
+        for k in (1, 2):
+            cloud, dets = _messages(k * 1_000_000_000)
+            pub_cloud.publish(cloud)
+            pub_dets.publish(dets)
+    warnings = [r.getMessage() for r in caplog.records if "class id(s)" in r.getMessage()]
+    assert len(warnings) == 1 and "['1']" in warnings[0] and "class_map" in warnings[0]
+    assert core.diagnostics_values()["skipped_other_class"] == "4"
+    assert len(completed) == 2 and read_xyz(completed[-1]).shape[0] == 0  # nothing completed, never silently
+
+    assert core.set_parameters({"class_map": "1:Car"}).successful
+    cloud, dets = _messages(3_000_000_000)
+    pub_cloud.publish(cloud)
+    pub_dets.publish(dets)
+    instances = read_xyz(completed[-1], ("instance",))[:, 3]
+    assert set(instances.tolist()) == {0.0, 1.0}
+
+
+def test_other_class_names_are_said_once_at_info(caplog):
+    _, _, (pub_cloud, pub_dets) = _graph_node("filter")
+    with caplog.at_level(logging.INFO):
+        for k in (1, 2):
+            cloud, dets = _messages(k * 1_000_000_000, labels=("Pedestrian", "Car"))
+            pub_cloud.publish(cloud)
+            pub_dets.publish(dets)
+    lines = [r for r in caplog.records if "not in classes" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].levelno == logging.INFO and "passed on unjudged" in lines[0].getMessage()
+
+
+def test_detections_restamped_beyond_sync_slop_are_logged_with_the_gap(caplog):
+    _, core, (pub_cloud, pub_dets) = _graph_node(sync_slop=0.05)
+    with caplog.at_level(logging.WARNING):
+        for k in (1, 2, 3):
+            cloud, dets = _messages(k * 1_000_000_000, labels=("Car", "Car"),
+                                    det_stamp_ns=k * 1_000_000_000 + 80_000_000)  # the detector's own clock
+            pub_cloud.publish(cloud)
+            pub_dets.publish(dets)
+    assert core.frames == 0
+    lines = [r.getMessage() for r in caplog.records if "sync_slop" in r.getMessage()]
+    assert len(lines) == 1 and "80 ms" in lines[0]  # said once (then at the 10th, 100th ...), counted
+    values = core.diagnostics_values()
+    assert int(values["unpaired_stamps"]) >= 3 and values["unpaired_stamp_gap_ms"] == "80.0"
+
+
+def test_a_leading_slash_in_the_detections_frame_names_the_scan_frame():
+    _, core, (pub_cloud, pub_dets) = _graph_node()
+    cloud, dets = _messages(1_000_000_000, labels=("Car", "Car"), det_frame="/velodyne")  # a ROS 1 driver / bag
+    pub_cloud.publish(cloud)
+    pub_dets.publish(dets)
+    assert core.frames == 1 and core.no_transform == 0
+
+
+@pytest.mark.ros
+def test_rclpy_node_maps_numeric_ids_and_logs_pipeline_skips_on_its_logger(shared_data, capfd):
+    """Real rclpy, real KITTI scan with its PointRCNN boxes labelled as OpenPCDet's wrapper labels
+    them ('1'), one box of zero length: completed through class_map, and the skipped box is
+    logged on the node's rclpy logger (node name, severity), not as bare stderr text."""
+    rclpy = require_rclpy()
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+    from vision_msgs.msg import Detection3DArray
+
+    from pcc_ros.data.kitti import KittiTracking
+    from pcc_ros.nodes.ros_node import PipelineNode, rclpy_classes
+
+    root = shared_data / "kitti_tracking"
+    frames = KittiTracking(root / "training").frames("0000", detections_dir=root / "detections" / "pointrcnn")
+    frame = next(iter(frames))
+    det = frame.detections
+    size = det.size.copy()
+    size[2, 0] = 0.0  # a degenerate box from the detector
+    boxes = Boxes(det.center, det.size, det.yaw, ["1"] * len(det), det.score, det.track_id)
+    stamp = 1_316_995_200_000_000_000
+    rclpy.init()
+    node = probe = None
+    try:
+        node = PipelineNode("completion_node", "completion", parameter_overrides=[
+            Parameter("backend", value="mirror"), Parameter("class_map", value="1:Car, 2:Pedestrian, 3:Cyclist")])
+        probe = rclpy.create_node("probe")
+        got = []
+        probe.create_subscription(PointCloud2, "completed", got.append, 10)
+        pub_cloud = probe.create_publisher(PointCloud2, "points", 10)
+        pub_det = probe.create_publisher(Detection3DArray, "detections", 10)
+        cloud = create_cloud(frame.points, ["x", "y", "z", "intensity"], "velodyne", stamp, rclpy_classes)
+        dets = detection_array_from_boxes(boxes, "velodyne", stamp, rclpy_classes)
+        for det_msg, d in zip(dets.detections, size):
+            det_msg.bbox.size.x = float(d[0])
+        deadline = time.time() + 20
+        while not got and time.time() < deadline:
+            pub_cloud.publish(cloud)  # again each second until discovery is through
+            pub_det.publish(dets)
+            second = time.time() + 1.0
+            while not got and time.time() < second:
+                for n in (node, probe):
+                    rclpy.spin_once(n, timeout_sec=0.05)
+        assert got, node.core.diagnostics_values()
+        assert got[0].header.frame_id == "velodyne"
+        instances = set(read_xyz(got[0], ("instance",))[:, 3].astype(int).tolist())
+        assert instances and instances <= {0, 1}  # the two valid PointRCNN cars with points
+        assert node.core.diagnostics_values().get("skipped_other_class") is None
+        err = capfd.readouterr().err
+        assert "[completion_node]: skipped detection 2" in err and "[WARN]" in err
+    finally:
+        for n in (probe, node):
+            if n is not None:
+                n.destroy_node()
+        rclpy.try_shutdown()
