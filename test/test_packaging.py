@@ -88,3 +88,15 @@ def test_colcon_style_install_layout(tmp_path):
         assert (share / "launch" / launch.name).is_file()
     for weights in (REPO / "pcc_ros" / "weights").glob("*.safetensors"):
         assert (share / "weights" / weights.name).is_file()
+
+
+def test_readme_rosdep_line_skips_every_pip_key_of_package_xml():
+    """rosdistro lacks some of the -pip keys (python3-rosbags-pip; python3-pytorch-pip is end-of-life),
+    so the README's rosdep line skips them all and the next line pip-installs requirements.txt."""
+    import re
+
+    root = ET.parse(REPO / "package.xml").getroot()
+    pip_keys = {e.text for e in root.iter() if e.tag.endswith("depend") and (e.text or "").endswith("-pip")}
+    line = re.search(r"rosdep install [^\n]*\\\n\s*--skip-keys \"([^\"]+)\"", (REPO / "README.md").read_text())
+    assert line, "README: the rosdep install line with --skip-keys is gone"
+    assert pip_keys and pip_keys <= set(line.group(1).split()), pip_keys - set(line.group(1).split())
