@@ -154,8 +154,7 @@ class NodeCore:
         #: detections skipped per reason ("other class", "invalid detection", ...), all frames
         self.skipped_totals: dict[str, int] = {}
         self._other_classes: set[str] = set()  # class ids outside `classes` already reported
-        self.unpaired = 0  # messages that arrived with no partner within sync_slop queued
-        self.unpaired_gap_ms = float("nan")  # the last such message's nearest stamp gap
+        self._drops_seen = 0  # unpaired messages dropped, as last looked at (logged at 1, 10, 100 ...)
         self.last_decisions = dict(self.decisions)
         self.latency_ms: list[float] = []
         remap = remap or {}
@@ -284,32 +283,41 @@ class NodeCore:
             self.log.warning(f"message without a usable header skipped: {exc}")
             return
         pair = add(stamp, msg)
+        self._report_drops()
         if pair is None:
-            self._check_unpaired(stamp, left=add == self.pairer.add_left)
             return
         if self.threaded:
             self.slot.put(pair)
         else:
             self._process_logged(*pair)
 
-    def _check_unpaired(self, stamp: int, left: bool) -> None:
-        """A message with no partner within ``sync_slop`` although the other stream has messages
-        queued: stamps that never pair (a detector that restamps with its own clock, a slop too
-        small) would otherwise only show as dropped counts. Counted; logged at the 1st, 10th,
-        100th ... occurrence with the gap."""
-        gap = self.pairer.nearest_gap(stamp, left)
-        if gap is None or gap <= self.pairer.slop_ns:
+    def _report_drops(self) -> None:
+        """Log the 1st, 10th, 100th ... message the pairer drops unpaired, with why it found no
+        partner (the nearest stamp the other stream sent): a detector that stamps with its own
+        clock, or scans lost on the way, would otherwise only show as counters."""
+        stats = self.pairer.stats
+        total = stats.dropped_clouds + stats.dropped_detections
+        if total == self._drops_seen:
             return
-        self.unpaired += 1
-        self.unpaired_gap_ms = gap / 1e6
-        if str(self.unpaired).rstrip("0") == "1":  # 1, 10, 100, ...
-            what, other = ("scan", "detections") if left else ("detections", "scan")
-            self.log.warning(
-                f"{what} stamped {stamp / 1e9:.3f}: no {other} within sync_slop {self.pairer.slop_ns / 1e9:g} s "
-                f"(nearest queued: {gap / 1e6:.0f} ms away; {self.unpaired} such messages so far): unpaired "
-                "messages are dropped (dropped_clouds / dropped_detections on /diagnostics). Does the detector "
-                "copy the scan's header stamp? If it restamps, raise sync_slop."
-            )
+        crossed = any(str(k).rstrip("0") == "1" for k in range(self._drops_seen + 1, total + 1))
+        self._drops_seen = total
+        if not crossed:
+            return
+        what, other = ("scan", "detections") if stats.last_drop_left else ("detections", "scan")
+        gap = stats.last_drop_gap_ns
+        if gap < 0:
+            near = f"no {other} had arrived"
+        elif gap > self.pairer.slop_ns:
+            near = f"the nearest {other} stamp seen lately was {gap / 1e6:.0f} ms away"
+        else:  # its partner arrived, but paired with a closer message or after a newer pair
+            near = f"a {other} stamp {gap / 1e6:.0f} ms away had paired with another message or came out of order"
+        self.log.warning(
+            f"{total} messages dropped unpaired so far ({stats.dropped_clouds} scans, {stats.dropped_detections} "
+            f"detection arrays; dropped_clouds / dropped_detections on /diagnostics): the last, {what} stamped "
+            f"{stats.last_drop_stamp_ns / 1e9:.3f}, found no {other} within sync_slop "
+            f"{self.pairer.slop_ns / 1e9:g} s; {near}. A detector must copy the scan's header stamp (if it "
+            "restamps, raise sync_slop); scans lost on the way: docs/nodes.md 'Large clouds'."
+        )
 
     def _report_other_classes(self, labels: np.ndarray, classes) -> None:
         """Say once per class id that detections outside ``classes`` are passed over (a detector
@@ -445,8 +453,7 @@ class NodeCore:
             "scans_received": self.scans,
             "detections_received": self.detection_arrays,
             "detections_without_scans": self.detections_without_scans,
-            "unpaired_stamps": self.unpaired,
-            "unpaired_stamp_gap_ms": f"{self.unpaired_gap_ms:.1f}",
+            "last_unpaired_gap_ms": f"{stats.last_drop_gap_ns / 1e6:.1f}" if stats.last_drop_gap_ns >= 0 else "-",
             **{f"skipped_{reason.replace(' ', '_')}": n for reason, n in sorted(self.skipped_totals.items())},
             "latency_p50_ms": f"{np.percentile(latency, 50):.1f}",
             "latency_p95_ms": f"{np.percentile(latency, 95):.1f}",

@@ -27,6 +27,11 @@ class SyncStats:
     dropped_clouds: int = 0
     dropped_detections: int = 0
     dropped_pairs: int = 0  # pairs overwritten before a worker took them (newest wins)
+    #: the last message dropped unpaired: its stamp, whether it was a left item (a scan), and the
+    #: gap (ns) to the nearest stamp the other stream sent lately (-1: none arrived yet)
+    last_drop_stamp_ns: int = 0
+    last_drop_left: bool = True
+    last_drop_gap_ns: int = -1
 
 
 @dataclass
@@ -45,6 +50,9 @@ class StampPairer(Generic[T, U]):
     def __post_init__(self) -> None:
         self._left: deque[tuple[int, T]] = deque()
         self._right: deque[tuple[int, U]] = deque()
+        #: the latest arrival stamps of each stream, paired or not (why a dropped one found no partner)
+        self._recent_left: deque[int] = deque(maxlen=16)
+        self._recent_right: deque[int] = deque(maxlen=16)
         self._lock = threading.Lock()
 
     def add_left(self, stamp_ns: int, item: T) -> tuple[T, U] | None:
@@ -55,19 +63,13 @@ class StampPairer(Generic[T, U]):
         with self._lock:
             return self._add(self._right, self._left, stamp_ns, item, left=False)
 
-    def nearest_gap(self, stamp_ns: int, left: bool) -> int | None:
-        """Smallest |stamp difference| (ns) between ``stamp_ns`` and the unmatched items of the
-        other stream (``left``: the stamp is a left item's), or None when that queue is empty."""
-        with self._lock:
-            other = self._right if left else self._left
-            return min((abs(stamp - stamp_ns) for stamp, _ in other), default=None)
-
     def pending(self) -> tuple[int, int]:
         """Unmatched (left, right) items still queued."""
         with self._lock:
             return len(self._left), len(self._right)
 
     def _add(self, own: deque, other: deque, stamp_ns: int, item, left: bool):
+        (self._recent_left if left else self._recent_right).append(stamp_ns)
         best = None
         for k, (stamp, _) in enumerate(other):
             gap = abs(stamp - stamp_ns)
@@ -76,23 +78,23 @@ class StampPairer(Generic[T, U]):
         if best is None:
             own.append((stamp_ns, item))
             while len(own) > self.queue_size:
-                own.popleft()
-                self._count_drop(left)
+                self._count_drop(left, own.popleft()[0])
             return None
         _, k = best
         _, other_item = other[k]
         # Everything older than the match in the other queue can never pair in order.
         for _ in range(k):
-            other.popleft()
-            self._count_drop(not left)
+            self._count_drop(not left, other.popleft()[0])
         other.popleft()
         while own and own[0][0] <= stamp_ns:
-            own.popleft()
-            self._count_drop(left)
+            self._count_drop(left, own.popleft()[0])
         self.stats.paired += 1
         return (item, other_item) if left else (other_item, item)
 
-    def _count_drop(self, left: bool) -> None:
+    def _count_drop(self, left: bool, stamp_ns: int) -> None:
+        recent = self._recent_right if left else self._recent_left
+        self.stats.last_drop_stamp_ns, self.stats.last_drop_left = stamp_ns, left
+        self.stats.last_drop_gap_ns = min((abs(s - stamp_ns) for s in recent), default=-1)
         if left:
             self.stats.dropped_clouds += 1
         else:
