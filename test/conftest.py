@@ -79,6 +79,15 @@ def tiny_cache(tmp_path_factory) -> Path:
     return cache_dir
 
 
+@pytest.fixture(autouse=True)
+def _fresh_skip_log():
+    """Each test starts with no invalid box skipped, so it sees the first ones logged in full
+    (``pcc_ros.msg.detections`` logs a process's first 20 one by one, then at powers of ten)."""
+    from pcc_ros.msg import detections
+
+    detections._skipped[0] = 0
+
+
 def require_rclpy():
     """``rclpy``; its absence fails the test, never skips it.
 

@@ -134,14 +134,34 @@ def test_a_leading_slash_in_the_detections_frame_names_the_scan_frame():
     assert core.frames == 1 and core.no_transform == 0
 
 
+def test_a_degenerate_box_in_every_frame_does_not_flood_the_log(monkeypatch, caplog):
+    """A detector that sends one zero-size box per frame: the first 20 are logged one by one,
+    then one line at every power of ten with the running count (at 10 Hz: not 10 lines a second)."""
+    from pcc_ros.msg import detections as module
+
+    monkeypatch.setattr(module, "_skipped", [0])
+    _, boxes = _scene(("Car", "Car"))
+    msg = detection_array_from_boxes(boxes, "velodyne", 0)
+    msg.detections[1].bbox.size.x = 0.0
+    with caplog.at_level(logging.WARNING):
+        for _ in range(300):
+            assert len(module.boxes_from_detection_array(msg, skip_invalid=True)) == 1
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("skipped detection 1")]
+    assert len(lines) == 21 and "100 invalid boxes skipped so far" in lines[-1]
+
+
 @pytest.mark.ros
-def test_rclpy_node_maps_numeric_ids_and_logs_pipeline_skips_on_its_logger(shared_data, capfd):
+def test_rclpy_node_maps_numeric_ids_and_logs_pipeline_skips_on_its_logger(shared_data, capfd, monkeypatch):
     """Real rclpy, real KITTI scan with its PointRCNN boxes labelled as OpenPCDet's wrapper labels
     them ('1'), one box of zero length: completed through class_map, and the skipped box is
     logged on the node's rclpy logger (node name, severity), not as bare stderr text."""
     rclpy = require_rclpy()
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import PointCloud2
+
+    from pcc_ros.msg import detections as module
+
+    monkeypatch.setattr(module, "_skipped", [0])  # skips of earlier tests do not count here
     from vision_msgs.msg import Detection3DArray
 
     from pcc_ros.data.kitti import KittiTracking

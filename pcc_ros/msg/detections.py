@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -100,6 +101,12 @@ class DetectionLimits:
 DEFAULT_LIMITS = DetectionLimits()
 #: At most this many skipped detections are logged one by one per message; the rest are counted.
 _LOGGED_PER_MESSAGE = 5
+#: The first this many skipped boxes of a process are logged one by one; after that one line at
+#: every power of ten (a detector that sends a degenerate box in every frame must not flood a
+#: node's log at the scan rate; the callers count every skip per frame).
+_LOGGED_IN_FULL = 20
+_skipped = [0]  # invalid boxes skipped by this process so far
+_skipped_lock = threading.Lock()
 
 
 def _invalid_reasons(
@@ -164,9 +171,17 @@ def _keep_valid(reasons: list[str], what: str, skip_invalid: bool, ids: np.ndarr
     if bad and not skip_invalid:
         more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
         raise MessageError(f"{name(bad[0])}: {reasons[bad[0]]}{more}")
-    for i in bad[:_LOGGED_PER_MESSAGE]:
-        log.warning("skipped %s: %s", name(i), reasons[i])
-    if len(bad) > _LOGGED_PER_MESSAGE:
+    with _skipped_lock:
+        before = _skipped[0]
+        _skipped[0] += len(bad)
+    for j, i in enumerate(bad):
+        total = before + j + 1
+        if total <= _LOGGED_IN_FULL and j < _LOGGED_PER_MESSAGE:
+            log.warning("skipped %s: %s", name(i), reasons[i])
+        elif total > _LOGGED_IN_FULL and str(total).rstrip("0") == "1":  # 100, 1000, ...
+            log.warning("skipped %s: %s (%d invalid boxes skipped so far; logged one by one for the first %d, "
+                        "from here at every power of ten)", name(i), reasons[i], total, _LOGGED_IN_FULL)
+    if len(bad) > _LOGGED_PER_MESSAGE and before < _LOGGED_IN_FULL:
         log.warning("skipped %d more invalid %ss in this message", len(bad) - _LOGGED_PER_MESSAGE, what)
     keep = np.ones(len(reasons), dtype=bool)
     keep[bad] = False
