@@ -110,6 +110,25 @@ def test_other_class_names_are_said_once_at_info(caplog):
     assert len(lines) == 1 and lines[0].levelno == logging.INFO and "passed on unjudged" in lines[0].getMessage()
 
 
+def test_detections_without_hypotheses_are_said_and_can_be_included(caplog):
+    graph, core, (pub_cloud, pub_dets) = _graph_node()
+    completed = []
+    LocalRuntime(graph, "probe").create_subscription("/completed", CLOUD, completed.append, RELIABLE)
+    cloud, dets = _messages(1_000_000_000)
+    for det in dets.detections:
+        det.results = []  # a single-class detector that names no class
+    with caplog.at_level(logging.WARNING):
+        pub_cloud.publish(cloud)
+        pub_dets.publish(dets)
+    assert any("without a class" in r.getMessage() and "''" in r.getMessage() for r in caplog.records)
+    assert read_xyz(completed[-1]).shape[0] == 0
+    assert core.set_parameters({"classes": ["Car", "Van", ""]}).successful
+    dets.header.stamp.sec = cloud.header.stamp.sec = 2
+    pub_cloud.publish(cloud)
+    pub_dets.publish(dets)
+    assert set(read_xyz(completed[-1], ("instance",))[:, 3].tolist()) == {0.0, 1.0}
+
+
 def test_detections_restamped_beyond_sync_slop_are_logged_with_the_gap(caplog):
     _, core, (pub_cloud, pub_dets) = _graph_node(sync_slop=0.05)
     with caplog.at_level(logging.WARNING):

@@ -338,7 +338,13 @@ class NodeCore:
                 "mmdetection3d nuScenes: '0:car', its KITTI 3-class model: '2:Car'; check your model's "
                 "class names). Counted as skipped_other_class on /diagnostics"
             )
-        names = [v for v in new if v not in numeric]
+        if "" in new:  # no hypothesis at all: a single-class detector that leaves results empty?
+            self.log.warning(
+                f"detections without a class (no hypotheses in results) are not in classes {list(classes)}: "
+                f"{effect}. A single-class vehicle detector that sends none: add '' to classes "
+                "(classes: [Car, Van, '']). Counted as skipped_other_class on /diagnostics"
+            )
+        names = [v for v in new if v not in numeric and v != ""]
         if names:
             self.log.info(
                 f"detections of class(es) {names} are not in classes {list(classes)}: {effect} (counted as "
