@@ -145,6 +145,16 @@ def test_detections_restamped_beyond_sync_slop_are_logged_with_the_gap(caplog):
     assert int(values["dropped_clouds"]) >= 1 and values["last_unpaired_gap_ms"] == "80.0"
 
 
+def test_scans_without_any_detections_name_the_topic_and_qos(caplog):
+    _, core, (pub_cloud, _) = _graph_node()
+    with caplog.at_level(logging.WARNING):
+        for k in (1, 2, 3):  # the detector publishes best-effort: nothing reaches the reliable reader
+            pub_cloud.publish(_messages(k * 1_000_000_000)[0])
+    lines = [r.getMessage() for r in caplog.records if "dropped unpaired" in r.getMessage()]
+    assert len(lines) == 1 and "'detections'" in lines[0] and "qos.detections.reliability" in lines[0], lines
+    assert core.diagnostics_values()["last_unpaired_gap_ms"] == "-"
+
+
 def test_a_leading_slash_in_the_detections_frame_names_the_scan_frame():
     _, core, (pub_cloud, pub_dets) = _graph_node()
     cloud, dets = _messages(1_000_000_000, labels=("Car", "Car"), det_frame="/velodyne")  # a ROS 1 driver / bag

@@ -306,7 +306,10 @@ class NodeCore:
         what, other = ("scan", "detections") if stats.last_drop_left else ("detections", "scan")
         gap = stats.last_drop_gap_ns
         if gap < 0:
-            near = f"no {other} had arrived"
+            topic = self.topics["detections" if stats.last_drop_left else "points"]
+            qos = "qos.detections.reliability" if stats.last_drop_left else "qos.points.reliability"
+            near = (f"no {other} has arrived at all: check the topic ('{topic}', remapped?) and its QoS (a "
+                    f"best-effort publisher never reaches a reliable reader: set {qos}: best_effort)")
         elif gap > self.pairer.slop_ns:
             near = f"the nearest {other} stamp seen lately was {gap / 1e6:.0f} ms away"
         else:  # its partner arrived, but paired with a closer message or after a newer pair
