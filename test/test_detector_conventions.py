@@ -155,6 +155,23 @@ def test_scans_without_any_detections_name_the_topic_and_qos(caplog):
     assert core.diagnostics_values()["last_unpaired_gap_ms"] == "-"
 
 
+@pytest.mark.parametrize("rule", ["evidence", "trapcc"])
+def test_an_empty_or_all_nan_scan_rejects_nothing(rule, caplog):
+    """A driver's empty cloud or an organized cloud all NaN (sensor blocked) holds no evidence:
+    the detections pass unjudged (counted, logged), not all rejected for holding no returns."""
+    _, boxes = _scene(("Car", "Car"))
+    pipeline = Pipeline(PipelineConfig.from_dict({"backend": "mirror", "rule": rule}))
+    dets = detection_array_from_boxes(boxes, "velodyne", 1_000_000_000)
+    nan_grid = np.full((4, 8, 3), np.nan, np.float32)
+    with caplog.at_level(logging.WARNING):
+        for cloud in (create_cloud(np.zeros((0, 3), np.float32), ["x", "y", "z"], "velodyne", 1_000_000_000),
+                      create_cloud(nan_grid, ["x", "y", "z"], "velodyne", 1_000_000_000)):
+            result, _ = pipeline.process_messages(cloud, dets)
+            assert list(result.status) == ["skipped", "skipped"] and result.skipped == {"empty scan": 2}
+            assert not result.rejected and not len(result.completed_points)
+    assert sum("no finite point" in r.getMessage() for r in caplog.records) == 1  # then every 100th
+
+
 def test_a_leading_slash_in_the_detections_frame_names_the_scan_frame():
     _, core, (pub_cloud, pub_dets) = _graph_node()
     cloud, dets = _messages(1_000_000_000, labels=("Car", "Car"), det_frame="/velodyne")  # a ROS 1 driver / bag

@@ -226,6 +226,9 @@ class Pipeline:
             # Every processed box is judged, sparse or not (min_points does not apply); boxes
             # over max_instances or the work bound stay skipped (the terms cost per ray and box).
             judged_idx = candidates
+            if not len(points) and len(candidates):  # no finite return at all: no evidence either way
+                judged_idx = candidates[:0]
+                self._empty_scan(stamp_ns, skipped, len(candidates))
             if len(judged_idx):
                 part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
                                     workers=filter_threads(cfg))
@@ -236,7 +239,9 @@ class Pipeline:
                 reject = filter_score[judged_idx] > cfg.filter.reject_threshold
                 status[judged_idx] = np.where(reject, "rejected", "kept")
         else:
-            judged = np.isfinite(mismatch)
+            judged = np.isfinite(mismatch) & bool(len(points))
+            if not len(points) and len(candidates):
+                self._empty_scan(stamp_ns, skipped, len(candidates))
             rejected = np.zeros(n, dtype=bool)
             for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
                 group = threshold == value
@@ -295,6 +300,17 @@ class Pipeline:
         )
 
     # ------------------------------------------------------------------ messages
+
+    def _empty_scan(self, stamp_ns: int, skipped: dict[str, int], n: int) -> None:
+        """A scan without a finite point (a driver starting up, a blocked sensor, an organized
+        cloud all NaN) says nothing about the boxes: they pass the filter unjudged (counted as
+        "empty scan"; logged for the first such frame and every 100th) instead of all being
+        rejected for holding no returns."""
+        _count(skipped, "empty scan", n)
+        self.empty_scans = getattr(self, "empty_scans", 0) + 1
+        if self.empty_scans % 100 == 1:
+            log.warning("frame %d: the scan has no finite point; its %d detections pass the filter unjudged "
+                        "(%d such frames so far)", stamp_ns, n, self.empty_scans)
 
     def _check_score_range(self, boxes: Boxes) -> None:
         """``score_mapping: identity`` means probabilities: scores outside [0, 1] (logits?) are
