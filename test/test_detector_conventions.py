@@ -57,7 +57,7 @@ def _graph_node(mode="completion", **params):
 def test_class_map_parses_and_refuses_bad_entries():
     assert parse_class_map("") == {}
     assert parse_class_map(" 1:Car, 2:Pedestrian ,3:Cyclist") == {"1": "Car", "2": "Pedestrian", "3": "Cyclist"}
-    for bad in ("1", "1:", ":Car", "1:Car, 1:Van", "1:a:b"):
+    for bad in ("1", "1:", ":Car", "1:Car, 1:Van", "1:Car, 1.0:Van", "1:a:b"):
         with pytest.raises(ConfigError, match="class_map: bad entry"):
             PipelineConfig(backend="mirror", class_map=bad)
 
@@ -72,6 +72,10 @@ def test_numeric_class_ids_are_completed_only_through_class_map():
     assert "other class" not in result.skipped and len(result.completed_points) > 0
     assert list(result.detections.label) == ["Car", "Car"]  # markers name the class
     assert [d.results[0].hypothesis.class_id for d in originals] == ["1", "1"]  # republished as the detector sent
+    # str() of a numpy float label ('1.0') is the same id; names are matched as classes match them
+    cfg = PipelineConfig(backend="mirror", class_map="1:Car, 0:car, 2.0:Van")
+    assert cfg.map_labels(np.array(["1.0", " 1", "0", "2", "7", "Car", "nan"], dtype=object)).tolist() == [
+        "Car", "Car", "car", "Van", "7", "Car", "nan"]
     # class_thresholds match the mapped names
     cfg = PipelineConfig(backend="mirror", class_map="1:Car", class_thresholds="Car:0.7")
     assert cfg.detection_thresholds(cfg.map_labels(np.array(["1", "2"], dtype=object))).tolist() == [0.7, 0.5]

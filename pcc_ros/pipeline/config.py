@@ -94,7 +94,7 @@ class PipelineConfig:
         mapping = parse_class_map(self.class_map)
         if not mapping or not len(labels):
             return labels
-        return np.array([mapping.get(str(v).strip(), v) for v in labels], dtype=object)
+        return np.array([mapping.get(class_id_key(v), v) for v in labels], dtype=object)
 
     def detection_thresholds(self, labels: np.ndarray) -> np.ndarray:
         """The filter's detection-score threshold of each label: ``class_thresholds`` where it
@@ -166,6 +166,21 @@ def parse_class_thresholds(text: str) -> dict[str, float]:
     return out
 
 
+def integer_id(value) -> str | None:
+    """``"1"``, ``" 1 "``, ``"1.0"``, ``"+1"`` -> ``"1"``: a class id that is an integer written any
+    way a wrapper may write it (``str()`` of a numpy float label gives ``"1.0"``); None otherwise."""
+    try:
+        number = float(str(value).strip())
+    except ValueError:
+        return None
+    return str(int(number)) if np.isfinite(number) and number.is_integer() else None
+
+
+def class_id_key(value) -> str:
+    """The key ``class_map`` looks a class id up by: the integer for a numeric id, else the id stripped."""
+    return integer_id(value) or str(value).strip()
+
+
 def parse_class_map(text: str) -> dict[str, str]:
     """``"1:Car, 2:Pedestrian"`` -> ``{"1": "Car", "2": "Pedestrian"}`` (``""`` -> ``{}``): the
     detector's class ids (e.g. the numeric labels of OpenPCDet / mmdetection3d ROS wrappers) and
@@ -180,12 +195,12 @@ def parse_class_map(text: str) -> dict[str, str]:
         if not entry:
             continue
         class_id, sep, name = (part.strip() for part in entry.partition(":"))
-        if not sep or not class_id or not name or ":" in name or out.get(class_id, name) != name:
+        if not sep or not class_id or not name or ":" in name or out.get(class_id_key(class_id), name) != name:
             raise ConfigError(
                 f"class_map: bad entry {entry!r}; expected 'id:Name' entries separated by commas, each id once "
                 "(e.g. '1:Car, 2:Pedestrian, 3:Cyclist' for OpenPCDet's KITTI labels)"
             )
-        out[class_id] = name
+        out[class_id_key(class_id)] = name
     return out
 
 

@@ -28,6 +28,7 @@ from pcc_ros.msg.typestore import is_rosbags_class, new_message
 from pcc_ros.pipeline.config import (
     BACKEND_PARAMETERS,
     check_value,
+    integer_id,
     node_parameters,
     parameter_specs,
     pipeline_config,
@@ -333,7 +334,7 @@ class NodeCore:
             return
         self._other_classes.update(new)
         effect = "not completed" if self.mode == "completion" else "passed on unjudged"
-        numeric = [v for v in new if v.strip().lstrip("+-").isdigit()]
+        numeric = [v for v in new if integer_id(v) is not None]
         if numeric:
             self.log.warning(
                 f"detections of class id(s) {numeric} are not in classes {list(classes)}: {effect}. Numeric ids "
