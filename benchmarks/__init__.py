@@ -16,7 +16,10 @@ import argparse
 import ast
 import importlib
 import importlib.util
+import os
 import pkgutil
+import subprocess
+import time
 from pathlib import Path
 
 from pcc_ros.tables import plain_text
@@ -55,10 +58,28 @@ def benchmark_parser(name: str, module) -> argparse.ArgumentParser:
     return parser
 
 
+#: Environment variables that change the timings (threads, OpenMP's spin: ``pcc_ros.GOMP_SPINCOUNT``).
+TIMING_ENVIRONMENT = ("OMP_NUM_THREADS", "GOMP_SPINCOUNT", "OMP_WAIT_POLICY", "MKL_NUM_THREADS")
+
+
+def run_context() -> dict[str, object]:
+    """When, on which commit and with which timing-relevant environment a benchmark ran (its JSON
+    records it, so a README figure can be traced to its run)."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent,
+                                capture_output=True, text=True, timeout=5).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    return {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "commit": commit,
+            "environment": {k: os.environ.get(k) for k in TIMING_ENVIRONMENT}}
+
+
 def run(args: argparse.Namespace) -> int:
     module = importlib.import_module(f"{__name__}.{args.bench_name}")
     bench_args = benchmark_parser(args.bench_name, module).parse_args(args.passthrough)
+    context = run_context()
     results = module.run(bench_args)
+    results = {**results, "run": context} if isinstance(results, dict) else results
     if bench_args.json:
         bench_args.json.parent.mkdir(parents=True, exist_ok=True)
         from pcc_ros.files import write_json

@@ -3,6 +3,22 @@
 ``import pcc_ros`` must stay light and must never need ROS: heavy libraries (torch,
 open3d, rosbags) are imported by the modules that use them, and rclpy only inside
 ``pcc_ros.nodes``.
+
+One process-wide setting is made here, before anything can load torch: libgomp (torch's
+OpenMP runtime on Linux) keeps its worker threads spinning for ``GOMP_SPINCOUNT`` iterations
+after every parallel region -- 300000 by default, several milliseconds -- so after the network
+the idle torch worker holds a core that the filter's second thread and the node's own
+threads then wait for (the filter stage took 8.5 instead of 5.7 ms at 20 cars, ``docs/nodes.md``).
+:data:`GOMP_SPINCOUNT` keeps the spin short enough to give the core back and long enough
+for the network's back-to-back operators (measured: the completion stage as fast as with the
+default). A value the user set is kept; set before torch is imported, or it has no effect.
 """
 
+import os
+
 __version__ = "0.1.0"
+
+#: libgomp spin iterations after a parallel region (its default: 300000); see the module doc.
+GOMP_SPINCOUNT = "10000"
+
+os.environ.setdefault("GOMP_SPINCOUNT", GOMP_SPINCOUNT)

@@ -72,6 +72,20 @@ def test_import_pcc_ros_needs_no_ros():
     assert out.stdout.strip() == "ok", out.stderr
 
 
+@pytest.mark.parametrize("given, expected", [(None, "10000"), ("7", "7")])
+def test_import_pcc_ros_shortens_openmp_spin_before_torch_loads(given, expected):
+    """libgomp reads GOMP_SPINCOUNT once, when torch loads it: ``import pcc_ros`` (which every
+    entry point does first) sets the short default then, and keeps a value the user gave."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    if given is not None:
+        env["GOMP_SPINCOUNT"] = given
+    code = "import os, sys, pcc_ros; assert 'torch' not in sys.modules; print(os.environ['GOMP_SPINCOUNT'])"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.stdout.strip() == expected, out.stderr
+
+
 @pytest.mark.slow
 def test_colcon_style_install_layout(tmp_path):
     """What colcon runs for an ament_python package places scripts and data correctly."""
