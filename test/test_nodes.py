@@ -100,3 +100,29 @@ def test_a_bad_ros_args_line_stops_the_node_with_one_line_not_a_traceback(tmp_pa
     assert "Traceback" not in text and expected in text, text
     fatal = [line for line in text.splitlines() if "FATAL" in line]
     assert len(fatal) == 1 and "/project/src" not in fatal[0], text
+
+
+@pytest.mark.ros
+def test_a_node_that_fails_to_start_leaves_no_log_handler_behind():
+    """A parameter the node refuses stops its construction: the handler it put on the package's
+    logger goes with it (else every later pipeline line is sent, once more per failed node, to a
+    logger of a node that never ran)."""
+    import logging
+
+    rclpy = require_rclpy()
+    from rclpy.parameter import Parameter
+
+    from pcc_ros.errors import ConfigError
+    from pcc_ros.nodes.ros_node import PipelineNode, RclpyLogHandler
+
+    package = logging.getLogger("pcc_ros")
+    rclpy.init()
+    try:
+        for _ in range(2):
+            with pytest.raises(ConfigError, match="no_such_parameter"):
+                PipelineNode("completion_node", "completion",
+                             parameter_overrides=[Parameter("backend", value="mirror"),
+                                                  Parameter("no_such_parameter", value=1)])
+        assert not [h for h in package.handlers if isinstance(h, RclpyLogHandler)]
+    finally:
+        rclpy.try_shutdown()

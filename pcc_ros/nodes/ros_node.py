@@ -168,6 +168,14 @@ class PipelineNode(Node):
         self.mode = mode
         self._log_handler = RclpyLogHandler(self.get_logger())
         logging.getLogger("pcc_ros").addHandler(self._log_handler)
+        try:
+            self._start(node_name, mode)
+        except BaseException:
+            self.destroy_node()  # a node that never ran takes its log handler (and rcl node) with it
+            raise
+
+    def _start(self, node_name: str, mode: str) -> None:
+        """Declare and check the parameters, then build the node core."""
         for spec in parameter_table():
             default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
             try:
