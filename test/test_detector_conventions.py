@@ -200,6 +200,22 @@ def test_a_degenerate_box_in_every_frame_does_not_flood_the_log(monkeypatch, cap
     assert len(lines) == 21 and "100 invalid boxes skipped so far" in lines[-1]
 
 
+def test_the_count_of_skipped_boxes_not_logged_is_right_where_the_one_by_one_phase_ends(monkeypatch, caplog):
+    """18 boxes already logged, then a message with 8 bad boxes: 2 are logged one by one (the
+    19th and 20th), so the line after them names the other 6, not 8 - 5 = 3."""
+    from pcc_ros.msg import detections as module
+
+    monkeypatch.setattr(module, "_skipped", [18])
+    boxes = Boxes(np.zeros((8, 3)), np.ones((8, 3)), np.zeros(8), ["Car"] * 8, np.full(8, 0.9), [""] * 8)
+    msg = detection_array_from_boxes(boxes, "velodyne", 0)
+    for det in msg.detections:
+        det.bbox.size.x = 0.0
+    with caplog.at_level(logging.WARNING):
+        assert len(module.boxes_from_detection_array(msg, skip_invalid=True)) == 0
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("skipped")]
+    assert len(lines) == 3 and lines[-1] == "skipped 6 more invalid detections in this message", lines
+
+
 @pytest.mark.ros
 def test_rclpy_node_maps_numeric_ids_and_logs_pipeline_skips_on_its_logger(shared_data, capfd, monkeypatch):
     """Real rclpy, real KITTI scan with its PointRCNN boxes labelled as OpenPCDet's wrapper labels

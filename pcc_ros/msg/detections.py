@@ -174,15 +174,17 @@ def _keep_valid(reasons: list[str], what: str, skip_invalid: bool, ids: np.ndarr
     with _skipped_lock:
         before = _skipped[0]
         _skipped[0] += len(bad)
+    in_full = 0  # this message's boxes logged one by one
     for j, i in enumerate(bad):
         total = before + j + 1
         if total <= _LOGGED_IN_FULL and j < _LOGGED_PER_MESSAGE:
             log.warning("skipped %s: %s", name(i), reasons[i])
+            in_full += 1
         elif total > _LOGGED_IN_FULL and str(total).rstrip("0") == "1":  # 100, 1000, ...
             log.warning("skipped %s: %s (%d invalid boxes skipped so far; logged one by one for the first %d, "
                         "from here at every power of ten)", name(i), reasons[i], total, _LOGGED_IN_FULL)
-    if len(bad) > _LOGGED_PER_MESSAGE and before < _LOGGED_IN_FULL:
-        log.warning("skipped %d more invalid %ss in this message", len(bad) - _LOGGED_PER_MESSAGE, what)
+    if in_full and len(bad) > in_full:
+        log.warning("skipped %d more invalid %ss in this message", len(bad) - in_full, what)
     keep = np.ones(len(reasons), dtype=bool)
     keep[bad] = False
     return keep
