@@ -103,6 +103,21 @@ def test_numeric_class_ids_are_reported_once_then_counted(caplog):
     assert set(instances.tolist()) == {0.0, 1.0}
 
 
+def test_class_ids_reported_stay_bounded_within_one_frame(caplog):
+    """A hostile detector with hundreds of distinct labels in one frame: at most 64 ids are
+    remembered and named, however many the first frame brings."""
+    from pcc_ros.runtime import node as node_module
+
+    _, core, _ = _graph_node()
+    labels = np.array([f"thing{i}" for i in range(500)], dtype=object)
+    with caplog.at_level(logging.INFO):
+        core._report_other_classes(labels, ("Car",))
+        core._report_other_classes(labels[::-1].copy(), ("Car",))
+    named = [r.getMessage() for r in caplog.records if "not in classes" in r.getMessage()]
+    assert len(named) == 1 and named[0].count("'thing") == node_module._REPORTED_CLASSES
+    assert len(core._other_classes) == node_module._REPORTED_CLASSES
+
+
 def test_other_class_names_are_said_once_at_info(caplog):
     _, _, (pub_cloud, pub_dets) = _graph_node("filter")
     with caplog.at_level(logging.INFO):

@@ -330,6 +330,7 @@ class NodeCore:
         if not len(labels) or len(self._other_classes) >= _REPORTED_CLASSES:
             return
         new = sorted({str(v) for v in labels[~class_mask(labels, classes)]} - self._other_classes)
+        new = new[: _REPORTED_CLASSES - len(self._other_classes)]  # bounded within one frame too
         if not new:
             return
         self._other_classes.update(new)
