@@ -62,7 +62,7 @@ from pcc_ros.errors import BagError, DataError, PccError
 from pcc_ros.msg.detections import decode_detection_array
 from pcc_ros.msg.pointcloud2 import read_xyz
 from pcc_ros.msg.stamps import stamp_to_ns
-from pcc_ros.msg.transforms import TransformBuffer, frame_name
+from pcc_ros.msg.transforms import TransformBuffer, same_frame
 from pcc_ros.msg.typestore import get_typestore
 from pcc_ros.types import Sample
 
@@ -88,7 +88,7 @@ def _boxes_in(msg, frame_id: str, tf: TransformBuffer):
     frame are moved by ``tf`` at the array's stamp, as the node core moves them (replay, live)."""
     source = str(msg.header.frame_id)
     transform = None
-    if source and frame_name(source) != frame_name(frame_id):
+    if source and not same_frame(source, frame_id):
         transform = tf.lookup(frame_id, source, stamp_to_ns(msg.header.stamp))
         if transform is None:
             raise DataError(f"boxes in frame '{source}' but no transform '{source}' -> '{frame_id}' at their stamp "

@@ -35,6 +35,12 @@ def frame_name(frame_id: str) -> str:
     return str(frame_id).lstrip("/")
 
 
+def same_frame(a: str, b: str) -> bool:
+    """Frame ids naming one frame: equal but for a leading '/' (ROS 1 drivers and converted
+    bags write ``/velodyne``; tf2 in ROS 2 names the same frame ``velodyne``)."""
+    return frame_name(a) == frame_name(b)
+
+
 @dataclass
 class _Series:
     """One child's dynamic edge: its parent and the samples, sorted by stamp."""

@@ -33,6 +33,7 @@ from pcc_ros.msg.detections import (
 )
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
+from pcc_ros.msg.transforms import same_frame
 from pcc_ros.msg.typestore import new_message
 from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.filter import (
@@ -372,12 +373,6 @@ class Pipeline:
         result.timings_ms = {"decode_ms": decode_ms, **result.timings_ms}
         _count(result.skipped, "invalid detection", int((~valid).sum()))
         return result, originals
-
-
-def same_frame(a: str, b: str) -> bool:
-    """Frame ids naming one frame: equal but for a leading '/' (ROS 1 drivers and converted
-    bags write ``/velodyne``; tf2 in ROS 2 names the same frame ``velodyne``)."""
-    return str(a).lstrip("/") == str(b).lstrip("/")
 
 
 def crop_budget(work: np.ndarray, boxes: Boxes, max_work: int) -> np.ndarray | None:

@@ -24,6 +24,7 @@ from pcc_ros.errors import ConfigError, PccError
 from pcc_ros.geometry.transforms import transform_boxes
 from pcc_ros.msg.detections import transform_detections
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
+from pcc_ros.msg.transforms import frame_name, same_frame
 from pcc_ros.msg.typestore import is_rosbags_class, new_message
 from pcc_ros.pipeline.config import (
     BACKEND_PARAMETERS,
@@ -34,7 +35,7 @@ from pcc_ros.pipeline.config import (
     pipeline_config,
     unknown_parameters,
 )
-from pcc_ros.pipeline.core import DETECTION_OUTPUTS, FrameResult, Pipeline, build_outputs, same_frame
+from pcc_ros.pipeline.core import DETECTION_OUTPUTS, FrameResult, Pipeline, build_outputs
 from pcc_ros.pipeline.filter import decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
@@ -421,7 +422,7 @@ class NodeCore:
     def _lookup(self, target: str, source: str, stamp_ns: int):
         """The runtime's transform, or None (counted; the reason logged once per frame pair)."""
         # tf2 in ROS 2 refuses frame ids with a leading '/' (ROS 1 drivers, converted bags): strip it
-        tf = self.runtime.lookup_transform(target.lstrip("/"), source.lstrip("/"), stamp_ns)
+        tf = self.runtime.lookup_transform(frame_name(target), frame_name(source), stamp_ns)
         if tf is None:
             self.no_transform += 1
             self._failed(f"no transform '{source}' -> '{target}'")
