@@ -142,6 +142,9 @@ class Pipeline:
 
     def __init__(self, config: PipelineConfig, completer=None) -> None:
         self.config = config
+        #: frames so far whose scan had no finite point / scores outside [0, 1] (each logged at 1, 101, ...)
+        self.empty_scans = 0
+        self.scores_outside_unit = 0
         if completer is None:
             completer = load_completer(
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
@@ -308,7 +311,7 @@ class Pipeline:
         "empty scan"; logged for the first such frame and every 100th) instead of all being
         rejected for holding no returns."""
         _count(skipped, "empty scan", n)
-        self.empty_scans = getattr(self, "empty_scans", 0) + 1
+        self.empty_scans += 1
         if self.empty_scans % 100 == 1:
             log.warning("frame %d: the scan has no finite point; its %d detections pass the filter unjudged "
                         "(%d such frames so far)", stamp_ns, n, self.empty_scans)
@@ -320,7 +323,7 @@ class Pipeline:
             return
         outside = int(((boxes.score < 0.0) | (boxes.score > 1.0)).sum())
         if outside:
-            self.scores_outside_unit = getattr(self, "scores_outside_unit", 0) + 1
+            self.scores_outside_unit += 1
             if self.scores_outside_unit % 100 == 1:
                 log.warning("%d detection scores outside [0, 1] (e.g. %.3g) with score_mapping identity (%d frames so "
                             "far): the detector gives logits? set score_mapping: sigmoid",
