@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from pcc_ros.data.bag import open_bag, read_frames
+from pcc_ros.data.bag_writer import POINTS_TOPIC
 from pcc_ros.data.kitti import KittiObject, KittiTracking
 from pcc_ros.data.nuscenes import NuScenes
 from pcc_ros.errors import DataError
@@ -49,14 +50,12 @@ def count_frames(path: str | Path, sequence: str | None = None) -> int | None:
     kind = kind_of(path)
     if kind == "bag":
         with open_bag(path) as reader:
-            return sum(c.msgcount or 0 for c in reader.connections if c.topic == "/points") or None
-    split = path / "training" if (path / "training" / "velodyne").is_dir() else path
-    velodyne = split / "velodyne"
-    if kind == "kitti-tracking":
-        folders = [velodyne / sequence] if sequence else [d for d in velodyne.iterdir() if d.is_dir()]
-        return sum(len(list(folder.glob("*.bin"))) for folder in folders if folder.is_dir())
+            return sum(c.msgcount or 0 for c in reader.connections if c.topic == POINTS_TOPIC) or None
+    if kind == "kitti-tracking":  # the readers' own split and sequence lookup
+        reader = KittiTracking(path)
+        return sum(len(reader.scan_paths(s)) for s in ([sequence] if sequence else reader.sequences()))
     if kind == "kitti-object":
-        return len(list(velodyne.glob("*.bin")))
+        return len(list((KittiObject(path).root / "velodyne").glob("*.bin")))
     return None
 
 
