@@ -34,15 +34,6 @@ class Scratch(threading.local):
                 self.buffers[name] = buf
         return buf[:n]
 
-    def iota(self, n: int) -> np.ndarray:
-        """``arange(n)`` (int64), kept."""
-        buf = self.buffers.get("iota")
-        if buf is None or len(buf) < n:
-            buf = np.arange(n + n // 4 + 1024, dtype=np.int64)
-            if buf.nbytes <= MAX_KEPT_BYTES:
-                self.buffers["iota"] = buf
-        return buf[:n]
-
     def nonzero(self, mask: np.ndarray, name: str) -> np.ndarray:
         """``np.flatnonzero(mask)`` into a kept buffer (through a transient array: numpy's
         nonzero and a copy cost about half of ``np.compress`` into the buffer)."""
