@@ -85,10 +85,13 @@ def test_a_bad_file_is_refused_naming_the_file_and_the_parameter(tmp_path, line,
     ("/**/completion_node:\n  ros__parameters:\n    min_points: [1\n", r"bad\.yaml:4:1: not valid YAML \(expected ','"),
     ("/**/completion_node:\n\tros__parameters: {}\n", r"bad\.yaml:2:1: not valid YAML \(found character '\\t'"),
     (None, r"bad\.yaml: cannot read parameter file \(No such file or directory\) — check the path"),
+    (b"\x89PNG\r\n\x1a\n\xff\xfe", r"bad\.yaml: cannot read parameter file \(not UTF-8 text: .*\) — check the path"),
 ])
 def test_an_unreadable_file_is_one_line_naming_file_and_line(tmp_path, text, message):
     path = tmp_path / "bad.yaml"
-    if text is not None:
+    if isinstance(text, bytes):  # an image or a bag given where the YAML belongs
+        path.write_bytes(text)
+    elif text is not None:
         path.write_text(text)
     with pytest.raises(ConfigError, match=message) as caught:
         load_parameters(path)

@@ -222,6 +222,9 @@ def _read_document(path: Path) -> dict[str, Any]:
         document = yaml.safe_load(path.read_text()) or {}
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read parameter file ({exc.strerror or exc}) — check the path") from exc
+    except UnicodeDecodeError as exc:  # a binary file (an image, a bag) where the YAML belongs
+        raise ConfigError(f"{path}: cannot read parameter file (not UTF-8 text: {exc.reason} at byte "
+                          f"{exc.start}) — check the path") from exc
     except yaml.YAMLError as exc:  # one line: where and what, not PyYAML's multi-line report
         mark = getattr(exc, "problem_mark", None)
         raise ConfigError(f"{path}{f':{mark.line + 1}:{mark.column + 1}' if mark else ''}: not valid YAML "
