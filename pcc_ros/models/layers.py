@@ -322,7 +322,9 @@ class PCNEncoder(nn.Module):
     def _folded(self, composed: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
         """The folded constants of :meth:`_forward_chunked`: ``(W_p W1)^T`` (``composed``; else
         None) and the per-segment half's constant ``b_p + (W_p + W_s) b1``, computed once and
-        kept until a parameter they depend on changes (its storage or its in-place version)."""
+        kept until a parameter they depend on changes (its storage or its in-place version:
+        optimizer steps and ``load_state_dict`` bump it; an edit through ``param.data`` does not,
+        and would leave these stale)."""
         last = _linears(self.mlp1)[-1]
         deps = (self.point_proj.weight, self.point_proj.bias, self.segment_proj.weight, last.weight, last.bias)
         key = (composed, *((None, 0) if t is None else (t.data_ptr(), t._version) for t in deps))
