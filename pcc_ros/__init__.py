@@ -8,10 +8,12 @@ One process-wide setting is made here, before anything can load torch: libgomp (
 OpenMP runtime on Linux) keeps its worker threads spinning for ``GOMP_SPINCOUNT`` iterations
 after every parallel region -- 300000 by default, several milliseconds -- so after the network
 the idle torch worker holds a core that the filter's second thread and the node's own
-threads then wait for (the filter stage took 8.5 instead of 5.7 ms at 20 cars, ``docs/nodes.md``).
+threads then wait for (at 20 cars the filter stage took 8.5 instead of 5.6-5.8 ms; docs/nodes.md,
+"CPU threads and OpenMP's spin").
 :data:`GOMP_SPINCOUNT` keeps the spin short enough to give the core back and long enough
 for the network's back-to-back operators (measured: the completion stage as fast as with the
-default). A value the user set is kept; set before torch is imported, or it has no effect.
+default). A value the user set is kept; set before torch is imported, or it has no effect;
+child processes inherit it, as any environment variable.
 """
 
 import os
