@@ -84,7 +84,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batches", default=",".join(map(str, BATCHES)), help="batch sizes of the sweep")
     parser.add_argument("--no-breakdown", action="store_true", help="skip the time breakdown (section 5)")
     parser.add_argument("--backends", default=None,
-                        help="other backends to time (default: every registered learned backend, plus mirror)")
+                        help="other backends to time, comma-separated (default: every registered learned backend, "
+                             "plus mirror; \"\": none)")
 
 
 def car_clouds(count: int, points: int, seed: int) -> list[np.ndarray]:
@@ -412,10 +413,15 @@ def _load_pointpncnet(checkpoint: Path | None, batch_size: int):
 def run(args: argparse.Namespace) -> dict:
     import torch
 
-    from pcc_ros.models import available, default_checkpoint, get_backend, load_completer
+    from pcc_ros.models import available, backend_names, default_checkpoint, get_backend, load_completer
     from pcc_ros.models.layers import reference_path
     from pcc_ros.models.registry import create
 
+    # named backends are checked now, not at section 4 after minutes of timing
+    if args.backends is None:
+        names = [n for n in available() if n != "pointpncnet" and get_backend(n).learned] + ["mirror"]
+    else:  # --backends "": none (section 4 skipped)
+        names = backend_names(args.backends) if args.backends.replace(",", "").strip() else []
     load_before = load_average()
     batches = [int(b) for b in args.batches.split(",") if b.strip()]
     count = max(max(batches), 32)
@@ -525,8 +531,6 @@ def run(args: argparse.Namespace) -> dict:
     print(f"batch size with the highest throughput: {best_batch}")
 
     # ---- 4: other backends at the best setting
-    names = ([s.strip() for s in args.backends.split(",") if s.strip()] if args.backends is not None else
-             [n for n in available() if n != "pointpncnet" and get_backend(n).learned] + ["mirror"])
     others = []
     for name in names:
         try:

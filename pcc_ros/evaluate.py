@@ -41,7 +41,7 @@ from pcc_ros.data.gt_pools import PoolConfig, load_or_assign, load_or_build_pool
 from pcc_ros.data.instances import EvalShapes, InstanceCache, aggregate_track
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.metrics import METRICS, instance_metrics, to_metres, unit_label
-from pcc_ros.models import get_backend, load_completer
+from pcc_ros.models import backend_names, get_backend, load_completer
 from pcc_ros.models.base import SceneContext
 from pcc_ros.tables import metric_cell, print_table
 
@@ -584,11 +584,7 @@ class EvalConfig:
 def evaluate_cache(opts: EvalConfig) -> tuple[dict[str, Any], str]:
     """Evaluate ``opts.backends`` on the instance cache; writes ``opts.json`` / ``opts.plot`` when
     given and returns the results and the kind of reference they were scored against."""
-    backends = [b.strip() for b in (opts.backends or "input,densify,mirror").split(",") if b.strip()]
-    if not backends:
-        raise ConfigError("--backends is empty")
-    if len(set(backends)) != len(backends):
-        raise ConfigError(f"--backends lists a backend twice: {opts.backends}")
+    backends = backend_names(opts.backends or "input,densify,mirror")  # checked before the cache loads
     if not opts.data.exists():
         raise DataError(f"{opts.data}: instance cache not found (write one with `pcc extract`)")
     instances, reference = instances_from_cache(

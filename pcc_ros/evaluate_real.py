@@ -39,7 +39,7 @@ from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS, write_results
 from pcc_ros.geometry.boxes import crop_canonical, iou_3d
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.metrics.realdata import REAL_METRICS, draw_three_views, mean_rows, real_instance_metrics
-from pcc_ros.models import available, get_backend, load_completer
+from pcc_ros.models import available, backend_names, get_backend, load_completer
 from pcc_ros.models.base import SceneContext
 from pcc_ros.pipeline.core import PipelineConfig
 from pcc_ros.tables import metric_cell, print_table
@@ -371,7 +371,7 @@ def run_real(opts: RealEvalConfig) -> int:
         raise ConfigError("--real-sources is empty")
     if opts.voxel <= 0:
         raise ConfigError(f"--real-voxel must be positive, got {opts.voxel}")
-    backends = [b.strip() for b in opts.backends.split(",") if b.strip()] if opts.backends else available()
+    backends = backend_names(opts.backends) if opts.backends else available()  # checked before the frames load
     checkpoints = dict(opts.checkpoints)
     unused = sorted(set(checkpoints) - set(backends))
     if unused:

@@ -53,3 +53,12 @@ def test_pcc_eval_errors(tiny_cache, tmp_path, caplog):
     assert "unknown completion backend 'bogus'" in caplog.text
     assert main(["eval", "--data", str(tiny_cache), "--split", "nope", "--backends", "input"]) == 1
     assert main(["eval", "--data", str(tiny_cache), "--backends", "input", "--checkpoint", "input=x"]) == 1
+
+
+@pytest.mark.parametrize("real", [False, True])
+def test_pcc_eval_names_an_unknown_backend_before_reading_any_data(tmp_path, caplog, real):
+    """The backends are checked first (as `pcc bench complete` does): a typo is said at once, not after
+    the instance cache or the real frames have been read."""
+    source = ["--real", "--real-sources", str(tmp_path / "none")] if real else ["--data", str(tmp_path / "none")]
+    assert main(["eval", *source, "--backends", "input,bogus"]) == 1
+    assert "unknown completion backend 'bogus'; available: " in caplog.text

@@ -11,6 +11,7 @@ from pcc_ros.models.base import Completer, SceneContext, TorchCompleter, resampl
 from pcc_ros.models.registry import (
     BACKENDS,
     available,
+    backend_names,
     create,
     default_checkpoint,
     get_backend,
@@ -24,6 +25,7 @@ __all__ = [
     "SceneContext",
     "TorchCompleter",
     "available",
+    "backend_names",
     "create",
     "default_checkpoint",
     "get_backend",

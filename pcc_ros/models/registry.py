@@ -83,6 +83,20 @@ def get_backend(name: str) -> type[Completer]:
     return cls
 
 
+def backend_names(spec: str, option: str = "--backends") -> list[str]:
+    """The backends a comma-separated option names (``"input, mirror"``), checked before any work:
+    an unknown name is :func:`get_backend`'s one-line :class:`ConfigError` naming the available
+    ones; an empty list or a name given twice is refused too."""
+    names = [s.strip() for s in spec.split(",") if s.strip()]
+    if not names:
+        raise ConfigError(f"{option} is empty")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{option} lists a backend twice: {spec}")
+    for name in names:
+        get_backend(name)
+    return names
+
+
 def available() -> list[str]:
     """Names of every backend: the table's (those whose module imports) and run-time ones.
 
