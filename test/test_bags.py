@@ -134,6 +134,15 @@ def test_refuses_overwrite_and_force_replaces(shared_data, tmp_path, caplog):
     assert len(list(read_frames(out))) == 2
 
 
+def test_info_reads_a_bag_folder_whose_name_ends_in_mcap(shared_data, tmp_path, capsys):
+    """`ros2 bag record -o run.mcap` makes a folder run.mcap/: `pcc info` took the name for a file
+    ("Is a directory")."""
+    write_bag(KittiObject(shared_data / "kitti_object").frames(stop=1), tmp_path / "run", progress=False)
+    (tmp_path / "run").rename(tmp_path / "run.mcap")
+    assert main(["info", str(tmp_path / "run.mcap")]) == 0
+    assert "chunk CRCs: all" in capsys.readouterr().out
+
+
 def test_failure_leaves_no_partial_bag(shared_data, tmp_path):
     frames = list(KittiObject(shared_data / "kitti_object").frames(stop=2))
 

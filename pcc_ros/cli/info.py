@@ -101,7 +101,7 @@ def _compression(path: Path, meta) -> str:
     """rosbag2 file / message compression from the metadata, else the MCAP chunk compression."""
     if meta.compression_mode:
         return f"{meta.compression_mode} {meta.compression_format}"
-    files = [path] if path.suffix == ".mcap" else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    files = _mcap_files(path)
     if not files:
         return "none"
 
@@ -116,7 +116,7 @@ def chunk_crcs(path: Path) -> str:
 
     Without them a bit flip inside a chunk is undetectable (rosbags < 0.12 writes none;
     ``pcc convert`` and ``pcc replay`` fill them in)."""
-    files = [path] if path.suffix == ".mcap" else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    files = _mcap_files(path)
     if not files:
         return "n/a"
     with_crc = total = 0
@@ -128,6 +128,14 @@ def chunk_crcs(path: Path) -> str:
                 with_crc += struct.unpack("<I", stream.read(4))[0] != 0
                 total += 1
     return "all" if with_crc == total else "none" if with_crc == 0 else f"{with_crc} of {total}"
+
+
+def _mcap_files(path: Path) -> list[Path]:
+    """The MCAP files of a bag: the file itself, or those in the folder (whatever its name:
+    ``ros2 bag record -o run.mcap`` makes a folder ``run.mcap/``)."""
+    if path.is_dir():
+        return sorted(path.glob("*.mcap"))
+    return [path] if path.suffix == ".mcap" else []
 
 
 def _storage_id(path: Path) -> str:
