@@ -134,6 +134,16 @@ def test_refuses_overwrite_and_force_replaces(shared_data, tmp_path, caplog):
     assert len(list(read_frames(out))) == 2
 
 
+@pytest.mark.parametrize("name", ["x.mcap", "x.db3"])
+def test_out_named_like_a_storage_file_is_refused_naming_the_folder_to_use(shared_data, tmp_path, caplog, name):
+    """`--out x.mcap` made a folder x.mcap/ holding x.mcap.mcap (rosbags writes a bag folder), which
+    `pcc info x.mcap` then could not read; now it is refused before any work, saying what to pass."""
+    src = str(shared_data / "kitti_object")
+    assert main(["convert", "kitti-object", src, "--frames", "1", "--out", str(tmp_path / name)]) == 1
+    assert f"{name}: name the bag folder" in caplog.text and f"use {tmp_path / 'x'}" in caplog.text
+    assert not list(tmp_path.iterdir())
+
+
 def test_info_reads_a_bag_folder_whose_name_ends_in_mcap(shared_data, tmp_path, capsys):
     """`ros2 bag record -o run.mcap` makes a folder run.mcap/: `pcc info` took the name for a file
     ("Is a directory")."""

@@ -81,6 +81,24 @@ def test_missing_topic_is_a_clear_error(kitti_bag, tmp_path):
     assert not (tmp_path / "x").exists()  # no partial bag left behind
 
 
+def test_cli_replay_refuses_an_out_named_like_a_storage_file_before_loading_the_backend(kitti_bag, tmp_path,
+                                                                                         caplog, monkeypatch):
+    """`--out y.mcap` made a folder y.mcap/ holding y.mcap.mcap; now refused, and (like an existing
+    --out without --force) before the backend loads or the bag is read."""
+    import pcc_ros.runtime.bag as replay_module
+
+    def loaded(*args, **kwargs):
+        raise AssertionError("the pipeline was built before --out was checked")
+
+    monkeypatch.setattr(replay_module, "Pipeline", loaded)
+    assert main(["replay", str(kitti_bag), "--out", str(tmp_path / "y.mcap")]) == 1
+    assert "y.mcap: name the bag folder" in caplog.text and not (tmp_path / "y.mcap").exists()
+    (tmp_path / "y").mkdir()
+    (tmp_path / "y" / "metadata.yaml").write_text("")
+    assert main(["replay", str(kitti_bag), "--out", str(tmp_path / "y")]) == 1
+    assert "exists; pass --force" in caplog.text
+
+
 def test_cli_replay_with_filter(kitti_bag, tmp_path, capsys):
     out = tmp_path / "cli"
     code = main(["replay", str(kitti_bag), "--out", str(out), "--backend", "densify", "--filter", "--no-copy-inputs"])

@@ -16,7 +16,7 @@ import logging
 from itertools import islice
 from pathlib import Path
 
-from pcc_ros.data.bag_writer import write_bag
+from pcc_ros.data.bag_writer import check_output_bag, write_bag
 from pcc_ros.data.kitti import KittiObject, KittiTracking
 from pcc_ros.data.nuscenes import NuScenes
 from pcc_ros.errors import DataError
@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for name, text in helps.items():
         p = sub.add_parser(name, help=text, description=text)
         p.add_argument("src", type=Path, help="dataset root")
-        p.add_argument("--out", type=Path, required=True, help="output bag directory")
+        p.add_argument("--out", type=Path, required=True, help="output bag: a folder (rosbag2 writes metadata.yaml "
+                       "and NAME.mcap / NAME.db3 inside it)")
         p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (mcap)")
         p.add_argument("--no-compress", action="store_true", help="write without zstd")
         p.add_argument("--zstd-level", type=int, default=None, help="MCAP chunk zstd level (default 3)")
@@ -94,8 +95,7 @@ def _nuscenes(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.out.exists() and not args.force:
-        raise DataError(f"{args.out} exists; pass --force to replace it")
+    check_output_bag(args.out, args.force)  # before the dataset is read
     if args.source in ("kitti-tracking", "synth"):
         frames, total, source = _tracking(args, synth=args.source == "synth")
     elif args.source == "kitti-object":

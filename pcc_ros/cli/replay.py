@@ -15,7 +15,8 @@ from pcc_ros.tables import print_table
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", type=Path, help="input rosbag2 (MCAP or sqlite3)")
-    parser.add_argument("--out", type=Path, required=True, help="output bag")
+    parser.add_argument("--out", type=Path, required=True, help="output bag: a folder (rosbag2 writes metadata.yaml "
+                        "and NAME.mcap / NAME.db3 inside it)")
     parser.add_argument("--config", type=Path,
                         help="node parameter YAML (default: the shipped completion.yaml; with --filter "
                         "detection_filter.yaml)")

@@ -64,6 +64,8 @@ TF_STATIC_TOPIC = "/tf_static"
 ODOM_FRAME = "odom"
 BASE_FRAME = "base_link"
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+#: Suffixes of rosbag2 storage files: an output named so is refused (a bag is the folder around one).
+BAG_FILE_SUFFIXES = (".mcap", ".db3")
 #: rosbag2 custom_data key holding the frames' (sequence, first index, count) runs.
 FRAMES_KEY = "pcc_ros.frames"
 SOURCE_KEY = "pcc_ros.source"
@@ -202,6 +204,21 @@ def write_frames(bag: BagWriter, frames: Iterable[Sample], runs: _FrameRuns, sum
         summary.frames += 1
 
 
+def check_output_bag(out: str | Path, force: bool = False) -> None:
+    """Refuse an output bag path before any work (:func:`atomic_bag` checks it again): one named
+    like a storage file (``x.mcap``, ``x.db3``: a rosbag2 bag is a folder, and rosbags would make
+    a folder ``x.mcap/`` holding ``x.mcap.mcap``), an existing one without ``force``, and a
+    non-empty folder that is not a bag."""
+    out = Path(out)
+    if out.suffix in BAG_FILE_SUFFIXES:
+        raise DataError(f"{out}: name the bag folder, not a {out.suffix} file — a rosbag2 bag is a folder "
+                        f"(metadata.yaml + the storage file, both written inside it): use {out.with_suffix('')}")
+    if out.exists() and not force:
+        raise DataError(f"{out} exists; pass --force to replace it")
+    if out.is_dir() and not (out / "metadata.yaml").is_file() and any(out.iterdir()):
+        raise DataError(f"{out} is a non-empty folder that is not a rosbag2 bag; refusing to replace it")
+
+
 @contextmanager
 def atomic_bag(
     out: str | Path,
@@ -215,15 +232,13 @@ def atomic_bag(
     The bag is written in a temporary directory next to ``out`` and renamed into place
     at the end; any exception (or Ctrl-C) removes it, leaving an existing ``out`` intact.
 
-    Raises :class:`DataError` for an unknown storage, or if ``out`` exists without ``force``.
+    Raises :class:`DataError` for an unknown storage, an ``out`` named like a storage file
+    (``x.mcap``, ``x.db3``: a rosbag2 bag is a folder), or if ``out`` exists without ``force``.
     """
     out = Path(out)
     if storage not in STORAGES:
         raise DataError(f"unknown storage {storage!r} (use {' or '.join(STORAGES)})")
-    if out.exists() and not force:
-        raise DataError(f"{out} exists; pass --force to replace it")
-    if out.is_dir() and not (out / "metadata.yaml").is_file() and any(out.iterdir()):
-        raise DataError(f"{out} is a non-empty folder that is not a rosbag2 bag; refusing to replace it")
+    check_output_bag(out, force)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     tmp_bag = tmp_dir / out.name
@@ -262,7 +277,8 @@ def write_bag(
     total: int | None = None,
     source: str = "",
 ) -> BagSummary:
-    """Write ``frames`` to the rosbag2 directory ``out`` (see the module docstring).
+    """Write ``frames`` to the rosbag2 directory ``out`` (see the module docstring; ``out`` names
+    the folder: ``bags/run`` holds ``metadata.yaml`` and ``run.mcap``).
 
     Args:
         storage: ``"mcap"`` (default) or ``"sqlite3"``.

@@ -38,7 +38,7 @@ from pcc_ros.data.bag import (
     iter_messages,
     open_bag,
 )
-from pcc_ros.data.bag_writer import TF_STATIC_QOS, TF_STATIC_TOPIC, TF_TOPIC, atomic_bag
+from pcc_ros.data.bag_writer import TF_STATIC_QOS, TF_STATIC_TOPIC, TF_TOPIC, atomic_bag, check_output_bag
 from pcc_ros.errors import ConfigError, DataError, PccError
 from pcc_ros.msg.stamps import stamp_to_ns
 from pcc_ros.pipeline.config import NODE_DEFAULTS, NODE_NAMES, load_parameters, node_parameters, pipeline_config
@@ -125,6 +125,8 @@ def replay_bag(
     transform) is logged, counted and skipped. The bag is opened once: its topics are checked,
     its transforms loaded, then its messages played.
     """
+    if out is not None:  # a wrong --out is said before the backend loads
+        check_output_bag(out, force)
     if parameters is None:
         if pipeline is None:
             raise ConfigError("replay_bag needs a pipeline or node parameters")
