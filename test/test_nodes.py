@@ -88,7 +88,8 @@ def test_completion_node_publishes_completed_cloud():
 ])
 def test_a_bad_ros_args_line_stops_the_node_with_one_line_not_a_traceback(tmp_path, ros_args, expected):
     """rclpy.init refuses a malformed parameter file or --ros-args line with its own RCLError; the
-    node says which file and line (as pcc replay does) and exits 1 instead of a Python traceback."""
+    node says which file and line (as pcc replay does) and exits 1 instead of a Python traceback,
+    in one line (rcl's parser is asked first: rclpy.init also logged a vaguer rcl line above it)."""
     require_rclpy()
     (tmp_path / "bad.yaml").write_text("/**/completion_node:\n  ros__parameters:\n    min_points: [1\n")
     code = "import sys; from pcc_ros.nodes.completion_node import main; sys.exit(main())"
@@ -100,6 +101,8 @@ def test_a_bad_ros_args_line_stops_the_node_with_one_line_not_a_traceback(tmp_pa
     assert "Traceback" not in text and expected in text, text
     fatal = [line for line in text.splitlines() if "FATAL" in line]
     assert len(fatal) == 1 and "/project/src" not in fatal[0], text
+    # ours is the only line: rclpy.init's own "[rcl]: Failed to parse global arguments" came first
+    assert text.strip().splitlines() == fatal, text
 
 
 @pytest.mark.ros

@@ -28,6 +28,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
+from rclpy.utilities import remove_ros_args
 
 from pcc_ros.errors import ConfigError, PccError
 from pcc_ros.pipeline.config import ParameterSpec, parameter_table, read_parameters
@@ -217,6 +218,9 @@ def startup_error(exc: BaseException, argv: list[str]) -> str:
 def run(node_name: str, mode: str, args: list[str] | None = None) -> int:
     """``main()`` of both nodes: init, spin, clean shutdown on Ctrl-C / external shutdown."""
     try:
+        # rcl's own parser first: rclpy.init on a bad --ros-args line or parameter file also logs
+        # "[rcl]: Failed to parse global arguments" before raising, a second, vaguer line above ours
+        remove_ros_args(args=args)
         rclpy.init(args=args)
     except RuntimeError as exc:  # rclpy's RCLError (not exported): a bad --ros-args line or parameter file
         rclpy.logging.get_logger(node_name).fatal(startup_error(exc, sys.argv if args is None else list(args)))
