@@ -86,6 +86,8 @@ def test_a_bad_file_is_refused_naming_the_file_and_the_parameter(tmp_path, line,
     ("/**/completion_node:\n\tros__parameters: {}\n", r"bad\.yaml:2:1: not valid YAML \(found character '\\t'"),
     (None, r"bad\.yaml: cannot read parameter file \(No such file or directory\) — check the path"),
     (b"\x89PNG\r\n\x1a\n\xff\xfe", r"bad\.yaml: cannot read parameter file \(not UTF-8 text: .*\) — check the path"),
+    # UTF-8 but a control character (the head of a .safetensors file): PyYAML's report spans two lines
+    (b"\x08\x00\x00{}", r"bad\.yaml: not valid YAML \(unacceptable character #x0008: .* position 0\) — fix the file"),
 ])
 def test_an_unreadable_file_is_one_line_naming_file_and_line(tmp_path, text, message):
     path = tmp_path / "bad.yaml"

@@ -228,7 +228,7 @@ def _read_document(path: Path) -> dict[str, Any]:
     except yaml.YAMLError as exc:  # one line: where and what, not PyYAML's multi-line report
         mark = getattr(exc, "problem_mark", None)
         raise ConfigError(f"{path}{f':{mark.line + 1}:{mark.column + 1}' if mark else ''}: not valid YAML "
-                          f"({getattr(exc, 'problem', None) or exc}) — fix the file") from exc
+                          f"({getattr(exc, 'problem', None) or ' '.join(str(exc).split())}) — fix the file") from exc
     if not isinstance(document, dict) or not document:
         raise ConfigError(f"{path}: no node in parameter file")
     return document
