@@ -92,10 +92,12 @@ def truly_vehicle(detections: Boxes, truth: Boxes | None) -> np.ndarray:
     return iou_bev(detections, vehicles).max(axis=1) >= TRUE_IOU
 
 
-def _replay(bag: Path, out_bag: Path | None, config, frames_by_stamp: dict, on_frame) -> object:
+def _replay(bag: Path, out_bag: Path | None, config, frames_by_stamp: dict, on_frame,
+            with_filter: bool = True) -> object:
+    """Replay ``bag`` through the filter node (``with_filter``) or the completion node alone."""
     pipeline = Pipeline(config)
     return replay_bag(
-        bag, out_bag, pipeline, with_filter=True, force=True, progress=False,
+        bag, out_bag, pipeline, with_filter=with_filter, force=True, progress=False,
         on_result=lambda result, cloud, dets: on_frame(result, frames_by_stamp[result.stamp_ns]),
     )
 
@@ -151,7 +153,9 @@ def run_synthcars(opts: DemoConfig, config) -> dict:
                 pictures[result.stamp_ns] = (result, frame)
 
         cfg = config if primary else replace(config, backend=backend, checkpoint="")
-        _replay(bag, opts.out / "synthcars_replayed" if primary else None, cfg, frames_by_stamp, on_frame)
+        # a baseline is only scored on its completions: the completion node runs it, not the filter
+        _replay(bag, opts.out / "synthcars_replayed" if primary else None, cfg, frames_by_stamp, on_frame,
+                with_filter=primary)
         mean = {m: float(np.mean([s[m] for s in scores])) for m in COMPLETION_METRICS}
         completion_rows.append({"backend": backend, "instances": len(scores), **mean})
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import pytest
 
@@ -10,7 +11,8 @@ from pcc_ros.cli.main import main
 
 
 @pytest.mark.slow
-def test_demo_runs_end_to_end(tmp_path, shared_data, capsys):
+def test_demo_runs_end_to_end(tmp_path, shared_data, capsys, caplog):
+    caplog.set_level(logging.INFO, logger="pcc_ros")
     out = tmp_path / "demo"
     code = main(["demo", "--out", str(out), "--backend", "mirror", "--baselines", "input", "--frames", "2",
                  "--kitti", str(shared_data / "kitti_tracking")])
@@ -26,6 +28,12 @@ def test_demo_runs_end_to_end(tmp_path, shared_data, capsys):
     for png in (out / "synthcars_demo.png", out / "kitti_demo.png"):
         assert png.stat().st_size > 10_000
     assert "SynthCars completion vs true shapes" in capsys.readouterr().out
+    # the baseline is scored on its completions only: the completion node runs it (the log read as if
+    # the filter node completed with `input`: "detection_filter_node: filter node ready: backend=input")
+    ready = [r.getMessage() for r in caplog.records if "node ready" in r.getMessage()]
+    assert sum("filter node ready: backend=mirror" in m for m in ready) == 2, ready  # SynthCars, KITTI
+    assert sum("completion node ready: backend=input" in m for m in ready) == 1, ready
+    assert not any("filter node ready: backend=input" in m for m in ready), ready
 
 
 def test_demo_with_a_kitti_folder_that_is_not_there_fails_naming_it(tmp_path, caplog):
