@@ -26,6 +26,7 @@ from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import box_corners, iou_bev
 from pcc_ros.geometry.canonical import to_canonical
 from pcc_ros.metrics.suite import instance_metrics, to_metres
+from pcc_ros.models import backend_names, get_backend
 from pcc_ros.paths import shared_data_dir
 from pcc_ros.pipeline.config import load_config
 from pcc_ros.pipeline.core import Pipeline
@@ -251,8 +252,11 @@ def demo(opts: DemoConfig) -> dict:
     if opts.kitti is not None and not (Path(opts.kitti) / "training").is_dir():  # named: an error, not half a demo
         raise DataError(f"{opts.kitti}: no KITTI tracking data here (no {Path(opts.kitti) / 'training'}) — pass "
                         "--kitti the folder holding training/velodyne/0000")
-    opts.out.mkdir(parents=True, exist_ok=True)
     config, _ = load_config(None, with_filter=True, backend=opts.backend, checkpoint=opts.checkpoint)
+    get_backend(config.backend)  # a misspelt --backend / --baselines is said before SynthCars is generated
+    if opts.baselines.replace(",", "").strip():  # "": none
+        backend_names(opts.baselines, "--baselines")
+    opts.out.mkdir(parents=True, exist_ok=True)
     results = {"backend": config.backend, "synthcars": run_synthcars(opts, config), "kitti": run_kitti(opts, config)}
     files.write_json(opts.out / "demo.json", results, indent=2)
     return results

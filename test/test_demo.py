@@ -44,3 +44,13 @@ def test_demo_with_a_kitti_folder_that_is_not_there_fails_naming_it(tmp_path, ca
     assert code == 1
     assert "nope" in caplog.text and "no KITTI tracking data" in caplog.text
     assert not (out / "demo.json").exists()
+
+
+@pytest.mark.parametrize("flag", [["--backend", "mirorr"], ["--baselines", "input,mirorr"]])
+def test_demo_names_a_misspelt_backend_before_any_work(tmp_path, caplog, flag):
+    """The backend and the baselines are checked first (was: after SynthCars was generated, and for
+    a baseline after the backend's whole replay)."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--frames", "2", *flag]) == 1
+    assert "unknown completion backend 'mirorr'; available: " in caplog.text
+    assert not out.exists()
