@@ -4,7 +4,7 @@ every import counted (module level and inside functions alike).
 Layers, lowest first — a module may import its own layer and the ones below, never above:
 
 0. base: the shared nouns and helpers (``errors``, ``types``, ``files``, ``paths``, ``scratch``,
-   ``tables``, ``assignments``, the package itself);
+   ``tables``, ``assignments``, ``lograte``, the package itself);
 1. ``geometry/``: numpy math on boxes and rotations (the one ``box_corners``, the one
    quaternion convention);
 2. ``msg/``: ROS messages <-> arrays (markers are drawn from ``geometry.box_corners``, poses
@@ -44,6 +44,7 @@ EXACT = {
     "pcc_ros.paths": 0,
     "pcc_ros.tables": 0,
     "pcc_ros.assignments": 0,
+    "pcc_ros.lograte": 0,  # which occurrences of a repeating warning are logged
     "pcc_ros.plotting": 0,  # matplotlib helpers of the PNGs (box labels)
     "pcc_ros.train": 6,
     "pcc_ros.evaluate": 6,

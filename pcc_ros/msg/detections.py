@@ -53,6 +53,7 @@ from pcc_ros.geometry.rotations import (
     yaw_from_quaternion,
 )
 from pcc_ros.geometry.transforms import Transform
+from pcc_ros.lograte import worth_logging
 from pcc_ros.msg.stamps import make_header
 from pcc_ros.msg.typestore import ClassResolver, new_message, resolve
 from pcc_ros.types import Boxes
@@ -180,7 +181,7 @@ def _keep_valid(reasons: list[str], what: str, skip_invalid: bool, ids: np.ndarr
         if total <= _LOGGED_IN_FULL and j < _LOGGED_PER_MESSAGE:
             log.warning("skipped %s: %s", name(i), reasons[i])
             in_full += 1
-        elif total > _LOGGED_IN_FULL and str(total).rstrip("0") == "1":  # 100, 1000, ...
+        elif total > _LOGGED_IN_FULL and worth_logging(total):  # 100, 1000, ...
             log.warning("skipped %s: %s (%d invalid boxes skipped so far; logged one by one for the first %d, "
                         "from here at every power of ten)", name(i), reasons[i], total, _LOGGED_IN_FULL)
     if in_full and len(bad) > in_full:

@@ -22,6 +22,7 @@ import numpy as np
 from pcc_ros.errors import MessageError
 from pcc_ros.geometry.boxes import BoxCandidates, canonical_crops
 from pcc_ros.geometry.canonical import from_canonical
+from pcc_ros.lograte import worth_logging
 from pcc_ros.models.base import SceneContext
 from pcc_ros.models.registry import get_backend, load_completer
 from pcc_ros.msg.detections import (
@@ -312,7 +313,7 @@ class Pipeline:
         rejected for holding no returns."""
         _count(skipped, "empty scan", n)
         self.empty_scans += 1
-        if self.empty_scans % 100 == 1:
+        if worth_logging(self.empty_scans, every=100):
             log.warning("frame %d: the scan has no finite point; its %d detections pass the filter unjudged "
                         "(%d such frames so far)", stamp_ns, n, self.empty_scans)
 
@@ -324,7 +325,7 @@ class Pipeline:
         outside = int(((boxes.score < 0.0) | (boxes.score > 1.0)).sum())
         if outside:
             self.scores_outside_unit += 1
-            if self.scores_outside_unit % 100 == 1:
+            if worth_logging(self.scores_outside_unit, every=100):
                 log.warning("%d detection scores outside [0, 1] (e.g. %.3g) with score_mapping identity (%d frames so "
                             "far): the detector gives logits? set score_mapping: sigmoid",
                             outside, float(boxes.score[(boxes.score < 0) | (boxes.score > 1)][0]),

@@ -22,6 +22,7 @@ import numpy as np
 
 from pcc_ros.errors import ConfigError, PccError
 from pcc_ros.geometry.transforms import transform_boxes
+from pcc_ros.lograte import worth_logging
 from pcc_ros.msg.detections import transform_detections
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
 from pcc_ros.msg.transforms import frame_name, same_frame
@@ -301,9 +302,9 @@ class NodeCore:
         total = stats.dropped_clouds + stats.dropped_detections
         if total == self._drops_seen:
             return
-        crossed = any(str(k).rstrip("0") == "1" for k in range(self._drops_seen + 1, total + 1))
+        due = worth_logging(total, previous=self._drops_seen)  # one call can drop several messages
         self._drops_seen = total
-        if not crossed:
+        if not due:
             return
         what, other = ("scan", "detections") if stats.last_drop_left else ("detections", "scan")
         gap = stats.last_drop_gap_ns
