@@ -99,6 +99,22 @@ def test_cli_replay_refuses_an_out_named_like_a_storage_file_before_loading_the_
     assert "exists; pass --force" in caplog.text
 
 
+def test_a_warning_during_the_progress_bar_is_its_own_line(kitti_bag, tmp_path):
+    """`pcc replay` on PointRCNN logits with score_mapping identity: the warning was printed glued to
+    the progress bar's line ("replay:   0%|  | 0/9 [...]WARNING pcc_ros.pipeline.core: ..."); log
+    lines now go above the bar (the command's real console logging, so a separate process)."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "pcc_ros.cli", "replay", str(kitti_bag), "--out", str(tmp_path / "o"),
+                          "--filter", "--backend", "mirror", "--score-mapping", "identity"],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    pieces = [piece.strip() for line in run.stderr.splitlines() for piece in line.split("\r")]
+    warning = [piece for piece in pieces if "outside [0, 1]" in piece]
+    assert warning and all(piece.startswith("WARNING pcc_ros.pipeline.core: ") for piece in warning), run.stderr
+
+
 def test_cli_replay_with_filter(kitti_bag, tmp_path, capsys):
     out = tmp_path / "cli"
     code = main(["replay", str(kitti_bag), "--out", str(out), "--backend", "densify", "--filter", "--no-copy-inputs"])

@@ -9,6 +9,7 @@ fast and works without torch, open3d or ROS being importable.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import importlib.util
 import logging
@@ -95,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args._module.run(args) or 0)
+        with _log_above_progress_bars():
+            return int(args._module.run(args) or 0)
     except KeyboardInterrupt:
         _report("interrupted — no partial output was left behind; re-run the command (pcc extract resumes "
                 "where it stopped, pcc train with --resume)")
@@ -108,6 +110,19 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         _report(describe_error(exc))
         return 1
+
+
+def _log_above_progress_bars():
+    """Log lines printed while a progress bar runs go above it (tqdm's redirect), not glued to the
+    bar's line (``replay:  0%| | 0/9 [00:00<?, ?msg/s]WARNING pcc_ros...``). Only where the log goes
+    to the console (not under a test's log capture)."""
+    console = any(isinstance(h, logging.StreamHandler) and getattr(h, "stream", None) in (sys.stdout, sys.stderr)
+                  for h in logging.getLogger().handlers)
+    if not console:
+        return contextlib.nullcontext()
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    return logging_redirect_tqdm()
 
 
 def describe_error(exc: BaseException) -> str:
