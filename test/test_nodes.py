@@ -129,3 +129,47 @@ def test_a_node_that_fails_to_start_leaves_no_log_handler_behind():
         assert not [h for h in package.handlers if isinstance(h, RclpyLogHandler)]
     finally:
         rclpy.try_shutdown()
+
+
+@pytest.mark.ros
+def test_the_pipelines_score_range_warning_is_a_node_log_line(capfd):
+    """Scores outside [0, 1] with score_mapping identity (a detector's logits): the pipeline's warning
+    is the node's ROS log line (severity, node name; so also on /rosout), not bare Python logging."""
+    rclpy = require_rclpy()
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+    from vision_msgs.msg import Detection3DArray
+
+    from pcc_ros.msg.detections import detection_array_from_boxes
+    from pcc_ros.msg.pointcloud2 import create_cloud
+    from pcc_ros.nodes.ros_node import PipelineNode, rclpy_classes
+    from pcc_ros.types import Boxes
+
+    rclpy.init()
+    node = probe = None
+    try:
+        node = PipelineNode("detection_filter_node", "filter", parameter_overrides=[
+            Parameter("backend", value="mirror"), Parameter("score_mapping", value="identity")])
+        probe = rclpy.create_node("probe")
+        got = []
+        probe.create_subscription(Detection3DArray, "detections_filtered", got.append, 10)
+        pub_cloud = probe.create_publisher(PointCloud2, "points", 10)
+        pub_det = probe.create_publisher(Detection3DArray, "detections", 10)
+        pts = (np.random.default_rng(0).normal(size=(500, 3)) * [1.5, 0.7, 0.5] + [10, 0, -0.8]).astype(np.float32)
+        boxes = Boxes([[10, 0, -0.8]], [[4, 1.7, 1.5]], [0.0], ["Car"], [3.2], ["1"])  # a logit
+        deadline = time.time() + 10
+        while not got and time.time() < deadline:
+            pub_cloud.publish(create_cloud(pts, ["x", "y", "z"], "velodyne", 10**9, rclpy_classes))
+            pub_det.publish(detection_array_from_boxes(boxes, "velodyne", 10**9, rclpy_classes))
+            for n in (node, probe):
+                rclpy.spin_once(n, timeout_sec=0.1)
+        assert got
+    finally:
+        for n in (probe, node):
+            if n is not None:
+                n.destroy_node()
+        rclpy.try_shutdown()
+    text = capfd.readouterr().err
+    lines = [line for line in text.splitlines() if "outside [0, 1]" in line]
+    assert len(lines) == 1 and lines[0].startswith("[WARN] ["), text
+    assert "[detection_filter_node]: 1 detection scores" in lines[0], text
