@@ -376,6 +376,11 @@ def run_real(opts: RealEvalConfig) -> int:
     unused = sorted(set(checkpoints) - set(backends))
     if unused:
         raise ConfigError(f"--checkpoint given for backend(s) not evaluated: {unused}")
+    plotted = [b.strip() for b in (opts.plot_backends or "").split(",") if b.strip()]
+    unplotted = [b for b in plotted if b.removesuffix(GENERATED_SUFFIX) not in backends]
+    if unplotted:  # was: left out of the PNG without a word, after the whole evaluation
+        raise ConfigError(f"--plot-backends names backend(s) not evaluated: {unplotted} (evaluated: "
+                          f"{', '.join(backends)}; NAME{GENERATED_SUFFIX} is a learned backend's generated points)")
     detections = Path(opts.detections) if opts.detections else None
     boxes = "detections" if detections is not None else "ground_truth"
     instances, report = real_instances(sources, max(opts.min_track_frames, 2), opts.min_points, opts.voxel,
@@ -403,9 +408,8 @@ def run_real(opts: RealEvalConfig) -> int:
     if opts.plot:
         picks = pick_examples(instances, opts.examples)
         names = [n for n in completions if n != "input" and not n.endswith(GENERATED_SUFFIX)]
-        if opts.plot_backends:
-            wanted = [b.strip() for b in opts.plot_backends.split(",") if b.strip()]
-            names = [n for n in wanted if n in completions]
+        if plotted:
+            names = [n for n in plotted if n in completions]  # a backend that did not load has no column
         examples = []
         for p in picks:
             inst = instances[p]

@@ -62,3 +62,11 @@ def test_pcc_eval_names_an_unknown_backend_before_reading_any_data(tmp_path, cap
     source = ["--real", "--real-sources", str(tmp_path / "none")] if real else ["--data", str(tmp_path / "none")]
     assert main(["eval", *source, "--backends", "input,bogus"]) == 1
     assert "unknown completion backend 'bogus'; available: " in caplog.text
+
+
+def test_pcc_eval_real_refuses_a_plot_column_it_does_not_evaluate(tmp_path, caplog):
+    """`--plot-backends mirorr` was left out of the PNG without a word, after the whole evaluation."""
+    argv = ["eval", "--real", "--real-sources", str(tmp_path / "none"), "--backends", "input,mirror",
+            "--plot", str(tmp_path / "p.png"), "--plot-backends", "mirror,mirorr"]
+    assert main(argv) == 1
+    assert "--plot-backends names backend(s) not evaluated: ['mirorr']" in caplog.text
