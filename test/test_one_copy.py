@@ -53,7 +53,8 @@ def test_files_are_renamed_into_place_only_by_the_atomic_writers():
 def test_repeating_warnings_are_rate_limited_only_by_lograte():
     """The 1st / 10th / 100th rule was written out twice (``str(n).rstrip("0") == "1"``) and a
     first-then-every-100th rule (``n % 100 == 1``) twice more: ``lograte.worth_logging`` says both."""
-    spelled = re.compile(r"""rstrip\(["']0["']\)\s*==|%\s*\d+\s*==\s*1\b""")
+    spelled = re.compile(r"""rstrip\(["']0["']\)\s*==|%\s*10+\s*==\s*1\b""")
+    # n % 100 == 1 and the like, not an odd-number test such as n % 2 == 1
     found = [f"{path.relative_to(PACKAGE)}:{number}: {line.strip()}"
              for path in sorted(PACKAGE.rglob("*.py")) if path.name != "lograte.py"
              for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1) if spelled.search(line)]
