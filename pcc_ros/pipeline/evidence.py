@@ -565,10 +565,11 @@ def run_quantiles(values, member, ends, members, quantile: float, ws: Scratch | 
     ``np.partition`` of the whole run gives (NaN for runs without members).
 
     A threshold per run from every :data:`SAMPLE_STRIDE`-th value (about twice the wanted
-    rank in the sample), then one vectorised count of the run's values below and at it: when
-    the wanted rank falls among the values equal to the threshold (flat ground), that is the
-    answer; when below, only the values under the threshold (a small share) are partitioned;
-    otherwise (a sample that missed, rare) the whole run. Exact in every case."""
+    rank in the sample), then the positions of the values below it (one pass; a run's count by
+    binary search at its end): when the wanted rank falls among them, only those values (a
+    small share) are partitioned; otherwise a count of the values at the threshold (a second
+    pass, only then): when the rank falls among the values equal to it (flat ground), that is
+    the answer; else (a sample that missed, rare) the whole run. Exact in every case."""
     ws = ws or _SCRATCH
     n = len(ends)
     starts = ends - np.diff(ends, prepend=0)
@@ -585,15 +586,18 @@ def run_quantiles(values, member, ends, members, quantile: float, ws: Scratch | 
     lengths = ends - starts
     limit = np.repeat(threshold.astype(dt), lengths)
     q = len(values)
-    below = np.less(values, limit, out=ws("q_below", q, bool))  # members only (the others are +inf)
-    under = _segment_counts(below, ends)
-    at = _segment_counts(np.less_equal(values, limit, out=ws("q_at", q, bool)), ends)
+    below = ws.nonzero(np.less(values, limit, out=ws("q_below", q, bool)), "q_below_idx")  # members only (+inf others)
+    chosen_end = np.searchsorted(below, ends)  # the values under the threshold, run by run
+    under = chosen_end.copy()
+    under[1:] -= chosen_end[:-1]
     out = np.full(n, np.nan)
     finite = np.isfinite(threshold)
-    flat = finite & (under <= rank) & (rank < at)
+    # the count at the threshold only where the wanted rank is not under it (flat ground)
+    flat = finite & (under <= rank)
+    if flat.any():
+        flat &= rank < _segment_counts(np.less_equal(values, limit, out=ws("q_at", q, bool)), ends)
     out[flat] = threshold[flat]
-    chosen = values.take(ws.nonzero(below, "q_below_idx"), mode="clip")  # run by run
-    chosen_end = np.cumsum(under)
+    chosen = values.take(below, mode="clip")  # run by run
     for b in np.flatnonzero(finite & (rank < under)).tolist():
         part = chosen[chosen_end[b] - under[b]:chosen_end[b]]
         out[b] = np.partition(part, rank[b])[rank[b]]
