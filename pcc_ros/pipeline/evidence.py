@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -63,6 +64,17 @@ class SensorModel:
             lower = np.linspace(self.elevation_min_deg, self.split_deg[1], self.rings - self.upper_rings)
             degrees = np.r_[lower, upper]
         return np.deg2rad(np.sort(degrees))
+
+
+@lru_cache(maxsize=16)
+def _ring_table(sensor: SensorModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``sensor.ring_elevations()`` with their cosines and sines, computed once per sensor
+    model (about 90 us a call: a constant of the frame loop); read-only."""
+    rings = sensor.ring_elevations()
+    table = (rings, np.cos(rings), np.sin(rings))
+    for values in table:
+        values.flags.writeable = False
+    return table
 
 
 SENSOR_PRESETS = {
@@ -239,25 +251,29 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
         _clamp(band, _EL_BANDS + 1, ws("nan", n, bool))  # NaN -> band 0: no box
     band16 = ws("band", n, np.int16)
     np.copyto(band16, band, casting="unsafe")
-    # The boxes' azimuth sectors: the points outside them cannot pair (a table lookup), unless
-    # the sectors cover most of the circle (then selecting costs more than it saves).
-    wanted = np.zeros(_AZ_BINS, dtype=bool)
-    wanted[az_bin] = True
-    sub = None
-    if np.count_nonzero(wanted) < _SUBSET_SHARE * _AZ_BINS:
-        sub = ws.nonzero(wanted.take(key, out=ws("want", n, bool), mode="clip"), "sub")
     key *= np.int16(_EL_BANDS + 2)
     key += band16
-    if sub is not None:
-        key = key.take(sub, out=ws("key_s", len(sub), np.int16), mode="clip")
-    order = np.argsort(key, kind="stable")
     band_lo = np.clip(np.floor((s_lo - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
     band_hi = np.clip(np.floor((s_hi - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
     bins = az_bin * (_EL_BANDS + 2)
+    # The (azimuth bin, band) cells some box searches: the points outside them cannot pair (a
+    # table lookup), unless the boxes' azimuth sectors cover most of the circle (then selecting
+    # costs more than it saves).
+    first_cell = bins + np.take(band_lo, box_of_bin)
+    sub = None
+    sectors = np.zeros(_AZ_BINS, dtype=bool)
+    sectors[az_bin] = True
+    if np.count_nonzero(sectors) < _SUBSET_SHARE * _AZ_BINS:
+        n_cells = np.take(band_hi - band_lo + 1, box_of_bin)
+        wanted = np.zeros(_AZ_BINS * (_EL_BANDS + 2), dtype=bool)
+        wanted[np.repeat(first_cell, n_cells) + positions_in_runs(n_cells)] = True
+        sub = ws.nonzero(wanted.take(key, out=ws("want", n, bool), mode="clip"), "sub")
+        key = key.take(sub, out=ws("key_s", len(sub), np.int16), mode="clip")
+    order = np.argsort(key, kind="stable")
     # Each (box, azimuth bin)'s bands are one range of the sorted keys: its bounds by binary
     # search (int16 queries: the keys are not converted), not a count of every bin.
     ordered = key.take(order, out=ws("key_sorted", len(key), np.int16), mode="clip")
-    lo = np.searchsorted(ordered, (bins + np.take(band_lo, box_of_bin)).astype(np.int16), side="left")
+    lo = np.searchsorted(ordered, first_cell.astype(np.int16), side="left")
     count = np.searchsorted(ordered, (bins + np.take(band_hi, box_of_bin)).astype(np.int16), side="right") - lo
     candidates = ws.runs(lo, count, "runs")
     q = len(candidates)
@@ -355,7 +371,7 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     count. Same arithmetic, beam for beam, as a per-beam computation."""
     ws = ws or _SCRATCH
     out = np.zeros(len(boxes))
-    rings = sensor.ring_elevations()
+    rings, ring_cos, ring_sin = _ring_table(sensor)
     step = np.deg2rad(sensor.azimuth_resolution_deg)
     idx = np.flatnonzero(judged)
     if not len(idx):
@@ -378,7 +394,7 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     cos_az, sin_az = np.cos(azimuth), np.sin(azimuth)
     row_box = np.repeat(np.arange(len(idx)), n_ring)  # one row per (box, ring)
     ring = np.repeat(r_lo, n_ring) + positions_in_runs(n_ring)
-    ce = np.cos(rings)[ring][:, None]
+    ce = ring_cos[ring][:, None]
     box = idx[row_box]
     c, s = table.cos[box][:, None], table.sin[box][:, None]
 
@@ -392,7 +408,7 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     lx += np.multiply(s, dy, out=tmp)
     ly = np.multiply(c, dy, out=grid("e_ly"))
     ly -= np.multiply(s, dx, out=tmp)
-    direction = (lx, ly, np.sin(rings)[ring][:, None])
+    direction = (lx, ly, ring_sin[ring][:, None])
     tmin = tmax = None
     with np.errstate(divide="ignore", invalid="ignore"):
         for axis in range(3):
@@ -549,10 +565,11 @@ def run_quantiles(values, member, ends, members, quantile: float, ws: Scratch | 
     ``np.partition`` of the whole run gives (NaN for runs without members).
 
     A threshold per run from every :data:`SAMPLE_STRIDE`-th value (about twice the wanted
-    rank in the sample), then one vectorised count of the run's values below and at it: when
-    the wanted rank falls among the values equal to the threshold (flat ground), that is the
-    answer; when below, only the values under the threshold (a small share) are partitioned;
-    otherwise (a sample that missed, rare) the whole run. Exact in every case."""
+    rank in the sample), then the positions of the values below it (one pass; a run's count by
+    binary search at its end): when the wanted rank falls among them, only those values (a
+    small share) are partitioned; otherwise a count of the values at the threshold (a second
+    pass, only then): when the rank falls among the values equal to it (flat ground), that is
+    the answer; else (a sample that missed, rare) the whole run. Exact in every case."""
     ws = ws or _SCRATCH
     n = len(ends)
     starts = ends - np.diff(ends, prepend=0)
@@ -569,15 +586,18 @@ def run_quantiles(values, member, ends, members, quantile: float, ws: Scratch | 
     lengths = ends - starts
     limit = np.repeat(threshold.astype(dt), lengths)
     q = len(values)
-    below = np.less(values, limit, out=ws("q_below", q, bool))  # members only (the others are +inf)
-    under = _segment_counts(below, ends)
-    at = _segment_counts(np.less_equal(values, limit, out=ws("q_at", q, bool)), ends)
+    below = ws.nonzero(np.less(values, limit, out=ws("q_below", q, bool)), "q_below_idx")  # members only (+inf others)
+    chosen_end = np.searchsorted(below, ends)  # the values under the threshold, run by run
+    under = chosen_end.copy()
+    under[1:] -= chosen_end[:-1]
     out = np.full(n, np.nan)
     finite = np.isfinite(threshold)
-    flat = finite & (under <= rank) & (rank < at)
+    # the count at the threshold only where the wanted rank is not under it (flat ground)
+    flat = finite & (under <= rank)
+    if flat.any():
+        flat &= rank < _segment_counts(np.less_equal(values, limit, out=ws("q_at", q, bool)), ends)
     out[flat] = threshold[flat]
-    chosen = values.take(ws.nonzero(below, "q_below_idx"), mode="clip")  # run by run
-    chosen_end = np.cumsum(under)
+    chosen = values.take(below, mode="clip")  # run by run
     for b in np.flatnonzero(finite & (rank < under)).tolist():
         part = chosen[chosen_end[b] - under[b]:chosen_end[b]]
         out[b] = np.partition(part, rank[b])[rank[b]]
@@ -644,16 +664,20 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     if not boxes.valid_mask().all():
         boxes.validate()  # DataError naming the box
     x, y, z = _columns(points)
+    pool = _side_pool() if workers > 1 else None
+    # The side thread's jobs, in order: the ground (it needs only the scan and the boxes, so it
+    # starts before the box-level setup below), then the expected returns; the two take about
+    # as long as the rays do here.
+    ground_job = pool.submit(_ground, x, y, z, boxes, GROUND_REACH, 0.05, _SCRATCH) if pool else None
     window = angular_window(boxes)
     table = _BoxTable(boxes)
-
-    def side() -> tuple[np.ndarray, np.ndarray]:  # _SCRATCH: the running thread's buffers
-        return (_ground(x, y, z, boxes, GROUND_REACH, 0.05, _SCRATCH),
-                _expected_beams(boxes, sensor, *window, table=table, ws=_SCRATCH))
-
-    side_job = _side_pool().submit(side) if workers > 1 else None
+    expected_job = pool.submit(_expected_beams, boxes, sensor, *window, table=table, ws=_SCRATCH) if pool else None
     n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
-    ground, expected = side_job.result() if side_job is not None else side()
+    if pool:
+        ground, expected = ground_job.result(), expected_job.result()
+    else:
+        ground = _ground(x, y, z, boxes, GROUND_REACH, 0.05, _SCRATCH)
+        expected = _expected_beams(boxes, sensor, *window, table=table, ws=_SCRATCH)
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
         _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),
