@@ -419,3 +419,40 @@ def test_run_quantiles_equal_a_partition_of_each_run():
             k = int(quantile * (m.sum() - 1))
             lo = ends[b] - len(v)
             assert got[b] == np.partition(values[lo:ends[b]], k)[k], (b, quantile)
+
+
+def test_side_pool_is_made_once_when_first_frames_race(monkeypatch):
+    """Two pipelines' first filter frames at once share one second thread (none made and leaked)."""
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pcc_ros.pipeline import evidence as ev
+
+    made = []
+
+    class SlowPool(ThreadPoolExecutor):  # widens the window between the check and the assignment
+        def __init__(self, *args, **kwargs):
+            time.sleep(0.05)
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(ev, "_SIDE_POOL", None)
+    monkeypatch.setattr(ev, "ThreadPoolExecutor", SlowPool)
+    start = threading.Barrier(4)
+    got = []
+
+    def first_frame():
+        start.wait()
+        got.append(ev._side_pool())
+
+    threads = [threading.Thread(target=first_frame) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    try:
+        assert len(made) == 1 and all(p is made[0] for p in got)
+    finally:
+        for pool in made:
+            pool.shutdown()

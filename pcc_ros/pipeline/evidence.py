@@ -13,6 +13,7 @@ in float64 with the same operations, operand for operand, as the 93cd59e code ke
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
@@ -636,13 +637,17 @@ def local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH, 
 
 
 _SIDE_POOL: ThreadPoolExecutor | None = None
+_SIDE_POOL_LOCK = threading.Lock()
 
 
 def _side_pool() -> ThreadPoolExecutor:
+    """The filter's second thread, made on first use (under a lock: two pipelines' first frames
+    at once must not each make one and leak the other's idle thread)."""
     global _SIDE_POOL
-    if _SIDE_POOL is None:
-        _SIDE_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pcc-filter")
-    return _SIDE_POOL
+    with _SIDE_POOL_LOCK:
+        if _SIDE_POOL is None:
+            _SIDE_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pcc-filter")
+        return _SIDE_POOL
 
 
 def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1) -> Evidence:
