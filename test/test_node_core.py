@@ -102,6 +102,26 @@ def test_completion_outputs_equal_the_pipeline_run_directly(graph):
     assert core.frames == 1 and core.failures == 0
 
 
+def test_marker_arrays_are_built_only_while_something_subscribes(graph, monkeypatch):
+    """Markers are for a viewer: with no subscriber the node neither builds nor publishes them
+    (most of the encode time with rclpy's classes); a viewer that subscribes gets the next frame's."""
+    import pcc_ros.runtime.node as node_module
+
+    asked = []
+    build = node_module.build_outputs
+    monkeypatch.setattr(node_module, "build_outputs",
+                        lambda *a, names, **k: asked.append(sorted(names)) or build(*a, names=names, **k))
+    core = _node(graph, "completion")
+    completed = _tap(graph, "/completed", CLOUD)
+    driver = LocalRuntime(graph, "driver")
+    _send(driver, *_messages(1_000_000_000))
+    assert len(completed) == 1 and asked == [["completed"]]
+    assert core.publishers["completed_markers"].published == 0
+    markers = _tap(graph, "/completed_markers", "visualization_msgs/msg/MarkerArray")
+    _send(driver, *_messages(2_000_000_000))
+    assert len(completed) == 2 and len(markers) == 1 and asked[1] == ["completed", "completed_markers"]
+
+
 def test_filter_node_publishes_kept_and_rejected_and_markers(graph):
     core = _node(graph, "filter", match_threshold=0.3, detection_threshold=0.5)
     kept = _tap(graph, "/detections_filtered", DETS)

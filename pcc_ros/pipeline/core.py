@@ -421,6 +421,8 @@ def _bounded_crop(points: np.ndarray, boxes: Boxes, cfg: PipelineConfig):
 OUTPUT_NAMES = ("completed", "completed_markers", "filter_markers", "detections_filtered", "detections_rejected")
 #: The outputs that republish the input detection messages (:meth:`Pipeline.process_messages`'s originals).
 DETECTION_OUTPUTS = ("detections_filtered", "detections_rejected")
+#: The RViz outputs (boxes and texts), which a node builds only while something subscribes to them.
+MARKER_OUTPUTS = ("completed_markers", "filter_markers")
 
 
 def build_outputs(

@@ -47,6 +47,10 @@ RELIABLE = QoS(reliable=True, depth=10)
 class Publisher(Protocol):
     def publish(self, msg: Any) -> None: ...
 
+    def get_subscription_count(self) -> int:
+        """Subscriptions matched to this publisher now (rclpy's own method of that name)."""
+        ...
+
 
 class Logger(Protocol):
     """The subset of rclpy's logger and :class:`logging.Logger` both offer (preformatted strings)."""

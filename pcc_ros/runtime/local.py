@@ -104,6 +104,11 @@ class _LocalPublisher:
         self.graph, self.topic, self.qos = graph, topic, qos
         self.published = 0
 
+    def get_subscription_count(self) -> int:
+        """Subscriptions on this topic whose QoS this publisher can serve (as DDS matching)."""
+        with self.graph._lock:
+            return sum(self.qos.compatible_with_reader(sub.qos) for sub in self.graph._subs.get(self.topic, ()))
+
     def publish(self, msg: Any) -> None:
         self.published += 1
         with self.graph._lock:

@@ -36,7 +36,7 @@ from pcc_ros.pipeline.config import (
     pipeline_config,
     unknown_parameters,
 )
-from pcc_ros.pipeline.core import DETECTION_OUTPUTS, FrameResult, Pipeline, build_outputs
+from pcc_ros.pipeline.core import DETECTION_OUTPUTS, MARKER_OUTPUTS, FrameResult, Pipeline, build_outputs
 from pcc_ros.pipeline.filter import decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
@@ -325,6 +325,14 @@ class NodeCore:
             "restamps, raise sync_slop); scans lost on the way: docs/nodes.md 'Large clouds'."
         )
 
+    def _wanted_outputs(self) -> list[str]:
+        """The outputs to build this frame: every data output, and a marker array only while
+        something subscribes to it (RViz). The markers are most of the encode time with rclpy's
+        message classes (about a thousand messages at 20 cars), and nobody reads them on a robot
+        that is not being watched; a viewer that subscribes gets them from the next frame on."""
+        return [name for name, pub in self.publishers.items()
+                if name not in MARKER_OUTPUTS or pub.get_subscription_count() > 0]
+
     def _report_other_classes(self, labels: np.ndarray, classes) -> None:
         """Say once per class id that detections outside ``classes`` are passed over (a detector
         whose ids the node does not know would otherwise be silently ignored: nothing completed,
@@ -400,9 +408,8 @@ class NodeCore:
             result, originals = moved
             header = make_header(output_frame, result.stamp_ns, self.runtime.classes)
         outputs = build_outputs(result, originals, self.runtime.classes, detections_header=header,
-                                names=self.publishers)
-        published = {name: outputs[name] for name in self.publishers}
-        for name, msg in published.items():
+                                names=self._wanted_outputs())
+        for name, msg in outputs.items():
             self.publishers[name].publish(msg)
         self.frames += 1
         if self.mode == "filter":
@@ -418,7 +425,7 @@ class NodeCore:
         self._report_other_classes(result.detections.label, pipeline.config.classes)
         if self.on_result is not None:
             self.on_result(result, cloud, detections)
-        return published
+        return outputs
 
     def _lookup(self, target: str, source: str, stamp_ns: int):
         """The runtime's transform, or None (counted; the reason logged once per frame pair)."""
