@@ -78,7 +78,14 @@ def run(args: argparse.Namespace) -> int:
     module = importlib.import_module(f"{__name__}.{args.bench_name}")
     bench_args = benchmark_parser(args.bench_name, module).parse_args(args.passthrough)
     context = run_context()
-    results = module.run(bench_args)
+    from benchmarks.common import OtherLoad
+
+    with OtherLoad() as others:
+        results = module.run(bench_args)
+    if others.cores is not None:
+        context["other_processes_cores"] = round(others.cores, 3)
+        print(f"other processes used {others.cores:.2f} of {os.cpu_count()} cores on average during this run "
+              "(/proc/stat: the machine's busy time minus this process's)")
     results = {**results, "run": context} if isinstance(results, dict) else results
     if bench_args.json:
         bench_args.json.parent.mkdir(parents=True, exist_ok=True)

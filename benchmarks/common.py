@@ -61,3 +61,39 @@ def load_average() -> list[float]:
 def machine() -> dict[str, object]:
     """Cores and load, for the JSON of a benchmark."""
     return {"cpu_count": os.cpu_count(), "load_average": load_average()}
+
+
+def _busy_seconds() -> float | None:
+    """CPU seconds every process on the machine has spent busy since boot (``/proc/stat``'s
+    first line, idle and iowait left out); None where there is no ``/proc/stat``."""
+    try:
+        with open("/proc/stat") as f:
+            values = [int(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = values[3] + (values[4] if len(values) > 4 else 0)
+    return (sum(values[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+class OtherLoad:
+    """How busy the machine was with *other* processes while a benchmark ran: the machine's
+    busy CPU seconds (``/proc/stat``) minus this process's own (``os.times``), per second of
+    wall time, in cores. The load average cannot tell: it counts the benchmark's own threads
+    (and the preceding benchmark's, for a minute), so an idle machine running a 2-thread
+    benchmark reads 1-2. ``cores`` is None where ``/proc/stat`` is missing."""
+
+    def __enter__(self) -> OtherLoad:
+        self._wall, self._busy, self._own = time.perf_counter(), _busy_seconds(), self._own_seconds()
+        self.cores: float | None = None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        busy = _busy_seconds()
+        if busy is not None and self._busy is not None:
+            wall = max(time.perf_counter() - self._wall, 1e-9)
+            self.cores = max(0.0, (busy - self._busy) - (self._own_seconds() - self._own)) / wall
+
+    @staticmethod
+    def _own_seconds() -> float:
+        t = os.times()
+        return t.user + t.system  # every thread of this process (children are not ours to count)

@@ -5,7 +5,9 @@ count (a random subset, or jittered copies of the scan) with the requested numbe
 detections (the frame's nearest vehicles, then car-sized boxes standing under random
 above-ground returns) goes through ``Pipeline.process_messages`` + ``build_outputs`` (decode,
 crop, canonicalise, complete, filter, encode of the completed cloud, markers and detection
-arrays), frame after frame.
+arrays), frame after frame, in the message classes a node uses (rclpy's, when the ROS 2 wheels
+are installed; rosbags' otherwise), every output built (a node with a viewer subscribed to its
+markers; without one it skips them).
 
 1. Headline, 20 cars / 120k points, three alternatives interleaved frame by frame in one
    process on the same messages, for each thread setting (torch intra-op threads, and
@@ -47,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import load_average, print_table, summary_ms
+from benchmarks.common import OtherLoad, load_average, print_table, summary_ms
 from benchmarks.complete import parse_threads, thread_label
 
 STAGES = ("decode_ms", "crop_ms", "complete_ms", "filter_ms", "uncanonical_ms", "encode_ms")
@@ -130,8 +132,20 @@ def car_boxes(points: np.ndarray, vehicles, n: int, rng: np.random.Generator):
     return Boxes.concatenate([take, boxes])
 
 
-def frame_messages(base, cars: int, points: int, seed: int):
-    """(PointCloud2, Detection3DArray, n_cars, n_points) for one benchmark frame."""
+def node_classes():
+    """The message classes a node publishes and receives: rclpy's when it imports (the ROS 2
+    wheels of ``make setup``), else rosbags' (``pcc replay``'s). rclpy's constructors build
+    every default sub-message eagerly, so the encode stage costs about 2.5x as much with them."""
+    try:
+        from pcc_ros.nodes.ros_node import rclpy_classes
+    except ImportError:
+        return None
+    return rclpy_classes
+
+
+def frame_messages(base, cars: int, points: int, seed: int, classes=None):
+    """(PointCloud2, Detection3DArray, n_cars, n_points) for one benchmark frame (messages of
+    ``classes``, None: rosbags)."""
     from pcc_ros.msg.detections import detection_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
 
@@ -139,18 +153,19 @@ def frame_messages(base, cars: int, points: int, seed: int):
     rng = np.random.default_rng(seed)
     scan = resize_scan(scan, points, rng)
     dets = car_boxes(scan, vehicles, cars, rng)
-    cloud = create_cloud(scan, fields, frame_id, stamp)
-    return cloud, detection_array_from_boxes(dets, frame_id, stamp), len(dets), len(scan)
+    cloud = create_cloud(scan, fields, frame_id, stamp, classes)
+    return cloud, detection_array_from_boxes(dets, frame_id, stamp, classes), len(dets), len(scan)
 
 
-def one_frame(pipeline, cloud, dets) -> tuple[dict[str, float], object]:
-    """Run one frame as a node does; per-stage and total milliseconds."""
+def one_frame(pipeline, cloud, dets, classes=None) -> tuple[dict[str, float], object]:
+    """Run one frame as a node does, every output built (a node with a viewer subscribed) in the
+    message ``classes`` of the received ones (:func:`node_classes`); per-stage and total ms."""
     from pcc_ros.pipeline.core import build_outputs
 
     tic = time.perf_counter()
     result, originals = pipeline.process_messages(cloud, dets)
     enc = time.perf_counter()
-    outputs = build_outputs(result, originals)
+    outputs = build_outputs(result, originals, classes)
     done = time.perf_counter()
     stages = {s: result.timings_ms.get(s, 0.0) for s in STAGES[:-1]}
     stages["encode_ms"] = (done - enc) * 1e3
@@ -204,9 +219,11 @@ def run(args: argparse.Namespace) -> dict:
     import torch
 
     load_before = load_average()
+    others = OtherLoad().__enter__()  # ended before the verdict below
     base = base_frame(args.seed)
     pipeline, trained = make_pipeline(args.backend, args.checkpoint)
-    cloud, dets, n_cars, n_points = frame_messages(base, args.cars, args.points, args.seed)
+    classes = node_classes()
+    cloud, dets, n_cars, n_points = frame_messages(base, args.cars, args.points, args.seed, classes)
     weights = "trained" if trained else "untrained (same cost)"
 
     # ---- 1. headline: original vs fast, interleaved frame by frame, per thread setting
@@ -214,7 +231,7 @@ def run(args: argparse.Namespace) -> dict:
     outs = {}
     for name in ALTERNATIVES:
         with _paths(name):
-            outs[name] = one_frame(pipeline, cloud, dets)[1]
+            outs[name] = one_frame(pipeline, cloud, dets, classes)[1]
     max_diff = max(check_equal(outs["fast"], outs[name]) for name in ALTERNATIVES[:-1])
     rows, headline = [], {}
     settings = parse_threads(args.threads)
@@ -228,7 +245,7 @@ def run(args: argparse.Namespace) -> dict:
         for i in range(args.repeat + 3):  # 3 warm-up frames each
             for name in ALTERNATIVES if i % 2 == 0 else ALTERNATIVES[::-1]:
                 with _paths(name):
-                    stages = one_frame(pipeline, cloud, dets)[0]
+                    stages = one_frame(pipeline, cloud, dets, classes)[0]
                 if i >= 3:
                     samples[name].append(stages)
         summary = {name: summary_ms(np.array([s["total_ms"] for s in samples[name]]) / 1e3) for name in ALTERNATIVES}
@@ -241,7 +258,8 @@ def run(args: argparse.Namespace) -> dict:
         rows.append(row)
         headline[thread_label(setting)] = {**row, "original": orig, "orig_net": net, "fast": fast,
                                   **{f"{name}_stages_ms": stage_rows(samples[name]) for name in ALTERNATIVES}}
-    print_table(f"whole frame, {n_points} points, {n_cars} cars ({weights} {args.backend}); ms, "
+    print_table(f"whole frame, {n_points} points, {n_cars} cars ({weights} {args.backend}; "
+                f"{'rclpy' if classes is not None else 'rosbags'} messages); ms, "
                 f"{args.repeat} frames each, interleaved (original = today's pipeline at 93cd59e; orig_net = "
                 f"only the network's original path)", rows)
     best = min(rows, key=lambda r: r["fast_p50"])
@@ -267,10 +285,10 @@ def run(args: argparse.Namespace) -> dict:
     configs += [(args.cars, int(p)) for p in args.scale_points.split(",") if p.strip() and int(p) != args.points]
     scaling = []
     for cars, points in configs:
-        msg, det_msg, nc, npts = frame_messages(base, cars, points, args.seed)
+        msg, det_msg, nc, npts = frame_messages(base, cars, points, args.seed, classes)
         for _ in range(2):
-            one_frame(pipeline, msg, det_msg)
-        samples_s = [one_frame(pipeline, msg, det_msg)[0] for _ in range(args.scale_repeat)]
+            one_frame(pipeline, msg, det_msg, classes)
+        samples_s = [one_frame(pipeline, msg, det_msg, classes)[0] for _ in range(args.scale_repeat)]
         totals = summary_ms(np.array([s["total_ms"] for s in samples_s]) / 1e3)
         scaling.append({"cars": nc, "points": npts, "p50_ms": totals["median_ms"], "p95_ms": totals["p95_ms"],
                         **{k.replace("_ms", ""): v for k, v in stage_rows(samples_s).items() if k != "total_ms"}})
@@ -283,6 +301,7 @@ def run(args: argparse.Namespace) -> dict:
     p95 = best["fast_p95"]
     results = {
         "cars": n_cars, "points": n_points, "backend": args.backend, "weights": weights,
+        "messages": "rclpy" if classes is not None else "rosbags",
         "output_max_abs_diff_m": max_diff, "threads": headline, "best_threads": best_threads,
         "p50_ms": best["fast_p50"], "p95_ms": p95,
         "original_p50_ms": today["original_p50"], "original_threads": today["threads"],
@@ -307,7 +326,13 @@ def run(args: argparse.Namespace) -> dict:
           f"{100 * filter_share:.0f} % of completion {fast_stages['complete_ms']:.1f} ms (target <= "
           f"{100 * TARGET_FILTER_SHARE:.0f} %: {'met' if filter_share <= TARGET_FILTER_SHARE else 'NOT met'}); "
           f"outputs equal (completed clouds within {max_diff:.1e} m).")
-    busy = max(load_before[0], load_after[0]) > 0.5 * (os.cpu_count() or 1)
+    others.__exit__(None, None, None)
+    # Idle = other processes used under a tenth of a core meanwhile (the load average also counts
+    # this benchmark's own threads and, for a minute, the preceding benchmark's).
+    busy = (others.cores > 0.1 if others.cores is not None
+            else max(load_before[0], load_after[0]) > 0.5 * (os.cpu_count() or 1))
+    results["other_processes_cores"] = others.cores
+    seen = f"; other processes used {others.cores:.2f} cores meanwhile" if others.cores is not None else ""
     print(f"load average (1 min) before / after: {load_before[0]:.2f} / {load_after[0]:.2f} on {os.cpu_count()} "
-          f"cores{' (NOT idle: absolute times are inflated; the ratios are interleaved)' if busy else ''}")
+          f"cores{seen}{' (NOT idle: absolute times are inflated; the ratios are interleaved)' if busy else ' (idle)'}")
     return results
