@@ -561,3 +561,22 @@ def test_replay_config_is_checked_as_the_nodes_check_it(tmp_path):
         load_config(typo, True)
     config, slop = load_config(None, True, backend="mirror", score_mapping="sigmoid")
     assert config.filter.score_mapping == "sigmoid" and config.backend == "mirror" and slop == 0.05
+
+
+def test_a_running_node_keeps_its_start_up_objects_out_of_full_collections(graph):
+    """Start-up objects are frozen (a full collection never walks them during a frame: the stall
+    ``pcc_ros.runtime.heap`` describes); a backend reloaded at run time frees the old one, reference
+    cycles included, instead of keeping it frozen forever."""
+    import gc
+    import weakref
+
+    gc.unfreeze()
+    core = _node(graph, "completion")
+    assert gc.get_freeze_count() > 0
+    old = core.pipeline
+    old.cycle = old  # a reference cycle: only the collector frees it, and never while frozen
+    gone = weakref.ref(old)
+    del old
+    assert core.set_parameters({"backend": "input"}).successful
+    assert gone() is None and core.pipeline.completer.name == "input"
+    assert gc.get_freeze_count() > 0

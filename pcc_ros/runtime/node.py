@@ -38,6 +38,7 @@ from pcc_ros.pipeline.config import (
 )
 from pcc_ros.pipeline.core import DETECTION_OUTPUTS, MARKER_OUTPUTS, FrameResult, Pipeline, build_outputs
 from pcc_ros.pipeline.filter import decision_counts
+from pcc_ros.runtime.heap import freeze_long_lived, refreeze_after_swap
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
 from pcc_ros.types import class_mask
@@ -187,6 +188,7 @@ class NodeCore:
             self._worker = threading.Thread(target=self._work, name=f"{node_name}_worker", daemon=True)
             self._worker.start()
         self._warn_without_tf()
+        freeze_long_lived()  # the loaded backend and the node's objects: no full collection walks them per frame
         self.log.info(
             f"{mode} node ready: backend={config.backend} classes={list(config.classes)} device={config.device}"
             + (f" output_frame={self.output_frame}" if self.output_frame else "")
@@ -246,6 +248,9 @@ class NodeCore:
             self.parameter_changes += 1
             if {"classes", "class_map"} & set(changed):
                 self._other_classes = set()  # report the class ids the new setting leaves out
+        if reload:
+            del old  # (a frame still in flight on the old backend keeps it past this point)
+            refreeze_after_swap()  # the old backend becomes collectable, the new one frozen
         summary = ", ".join(f"{n}={v!r}" for n, v in sorted(changed.items()))
         self.log.info(f"parameters changed: {summary}" + (" (backend reloaded)" if reload else ""))
         if "output_frame" in changed:
