@@ -38,8 +38,8 @@ from pcc_ros.pipeline.config import (
 )
 from pcc_ros.pipeline.core import DETECTION_OUTPUTS, MARKER_OUTPUTS, FrameResult, Pipeline, build_outputs
 from pcc_ros.pipeline.filter import decision_counts
-from pcc_ros.runtime.heap import freeze_long_lived, refreeze_after_swap
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
+from pcc_ros.runtime.heap import freeze_long_lived, refreeze_after_swap
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
 from pcc_ros.types import class_mask
 
