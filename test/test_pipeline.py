@@ -215,3 +215,27 @@ def test_filter_measures_on_as_many_threads_as_the_completion(monkeypatch, worke
         torch.set_num_threads(previous)
     np.testing.assert_array_equal(result.filter_score, reference.filter_score)
     assert list(result.status) == list(reference.status)
+
+
+def test_completed_cloud_colours_scores_and_raw_points():
+    """Each completed point carries its detection's palette colour (PCL's packed 0x00RRGGBB) and
+    score; a raw scan point (instance -1) is grey with a NaN score; every field as given."""
+    from types import SimpleNamespace
+
+    from pcc_ros.pipeline.core import INSTANCE_PALETTE, RAW_POINT_RGB, completed_cloud_array
+
+    instance = np.array([-1, 0, 1, 11, -1], dtype=np.int32)
+    result = SimpleNamespace(
+        completed_points=np.arange(15, dtype=np.float32).reshape(5, 3), completed_instance=instance,
+        completed_source=np.array([0, 1, 1, 0, 0], dtype=np.uint8),
+        detections=SimpleNamespace(score=np.linspace(0.1, 1.2, 12)))
+    cloud = completed_cloud_array(result)
+    rgb = cloud["rgb"].view(np.uint32)
+    packed = [(int(r) << 16) | (int(g) << 8) | int(b) for r, g, b in
+              (RAW_POINT_RGB, INSTANCE_PALETTE[0], INSTANCE_PALETTE[1], INSTANCE_PALETTE[11 % len(INSTANCE_PALETTE)],
+               RAW_POINT_RGB)]
+    assert rgb.tolist() == packed
+    assert np.isnan(cloud["score"][[0, 4]]).all()
+    np.testing.assert_array_equal(cloud["score"][1:4], np.float32(result.detections.score[[0, 1, 11]]))
+    assert cloud["instance"].tolist() == instance.tolist() and cloud["source"].tolist() == [0, 1, 1, 0, 0]
+    np.testing.assert_array_equal(np.c_[cloud["x"], cloud["y"], cloud["z"]], result.completed_points)

@@ -35,7 +35,7 @@ import numpy as np
 
 from pcc_ros.errors import MessageError
 from pcc_ros.msg.stamps import make_header
-from pcc_ros.msg.typestore import ClassResolver, byte_array, new_message, resolve
+from pcc_ros.msg.typestore import ClassResolver, byte_array, is_rosbags_class, new_message, resolve
 
 # sensor_msgs/PointField datatype constants -> (name, numpy type code).
 DATATYPES: dict[int, tuple[str, str]] = {
@@ -348,7 +348,8 @@ def create_cloud(
         )
     data = grid.reshape(-1).view(np.uint8) if grid.size else np.zeros(0, dtype=np.uint8)
     cls = resolve(classes)("sensor_msgs/msg/PointCloud2")
-    return new_message(
+    rosbags = is_rosbags_class(cls)
+    msg = new_message(
         "sensor_msgs/msg/PointCloud2",
         classes,
         header=make_header(frame_id, stamp_ns, classes),
@@ -358,9 +359,15 @@ def create_cloud(
         is_bigendian=bigendian,
         point_step=int(point_step),
         row_step=int(point_step * width),
-        data=byte_array(cls, data),
+        data=data if rosbags else byte_array(cls, data[:0]),
         is_dense=_is_dense(grid),
     )
+    if not rosbags:
+        # rclpy's constructor copies the data it is given into a new array.array, and the setter
+        # it calls copies it again: the data goes in through the setter alone (one copy fewer of
+        # a multi-megabyte cloud, as sensor_msgs_py's create_cloud does).
+        msg.data = byte_array(cls, data)
+    return msg
 
 
 def _uniform_byte_order(grid: np.ndarray) -> tuple[np.ndarray, bool]:

@@ -75,6 +75,10 @@ INSTANCE_PALETTE = np.array(
     dtype=np.uint32,
 )
 RAW_POINT_RGB = (160, 160, 160)
+#: PCL's packed ``rgb`` (0x00RRGGBB) of each palette colour, then the raw points' grey last.
+_PACKED_RGB = np.array(
+    [(r << 16) | (g << 8) | b for r, g, b in (*INSTANCE_PALETTE.tolist(), RAW_POINT_RGB)], dtype=np.uint32
+)
 
 
 @dataclass
@@ -483,14 +487,13 @@ def completed_cloud_array(result: FrameResult) -> np.ndarray:
     cloud["x"], cloud["y"], cloud["z"] = result.completed_points.T
     cloud["instance"] = instance
     cloud["source"] = result.completed_source
-    mine = instance >= 0
-    rgb = np.full(len(instance), (RAW_POINT_RGB[0] << 16) | (RAW_POINT_RGB[1] << 8) | RAW_POINT_RGB[2], np.uint32)
-    colour = INSTANCE_PALETTE[instance[mine] % len(INSTANCE_PALETTE)]
-    rgb[mine] = (colour[:, 0] << 16) | (colour[:, 1] << 8) | colour[:, 2]
-    cloud["rgb"] = rgb.view(np.float32)
-    score = np.full(len(instance), np.nan, dtype=np.float32)
-    score[mine] = result.detections.score[instance[mine]]
-    cloud["score"] = score
+    # Per-point lookups through one table each, the raw points (instance -1) reading the last
+    # entry: a gather per field instead of masked gathers and scatters.
+    palette = len(INSTANCE_PALETTE)
+    colour = np.where(instance >= 0, instance % palette, palette)
+    cloud["rgb"] = _PACKED_RGB.take(colour).view(np.float32)
+    scores = np.append(result.detections.score.astype(np.float32), np.float32(np.nan))
+    cloud["score"] = scores.take(np.where(instance >= 0, instance, len(scores) - 1))
     return cloud
 
 
