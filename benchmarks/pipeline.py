@@ -222,11 +222,11 @@ def run(args: argparse.Namespace) -> dict:
     others = OtherLoad().__enter__()  # ended before the verdict below
     base = base_frame(args.seed)
     pipeline, trained = make_pipeline(args.backend, args.checkpoint)
-    from pcc_ros.runtime.heap import freeze_long_lived
-
-    freeze_long_lived()  # as a node does once it has started (NodeCore)
     classes = node_classes()
     cloud, dets, n_cars, n_points = frame_messages(base, args.cars, args.points, args.seed, classes)
+    from pcc_ros.runtime.heap import freeze_long_lived
+
+    freeze_long_lived()  # as a node does once it has started (NodeCore): its message classes loaded too
     weights = "trained" if trained else "untrained (same cost)"
 
     # ---- 1. headline: original vs fast, interleaved frame by frame, per thread setting

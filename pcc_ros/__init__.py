@@ -12,8 +12,10 @@ threads then wait for (at 20 cars the filter stage took 8.5 instead of 5.6-5.8 m
 "CPU threads and OpenMP's spin").
 :data:`GOMP_SPINCOUNT` keeps the spin short enough to give the core back and long enough
 for the network's back-to-back operators (measured: the completion stage as fast as with the
-default). A value the user set is kept; set before torch is imported, or it has no effect;
-child processes inherit it, as any environment variable.
+default). A value the user set is kept, and so is an ``OMP_WAIT_POLICY`` the user set (libgomp
+takes ``GOMP_SPINCOUNT`` over the policy's spin, so setting it would undo ``passive`` or
+``active``); set before torch is imported, or it has no effect; child processes inherit it, as
+any environment variable.
 """
 
 import os
@@ -23,4 +25,5 @@ __version__ = "0.1.0"
 #: libgomp spin iterations after a parallel region (its default: 300000); see the module doc.
 GOMP_SPINCOUNT = "10000"
 
-os.environ.setdefault("GOMP_SPINCOUNT", GOMP_SPINCOUNT)
+if "OMP_WAIT_POLICY" not in os.environ:  # the user chose the spin already
+    os.environ.setdefault("GOMP_SPINCOUNT", GOMP_SPINCOUNT)

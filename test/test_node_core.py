@@ -580,3 +580,18 @@ def test_a_running_node_keeps_its_start_up_objects_out_of_full_collections(graph
     assert core.set_parameters({"backend": "input"}).successful
     assert gone() is None and core.pipeline.completer.name == "input"
     assert gc.get_freeze_count() > 0
+
+
+def test_a_node_core_dropped_earlier_is_not_frozen_by_the_next_ones_start_up():
+    """A node core is a reference cycle (its graph's subscriptions hold its bound methods), so a
+    dropped one waits for the collector; the next core's start-up freeze must not keep it (and
+    its pipeline) for good: the test suite and ``pcc demo`` build many cores in one process."""
+    import gc
+    import weakref
+
+    first = _node(LocalGraph(simulated=True), "completion")  # its graph goes with it
+    gone = weakref.ref(first.pipeline)
+    del first
+    _node(LocalGraph(simulated=True), "completion")
+    gc.collect()
+    assert gone() is None

@@ -72,16 +72,21 @@ def test_import_pcc_ros_needs_no_ros():
     assert out.stdout.strip() == "ok", out.stderr
 
 
-@pytest.mark.parametrize("given, expected", [(None, "10000"), ("7", "7")])
-def test_import_pcc_ros_shortens_openmp_spin_before_torch_loads(given, expected):
+@pytest.mark.parametrize("given, policy, expected", [(None, None, "10000"), ("7", None, "7"),
+                                                     (None, "passive", "unset")])
+def test_import_pcc_ros_shortens_openmp_spin_before_torch_loads(given, policy, expected):
     """libgomp reads GOMP_SPINCOUNT once, when torch loads it: ``import pcc_ros`` (which every
-    entry point does first) sets the short default then, and keeps a value the user gave."""
+    entry point does first) sets the short default then, and keeps a value the user gave; with
+    OMP_WAIT_POLICY set it sets none (libgomp would take it over the policy's spin)."""
     import os
 
-    env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
     if given is not None:
         env["GOMP_SPINCOUNT"] = given
-    code = "import os, sys, pcc_ros; assert 'torch' not in sys.modules; print(os.environ['GOMP_SPINCOUNT'])"
+    if policy is not None:
+        env["OMP_WAIT_POLICY"] = policy
+    code = ("import os, sys, pcc_ros; assert 'torch' not in sys.modules; "
+            "print(os.environ.get('GOMP_SPINCOUNT', 'unset'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.stdout.strip() == expected, out.stderr
 

@@ -39,7 +39,7 @@ from pcc_ros.pipeline.config import (
 from pcc_ros.pipeline.core import DETECTION_OUTPUTS, MARKER_OUTPUTS, FrameResult, Pipeline, build_outputs
 from pcc_ros.pipeline.filter import decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
-from pcc_ros.runtime.heap import freeze_long_lived, refreeze_after_swap
+from pcc_ros.runtime.heap import freeze_long_lived
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
 from pcc_ros.types import class_mask
 
@@ -250,7 +250,7 @@ class NodeCore:
                 self._other_classes = set()  # report the class ids the new setting leaves out
         if reload:
             del old  # (a frame still in flight on the old backend keeps it past this point)
-            refreeze_after_swap()  # the old backend becomes collectable, the new one frozen
+            freeze_long_lived()  # the old backend is collected, the new one frozen
         summary = ", ".join(f"{n}={v!r}" for n, v in sorted(changed.items()))
         self.log.info(f"parameters changed: {summary}" + (" (backend reloaded)" if reload else ""))
         if "output_frame" in changed:
