@@ -334,7 +334,6 @@ def run(args: argparse.Namespace) -> dict:
     # this benchmark's own threads and, for a minute, the preceding benchmark's).
     busy = (others.cores > 0.1 if others.cores is not None
             else max(load_before[0], load_after[0]) > 0.5 * (os.cpu_count() or 1))
-    results["other_processes_cores"] = others.cores
     seen = f"; other processes used {others.cores:.2f} cores meanwhile" if others.cores is not None else ""
     print(f"load average (1 min) before / after: {load_before[0]:.2f} / {load_after[0]:.2f} on {os.cpu_count()} "
           f"cores{seen}{' (NOT idle: absolute times are inflated; the ratios are interleaved)' if busy else ' (idle)'}")
