@@ -58,6 +58,9 @@ def benchmark_parser(name: str, module) -> argparse.ArgumentParser:
     return parser
 
 
+#: Other processes' average CPU use (cores) up to which a run counts as on an idle machine (the
+#: load average cannot tell: it counts the benchmark's own threads, and the previous one's).
+IDLE_CORES = 0.1
 #: Environment variables that change the timings (threads, OpenMP's spin: ``pcc_ros.GOMP_SPINCOUNT``).
 TIMING_ENVIRONMENT = ("OMP_NUM_THREADS", "GOMP_SPINCOUNT", "OMP_WAIT_POLICY", "MKL_NUM_THREADS")
 
@@ -84,8 +87,10 @@ def run(args: argparse.Namespace) -> int:
         results = module.run(bench_args)
     if others.cores is not None:
         context["other_processes_cores"] = round(others.cores, 3)
+        verdict = ("NOT idle: absolute times are inflated; the ratios are interleaved" if others.cores > IDLE_CORES
+                   else "idle")
         print(f"other processes used {others.cores:.2f} of {os.cpu_count()} cores on average during this run "
-              "(/proc/stat: the machine's busy time minus this process's)")
+              f"(/proc/stat: the machine's busy time minus this process's): {verdict}")
     results = {**results, "run": context} if isinstance(results, dict) else results
     if bench_args.json:
         bench_args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -421,7 +421,7 @@ def run(args: argparse.Namespace) -> dict:
     if args.backends is None:
         names = [n for n in available() if n != "pointpncnet" and get_backend(n).learned] + ["mirror"]
     else:  # --backends "": none (section 4 skipped)
-        names = backend_names(args.backends) if args.backends.replace(",", "").strip() else []
+        names = backend_names(args.backends, empty_ok=True)
     load_before = load_average()
     batches = [int(b) for b in args.batches.split(",") if b.strip()]
     count = max(max(batches), 32)

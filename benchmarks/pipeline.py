@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import OtherLoad, load_average, print_table, summary_ms
+from benchmarks.common import load_average, print_table, summary_ms
 from benchmarks.complete import parse_threads, thread_label
 
 STAGES = ("decode_ms", "crop_ms", "complete_ms", "filter_ms", "uncanonical_ms", "encode_ms")
@@ -219,7 +219,6 @@ def run(args: argparse.Namespace) -> dict:
     import torch
 
     load_before = load_average()
-    others = OtherLoad().__enter__()  # ended before the verdict below
     base = base_frame(args.seed)
     pipeline, trained = make_pipeline(args.backend, args.checkpoint)
     classes = node_classes()
@@ -329,12 +328,6 @@ def run(args: argparse.Namespace) -> dict:
           f"{100 * filter_share:.0f} % of completion {fast_stages['complete_ms']:.1f} ms (target <= "
           f"{100 * TARGET_FILTER_SHARE:.0f} %: {'met' if filter_share <= TARGET_FILTER_SHARE else 'NOT met'}); "
           f"outputs equal (completed clouds within {max_diff:.1e} m).")
-    others.__exit__(None, None, None)
-    # Idle = other processes used under a tenth of a core meanwhile (the load average also counts
-    # this benchmark's own threads and, for a minute, the preceding benchmark's).
-    busy = (others.cores > 0.1 if others.cores is not None
-            else max(load_before[0], load_after[0]) > 0.5 * (os.cpu_count() or 1))
-    seen = f"; other processes used {others.cores:.2f} cores meanwhile" if others.cores is not None else ""
     print(f"load average (1 min) before / after: {load_before[0]:.2f} / {load_after[0]:.2f} on {os.cpu_count()} "
-          f"cores{seen}{' (NOT idle: absolute times are inflated; the ratios are interleaved)' if busy else ' (idle)'}")
+          "cores (whether the machine was idle: the other-processes line below)")
     return results

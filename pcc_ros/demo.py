@@ -141,7 +141,8 @@ def run_synthcars(opts: DemoConfig, config) -> dict:
     for f in frames_by_stamp.values():
         f.sequence = sequence
 
-    backends = [config.backend] + [b for b in opts.baselines.split(",") if b and b != config.backend]
+    baselines = backend_names(opts.baselines, "--baselines", empty_ok=True)
+    backends = [config.backend] + [b for b in baselines if b != config.backend]
     completion_rows, tally, pictures = [], FilterTally(), {}
     for backend in backends:
         scores: list[dict[str, float]] = []
@@ -254,8 +255,7 @@ def demo(opts: DemoConfig) -> dict:
                         "--kitti the folder holding training/velodyne/0000")
     config, _ = load_config(None, with_filter=True, backend=opts.backend, checkpoint=opts.checkpoint)
     get_backend(config.backend)  # a misspelt --backend / --baselines is said before SynthCars is generated
-    if opts.baselines.replace(",", "").strip():  # "": none
-        backend_names(opts.baselines, "--baselines")
+    backend_names(opts.baselines, "--baselines", empty_ok=True)  # "": none
     opts.out.mkdir(parents=True, exist_ok=True)
     results = {"backend": config.backend, "synthcars": run_synthcars(opts, config), "kitti": run_kitti(opts, config)}
     files.write_json(opts.out / "demo.json", results, indent=2)

@@ -25,3 +25,17 @@ def test_bench_complete_refuses_named_backends_before_timing(backends, said, mon
     monkeypatch.setattr(complete, "_load_pointpncnet", timing_started)
     assert main(["bench", "complete", "--backends", backends]) == 1
     assert said in caplog.text and "mirror" in caplog.text.split(said, 1)[1]
+
+
+def test_backend_names_strip_check_and_allow_an_empty_none_where_asked():
+    """One parse of a backends option for every command: names stripped, each checked, a name
+    twice refused; ``""`` is an error unless the option means "none" by it (``empty_ok``)."""
+    from pcc_ros.errors import ConfigError
+    from pcc_ros.models import backend_names
+
+    assert backend_names(" input , mirror ") == ["input", "mirror"]
+    assert backend_names(" , ", empty_ok=True) == []
+    with pytest.raises(ConfigError, match="--baselines is empty"):
+        backend_names("", "--baselines")
+    with pytest.raises(ConfigError, match="unknown completion backend 'nope'"):
+        backend_names("input,nope", empty_ok=True)

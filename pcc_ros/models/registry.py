@@ -83,12 +83,13 @@ def get_backend(name: str) -> type[Completer]:
     return cls
 
 
-def backend_names(spec: str, option: str = "--backends") -> list[str]:
+def backend_names(spec: str, option: str = "--backends", empty_ok: bool = False) -> list[str]:
     """The backends a comma-separated option names (``"input, mirror"``), checked before any work:
     an unknown name is :func:`get_backend`'s one-line :class:`ConfigError` naming the available
-    ones; an empty list or a name given twice is refused too."""
+    ones; a name given twice is refused too, and an empty list unless ``empty_ok`` (an option
+    whose ``""`` means "none")."""
     names = [s.strip() for s in spec.split(",") if s.strip()]
-    if not names:
+    if not names and not empty_ok:
         raise ConfigError(f"{option} is empty")
     if len(set(names)) != len(names):
         raise ConfigError(f"{option} lists a backend twice: {spec}")
