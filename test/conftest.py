@@ -9,6 +9,8 @@ import os
 import re
 import subprocess
 import sys
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +102,51 @@ def require_rclpy():
     import rclpy
 
     return rclpy
+
+
+@contextmanager
+def live_pipeline_node(node_name: str, mode: str, parameters: dict, output: str, output_type: type):
+    """A ``PipelineNode`` under real rclpy beside a probe node that publishes its ``points`` and
+    ``detections`` and records its ``output`` topic. Yields ``(node, exchange)``:
+    ``exchange(cloud, dets, timeout)`` publishes the pair (again each second until discovery is
+    through) and returns the ``output`` messages received. The nodes are destroyed before the
+    context shuts down (a worker still publishing into a shut-down context would log "publisher's
+    context is invalid")."""
+    rclpy = require_rclpy()
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+    from vision_msgs.msg import Detection3DArray
+
+    from pcc_ros.nodes.ros_node import PipelineNode
+
+    rclpy.init()
+    node = probe = None
+    try:
+        node = PipelineNode(node_name, mode,
+                            parameter_overrides=[Parameter(k, value=v) for k, v in parameters.items()])
+        probe = rclpy.create_node("probe")
+        got: list = []
+        probe.create_subscription(output_type, output, got.append, 10)
+        pub_cloud = probe.create_publisher(PointCloud2, "points", 10)
+        pub_det = probe.create_publisher(Detection3DArray, "detections", 10)
+
+        def exchange(cloud, dets, timeout: float) -> list:
+            deadline = time.time() + timeout
+            while not got and time.time() < deadline:
+                pub_cloud.publish(cloud)
+                pub_det.publish(dets)
+                second = time.time() + 1.0
+                while not got and time.time() < second:
+                    for n in (node, probe):
+                        rclpy.spin_once(n, timeout_sec=0.05)
+            return got
+
+        yield node, exchange
+    finally:
+        for n in (probe, node):
+            if n is not None:
+                n.destroy_node()
+        rclpy.try_shutdown()
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -7,11 +7,10 @@ one in-process rclpy node under real rclpy with real KITTI PointRCNN boxes.
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 import pytest
-from conftest import require_rclpy
+from conftest import live_pipeline_node, require_rclpy
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.msg.detections import detection_array_from_boxes
@@ -236,17 +235,14 @@ def test_rclpy_node_maps_numeric_ids_and_logs_pipeline_skips_on_its_logger(share
     """Real rclpy, real KITTI scan with its PointRCNN boxes labelled as OpenPCDet's wrapper labels
     them ('1'), one box of zero length: completed through class_map, and the skipped box is
     logged on the node's rclpy logger (node name, severity), not as bare stderr text."""
-    rclpy = require_rclpy()
-    from rclpy.parameter import Parameter
+    require_rclpy()
     from sensor_msgs.msg import PointCloud2
 
     from pcc_ros.msg import detections as module
 
     monkeypatch.setattr(module, "_skipped", [0])  # skips of earlier tests do not count here
-    from vision_msgs.msg import Detection3DArray
-
     from pcc_ros.data.kitti import KittiTracking
-    from pcc_ros.nodes.ros_node import PipelineNode, rclpy_classes
+    from pcc_ros.nodes.ros_node import rclpy_classes
 
     root = shared_data / "kitti_tracking"
     frames = KittiTracking(root / "training").frames("0000", detections_dir=root / "detections" / "pointrcnn")
@@ -256,28 +252,14 @@ def test_rclpy_node_maps_numeric_ids_and_logs_pipeline_skips_on_its_logger(share
     size[2, 0] = 0.0  # a degenerate box from the detector
     boxes = Boxes(det.center, det.size, det.yaw, ["1"] * len(det), det.score, det.track_id)
     stamp = 1_316_995_200_000_000_000
-    rclpy.init()
-    node = probe = None
-    try:
-        node = PipelineNode("completion_node", "completion", parameter_overrides=[
-            Parameter("backend", value="mirror"), Parameter("class_map", value="1:Car, 2:Pedestrian, 3:Cyclist")])
-        probe = rclpy.create_node("probe")
-        got = []
-        probe.create_subscription(PointCloud2, "completed", got.append, 10)
-        pub_cloud = probe.create_publisher(PointCloud2, "points", 10)
-        pub_det = probe.create_publisher(Detection3DArray, "detections", 10)
-        cloud = create_cloud(frame.points, ["x", "y", "z", "intensity"], "velodyne", stamp, rclpy_classes)
-        dets = detection_array_from_boxes(boxes, "velodyne", stamp, rclpy_classes)
-        for det_msg, d in zip(dets.detections, size):
-            det_msg.bbox.size.x = float(d[0])
-        deadline = time.time() + 20
-        while not got and time.time() < deadline:
-            pub_cloud.publish(cloud)  # again each second until discovery is through
-            pub_det.publish(dets)
-            second = time.time() + 1.0
-            while not got and time.time() < second:
-                for n in (node, probe):
-                    rclpy.spin_once(n, timeout_sec=0.05)
+    cloud = create_cloud(frame.points, ["x", "y", "z", "intensity"], "velodyne", stamp, rclpy_classes)
+    dets = detection_array_from_boxes(boxes, "velodyne", stamp, rclpy_classes)
+    for det_msg, d in zip(dets.detections, size):
+        det_msg.bbox.size.x = float(d[0])
+    with live_pipeline_node("completion_node", "completion",
+                            {"backend": "mirror", "class_map": "1:Car, 2:Pedestrian, 3:Cyclist"},
+                            "completed", PointCloud2) as (node, exchange):
+        got = exchange(cloud, dets, timeout=20)
         assert got, node.core.diagnostics_values()
         assert got[0].header.frame_id == "velodyne"
         instances = set(read_xyz(got[0], ("instance",))[:, 3].astype(int).tolist())
@@ -285,8 +267,3 @@ def test_rclpy_node_maps_numeric_ids_and_logs_pipeline_skips_on_its_logger(share
         assert node.core.diagnostics_values().get("skipped_other_class") is None
         err = capfd.readouterr().err
         assert "[completion_node]: skipped detection 2" in err and "[WARN]" in err
-    finally:
-        for n in (probe, node):
-            if n is not None:
-                n.destroy_node()
-        rclpy.try_shutdown()

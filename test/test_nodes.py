@@ -5,12 +5,11 @@ from __future__ import annotations
 import importlib
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import require_rclpy
+from conftest import live_pipeline_node, require_rclpy
 
 from pcc_ros.pipeline.config import parameter_table, read_parameters
 
@@ -40,45 +39,23 @@ def test_parameter_table_covers_the_yaml_files_with_types_and_descriptions():
 @pytest.mark.ros
 def test_completion_node_publishes_completed_cloud():
     """The node class in-process under real rclpy (the end-to-end test runs the installed processes)."""
-    rclpy = require_rclpy()
-    from rclpy.parameter import Parameter
+    require_rclpy()
     from sensor_msgs.msg import PointCloud2
-    from vision_msgs.msg import Detection3DArray
 
     from pcc_ros.msg.detections import detection_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
-    from pcc_ros.nodes.ros_node import PipelineNode, rclpy_classes
+    from pcc_ros.nodes.ros_node import rclpy_classes
     from pcc_ros.types import Boxes
 
-    rclpy.init()
-    node = probe = None
-    try:
-        node = PipelineNode(
-            "completion_node", "completion", parameter_overrides=[Parameter("backend", value="mirror")]
-        )
-        probe = rclpy.create_node("probe")
-        got = []
-        probe.create_subscription(PointCloud2, "completed", got.append, 10)
-        pub_cloud = probe.create_publisher(PointCloud2, "points", 10)
-        pub_det = probe.create_publisher(Detection3DArray, "detections", 10)
-        rng = np.random.default_rng(0)
-        pts = (rng.normal(size=(500, 3)) * [1.5, 0.7, 0.5] + [10, 0, -0.8]).astype(np.float32)
-        boxes = Boxes([[10, 0, -0.8]], [[4, 1.7, 1.5]], [0.0], ["Car"], [0.9], ["1"])
-        stamp = 1_000_000_000
-        deadline = time.time() + 10
-        while not got and time.time() < deadline:
-            pub_cloud.publish(create_cloud(pts, ["x", "y", "z"], "velodyne", stamp, rclpy_classes))
-            pub_det.publish(detection_array_from_boxes(boxes, "velodyne", stamp, rclpy_classes))
-            for n in (node, probe):
-                rclpy.spin_once(n, timeout_sec=0.1)
+    rng = np.random.default_rng(0)
+    pts = (rng.normal(size=(500, 3)) * [1.5, 0.7, 0.5] + [10, 0, -0.8]).astype(np.float32)
+    boxes = Boxes([[10, 0, -0.8]], [[4, 1.7, 1.5]], [0.0], ["Car"], [0.9], ["1"])
+    stamp = 1_000_000_000
+    with live_pipeline_node("completion_node", "completion", {"backend": "mirror"}, "completed",
+                            PointCloud2) as (_, exchange):
+        got = exchange(create_cloud(pts, ["x", "y", "z"], "velodyne", stamp, rclpy_classes),
+                       detection_array_from_boxes(boxes, "velodyne", stamp, rclpy_classes), timeout=10)
         assert got and got[0].header.frame_id == "velodyne"
-    finally:
-        # Nodes first (stops the worker thread), then the context: a worker still publishing
-        # into a shut-down context would log "publisher's context is invalid".
-        for n in (probe, node):
-            if n is not None:
-                n.destroy_node()
-        rclpy.try_shutdown()
 
 
 @pytest.mark.parametrize(("ros_args", "expected"), [
@@ -135,40 +112,20 @@ def test_a_node_that_fails_to_start_leaves_no_log_handler_behind():
 def test_the_pipelines_score_range_warning_is_a_node_log_line(capfd):
     """Scores outside [0, 1] with score_mapping identity (a detector's logits): the pipeline's warning
     is the node's ROS log line (severity, node name; so also on /rosout), not bare Python logging."""
-    rclpy = require_rclpy()
-    from rclpy.parameter import Parameter
-    from sensor_msgs.msg import PointCloud2
+    require_rclpy()
     from vision_msgs.msg import Detection3DArray
 
     from pcc_ros.msg.detections import detection_array_from_boxes
     from pcc_ros.msg.pointcloud2 import create_cloud
-    from pcc_ros.nodes.ros_node import PipelineNode, rclpy_classes
+    from pcc_ros.nodes.ros_node import rclpy_classes
     from pcc_ros.types import Boxes
 
-    rclpy.init()
-    node = probe = None
-    try:
-        node = PipelineNode("detection_filter_node", "filter", parameter_overrides=[
-            Parameter("backend", value="mirror"), Parameter("score_mapping", value="identity")])
-        probe = rclpy.create_node("probe")
-        got = []
-        probe.create_subscription(Detection3DArray, "detections_filtered", got.append, 10)
-        pub_cloud = probe.create_publisher(PointCloud2, "points", 10)
-        pub_det = probe.create_publisher(Detection3DArray, "detections", 10)
-        pts = (np.random.default_rng(0).normal(size=(500, 3)) * [1.5, 0.7, 0.5] + [10, 0, -0.8]).astype(np.float32)
-        boxes = Boxes([[10, 0, -0.8]], [[4, 1.7, 1.5]], [0.0], ["Car"], [3.2], ["1"])  # a logit
-        deadline = time.time() + 10
-        while not got and time.time() < deadline:
-            pub_cloud.publish(create_cloud(pts, ["x", "y", "z"], "velodyne", 10**9, rclpy_classes))
-            pub_det.publish(detection_array_from_boxes(boxes, "velodyne", 10**9, rclpy_classes))
-            for n in (node, probe):
-                rclpy.spin_once(n, timeout_sec=0.1)
-        assert got
-    finally:
-        for n in (probe, node):
-            if n is not None:
-                n.destroy_node()
-        rclpy.try_shutdown()
+    pts = (np.random.default_rng(0).normal(size=(500, 3)) * [1.5, 0.7, 0.5] + [10, 0, -0.8]).astype(np.float32)
+    boxes = Boxes([[10, 0, -0.8]], [[4, 1.7, 1.5]], [0.0], ["Car"], [3.2], ["1"])  # a logit
+    with live_pipeline_node("detection_filter_node", "filter", {"backend": "mirror", "score_mapping": "identity"},
+                            "detections_filtered", Detection3DArray) as (_, exchange):
+        assert exchange(create_cloud(pts, ["x", "y", "z"], "velodyne", 10**9, rclpy_classes),
+                        detection_array_from_boxes(boxes, "velodyne", 10**9, rclpy_classes), timeout=10)
     text = capfd.readouterr().err
     lines = [line for line in text.splitlines() if "outside [0, 1]" in line]
     assert len(lines) == 1 and lines[0].startswith("[WARN] ["), text
