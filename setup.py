@@ -39,6 +39,7 @@ setup(
         "matplotlib>=3.6",
         "scipy>=1.10",
         "scikit-image>=0.22",
+        "numba>=0.61",
         "pyyaml>=6",
     ],
     zip_safe=False,  # weights and configs are found through __file__

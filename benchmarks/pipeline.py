@@ -69,7 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeat", type=int, default=30, help="timed frames per alternative (default 30)")
     parser.add_argument("--scale-cars", default="1,5,20,50,100", help="car counts of the scaling table")
     parser.add_argument("--scale-points", default="30000,120000,250000", help="point counts of the scaling table")
-    parser.add_argument("--scale-repeat", type=int, default=10, help="timed frames per scaling row (default 10)")
+    parser.add_argument("--scale-repeat", type=int, default=10, help="timed frames per scaling row (default 10; 0: no scaling table)")
 
 
 @contextlib.contextmanager
@@ -285,6 +285,8 @@ def run(args: argparse.Namespace) -> dict:
     pipeline.config = dataclasses.replace(pipeline.config, workers=workers)
     configs = [(int(c), args.points) for c in args.scale_cars.split(",") if c.strip()]
     configs += [(args.cars, int(p)) for p in args.scale_points.split(",") if p.strip() and int(p) != args.points]
+    if args.scale_repeat < 1:
+        configs = []
     scaling = []
     for cars, points in configs:
         msg, det_msg, nc, npts = frame_messages(base, cars, points, args.seed, classes)
@@ -294,8 +296,9 @@ def run(args: argparse.Namespace) -> dict:
         totals = summary_ms(np.array([s["total_ms"] for s in samples_s]) / 1e3)
         scaling.append({"cars": nc, "points": npts, "p50_ms": totals["median_ms"], "p95_ms": totals["p95_ms"],
                         **{k.replace("_ms", ""): v for k, v in stage_rows(samples_s).items() if k != "total_ms"}})
-    print_table(f"scaling, fast path, threads {best_threads} (median ms per stage, "
-                f"{args.scale_repeat} frames per row)", scaling)
+    if scaling:
+        print_table(f"scaling, fast path, threads {best_threads} (median ms per stage, "
+                    f"{args.scale_repeat} frames per row)", scaling)
 
     load_after = load_average()
     speedup = today["original_p50"] / best["fast_p50"]

@@ -260,15 +260,10 @@ def _scattered_scene(seed: int, dtype=np.float32):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("share", [0.0, 2.0])
-def test_ray_and_ground_indexes_equal_testing_every_point_against_every_box(dtype, share, monkeypatch):
-    """The ray index (azimuth x slope bins; on the boxes' azimuth sectors only or on the whole
-    scan, per ``share``) and the ground query's BEV grid only choose which (point, box) pairs
-    get the exact test: the counts and ground heights equal the exact test on every pair,
-    across the +-pi seam, with NaN rows and a return at the sensor."""
-    import pcc_ros.pipeline.evidence as evidence_module
-
-    monkeypatch.setattr(evidence_module, "_SUBSET_SHARE", share)
+def test_ray_and_ground_indexes_equal_testing_every_point_against_every_box(dtype):
+    """The ray index (azimuth x slope cells) and the ground query's BEV grid only choose which
+    (point, box) pairs get the exact test: the counts and ground heights equal the exact test on
+    every pair, across the +-pi seam, with NaN rows and a return at the sensor."""
     for seed in (3, 4):
         scan, boxes = _scattered_scene(seed, dtype)
         ev = evidence(scan, boxes).as_dict()
@@ -378,47 +373,34 @@ def test_mismatch_work_runs_only_when_its_weight_is_non_zero():
         assert ("mismatch" in result.filter_terms and np.isfinite(result.filter_terms["mismatch"][0])) == bool(weight)
 
 
-def test_run_quantiles_equal_a_partition_of_each_run():
-    """The ground's per-box quantile (a sampled threshold, then only the values under it, or the
-    threshold itself on flat ground, or the whole run when the sample missed) equals
-    np.partition of each run: random runs, ties, flat runs, empty and member-less runs, runs
-    whose members the sample skips, and runs whose sample holds only their smallest values."""
-    from pcc_ros.pipeline.evidence import SAMPLE_STRIDE, run_quantiles
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_kth_smallest_equals_a_partition(dtype):
+    """The ground's quantile selection (in place, on a prefix of a work array) gives the value
+    np.partition puts at the rank: random values, ties, flat runs with a few lower returns,
+    sorted and reversed runs, one value, every rank of a short run."""
+    from pcc_ros.pipeline.evidence_kernels import kth_smallest
 
     rng = np.random.default_rng(7)
-    runs = []
-    for kind in ["random", "ties", "flat", "empty", "none", "skipped", "low_sample"] * 6:
-        size = int(rng.integers(1, 3000)) if kind != "empty" else 0
-        v = rng.normal(-1.7, 0.3, size).astype(np.float32)
-        m = rng.random(size) < 0.7
+    cases = []
+    for kind in ["random", "ties", "flat", "sorted", "reversed", "one"] * 4:
+        size = 1 if kind == "one" else int(rng.integers(2, 3000))
+        v = rng.normal(-1.7, 0.3, size).astype(dtype)
         if kind == "ties":
             v = np.round(v, 1)
         elif kind == "flat":
-            v[:] = np.float32(-1.73)
-            v[: size // 50] -= 0.5  # a few returns below the road
-        elif kind == "none":
-            m[:] = False
-        elif kind == "skipped":
-            m[::SAMPLE_STRIDE] = False
-        elif kind == "low_sample":
-            m[:] = True
-            v = np.sort(v)[::-1].copy()
-            v[::SAMPLE_STRIDE] = np.sort(v[::SAMPLE_STRIDE])[:len(v[::SAMPLE_STRIDE])] - 10.0
-        runs.append((v, m))
-    values = np.concatenate([v for v, _ in runs]).astype(np.float32)
-    member = np.concatenate([m for _, m in runs])
-    values[~member] = np.inf
-    ends = np.cumsum([len(v) for v, _ in runs])
-    members = np.array([m.sum() for _, m in runs])
-    for quantile in (0.05, 0.5, 0.0):
-        got = run_quantiles(values.copy(), member, ends, members, quantile)
-        for b, (v, m) in enumerate(runs):
-            if not m.any():
-                assert np.isnan(got[b])
-                continue
-            k = int(quantile * (m.sum() - 1))
-            lo = ends[b] - len(v)
-            assert got[b] == np.partition(values[lo:ends[b]], k)[k], (b, quantile)
+            v[:] = dtype(-1.73)
+            v[: size // 50] -= 0.5
+        elif kind in ("sorted", "reversed"):
+            v = np.sort(v)[:: 1 if kind == "sorted" else -1].copy()
+        cases.append(v)
+    for v in cases:
+        work = np.r_[v, rng.normal(size=7).astype(dtype)]  # a longer work array: only the prefix counts
+        for quantile in (0.05, 0.5, 0.0, 1.0):
+            k = int(quantile * (len(v) - 1))
+            assert kth_smallest(work, len(v), k) == np.partition(v, k)[k], (len(v), quantile)
+    short = np.array([3, 1, 2, 2, 5, 0], dtype)
+    for k in range(len(short)):
+        assert kth_smallest(short.copy(), len(short), k) == np.sort(short)[k]
 
 
 def test_side_pool_is_made_once_when_first_frames_race(monkeypatch):

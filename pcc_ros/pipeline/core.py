@@ -37,6 +37,7 @@ from pcc_ros.msg.stamps import make_header, stamp_to_ns
 from pcc_ros.msg.transforms import same_frame
 from pcc_ros.msg.typestore import new_message
 from pcc_ros.pipeline.config import PipelineConfig
+from pcc_ros.pipeline.evidence import warm_up
 from pcc_ros.pipeline.filter import (
     annotate_detections,
     false_probability,
@@ -155,6 +156,8 @@ class Pipeline:
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
             )
         self.completer = completer
+        if config.filter.rule == "evidence":
+            warm_up()  # the filter's compiled kernels, before the first frame
         # The filter's own completion backend for its shape-mismatch term (a car-constrained
         # one such as TraPCC or AML); "" or the pipeline's backend: reuse its completions.
         self.filter_completer = None

@@ -179,17 +179,6 @@ def angular_window(boxes: Boxes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
 _SCRATCH = Scratch()  # this module's work arrays (pcc_ros.scratch)
 
 
-def _segment_counts(mask: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """True values of ``mask`` per contiguous segment ending (exclusive) at ``ends`` (int64)."""
-    out = np.zeros(len(ends), dtype=np.int64)
-    starts = np.zeros(len(ends), dtype=np.int64)
-    starts[1:] = ends[:-1]
-    nonempty = np.flatnonzero(ends > starts)
-    if len(nonempty):
-        out[nonempty] = np.add.reduceat(mask, starts[nonempty], dtype=np.int64)
-    return out
-
-
 def _clamp(values: np.ndarray, hi: int, nan: np.ndarray) -> None:
     """``values`` clipped to ``[0, hi]`` in place, NaN to 0 (``nan``: a work mask). What
     ``fmin(fmax(values, 0), hi)`` gives, at a third of its cost (numpy's fmax / fmin with a
@@ -198,25 +187,24 @@ def _clamp(values: np.ndarray, hi: int, nan: np.ndarray) -> None:
     np.copyto(values, 0, where=np.isnan(values, out=nan))
 
 
-def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
-    """The ray index: the points whose ray from the sensor lies in some judged box's angular
-    window (a superset of the rays that cross the box; :func:`evidence` tests them exactly).
+def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) -> tuple[np.ndarray, ...]:
+    """``n_in, n_occluded, n_stop, n_pass, n_rays`` of every box (float64).
 
-    Passes over the scan in its own precision give every point's azimuth bin and slope
-    ``z / r`` (monotone in elevation; contiguous passes cost less than gathering a subset's
-    coordinates); only the (azimuth, slope band) keys of the points in a bin some box needs
-    (its azimuth sector, widened by one bin each way) go into a radix sort; each box's
-    azimuth bins expand into the contiguous run of its bands without a
-    Python loop, and the box's slope window (with a slack far above float32 rounding) is
-    tested per pair. Non-finite points never pair.
-
-    Returns ``(point, box_ends)``: the scan positions of the pairs' points, box by box (the
-    judged boxes in order), and the end (exclusive) of each judged box's pairs.
+    The ray index: numpy passes over the scan in its own precision (contiguous, SIMD) give
+    every point's cell, its azimuth bin and slope band (the slope ``z / r`` is monotone in
+    elevation: no elevation ``arctan2`` per point); a counting sort groups the points of the
+    cells some judged box searches (its azimuth sector widened by one bin each way, the bands
+    of its slope window); the compiled kernel then visits each box's cells, tests the box's
+    slope window (with a slack far above float32 rounding: a superset of the rays that reach the
+    box) and runs the exact float64 slab tests. Non-finite points never count.
     """
+    n = len(boxes)
+    out = np.zeros((n, 5))
+    az_lo, az_hi, el_lo, el_hi, judged = window
     boxes_idx = np.flatnonzero(judged)
     m = len(boxes_idx)
     if not m or not len(x):
-        return np.zeros(0, np.int64), np.zeros(m, np.int64)
+        return tuple(out.T.copy())
     dt = x.dtype.type
     # Windows in slope space, widened by the slack; bands span the boxes' windows.
     s_lo = np.tan(el_lo[boxes_idx]) - _SLOPE_SLACK * (1.0 + np.tan(el_lo[boxes_idx]) ** 2)
@@ -228,17 +216,17 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
     nbins = np.minimum(b1 - b0 + 1, _AZ_BINS)
     box_of_bin = np.repeat(np.arange(m), nbins)
     az_bin = (np.repeat(b0, nbins) + positions_in_runs(nbins)) % _AZ_BINS
-    n = len(x)
+    p = len(x)
     with np.errstate(invalid="ignore"):
-        scaled = np.arctan2(y, x, out=ws("az", n, dt))
+        scaled = np.arctan2(y, x, out=ws("az", p, dt))
         scaled += dt(np.pi)
         scaled *= dt(_AZ_BINS / (2 * np.pi))
-        _clamp(scaled, _AZ_BINS - 1, ws("nan", n, bool))  # NaN -> 0 (band 0 below: no box)
-    key = ws("key", n, np.int16)
+        _clamp(scaled, _AZ_BINS - 1, ws("nan", p, bool))  # NaN -> 0 (band 0 below: no box)
+    key = ws("key", p, np.int16)
     np.copyto(key, scaled, casting="unsafe")  # truncation: the floor of these non-negative bins
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.multiply(x, x, out=ws("r", n, dt))
-        tmp = ws("tmp", n, dt)
+        r = np.multiply(x, x, out=ws("r", p, dt))
+        tmp = ws("tmp", p, dt)
         r += np.multiply(y, y, out=tmp)
         np.sqrt(r, out=r)
         # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e
@@ -249,130 +237,39 @@ def _ray_pairs(x, y, z, az_lo, az_hi, el_lo, el_hi, judged, ws: Scratch):
         band = np.subtract(slope, dt(e0), out=tmp)
         band *= dt(1.0 / width)
         band += 1
-        _clamp(band, _EL_BANDS + 1, ws("nan", n, bool))  # NaN -> band 0: no box
-    band16 = ws("band", n, np.int16)
+        _clamp(band, _EL_BANDS + 1, ws("nan", p, bool))  # NaN -> band 0: no box
+    band16 = ws("band", p, np.int16)
     np.copyto(band16, band, casting="unsafe")
     key *= np.int16(_EL_BANDS + 2)
     key += band16
     band_lo = np.clip(np.floor((s_lo - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
     band_hi = np.clip(np.floor((s_hi - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
     bins = az_bin * (_EL_BANDS + 2)
-    # The (azimuth bin, band) cells some box searches: the points outside them cannot pair (a
-    # table lookup), unless the boxes' azimuth sectors cover most of the circle (then selecting
-    # costs more than it saves).
     first_cell = bins + np.take(band_lo, box_of_bin)
-    sub = None
-    sectors = np.zeros(_AZ_BINS, dtype=bool)
-    sectors[az_bin] = True
-    if np.count_nonzero(sectors) < _SUBSET_SHARE * _AZ_BINS:
-        n_cells = np.take(band_hi - band_lo + 1, box_of_bin)
-        wanted = np.zeros(_AZ_BINS * (_EL_BANDS + 2), dtype=bool)
-        wanted[np.repeat(first_cell, n_cells) + positions_in_runs(n_cells)] = True
-        sub = ws.nonzero(wanted.take(key, out=ws("want", n, bool), mode="clip"), "sub")
-        key = key.take(sub, out=ws("key_s", len(sub), np.int16), mode="clip")
-    order = np.argsort(key, kind="stable")
-    # Each (box, azimuth bin)'s bands are one range of the sorted keys: its bounds by binary
-    # search (int16 queries: the keys are not converted), not a count of every bin.
-    ordered = key.take(order, out=ws("key_sorted", len(key), np.int16), mode="clip")
-    lo = np.searchsorted(ordered, first_cell.astype(np.int16), side="left")
-    count = np.searchsorted(ordered, (bins + np.take(band_hi, box_of_bin)).astype(np.int16), side="right") - lo
-    candidates = ws.runs(lo, count, "runs")
-    q = len(candidates)
-    pair = order.take(candidates, out=ws("pair", q, np.int64), mode="clip")
-    del order
-    if sub is not None:  # positions in the scan
-        pair = sub.take(pair, out=ws("pair_scan", q, np.int64), mode="clip")
-    s = slope.take(pair, out=ws("s", q, dt), mode="clip")
-    per_box = np.bincount(box_of_bin, weights=count, minlength=m).astype(np.int64)
-    with np.errstate(invalid="ignore"):
-        keep = np.greater_equal(s, np.repeat(s_lo.astype(dt), per_box), out=ws("keep", q, bool))
-        keep &= np.less_equal(s, np.repeat(s_hi.astype(dt), per_box), out=ws("keep2", q, bool))
-    kept = ws.nonzero(keep, "kept")
-    point = pair.take(kept, out=candidates[: len(kept)], mode="clip")
-    return point, np.searchsorted(kept, np.cumsum(per_box))
+    last_cell = bins + np.take(band_hi, box_of_bin)
+    n_cells = last_cell - first_cell + 1
+    cells = _AZ_BINS * (_EL_BANDS + 2)
+    wanted = np.zeros(cells, dtype=bool)
+    wanted[np.repeat(first_cell, n_cells) + positions_in_runs(n_cells)] = True
+    from pcc_ros.pipeline import evidence_kernels as kernels  # numba: heavy, only when measuring
 
-
-def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) -> tuple[np.ndarray, ...]:
-    """``n_in, n_occluded, n_stop, n_pass, n_rays`` of every box (float64)."""
-    n = len(boxes)
-    boxes_idx = np.flatnonzero(window[4])
-    point, box_ends = _ray_pairs(x, y, z, *window, ws)
-    if not len(point):
-        return tuple(np.zeros(n) for _ in range(5))
-    p = len(point)
-    f64 = np.float64
-
-    per_box = np.diff(box_ends, prepend=0)
-
-    def rep(values: np.ndarray) -> np.ndarray:  # a per-box value on each of its pairs
-        return np.repeat(values[boxes_idx], per_box)  # a transient array (cheaper than a gather)
-
-    a, b, d = (ws(name, p, f64) for name in ("r_a", "r_b", "r_d"))
-    px, py, pz = (ws(name, p, f64) for name in ("r_px", "r_py", "r_pz"))
-    # Box-frame ray: origin (the sensor, one per box) + t * (point - origin); t = 1 at the return;
-    # the operations of to_box_local (on the point in float64), then minus the origin.
-    for column, centre, out in ((x, 0, px), (y, 1, py), (z, 2, pz)):
-        if column.dtype == f64:
-            column.take(point, out=out, mode="clip")
-        else:  # a gather in the scan's precision, then one widening copy (faster than a mixed subtraction)
-            np.copyto(out, column.take(point, out=ws("r_gather", p, column.dtype), mode="clip"))
-        out -= rep(boxes.center[:, centre])  # dx, dy, local z
-    c, s = rep(table.cos), rep(table.sin)
-    lx = np.multiply(c, px, out=ws("r_lx", p, f64))
-    lx += np.multiply(s, py, out=a)
-    ly = np.multiply(c, py, out=ws("r_ly", p, f64))
-    ly -= np.multiply(s, px, out=a)
-    lx -= rep(table.origin[:, 0])
-    ly -= rep(table.origin[:, 1])
-    pz -= rep(table.origin[:, 2])
-    tin, tout, cin, cout = px, py, ws("r_cin", p, f64), ws("r_cout", p, f64)  # px, py free again
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for axis, direction in enumerate((lx, ly, pz)):
-            inv = np.divide(1.0, direction, out=direction)
-            for (lo, hi), tmin, tmax in ((table.body, tin, tout), (table.core, cin, cout)):
-                np.multiply(rep(lo[:, axis]), inv, out=a)  # lo * inv
-                np.multiply(rep(hi[:, axis]), inv, out=b)
-                # fmax / fmin skip the NaN of a ray parallel to a slab starting on its plane
-                if axis == 0:
-                    np.minimum(a, b, out=tmin)
-                    np.maximum(a, b, out=tmax)
-                else:
-                    np.fmax(tmin, np.minimum(a, b, out=d), out=tmin)
-                    np.fmin(tmax, np.maximum(a, b, out=a), out=tmax)
-        through = np.greater_equal(tout, np.maximum(tin, 0.0, out=a), out=ws("r_through", p, bool))
-        core = np.greater_equal(cout, np.maximum(cin, 0.0, out=a), out=ws("r_core", p, bool))
-        core &= through
-        before = np.less_equal(tin, 1.0, out=ws("r_before", p, bool))
-        flag = ws("r_flag", p, bool)
-        inside = np.less_equal(1.0, tout, out=ws("r_inside", p, bool))
-        inside &= before
-        inside &= through
-        occluded = np.less(1.0, tin, out=ws("r_occluded", p, bool))
-        occluded &= through
-        stop = np.less_equal(1.0, cout, out=ws("r_stop", p, bool))
-        stop &= core
-        stop &= before
-        passed = np.greater(1.0, cout, out=flag)
-        passed &= core
-    out = []
-    for mask in (inside, occluded, stop, passed, through):
-        full = np.zeros(n)
-        full[boxes_idx] = _segment_counts(mask, box_ends)
-        out.append(full)
-    return tuple(out)
+    start, order = ws("start", cells + 1, np.int64), ws("order", p, np.int64)
+    kernels.counting_sort(key, wanted, start, order)
+    kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, np.cumsum(nbins), boxes_idx,
+                       s_lo.astype(dt), s_hi.astype(dt), np.ascontiguousarray(boxes.center), table.cos, table.sin,
+                       table.origin, *table.body, *table.core, out)
+    return tuple(out.T.copy())
 
 
 def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_hi, judged,
-                    table: _BoxTable | None = None, ws: Scratch | None = None) -> np.ndarray:
+                    table: _BoxTable | None = None) -> np.ndarray:
     """Beams of the sensor model (rings x azimuth steps) whose rays hit each box.
 
-    The beams of a box are a (ring, column) grid: one row per (box, ring), the columns padded
-    to the widest box's (at most :data:`EXPECTED_COLUMNS`), so the trigonometry and the box
-    rotation broadcast over rows and columns (no per-beam gathers); padding columns do not
-    count. Same arithmetic, beam for beam, as a per-beam computation."""
-    ws = ws or _SCRATCH
+    The beams of a box are a (ring, column) grid: the columns' directions (at most
+    :data:`EXPECTED_COLUMNS` per box) are one (boxes, columns) table of cosines and sines, and
+    the compiled kernel runs the slab test of every (ring, column) beam of each box."""
     out = np.zeros(len(boxes))
-    rings, ring_cos, ring_sin = _ring_table(sensor)
+    rings, rings_cos, rings_sin = _ring_table(sensor)
     step = np.deg2rad(sensor.azimuth_resolution_deg)
     idx = np.flatnonzero(judged)
     if not len(idx):
@@ -386,46 +283,14 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     r_lo = np.searchsorted(rings, el_lo[idx])
     r_hi = np.searchsorted(rings, el_hi[idx], side="right")
     n_ring = np.maximum(r_hi - r_lo, 0)
-    rows = int(n_ring.sum())
-    if not rows:
-        return out
-    width = int(n_az.max())
-    column = np.arange(width)
+    column = np.arange(int(n_az.max()))
     azimuth = az_lo[idx][:, None] + (column + 0.5) * step * stretch[:, None]  # (boxes, columns)
-    cos_az, sin_az = np.cos(azimuth), np.sin(azimuth)
-    row_box = np.repeat(np.arange(len(idx)), n_ring)  # one row per (box, ring)
-    ring = np.repeat(r_lo, n_ring) + positions_in_runs(n_ring)
-    ce = ring_cos[ring][:, None]
-    box = idx[row_box]
-    c, s = table.cos[box][:, None], table.sin[box][:, None]
+    from pcc_ros.pipeline import evidence_kernels as kernels  # numba: heavy, only when measuring
 
-    def grid(name: str) -> np.ndarray:
-        return ws(name, rows * width, np.float64).reshape(rows, width)
-
-    dx = np.multiply(ce, cos_az.take(row_box, axis=0, out=grid("e_x"), mode="clip"), out=grid("e_x"))
-    dy = np.multiply(ce, sin_az.take(row_box, axis=0, out=grid("e_y"), mode="clip"), out=grid("e_y"))
-    t1, t2, tmp = grid("e_t1"), grid("e_t2"), grid("e_tmp")
-    lx = np.multiply(c, dx, out=grid("e_lx"))
-    lx += np.multiply(s, dy, out=tmp)
-    ly = np.multiply(c, dy, out=grid("e_ly"))
-    ly -= np.multiply(s, dx, out=tmp)
-    direction = (lx, ly, ring_sin[ring][:, None])
-    tmin = tmax = None
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for axis in range(3):
-            inv = np.divide(1.0, direction[axis], out=direction[axis])
-            np.multiply(table.body[0][box, axis][:, None], inv, out=t1)
-            np.multiply(table.body[1][box, axis][:, None], inv, out=t2)
-            if tmin is None:
-                tmin, tmax = np.minimum(t1, t2, out=dx), np.maximum(t1, t2, out=dy)
-            else:
-                np.fmax(tmin, np.minimum(t1, t2, out=tmp), out=tmin)
-                np.fmin(tmax, np.maximum(t1, t2, out=t1), out=tmax)
-    hit = ws("e_hit", rows * width, bool).reshape(rows, width)
-    np.greater_equal(tmax, np.maximum(tmin, 0.0, out=tmp), out=hit)
-    hit &= column < n_az[row_box][:, None]
-    per_box = np.bincount(row_box, weights=np.count_nonzero(hit, axis=1), minlength=len(idx))
-    out[idx] = per_box * stretch
+    counts = np.zeros(len(idx))
+    kernels.expected_counts(idx, r_lo, n_ring, n_az, rings_cos, rings_sin, np.cos(azimuth), np.sin(azimuth),
+                            table.cos, table.sin, *table.body, counts)
+    out[idx] = counts * stretch
     return out
 
 
@@ -479,132 +344,27 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     grow = cell * np.sqrt(0.5) + _GROUND_SLACK
     touch = (np.abs(ccx) <= half[box_of, 0] + grow) & (np.abs(ccy) <= half[box_of, 1] + grow)
     box_of, key = box_of[touch], gx[touch] * ny + gy[touch]  # box-major, cells ascending
-    # The points: in a cell some box lists and within the boxes' union z range, sorted by cell
-    # (radix). Off-grid points (and NaN) clamp into the grid's two-cell border, which no box
-    # lists.
-    m = len(x)
+    # The points in a cell some box lists and within the boxes' union z range, grouped by cell
+    # (a counting sort); a box's consecutive cells are one run of them. Off-grid points (and
+    # NaN) clamp into the grid's two-cell border, which no box lists.
+    from pcc_ros.pipeline import evidence_kernels as kernels  # numba: heavy, only when measuring
+
     listed = np.zeros(nx * ny, dtype=bool)
     listed[key] = True
-    with np.errstate(invalid="ignore"):
-        f = ws("g_f", m, dt)
-        cell_key, column = ws("g_cell", m, np.int16), ws("g_column", m, np.int16)
-        for coordinate, offset, count, index in ((x, origin[0], nx, cell_key), (y, origin[1], ny, column)):
-            np.subtract(coordinate, dt(offset), out=f)
-            f *= dt(1.0 / cell)
-            _clamp(f, count - 1, ws("g_nan", m, bool))  # NaN -> 0
-            np.copyto(index, f, casting="unsafe")  # truncation: the floor of these non-negative values
-        cell_key *= np.int16(ny)
-        cell_key += column
-        ok = listed.take(cell_key, out=ws("g_ok", m, bool), mode="clip")
-        flag = ws("g_flag", m, bool)
-        ok &= np.greater_equal(z, zlo.min(), out=flag)
-        ok &= np.less_equal(z, zhi.max(), out=flag)
-    pts = ws.nonzero(ok, "g_pts")
-    k = len(pts)
-    if not k:
+    cell_key = ws("g_cell", len(x), np.int32)
+    kernels.ground_cells(x, y, z, dt(origin[0]), dt(origin[1]), dt(1.0 / cell), nx, ny, zlo.min(), zhi.max(),
+                         cell_key)
+    start, order = ws("g_start", nx * ny + 1, np.int64), ws("g_order", len(x), np.int64)
+    kernels.counting_sort(cell_key, listed, start, order)
+    if not len(key):
         return out
-    pkey = cell_key.take(pts, out=ws("g_key", k, np.int16), mode="clip")
-    order = np.argsort(pkey, kind="stable")
-    ordered = pkey.take(order, out=ws("g_key_sorted", k, np.int16), mode="clip")
-    pts = pts.take(order, out=ws("g_sorted", k, np.int64), mode="clip")
-    del order
-    # A box's consecutive cells are one run of the sorted points.
-    if len(key):
-        new = np.ones(len(key), dtype=bool)
-        new[1:] = (np.diff(key) != 1) | (np.diff(box_of) != 0)
-        first = np.flatnonzero(new)
-        last = np.empty_like(first)
-        last[:-1] = first[1:] - 1
-        last[-1] = len(key) - 1
-        # the run's bounds in the sorted points by binary search (int16 queries: no conversion)
-        run_lo = np.searchsorted(ordered, key[first].astype(np.int16), side="left")
-        run_hi = np.searchsorted(ordered, key[last].astype(np.int16), side="right")
-        run_box = box_of[first]
-    else:
-        run_lo = run_hi = run_box = np.zeros(0, np.int64)
-    length = run_hi - run_lo
-    pair = ws.runs(run_lo, length, "g_pair")
-    q = len(pair)
-    box_pairs = np.bincount(run_box, weights=length, minlength=n).astype(np.int64)
-    pair = pts.take(pair, out=ws("g_pair_scan", q, np.int64), mode="clip")  # positions in the scan
-    px, py, pz = (a.take(pair, out=ws(name, q, dt), mode="clip") for a, name in ((x, "g_px"), (y, "g_py"),
-                                                                                   (z, "g_pz")))
-    a, b = ws("g_a", q, dt), ws("g_b", q, dt)
-
-    def rep(values: np.ndarray) -> np.ndarray:
-        return np.repeat(values, box_pairs)  # a transient array (cheaper than a gather)
-
-    keep = np.greater_equal(pz, rep(zlo), out=ws("g_keep", q, bool))
-    flag = ws("g_qflag", q, bool)
-    keep &= np.less_equal(pz, rep(zhi), out=flag)
-    px -= rep(cx)  # dx
-    py -= rep(cy)  # dy
-    cb, sb = rep(c), rep(s)
-    lx = np.multiply(cb, px, out=a)
-    lx += np.multiply(sb, py, out=b)
-    ly = np.multiply(cb, py, out=cb)
-    ly -= np.multiply(sb, px, out=b)
-    keep &= np.less_equal(np.abs(lx, out=lx), rep(hl), out=flag)
-    keep &= np.less_equal(np.abs(ly, out=ly), rep(hw), out=flag)
-    # Non-members read +inf: the k-th smallest of a box's run is its k-th smallest member for
-    # every k below its member count (no compaction of the pairs).
-    np.copyto(pz, dt(np.inf), where=np.logical_not(keep, out=flag))
-    ends = np.cumsum(box_pairs)
-    members = _segment_counts(keep, ends)
-    judged = np.flatnonzero(members)
-    out[judged] = run_quantiles(pz, keep, ends, members, quantile, ws)[judged]
-    return out
-
-
-#: Stride of the sample :func:`run_quantiles` takes its thresholds from.
-SAMPLE_STRIDE = 8
-
-
-def run_quantiles(values, member, ends, members, quantile: float, ws: Scratch | None = None) -> np.ndarray:
-    """Per run of ``values`` (laid end to end, ending at ``ends``; the non-``member`` values
-    +inf) with ``members`` > 0: its ``int(quantile * (members - 1))``-th smallest value, what
-    ``np.partition`` of the whole run gives (NaN for runs without members).
-
-    A threshold per run from every :data:`SAMPLE_STRIDE`-th value (about twice the wanted
-    rank in the sample), then the positions of the values below it (one pass; a run's count by
-    binary search at its end): when the wanted rank falls among them, only those values (a
-    small share) are partitioned; otherwise a count of the values at the threshold (a second
-    pass, only then): when the rank falls among the values equal to it (flat ground), that is
-    the answer; else (a sample that missed, rare) the whole run. Exact in every case."""
-    ws = ws or _SCRATCH
-    n = len(ends)
-    starts = ends - np.diff(ends, prepend=0)
-    rank = (quantile * (members - 1).astype(np.float64)).astype(np.int64)  # int(): truncation
-    threshold = np.full(n, np.inf)
-    bounds = list(zip(starts.tolist(), ends.tolist()))
-    for b in np.flatnonzero(members).tolist():  # one small partial sort per box (boxes, not points)
-        lo, hi = bounds[b]
-        sampled = int(np.count_nonzero(member[lo:hi:SAMPLE_STRIDE]))
-        if sampled:
-            k = min(2 * int(quantile * (sampled - 1)) + 2, sampled - 1)
-            threshold[b] = np.partition(values[lo:hi:SAMPLE_STRIDE], k)[k]
-    dt = values.dtype.type
-    lengths = ends - starts
-    limit = np.repeat(threshold.astype(dt), lengths)
-    q = len(values)
-    below = ws.nonzero(np.less(values, limit, out=ws("q_below", q, bool)), "q_below_idx")  # members only (+inf others)
-    chosen_end = np.searchsorted(below, ends)  # the values under the threshold, run by run
-    under = chosen_end.copy()
-    under[1:] -= chosen_end[:-1]
-    out = np.full(n, np.nan)
-    finite = np.isfinite(threshold)
-    # the count at the threshold only where the wanted rank is not under it (flat ground)
-    flat = finite & (under <= rank)
-    if flat.any():
-        flat &= rank < _segment_counts(np.less_equal(values, limit, out=ws("q_at", q, bool)), ends)
-    out[flat] = threshold[flat]
-    chosen = values.take(below, mode="clip")  # run by run
-    for b in np.flatnonzero(finite & (rank < under)).tolist():
-        part = chosen[chosen_end[b] - under[b]:chosen_end[b]]
-        out[b] = np.partition(part, rank[b])[rank[b]]
-    for b in np.flatnonzero((members > 0) & ~flat & ~(finite & (rank < under))).tolist():  # the sample missed
-        lo, hi = bounds[b]
-        out[b] = np.partition(values[lo:hi], rank[b])[rank[b]]
+    new = np.ones(len(key), dtype=bool)
+    new[1:] = (np.diff(key) != 1) | (np.diff(box_of) != 0)
+    first = np.flatnonzero(new)
+    last = np.r_[first[1:] - 1, len(key) - 1]
+    run_ends = np.cumsum(np.bincount(box_of[first], minlength=n))
+    kernels.ground_quantiles(x, y, z, order, start, key[first], key[last], run_ends, zlo, zhi, cx, cy, c, s, hl, hw,
+                             float(quantile), ws("g_values", len(x), dt), out)
     return out
 
 
@@ -676,17 +436,28 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     ground_job = pool.submit(_ground, x, y, z, boxes, GROUND_REACH, 0.05, _SCRATCH) if pool else None
     window = angular_window(boxes)
     table = _BoxTable(boxes)
-    expected_job = pool.submit(_expected_beams, boxes, sensor, *window, table=table, ws=_SCRATCH) if pool else None
+    expected_job = pool.submit(_expected_beams, boxes, sensor, *window, table=table) if pool else None
     n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
     if pool:
         ground, expected = ground_job.result(), expected_job.result()
     else:
         ground = _ground(x, y, z, boxes, GROUND_REACH, 0.05, _SCRATCH)
-        expected = _expected_beams(boxes, sensor, *window, table=table, ws=_SCRATCH)
+        expected = _expected_beams(boxes, sensor, *window, table=table)
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
         _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),
     )
+
+
+def warm_up() -> None:
+    """Compile the filter's kernels for both scan precisions (numba, on first use; loaded from
+    its disk cache after the first run on a machine): one tiny frame each, so a node's first
+    real frame does not pay for the compilation. Idempotent and cheap once done."""
+    rng = np.random.default_rng(0)
+    boxes = Boxes(np.array([[10.0, 0.0, -0.8]]), np.array([[4.0, 1.8, 1.5]]), np.zeros(1))
+    scan = np.c_[rng.uniform(5, 15, (64, 2)), rng.uniform(-2, 1, 64)]
+    for dtype in (np.float32, np.float64):
+        evidence(scan.astype(dtype), boxes)
 
 
 def _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes: Boxes) -> dict[str, np.ndarray]:

@@ -1,0 +1,244 @@
+"""Compiled inner loops of the evidence filter (:mod:`pcc_ros.pipeline.evidence`).
+
+Why compiled: the measurements are a few float operations per (ray, box), (point, box) or
+(beam, box) pair, tens of thousands of pairs per frame. As numpy passes over pair arrays they
+cost a pass through memory per operation and a Python call per pass (5-30 us each), and two
+threads cannot overlap them: the GIL hand-over (17-32 us to wake a waiting thread) is longer
+than most of the calls (``docs/filter.md``). Here each pair is visited once, its values stay in
+registers, and the kernels release the GIL (``nogil``), so the pipeline's second thread measures
+the ground and the expected returns truly beside the rays.
+
+The per-pair arithmetic is the numpy code's, operation for operation, in the same precision
+(float64 ray geometry; the scan's precision for the ground membership test), IEEE semantics
+(``error_model="numpy"``: a division by zero is an infinity, no exception; no fast-math, so no
+fused multiply-adds), so the counts and heights are bit-identical to the vectorised code kept in
+``benchmarks/_reference.py`` (``pcc bench filter`` checks them). The index structures (which
+points a box looks at) are counting sorts over grid cells; they only pick a superset of the
+points the exact tests accept, so they do not change any value.
+
+Compiled on first use and cached on disk (numba's cache next to this file, or the user's cache
+directory when the package is read-only): ``warm_up`` compiles them for both scan precisions
+so a node's first frame does not pay for it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
+
+# Per-box ray counts, columns of :func:`ray_counts`' output.
+IN, OCCLUDED, STOP, PASS, RAYS = range(5)
+
+
+@njit(inline="always")
+def _minimum(a, b):
+    """``np.minimum``: NaN when either is NaN."""
+    if a != a or b != b:
+        return np.nan
+    return a if a <= b else b
+
+
+@njit(inline="always")
+def _maximum(a, b):
+    """``np.maximum``: NaN when either is NaN."""
+    if a != a or b != b:
+        return np.nan
+    return a if a >= b else b
+
+
+@njit(inline="always")
+def _fmax(a, b):
+    """``np.fmax``: the other value when one is NaN."""
+    if a != a:
+        return b
+    if b != b:
+        return a
+    return a if a >= b else b
+
+
+@njit(inline="always")
+def _fmin(a, b):
+    """``np.fmin``: the other value when one is NaN."""
+    if a != a:
+        return b
+    if b != b:
+        return a
+    return a if a <= b else b
+
+
+@njit(inline="always")
+def _slab(ix, iy, iz, lo, hi, j):
+    """Where the ray ``t * d`` (box frame, from the sensor; ``ix, iy, iz = 1 / d``) enters and
+    leaves the box ``[lo[j], hi[j]]`` (bounds relative to the sensor): ``(tmin, tmax)``, NaN-aware
+    as the vectorised slab test (``np.minimum`` / ``np.maximum`` on the first axis, ``fmax`` /
+    ``fmin`` folding the others in)."""
+    a, b = lo[j, 0] * ix, hi[j, 0] * ix
+    tmin, tmax = _minimum(a, b), _maximum(a, b)
+    a, b = lo[j, 1] * iy, hi[j, 1] * iy
+    tmin, tmax = _fmax(tmin, _minimum(a, b)), _fmin(tmax, _maximum(a, b))
+    a, b = lo[j, 2] * iz, hi[j, 2] * iz
+    return _fmax(tmin, _minimum(a, b)), _fmin(tmax, _maximum(a, b))
+
+
+@njit(inline="always")
+def kth_smallest(values, count, rank):
+    """The ``rank``-th smallest of ``values[:count]`` (no NaN), partially reordering them in
+    place (quickselect, median-of-three pivots): the value ``np.partition`` puts at ``rank``."""
+    lo, hi = 0, count - 1
+    while hi > lo:
+        mid = (lo + hi) >> 1
+        a, b, c = values[lo], values[mid], values[hi]
+        pivot = max(min(a, b), min(max(a, b), c))
+        i, j = lo, hi
+        while i <= j:
+            while values[i] < pivot:
+                i += 1
+            while values[j] > pivot:
+                j -= 1
+            if i <= j:
+                values[i], values[j] = values[j], values[i]
+                i += 1
+                j -= 1
+        if rank <= j:
+            hi = j
+        elif rank >= i:
+            lo = i
+        else:
+            return values[rank]
+    return values[rank]
+
+
+@njit(**_JIT)
+def counting_sort(key, wanted, start, order):
+    """The positions of the points whose cell ``key`` (``-1``: none) is ``wanted``, grouped by cell in ``order``
+    (ascending positions within a cell); ``start`` (cells + 1) gets each cell's first slot.
+    Returns how many points were placed."""
+    start[:] = 0
+    for i in range(len(key)):
+        k = key[i]
+        if k >= 0 and wanted[k]:
+            start[k + 1] += 1
+    for c in range(1, len(start)):
+        start[c] += start[c - 1]
+    placed = start[len(start) - 1]
+    fill = start[:-1].copy()
+    for i in range(len(key)):
+        k = key[i]
+        if k >= 0 and wanted[k]:
+            order[fill[k]] = i
+            fill[k] += 1
+    return placed
+
+
+@njit(**_JIT)
+def ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, boxes_idx, s_lo, s_hi,
+               centre, cos, sin, origin, body_lo, body_hi, core_lo, core_hi, out):
+    """``out[box, IN / OCCLUDED / STOP / PASS / RAYS]`` += the rays of the cells each judged box
+    searches (``first_cell[i] .. last_cell[i]`` for ``i`` in its range of ``bin_ends``; the cells
+    sorted by :func:`counting_sort`) whose slope lies in the box's window (the scan's precision)
+    and that the float64 slab tests put through the box (definitions in ``docs/filter.md``)."""
+    begin = 0
+    for j in range(len(boxes_idx)):
+        b = boxes_idx[j]
+        cx, cy, cz = centre[b, 0], centre[b, 1], centre[b, 2]
+        c, s = cos[b], sin[b]
+        ox, oy, oz = origin[b, 0], origin[b, 1], origin[b, 2]
+        lo_s, hi_s = s_lo[j], s_hi[j]
+        n_in = n_occ = n_stop = n_pass = n_rays = 0
+        for i in range(begin, bin_ends[j]):
+            for k in range(start[first_cell[i]], start[last_cell[i] + 1]):
+                p = order[k]
+                sl = slope[p]
+                if not (sl >= lo_s and sl <= hi_s):
+                    continue
+                px = np.float64(x[p]) - cx
+                py = np.float64(y[p]) - cy
+                dz = np.float64(z[p]) - cz - oz
+                dx = c * px + s * py - ox
+                dy = c * py - s * px - oy
+                ix, iy, iz = 1.0 / dx, 1.0 / dy, 1.0 / dz
+                tin, tout = _slab(ix, iy, iz, body_lo, body_hi, b)
+                through = tout >= _maximum(tin, 0.0)
+                if not through:
+                    continue
+                cin, cout = _slab(ix, iy, iz, core_lo, core_hi, b)
+                core = cout >= _maximum(cin, 0.0)
+                before = tin <= 1.0
+                n_rays += 1
+                n_in += 1.0 <= tout and before
+                n_occ += 1.0 < tin
+                n_stop += 1.0 <= cout and core and before
+                n_pass += 1.0 > cout and core
+        begin = bin_ends[j]
+        out[b, IN] = n_in
+        out[b, OCCLUDED] = n_occ
+        out[b, STOP] = n_stop
+        out[b, PASS] = n_pass
+        out[b, RAYS] = n_rays
+
+
+@njit(**_JIT)
+def ground_cells(x, y, z, offset_x, offset_y, scale, nx, ny, zmin, zmax, key):
+    """Each point's cell of the ground query's BEV grid (in the scan's precision: ``(x - offset)
+    * scale`` clipped into the grid, truncated), or ``-1`` for a point outside ``[zmin, zmax]``
+    in height or not finite."""
+    for i in range(len(x)):
+        zi = z[i]
+        if not (zi >= zmin and zi <= zmax):
+            key[i] = -1
+            continue
+        fx = (x[i] - offset_x) * scale
+        fy = (y[i] - offset_y) * scale
+        # clipped into the grid before the truncation (NaN and off-grid points land in the
+        # two-cell border, which no box lists)
+        gx = 0 if not fx >= 0 else (nx - 1 if fx > nx - 1 else int(fx))
+        gy = 0 if not fy >= 0 else (ny - 1 if fy > ny - 1 else int(fy))
+        key[i] = gx * ny + gy
+
+
+@njit(**_JIT)
+def ground_quantiles(x, y, z, order, start, run_first, run_last, run_ends, zlo, zhi, cx, cy, c, s, hl, hw,
+                     quantile, values, out):
+    """``out[box]``: the ``int(quantile * (members - 1))``-th smallest height of the box's members
+    (the points of its cell runs inside the widened box, tested in the scan's precision as
+    :func:`pcc_ros.geometry.boxes.points_in_boxes` does); left as is for a box without members.
+    ``values``: a work array as long as the largest box's candidates."""
+    begin = 0
+    for b in range(len(run_ends)):
+        members = 0
+        for r in range(begin, run_ends[b]):
+            for k in range(start[run_first[r]], start[run_last[r] + 1]):
+                p = order[k]
+                pz = z[p]
+                if not (pz >= zlo[b] and pz <= zhi[b]):
+                    continue
+                dx = x[p] - cx[b]
+                dy = y[p] - cy[b]
+                if abs(c[b] * dx + s[b] * dy) <= hl[b] and abs(c[b] * dy - s[b] * dx) <= hw[b]:
+                    values[members] = pz
+                    members += 1
+        begin = run_ends[b]
+        if members:
+            out[b] = kth_smallest(values, members, np.int64(quantile * np.float64(members - 1)))
+
+
+@njit(**_JIT)
+def expected_counts(boxes_idx, r_lo, n_ring, n_az, ring_cos, ring_sin, cos_az, sin_az, cos, sin,
+                    body_lo, body_hi, counts):
+    """``counts[j]``: the sensor model's beams (rings ``r_lo[j] ..`` x the first ``n_az[j]``
+    sampled columns, directions from ``cos_az`` / ``sin_az`` rows) that the slab test puts through
+    judged box ``boxes_idx[j]``."""
+    for j in range(len(boxes_idx)):
+        b = boxes_idx[j]
+        c, s = cos[b], sin[b]
+        hits = 0
+        for ring in range(r_lo[j], r_lo[j] + n_ring[j]):
+            ce, iz = ring_cos[ring], 1.0 / ring_sin[ring]
+            for col in range(n_az[j]):
+                ex = ce * cos_az[j, col]
+                ey = ce * sin_az[j, col]
+                tmin, tmax = _slab(1.0 / (c * ex + s * ey), 1.0 / (c * ey - s * ex), iz, body_lo, body_hi, b)
+                hits += tmax >= _maximum(tmin, 0.0)
+        counts[j] = hits
