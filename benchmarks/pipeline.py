@@ -69,7 +69,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeat", type=int, default=30, help="timed frames per alternative (default 30)")
     parser.add_argument("--scale-cars", default="1,5,20,50,100", help="car counts of the scaling table")
     parser.add_argument("--scale-points", default="30000,120000,250000", help="point counts of the scaling table")
-    parser.add_argument("--scale-repeat", type=int, default=10, help="timed frames per scaling row (default 10; 0: no scaling table)")
+    parser.add_argument("--scale-repeat", type=int, default=10,
+                        help="timed frames per scaling row (default 10; 0: no scaling table)")
 
 
 @contextlib.contextmanager
