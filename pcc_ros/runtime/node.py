@@ -68,7 +68,8 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 
 #: The logger of the node whose work runs here now (:func:`working_for`; a context variable, so per
 #: thread): a line the package's modules log meanwhile (the pipeline, the message decoders, a backend
-#: loading) is that node's line, and its record is named after the node.
+#: loading) is that node's line: its record is named after the node, and the rclpy host says it on
+#: that node's ROS logger only (:class:`pcc_ros.nodes.ros_node.RclpyLogHandler`).
 node_at_work: ContextVar[Any] = ContextVar("pcc_ros_node_at_work", default=None)
 
 
