@@ -22,7 +22,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from pcc_ros.tables import plain_text
+from pcc_ros.cli.text import plain_text
 
 
 def available() -> list[str]:

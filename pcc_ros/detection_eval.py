@@ -20,7 +20,6 @@ curve) when its 2D box lies mostly (> 50 % of its area) in a DontCare region; el
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import replace
 from pathlib import Path
@@ -29,7 +28,6 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pcc_ros import files
 from pcc_ros.data.kitti import read_velodyne, split_dir
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
 from pcc_ros.errors import ConfigError, DataError
@@ -383,29 +381,11 @@ def plot(results: dict[str, Any], path: Path, title: str) -> None:
 
 
 def to_json(results: dict[str, Any]) -> dict[str, Any]:
+    """The results without the arrays kept for the plot; write with ``files.write_json(...,
+    nonfinite_null=True)`` (an undefined AP or curve point is ``null``)."""
     out = {k: v for k, v in results.items() if not k.startswith("_")}
-    out["curves"] = {
-        name: {k: [float(x) if np.isfinite(x) else None for x in v] for k, v in c.items()}
-        for name, c in results["_curves"].items()
-    }
+    out["curves"] = results["_curves"]
     return out
-
-
-def _json_default(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, tuple):
-        return list(value)
-    return str(value)
-
-
-def write_json(path: Path, payload: dict[str, Any]) -> None:
-    """``payload`` as JSON (NaN / inf as ``null``), atomically through :mod:`pcc_ros.files`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(payload, indent=1, default=_json_default, allow_nan=True)
-    files.write_text(path, text.replace("NaN", "null").replace("Infinity", "null"))
 
 
 # ----------------------------------------------------------------------------- CLI

@@ -11,6 +11,7 @@ clears). Two processes writing the same target never share a temporary.
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -77,8 +78,31 @@ def write_text(path: str | Path, text: str) -> None:
         stream.write(text)
 
 
-def write_json(path: str | Path, value: Any, **dumps_options: Any) -> None:
-    """``json.dumps(value, **dumps_options)`` plus a newline, atomically."""
+def nonfinite_as_none(value: Any) -> Any:
+    """``value`` for JSON with every NaN / inf float replaced by ``None`` (``null``), looked at
+    structurally (a string that says "NaN" stays): dicts and lists walked, tuples as lists, numpy
+    scalars and arrays as Python numbers and lists. Anything else is returned as it is."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: nonfinite_as_none(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [nonfinite_as_none(item) for item in value]
+    return value
+
+
+def write_json(path: str | Path, value: Any, *, nonfinite_null: bool = False, **dumps_options: Any) -> None:
+    """``json.dumps(value, **dumps_options)`` plus a newline, atomically.
+
+    ``nonfinite_null``: NaN / inf written as ``null`` (:func:`nonfinite_as_none`; any left after
+    ``default`` is refused) instead of ``json``'s non-standard ``NaN`` / ``Infinity``."""
+    if nonfinite_null:
+        value = nonfinite_as_none(value)
+        dumps_options.setdefault("allow_nan", False)
     write_text(path, json.dumps(value, **dumps_options) + "\n")
 
 

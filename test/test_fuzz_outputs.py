@@ -30,6 +30,25 @@ def test_atomic_write_keeps_the_old_file_on_any_failure(tmp_path):
     assert np.load(tmp_path / "b.npz")["x"].tolist() == [1.0, 1.0]
 
 
+def test_write_json_turns_nonfinite_floats_into_null_and_leaves_strings(tmp_path):
+    """NaN / inf become ``null`` by value (numpy scalars and arrays too), never by a text replace
+    that would rewrite a string saying "NaN" or "Infinity"."""
+    target = tmp_path / "out.json"
+    payload = {
+        "label": "NaN means undefined; Infinity too", "NaN": 1.5, "ap": float("nan"),
+        "f32": np.float32("nan"), "curve": np.array([0.5, np.inf, -np.inf]), "pair": (np.int64(2), float("-inf")),
+        "nested": [{"x": np.nan, "ok": np.float64(0.25), "flag": np.bool_(True)}],
+    }
+    files.write_json(target, payload, indent=1, nonfinite_null=True)
+    assert json.loads(target.read_text()) == {
+        "label": "NaN means undefined; Infinity too", "NaN": 1.5, "ap": None, "f32": None,
+        "curve": [0.5, None, None], "pair": [2, None], "nested": [{"x": None, "ok": 0.25, "flag": True}],
+    }
+    with pytest.raises(ValueError):  # without the option, NaN may still be refused as before
+        files.write_json(target, {"ap": float("nan")}, allow_nan=False)
+    assert json.loads(target.read_text())["ap"] is None  # and the old file stays
+
+
 def test_stale_temporaries_of_dead_processes_are_removed(tmp_path):
     dead = tmp_path / ".x.json.tmp999999999"  # no such pid
     alive = tmp_path / f".y.json.tmp{os.getppid()}"

@@ -130,3 +130,51 @@ def test_the_pipelines_score_range_warning_is_a_node_log_line(capfd):
     lines = [line for line in text.splitlines() if "outside [0, 1]" in line]
     assert len(lines) == 1 and lines[0].startswith("[WARN] ["), text
     assert "[detection_filter_node]: 1 detection scores" in lines[0], text
+
+
+@pytest.mark.ros
+def test_two_nodes_in_one_process_each_say_their_own_pipeline_lines_info_included(capfd):
+    """The package's Python log records reach the ROS log through one bridge: a record goes to the
+    node whose work logged it, once (two nodes in one process each forwarded every record: each
+    line twice, the second under the other node's name), INFO included (the package logger, left at
+    NOTSET, passed only warnings: INFO lines never reached the bridge); a record of no node's work
+    goes to the oldest node. The last node gone, the package logger is as it was."""
+    import logging
+
+    require_rclpy()
+    from rclpy.parameter import Parameter
+    from vision_msgs.msg import Detection3DArray
+
+    from pcc_ros.msg.detections import detection_array_from_boxes
+    from pcc_ros.msg.pointcloud2 import create_cloud
+    from pcc_ros.nodes.ros_node import PipelineNode, RclpyLogHandler, rclpy_classes
+    from pcc_ros.runtime.node import working_for
+    from pcc_ros.types import Boxes
+
+    package = logging.getLogger("pcc_ros")
+    pts = (np.random.default_rng(0).normal(size=(500, 3)) * [1.5, 0.7, 0.5] + [10, 0, -0.8]).astype(np.float32)
+    boxes = Boxes([[10, 0, -0.8]], [[4, 1.7, 1.5]], [0.0], ["Car"], [3.2], ["1"])  # a logit: the pipeline warns
+    with live_pipeline_node("detection_filter_node", "filter", {"backend": "mirror", "score_mapping": "identity"},
+                            "detections_filtered", Detection3DArray) as (_, exchange):
+        other = PipelineNode("completion_node", "completion", parameter_overrides=[
+            Parameter("backend", value="mirror"), Parameter("score_mapping", value="sigmoid")])
+        try:
+            assert exchange(create_cloud(pts, ["x", "y", "z"], "velodyne", 10**9, rclpy_classes),
+                            detection_array_from_boxes(boxes, "velodyne", 10**9, rclpy_classes), timeout=10)
+            with working_for(other.get_logger()):  # as while its backend loads
+                logging.getLogger("pcc_ros.models.base").info("a load line of the completion node")
+            logging.getLogger("pcc_ros.msg.detections").info("a line of no node's work")
+        finally:
+            other.destroy_node()
+    lines = capfd.readouterr().err.splitlines()
+
+    def said(text: str) -> list[str]:
+        return [line for line in lines if text in line]
+
+    warned = said("outside [0, 1]")
+    assert len(warned) == 1 and warned[0].startswith("[WARN] [") and "[detection_filter_node]: " in warned[0], lines
+    info = said("a load line of the completion node")
+    assert len(info) == 1 and info[0].startswith("[INFO] [") and "[completion_node]: " in info[0], lines
+    oldest = said("a line of no node's work")
+    assert len(oldest) == 1 and "[detection_filter_node]: " in oldest[0], lines
+    assert package.level == logging.NOTSET and not [h for h in package.handlers if isinstance(h, RclpyLogHandler)]

@@ -61,6 +61,20 @@ def test_cli_registry_modules_expose_the_command_protocol():
     assert set(available_commands()) <= set(COMMANDS)
 
 
+def test_command_descriptions_are_docstrings_as_plain_text():
+    """``--help`` shows a command's docstring without reStructuredText markup (cli.text, the
+    one place ``pcc`` and ``pcc bench`` make help text)."""
+    from pcc_ros.cli.text import plain_text
+
+    doc = "Run :func:`~pcc_ros.x.run` of :mod:`pcc_ros.y` (``pcc z``)."
+    assert plain_text(doc) == "Run pcc_ros.x.run of pcc_ros.y (pcc z)."
+    parser = build_parser()
+    commands = next(a for a in parser._actions if a.dest == "command").choices
+    described = {name: command.description for name, command in commands.items()}
+    assert "(pcc eval detections)" in described["eval-detections"]  # its docstring says ``pcc eval detections``
+    assert not [name for name, text in described.items() if "``" in text or ":mod:`" in text or ":func:`" in text]
+
+
 def test_pcc_help_runs_as_a_program():
     out = subprocess.run([sys.executable, "-m", "pcc_ros.cli", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "usage: pcc" in out.stdout

@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 
 from pcc_ros.data.kitti import split_dir
-from pcc_ros.detection_eval import default_config, load_kitti, parse_frames, write_json
+from pcc_ros.detection_eval import default_config, load_kitti, parse_frames
 from pcc_ros.errors import ConfigError
-from pcc_ros.files import write_text
+from pcc_ros.files import write_json, write_text
 from pcc_ros.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
 from pcc_ros.pipeline.filter import TERMS, FilterConfig
 
@@ -123,5 +123,6 @@ def run(args: argparse.Namespace) -> int:
                  "; these logits need score_mapping:=sigmoid / --score-mapping sigmoid where it is used"
                  if values["score_mapping"] != args.score_mapping else "")
     if args.json:
-        write_json(args.json, payload)
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        write_json(args.json, payload, indent=1, nonfinite_null=True)
     return 0

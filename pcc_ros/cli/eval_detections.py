@@ -20,8 +20,8 @@ from pcc_ros.detection_eval import (
     plot,
     print_report,
     to_json,
-    write_json,
 )
+from pcc_ros.files import write_json
 from pcc_ros.pipeline.config import CONFIG_FILES
 
 log = logging.getLogger(__name__)
@@ -63,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
         plot(results, args.plot, title)
         log.info("wrote %s", args.plot)
     if args.json:
-        write_json(args.json, to_json(results))
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        write_json(args.json, to_json(results), indent=1, nonfinite_null=True)
         log.info("wrote %s", args.json)
     return 0

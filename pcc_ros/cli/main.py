@@ -18,8 +18,8 @@ import sys
 import traceback
 
 from pcc_ros import __version__
+from pcc_ros.cli.text import plain_text
 from pcc_ros.errors import PccError
-from pcc_ros.tables import plain_text
 
 # name -> (module, one-line help). Keep sorted by workflow order.
 COMMANDS: dict[str, tuple[str, str]] = {

@@ -34,7 +34,7 @@ from rclpy.utilities import remove_ros_args
 from pcc_ros.errors import ConfigError, PccError
 from pcc_ros.pipeline.config import ParameterSpec, parameter_table, read_parameters
 from pcc_ros.runtime.base import QoS, Transform
-from pcc_ros.runtime.node import NodeCore, unknown_parameters
+from pcc_ros.runtime.node import NodeCore, node_at_work, unknown_parameters
 
 _TYPES = {
     "bool": ParameterType.PARAMETER_BOOL,
@@ -127,27 +127,69 @@ class RclpyRuntime:
 
 class RclpyLogHandler(logging.Handler):
     """The package's Python ``logging`` records (the message and pipeline layers: skipped
-    detections, scores outside [0, 1], the crop work bound) on the node's rclpy logger, so
-    they carry the node's name and ROS severity and reach ``/rosout`` like the node's own lines
-    (without it they went to stderr as bare text, and not at all to ``/rosout``)."""
+    detections, scores outside [0, 1], the crop work bound; a backend's load lines) on a node's
+    rclpy logger, so they carry the node's name and ROS severity and reach ``/rosout`` like the
+    node's own lines (without it they went to stderr as bare text, and not at all to ``/rosout``).
 
-    def __init__(self, logger) -> None:
+    One per process (:data:`LOG_HANDLER`), on the ``pcc_ros`` logger while a :class:`PipelineNode`
+    lives. A record goes to one logger: the node's whose work logged it
+    (:data:`pcc_ros.runtime.node.node_at_work`), so with two nodes in one process each line is said
+    once, by its own node; a record of no node's work goes to the oldest node's logger. While it is
+    attached, the package logger's level is the nodes' (rclpy's ``--log-level``, INFO by default)
+    unless someone set one: a Python logger left at NOTSET passes only warnings and up (the root's
+    level), so INFO lines never reached the handler."""
+
+    def __init__(self) -> None:
         super().__init__()
-        self.logger = logger
+        self.loggers: list = []  # the rclpy loggers of the live nodes, oldest first
+        self._owns_level = False
+
+    def attach(self, logger) -> None:
+        package = logging.getLogger("pcc_ros")
+        with self.lock:
+            if not self.loggers:
+                self._owns_level = package.level == logging.NOTSET
+                package.addHandler(self)
+            self.loggers.append(logger)
+            if self._owns_level:
+                package.setLevel(min(int(log.get_effective_level()) or logging.INFO for log in self.loggers))
+
+    def detach(self, logger) -> None:
+        package = logging.getLogger("pcc_ros")
+        with self.lock:
+            if logger not in self.loggers:
+                return
+            self.loggers.remove(logger)
+            if self.loggers:
+                if self._owns_level:
+                    package.setLevel(min(int(log.get_effective_level()) or logging.INFO for log in self.loggers))
+                return
+            package.removeHandler(self)
+            if self._owns_level:
+                package.setLevel(logging.NOTSET)
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
+            logger = node_at_work.get()
+            if logger is None and self.loggers:
+                logger = self.loggers[0]
+            elif logger not in self.loggers:  # an in-process (local runtime) node's work: its own logger says it
+                return
             text = self.format(record)
             if record.levelno >= logging.ERROR:
-                self.logger.error(text)
+                logger.error(text)
             elif record.levelno >= logging.WARNING:
-                self.logger.warning(text)
+                logger.warning(text)
             elif record.levelno >= logging.INFO:
-                self.logger.info(text)
+                logger.info(text)
             else:
-                self.logger.debug(text)
+                logger.debug(text)
         except Exception:  # logging must never take a frame down
             self.handleError(record)
+
+
+#: The process's one :class:`RclpyLogHandler`.
+LOG_HANDLER = RclpyLogHandler()
 
 
 def descriptor(spec: ParameterSpec) -> ParameterDescriptor:
@@ -174,8 +216,7 @@ class PipelineNode(Node):
         """``node_options`` go to ``rclpy.node.Node`` (e.g. ``parameter_overrides`` in tests)."""
         super().__init__(node_name, **node_options)
         self.mode = mode
-        self._log_handler = RclpyLogHandler(self.get_logger())
-        logging.getLogger("pcc_ros").addHandler(self._log_handler)
+        LOG_HANDLER.attach(self.get_logger())
         try:
             self._start(node_name, mode)
         except BaseException:
@@ -204,7 +245,7 @@ class PipelineNode(Node):
         return SetParametersResult(successful=result.successful, reason=result.reason)
 
     def destroy_node(self) -> None:
-        logging.getLogger("pcc_ros").removeHandler(self._log_handler)
+        LOG_HANDLER.detach(self.get_logger())
         if hasattr(self, "core"):
             self.core.shutdown()
         super().destroy_node()

@@ -13,8 +13,12 @@ inside the callback instead (offline use: nothing may be dropped).
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -61,6 +65,40 @@ OUTPUTS = {
     },
 }
 DIAGNOSTICS_TOPIC = "/diagnostics"
+
+#: The logger of the node whose work runs here now (:func:`working_for`; a context variable, so per
+#: thread): a line the package's modules log meanwhile (the pipeline, the message decoders, a backend
+#: loading) is that node's line: its record is named after the node, and the rclpy host says it on
+#: that node's ROS logger only (:class:`pcc_ros.nodes.ros_node.RclpyLogHandler`).
+node_at_work: ContextVar[Any] = ContextVar("pcc_ros_node_at_work", default=None)
+
+
+@contextmanager
+def working_for(logger: Any) -> Iterator[None]:
+    """The package's log records of this block are the lines of the node whose logger is ``logger``."""
+    token = node_at_work.set(logger)
+    try:
+        yield
+    finally:
+        node_at_work.reset(token)
+
+
+def _named_after_the_node(factory):
+    """A log record factory: a record of a ``pcc_ros.*`` module logger made while a node works
+    carries the node's logger name (``pcc replay``: ``WARNING pcc_ros.detection_filter_node: ...``,
+    as the node's own lines, not ``pcc_ros.pipeline.core``)."""
+
+    def make(name, *args, **kwargs):
+        record = factory(name, *args, **kwargs)
+        node = node_at_work.get()
+        if node is not None and name.startswith("pcc_ros."):
+            record.name = getattr(node, "name", name)
+        return record
+
+    return make
+
+
+logging.setLogRecordFactory(_named_after_the_node(logging.getLogRecordFactory()))
 
 def output_names(mode: str, with_completion: bool = False) -> list[str]:
     """The outputs a node of ``mode`` publishes; ``with_completion`` adds the completion
@@ -129,7 +167,8 @@ class NodeCore:
         values = node_parameters(parameters)
         self.parameters = values
         config = pipeline_config(values)
-        self.pipeline = pipeline or Pipeline(config)  # a missing/corrupt checkpoint fails here, loudly
+        with working_for(self.log):  # a backend's load lines are this node's
+            self.pipeline = pipeline or Pipeline(config)  # a missing/corrupt checkpoint fails here, loudly
         self.output_frame = str(values["output_frame"])
         self.pairer: StampPairer = StampPairer(
             slop_ns=int(float(values["sync_slop"]) * 1e9), queue_size=int(values["queue_size"])
@@ -237,7 +276,8 @@ class NodeCore:
                 reload = any(
                     n in changed for n in BACKEND_PARAMETERS
                 ) or not isinstance(old, Pipeline)
-                pipeline = Pipeline(config) if reload else Pipeline(config, completer=old.completer)
+                with working_for(self.log):
+                    pipeline = Pipeline(config) if reload else Pipeline(config, completer=old.completer)
             except PccError as exc:
                 self.log.warning(f"parameter change refused: {exc}")
                 return SetResult(False, str(exc))
@@ -379,7 +419,8 @@ class NodeCore:
 
     def _process_logged(self, cloud, detections) -> None:
         try:
-            self.process(cloud, detections)
+            with working_for(self.log):  # the decoders' and the pipeline's lines are this node's
+                self.process(cloud, detections)
         except PccError as exc:  # malformed input: log, skip, keep serving
             self._failed(str(exc))
             self.log.warning(f"skipped a frame: {exc}")
