@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 
 import numpy as np
@@ -580,6 +581,43 @@ def test_a_running_node_keeps_its_start_up_objects_out_of_full_collections(graph
     assert core.set_parameters({"backend": "input"}).successful
     assert gone() is None and core.pipeline.completer.name == "input"
     assert gc.get_freeze_count() > 0
+
+
+def test_a_threaded_node_collects_a_reloaded_backend_between_frames(graph):
+    """A backend reloaded while a frame runs on it: the worker collects after that frame, so the
+    old backend (a reference cycle here) is freed; collected and frozen at once instead, the
+    frame's reference would have kept it alive through the collection and frozen for good."""
+    import gc
+    import weakref
+
+    core = _node(LocalGraph(), "completion", threaded=True)
+    started, release = threading.Event(), threading.Event()
+
+    def frame_on_the_old_backend(cloud, dets):
+        held = core.pipeline  # what process() holds during a frame
+        started.set()
+        release.wait(5)
+        del held
+
+    try:
+        core.process = frame_on_the_old_backend
+        old = core.pipeline
+        old.cycle = old
+        gone = weakref.ref(old)
+        del old
+        core.slot.put((None, None))
+        assert started.wait(5)
+        assert core.set_parameters({"backend": "input"}).successful
+        release.set()
+        deadline = time.monotonic() + 5  # the worker wakes within its 0.5 s wait
+        while time.monotonic() < deadline and (gone() is not None or not gc.get_freeze_count()):
+            time.sleep(0.02)  # (between the worker's collect and its freeze, nothing is frozen)
+        assert gone() is None and gc.get_freeze_count() > 0
+        assert core.pipeline.completer.name == "input"
+    finally:
+        release.set()
+        core.shutdown()
+        core.runtime.shutdown()
 
 
 def test_a_node_core_dropped_earlier_is_not_frozen_by_the_next_ones_start_up():

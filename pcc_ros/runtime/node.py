@@ -222,6 +222,7 @@ class NodeCore:
 
         self.threaded = threaded
         self._running = threaded
+        self._refreeze = threading.Event()  # set by a backend reload, served by the worker
         self._worker = None
         if threaded:
             self._worker = threading.Thread(target=self._work, name=f"{node_name}_worker", daemon=True)
@@ -289,8 +290,14 @@ class NodeCore:
             if {"classes", "class_map"} & set(changed):
                 self._other_classes = set()  # report the class ids the new setting leaves out
         if reload:
-            del old  # (a frame still in flight on the old backend keeps it past this point)
-            freeze_long_lived()  # the old backend is collected, the new one frozen
+            del old
+            if self.threaded:
+                # The worker collects between two frames: here, a frame in flight on the old
+                # backend would stall for the collection (50-70 ms) and still hold the backend,
+                # which the freeze would then keep for good.
+                self._refreeze.set()
+            else:
+                freeze_long_lived()  # the old backend is collected, the new one frozen
         summary = ", ".join(f"{n}={v!r}" for n, v in sorted(changed.items()))
         self.log.info(f"parameters changed: {summary}" + (" (backend reloaded)" if reload else ""))
         if "output_frame" in changed:
@@ -413,6 +420,9 @@ class NodeCore:
 
     def _work(self) -> None:
         while self._running:
+            if self._refreeze.is_set():  # a backend was reloaded: between frames, collect the old one
+                self._refreeze.clear()
+                freeze_long_lived()
             pair = self.slot.take(timeout=0.5)
             if pair is not None:
                 self._process_logged(*pair)
