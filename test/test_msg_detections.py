@@ -242,3 +242,19 @@ def test_cube_marker_reading_and_errors():
     assert (
         len(boxes_from_marker_array(new_message(MARKERS, markers=[_cube(quat=(0, 0, 0, 0))]), skip_invalid=True)) == 0
     )
+
+
+def test_markers_of_one_array_do_not_share_their_lists():
+    """The markers are copies of per-kind templates: appending to one marker's points (or
+    colours) changes that marker only."""
+    from pcc_ros.msg.detections import marker_array_from_boxes
+
+    boxes = Boxes(np.array([[5.0, 0, 0], [9.0, 2, 0]]), np.array([[4.0, 1.8, 1.5]] * 2), np.zeros(2),
+                  label=["Car", "Car"], score=[0.9, 0.4])
+    markers = marker_array_from_boxes(boxes, "velodyne", 1, cubes=True).markers
+    texts = [m for m in markers if m.ns == "boxes_text"]
+    texts[0].points.append(markers[1].points[0])
+    texts[0].colors.append(markers[1].color)
+    assert [len(m.points) for m in texts] == [1, 0] and [len(m.colors) for m in texts] == [1, 0]
+    lines = [m for m in markers if m.ns == "boxes"][1:]
+    assert lines[0].points is not lines[1].points and len(lines[0].points) == len(lines[1].points) > 0
