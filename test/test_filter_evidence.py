@@ -438,3 +438,32 @@ def test_side_pool_is_made_once_when_first_frames_race(monkeypatch):
     finally:
         for pool in made:
             pool.shutdown()
+
+
+def _kernels():
+    from pcc_ros.pipeline import evidence_kernels as k
+
+    return (k.counting_sort, k.ray_counts, k.ground_cells, k.ground_quantiles, k.expected_counts)
+
+
+def test_kernels_compile_without_a_writable_cache(monkeypatch, caplog):
+    """No writable cache directory for numba (a read-only install, no writable home): the kernels
+    compile without a disk cache (a warning says so) instead of the import failing ("cannot cache
+    function ...: no locator available"), which took every filter pipeline down at start."""
+    import importlib.util
+
+    from numba.core import caching
+
+    from pcc_ros.pipeline import evidence_kernels
+
+    monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])  # no place numba may write
+    spec = importlib.util.spec_from_file_location("pcc_ros.pipeline._kernels_uncached", evidence_kernels.__file__)
+    module = importlib.util.module_from_spec(spec)
+    with caplog.at_level("WARNING"):
+        spec.loader.exec_module(module)
+    assert sorted(module._uncached) == sorted(kernel.__name__ for kernel in _kernels())
+    assert ["no writable cache directory" in r.getMessage() for r in caplog.records] == [True]
+    key = np.array([2, -1, 0, 2, 1, 0], np.int16)
+    start, order = np.zeros(4, np.int64), np.zeros(len(key), np.int64)
+    assert module.counting_sort(key, np.array([True, False, True]), start, order) == 4
+    assert order[:4].tolist() == [2, 5, 0, 3] and start.tolist() == [0, 2, 2, 4]
