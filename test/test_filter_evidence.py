@@ -446,6 +446,49 @@ def _kernels():
     return (k.counting_sort, k.ray_counts, k.ground_cells, k.ground_quantiles, k.expected_counts)
 
 
+def test_frames_after_warm_up_compile_nothing_new():
+    """``warm_up`` (Pipeline start) compiles every kernel signature a frame uses: later frames with
+    other box counts, either scan precision, box arrays strided, Fortran-ordered, read-only or
+    unaligned (e.g. over a message buffer), empty scans and boxes without a point add no numba
+    signature (each would be a compilation of seconds in a running node)."""
+    from pcc_ros.pipeline.evidence import local_ground, warm_up
+
+    warm_up()
+    before = [list(kernel.signatures) for kernel in _kernels()]
+    rng = np.random.default_rng(11)
+
+    def boxes(n: int, layout: str = "") -> Boxes:
+        centre = np.c_[rng.uniform(-40, 40, (n, 2)), rng.uniform(-1.2, -0.6, n)]
+        size = np.c_[rng.uniform(3.5, 5, n), rng.uniform(1.6, 2, n), rng.uniform(1.3, 1.8, n)]
+        yaw = rng.uniform(-np.pi, np.pi, n)
+        if layout == "strided":  # columns of one (n, 7) table
+            table = np.c_[centre, size, yaw]
+            return Boxes(table[:, :3], table[:, 3:6], table[:, 6])
+        if layout == "fortran":
+            return Boxes(np.asfortranarray(centre), np.asfortranarray(size), yaw)
+        if layout == "readonly":
+            for a in (centre, size, yaw):
+                a.flags.writeable = False
+        if layout == "unaligned":
+            raw = bytearray(1 + centre.nbytes)
+            centre = np.frombuffer(raw, np.float64, offset=1).reshape(n, 3)
+            centre.flags.writeable = True
+            centre[:] = np.c_[rng.uniform(-40, 40, (n, 2)), np.full(n, -0.9)]
+        return Boxes(centre, size, yaw)
+
+    scan = np.c_[rng.uniform(-45, 45, (30_000, 2)), rng.uniform(-2.5, 1, 30_000), rng.uniform(0, 1, 30_000)]
+    cloud = scan.astype(np.float32)
+    cloud.flags.writeable = False  # as pointcloud2 hands a scan out
+    for points in (cloud, cloud[:, :3], scan, scan.astype(np.float16)):
+        for n, layout in ((1, ""), (3, "strided"), (130, ""), (4, "fortran"), (5, "readonly"), (6, "unaligned")):
+            for workers in (1, 2):
+                evidence(points, boxes(n, layout), workers=workers)
+        evidence(points[:0], boxes(3))
+        evidence(points, Boxes([[200.0, 0.0, -0.9]], [[4.0, 1.8, 1.5]], [0.0]))  # no point near it
+        local_ground(points, boxes(7))
+    assert [list(kernel.signatures) for kernel in _kernels()] == before
+
+
 def test_kernels_compile_without_a_writable_cache(monkeypatch, caplog):
     """No writable cache directory for numba (a read-only install, no writable home): the kernels
     compile without a disk cache (a warning says so) instead of the import failing ("cannot cache

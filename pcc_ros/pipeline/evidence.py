@@ -142,6 +142,10 @@ class _BoxTable:
 
     def __init__(self, boxes: Boxes) -> None:
         self.cos, self.sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
+        # the kernels' argument: C order, aligned, writable whatever the caller's array (a
+        # read-only or unaligned one, e.g. over a message buffer, is another numba signature: a
+        # compilation of seconds in the middle of a run)
+        self.center = np.require(boxes.center, np.float64, ["C", "A", "W"])
         cx, cy, cz = boxes.center.T
         # the sensor (the scan frame's origin) in each box's frame
         self.origin = np.stack(to_box_local(0.0, 0.0, 0.0, cx, cy, cz, self.cos, self.sin), axis=1)
@@ -256,7 +260,7 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
     start, order = ws("start", cells + 1, np.int64), ws("order", p, np.int64)
     kernels.counting_sort(key, wanted, start, order)
     kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, np.cumsum(nbins), boxes_idx,
-                       s_lo.astype(dt), s_hi.astype(dt), np.ascontiguousarray(boxes.center), table.cos, table.sin,
+                       s_lo.astype(dt), s_hi.astype(dt), table.center, table.cos, table.sin,
                        table.origin, *table.body, *table.core, out)
     return tuple(out.T.copy())
 
