@@ -510,3 +510,27 @@ def test_kernels_compile_without_a_writable_cache(monkeypatch, caplog):
     start, order = np.zeros(4, np.int64), np.zeros(len(key), np.int64)
     assert module.counting_sort(key, np.array([True, False, True]), start, order) == 4
     assert order[:4].tolist() == [2, 5, 0, 3] and start.tolist() == [0, 2, 2, 4]
+
+
+def test_second_thread_works_in_the_callers_context(monkeypatch):
+    """workers >= 2: the ground and expected-return jobs run on the filter's pool thread in a copy
+    of the caller's context, so a line they log is the node's at work (node_at_work), not no node's."""
+    from pcc_ros.pipeline import evidence as ev
+    from pcc_ros.runtime.node import node_at_work, working_for
+
+    seen = []
+
+    def spied(job):
+        def spy(*args, **kwargs):
+            seen.append(node_at_work.get())
+            return job(*args, **kwargs)
+
+        return spy
+
+    for name in ("_ground", "_expected_beams"):
+        monkeypatch.setattr(ev, name, spied(getattr(ev, name)))
+    scan, boxes = _scattered_scene(3)
+    node = object()
+    with working_for(node):
+        evidence(scan, boxes, workers=2)
+    assert seen == [node, node]

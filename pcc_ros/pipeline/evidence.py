@@ -13,6 +13,7 @@ in float64 with the same operations, operand for operand, as the 93cd59e code ke
 
 from __future__ import annotations
 
+import contextvars
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -437,10 +438,13 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     # The side thread's jobs, in order: the ground (it needs only the scan and the boxes, so it
     # starts before the box-level setup below), then the expected returns; the two take about
     # as long as the rays do here.
-    ground_job = pool.submit(_ground, x, y, z, boxes, GROUND_REACH, 0.05, _SCRATCH) if pool else None
+    # (each in a copy of this thread's context: a line logged there is the calling node's)
+    ground_job = pool.submit(contextvars.copy_context().run, _ground, x, y, z, boxes, GROUND_REACH, 0.05,
+                             _SCRATCH) if pool else None
     window = angular_window(boxes)
     table = _BoxTable(boxes)
-    expected_job = pool.submit(_expected_beams, boxes, sensor, *window, table=table) if pool else None
+    expected_job = pool.submit(contextvars.copy_context().run, _expected_beams, boxes, sensor, *window,
+                               table=table) if pool else None
     n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
     if pool:
         ground, expected = ground_job.result(), expected_job.result()
