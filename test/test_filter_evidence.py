@@ -534,3 +534,17 @@ def test_second_thread_works_in_the_callers_context(monkeypatch):
     with working_for(node):
         evidence(scan, boxes, workers=2)
     assert seen == [node, node]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_a_return_straight_above_or_below_the_sensor_warns_nothing(dtype):
+    """A return at x = y = 0 (z != 0) has a slope z / tiny beyond every box's window: counted by no
+    box, and no numpy overflow warning on stderr (the band arithmetic overflowed to inf)."""
+    import warnings
+
+    boxes = Boxes([[10.0, 0.0, -0.8]], [[4.0, 1.8, 1.5]], [0.0])
+    scan = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 30.0], [10.0, 0.0, -0.8]], dtype)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ev = evidence(scan, boxes)
+    assert ev.n_rays[0] == 1 and ev.n_in[0] == 1

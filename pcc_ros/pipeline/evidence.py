@@ -229,14 +229,14 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
         _clamp(scaled, _AZ_BINS - 1, ws("nan", p, bool))  # NaN -> 0 (band 0 below: no box)
     key = ws("key", p, np.int16)
     np.copyto(key, scaled, casting="unsafe")  # truncation: the floor of these non-negative bins
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # over: z / tiny below
         r = np.multiply(x, x, out=ws("r", p, dt))
         tmp = ws("tmp", p, dt)
         r += np.multiply(y, y, out=tmp)
         np.sqrt(r, out=r)
         # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e
         # index paired it with the boxes at azimuth and elevation 0); straight up / down is
-        # beyond every box's window; NaN points stay NaN.
+        # beyond every box's window (a slope of +-inf, or huge: its band clamps); NaN points stay NaN.
         np.clip(r, np.finfo(dt).tiny, np.inf, out=r)
         slope = np.divide(z, r, out=r)
         band = np.subtract(slope, dt(e0), out=tmp)
