@@ -2,13 +2,13 @@
 expected returns, the local ground (the physics behind :mod:`pcc_ros.pipeline.filter`'s
 ``density``, ``free_space`` and ``ground_gap`` terms; definitions in ``docs/filter.md``).
 
-Every function here is vectorised over (ray, box), (beam, box) or (point, box) pairs with no
-loop over points; the pairs are generated **box by box** (each box's pairs contiguous), so a
-per-box value reaches its pairs by ``np.repeat`` over run lengths instead of a gather, and
-per-box counts are differences of one cumulative sum. The scan is read in its own precision
-(float32 for sensor data) for the index structures; the ray geometry that decides a pair runs
-in float64 with the same operations, operand for operand, as the 93cd59e code kept in
-``benchmarks/_reference.py`` (``pcc bench filter`` checks the outputs bit-identical).
+Numpy passes over the scan (in its own precision: float32 for sensor data) and over the boxes
+build the index structures (which points each box looks at); the (ray, box), (point, box) and
+(beam, box) pairs are then visited box by box in the compiled kernels of
+:mod:`pcc_ros.pipeline.evidence_kernels` (numba, imported on first use; :func:`warm_up`
+compiles them). The ray geometry that decides a pair runs in float64 with the same operations,
+operand for operand, as the 93cd59e code kept in ``benchmarks/_reference.py`` (``pcc bench
+filter`` checks the outputs bit-identical).
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ GROUND_REACH = 3.0
 #: BEV cell (metres) of the ground query's index (coarsened when the boxes spread so far that
 #: the grid would exceed :data:`_MAX_CELLS`).
 _GROUND_CELL = 1.0
-#: Cells of an index grid: below 2^15, so a cell key is an int16 (numpy's radix sort).
+#: Cells of the ground query's grid at most (the counting sort's table of cell starts).
 _MAX_CELLS = 32_000
 #: Most beam columns sampled per box for the expected return count.
 EXPECTED_COLUMNS = 64
@@ -110,9 +110,6 @@ _EL_BANDS = 16
 #: precision): it must stay a superset of the rays that reach a box (the exact float64 box
 #: test comes after); orders of magnitude above float32 rounding of a slope.
 _SLOPE_SLACK = 1e-4
-#: The ray index works on the points of the boxes' azimuth sectors only when these cover less
-#: than this share of the circle.
-_SUBSET_SHARE = 0.75
 #: Slack (metres) of the ground query's cell test: a point the exact test (in the scan's
 #: precision) accepts lies in a cell listed for the box even after float32 rounding.
 _GROUND_SLACK = 0.01
@@ -419,12 +416,10 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
-    Vectorised over (ray, box) pairs generated box by box: no loop over points or boxes; the
-    pairs' geometry runs column by column in float64 on per-box values repeated over each
-    box's run. ``workers`` >= 2: the local ground (a query of its own over the scan) and the
-    sensor model's expected returns (about 40 % of the work at 20 cars) are measured on a second
-    thread while this one follows the rays (numpy releases the GIL in its loops); the values are
-    the same either way.
+    Numpy passes index the scan; compiled kernels visit each box's candidate rays, points and
+    beams. ``workers`` >= 2: the local ground (a query of its own over the scan) and the
+    sensor model's expected returns are measured on a second thread while this one follows the
+    rays (numpy and the kernels release the GIL); the values are the same either way.
     """
     sensor = sensor or SensorModel()
     n = len(boxes)
