@@ -438,3 +438,113 @@ def test_side_pool_is_made_once_when_first_frames_race(monkeypatch):
     finally:
         for pool in made:
             pool.shutdown()
+
+
+def _kernels():
+    from pcc_ros.pipeline import evidence_kernels as k
+
+    return (k.counting_sort, k.ray_counts, k.ground_cells, k.ground_quantiles, k.expected_counts)
+
+
+def test_frames_after_warm_up_compile_nothing_new():
+    """``warm_up`` (Pipeline start) compiles every kernel signature a frame uses: later frames with
+    other box counts, either scan precision, box arrays strided, Fortran-ordered, read-only or
+    unaligned (e.g. over a message buffer), empty scans and boxes without a point add no numba
+    signature (each would be a compilation of seconds in a running node)."""
+    from pcc_ros.pipeline.evidence import local_ground, warm_up
+
+    warm_up()
+    before = [list(kernel.signatures) for kernel in _kernels()]
+    rng = np.random.default_rng(11)
+
+    def boxes(n: int, layout: str = "") -> Boxes:
+        centre = np.c_[rng.uniform(-40, 40, (n, 2)), rng.uniform(-1.2, -0.6, n)]
+        size = np.c_[rng.uniform(3.5, 5, n), rng.uniform(1.6, 2, n), rng.uniform(1.3, 1.8, n)]
+        yaw = rng.uniform(-np.pi, np.pi, n)
+        if layout == "strided":  # columns of one (n, 7) table
+            table = np.c_[centre, size, yaw]
+            return Boxes(table[:, :3], table[:, 3:6], table[:, 6])
+        if layout == "fortran":
+            return Boxes(np.asfortranarray(centre), np.asfortranarray(size), yaw)
+        if layout == "readonly":
+            for a in (centre, size, yaw):
+                a.flags.writeable = False
+        if layout == "unaligned":
+            raw = bytearray(1 + centre.nbytes)
+            centre = np.frombuffer(raw, np.float64, offset=1).reshape(n, 3)
+            centre.flags.writeable = True
+            centre[:] = np.c_[rng.uniform(-40, 40, (n, 2)), np.full(n, -0.9)]
+        return Boxes(centre, size, yaw)
+
+    scan = np.c_[rng.uniform(-45, 45, (30_000, 2)), rng.uniform(-2.5, 1, 30_000), rng.uniform(0, 1, 30_000)]
+    cloud = scan.astype(np.float32)
+    cloud.flags.writeable = False  # as pointcloud2 hands a scan out
+    for points in (cloud, cloud[:, :3], scan, scan.astype(np.float16)):
+        for n, layout in ((1, ""), (3, "strided"), (130, ""), (4, "fortran"), (5, "readonly"), (6, "unaligned")):
+            for workers in (1, 2):
+                evidence(points, boxes(n, layout), workers=workers)
+        evidence(points[:0], boxes(3))
+        evidence(points, Boxes([[200.0, 0.0, -0.9]], [[4.0, 1.8, 1.5]], [0.0]))  # no point near it
+        local_ground(points, boxes(7))
+    assert [list(kernel.signatures) for kernel in _kernels()] == before
+
+
+def test_kernels_compile_without_a_writable_cache(monkeypatch, caplog):
+    """No writable cache directory for numba (a read-only install, no writable home): the kernels
+    compile without a disk cache (a warning says so) instead of the import failing ("cannot cache
+    function ...: no locator available"), which took every filter pipeline down at start."""
+    import importlib.util
+
+    from numba.core import caching
+
+    from pcc_ros.pipeline import evidence_kernels
+
+    monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])  # no place numba may write
+    spec = importlib.util.spec_from_file_location("pcc_ros.pipeline._kernels_uncached", evidence_kernels.__file__)
+    module = importlib.util.module_from_spec(spec)
+    with caplog.at_level("WARNING"):
+        spec.loader.exec_module(module)
+    assert sorted(module._uncached) == sorted(kernel.__name__ for kernel in _kernels())
+    assert ["no writable cache directory" in r.getMessage() for r in caplog.records] == [True]
+    key = np.array([2, -1, 0, 2, 1, 0], np.int16)
+    start, order = np.zeros(4, np.int64), np.zeros(len(key), np.int64)
+    assert module.counting_sort(key, np.array([True, False, True]), start, order) == 4
+    assert order[:4].tolist() == [2, 5, 0, 3] and start.tolist() == [0, 2, 2, 4]
+
+
+def test_second_thread_works_in_the_callers_context(monkeypatch):
+    """workers >= 2: the ground and expected-return jobs run on the filter's pool thread in a copy
+    of the caller's context, so a line they log is the node's at work (node_at_work), not no node's."""
+    from pcc_ros.pipeline import evidence as ev
+    from pcc_ros.runtime.node import node_at_work, working_for
+
+    seen = []
+
+    def spied(job):
+        def spy(*args, **kwargs):
+            seen.append(node_at_work.get())
+            return job(*args, **kwargs)
+
+        return spy
+
+    for name in ("_ground", "_expected_beams"):
+        monkeypatch.setattr(ev, name, spied(getattr(ev, name)))
+    scan, boxes = _scattered_scene(3)
+    node = object()
+    with working_for(node):
+        evidence(scan, boxes, workers=2)
+    assert seen == [node, node]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_a_return_straight_above_or_below_the_sensor_warns_nothing(dtype):
+    """A return at x = y = 0 (z != 0) has a slope z / tiny beyond every box's window: counted by no
+    box, and no numpy overflow warning on stderr (the band arithmetic overflowed to inf)."""
+    import warnings
+
+    boxes = Boxes([[10.0, 0.0, -0.8]], [[4.0, 1.8, 1.5]], [0.0])
+    scan = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 30.0], [10.0, 0.0, -0.8]], dtype)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ev = evidence(scan, boxes)
+    assert ev.n_rays[0] == 1 and ev.n_in[0] == 1

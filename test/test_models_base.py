@@ -336,3 +336,38 @@ def test_presets_sizes_and_recipes_come_from_the_base_class(name):
     assert cls.recipe_factory is not None and type(cls.training_recipe()).__name__.endswith("Recipe")
     with pytest.raises(ConfigError, match="cannot be trained"):
         get_backend("mirror").training_recipe()
+
+
+def test_worker_threads_log_as_the_node_whose_frame_they_complete():
+    """``workers`` > 1: the shares completed on the pool's threads run in the calling thread's
+    context, so a line logged there (aml's decoder warns per batch) is the line of the node at
+    work (named after it, and said by its own rclpy logger), not a stray ``pcc_ros.models.*`` one."""
+    import logging
+    import threading
+
+    from pcc_ros.runtime.node import working_for
+
+    class Node:
+        name = "pcc_ros.completion_node"
+
+    class Logging(TinyCompleter):
+        def forward_batch(self, clouds, contexts):
+            logging.getLogger("pcc_ros.models.aml").warning("a decoder line")
+            return super().forward_batch(clouds, contexts)
+
+    seen = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            seen.append((record.name, record.threadName))
+
+    handler, package = Keep(), logging.getLogger("pcc_ros")
+    package.addHandler(handler)
+    try:
+        completer = Logging(device="cpu", batch_size=1, workers=2)
+        with working_for(Node()):
+            completer.complete(_clouds(sizes=(5, 9, 12, 20)))
+    finally:
+        package.removeHandler(handler)
+    assert len(seen) == 4 and {name for name, _ in seen} == {"pcc_ros.completion_node"}, seen
+    assert {thread for _, thread in seen} - {threading.current_thread().name}, seen  # some on a worker

@@ -24,6 +24,7 @@ Contract of :meth:`Completer.complete` (why it is shaped like this):
 from __future__ import annotations
 
 import abc
+import contextvars
 import itertools
 import logging
 from collections.abc import Callable, Sequence
@@ -630,7 +631,10 @@ class TorchCompleter(Completer):
         previous = torch.get_num_threads()
         torch.set_num_threads(1)
         try:
-            futures = [self._pool.submit(self._complete_chunks, clouds[a:b], contexts[a:b]) for a, b in shares[1:]]
+            # each share in a copy of this thread's context: a line logged there (aml's decoder) is
+            # the line of the node whose frame this is (pcc_ros.runtime.node.node_at_work)
+            futures = [self._pool.submit(contextvars.copy_context().run, self._complete_chunks, clouds[a:b],
+                                         contexts[a:b]) for a, b in shares[1:]]
             a, b = shares[0]
             outputs = self._complete_chunks(clouds[a:b], contexts[a:b])
             for future in futures:

@@ -2,17 +2,18 @@
 expected returns, the local ground (the physics behind :mod:`pcc_ros.pipeline.filter`'s
 ``density``, ``free_space`` and ``ground_gap`` terms; definitions in ``docs/filter.md``).
 
-Every function here is vectorised over (ray, box), (beam, box) or (point, box) pairs with no
-loop over points; the pairs are generated **box by box** (each box's pairs contiguous), so a
-per-box value reaches its pairs by ``np.repeat`` over run lengths instead of a gather, and
-per-box counts are differences of one cumulative sum. The scan is read in its own precision
-(float32 for sensor data) for the index structures; the ray geometry that decides a pair runs
-in float64 with the same operations, operand for operand, as the 93cd59e code kept in
-``benchmarks/_reference.py`` (``pcc bench filter`` checks the outputs bit-identical).
+Numpy passes over the scan (in its own precision: float32 for sensor data) and over the boxes
+build the index structures (which points each box looks at); the (ray, box), (point, box) and
+(beam, box) pairs are then visited box by box in the compiled kernels of
+:mod:`pcc_ros.pipeline.evidence_kernels` (numba, imported on first use; :func:`warm_up`
+compiles them). The ray geometry that decides a pair runs in float64 with the same operations,
+operand for operand, as the 93cd59e code kept in ``benchmarks/_reference.py`` (``pcc bench
+filter`` checks the outputs bit-identical).
 """
 
 from __future__ import annotations
 
+import contextvars
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -96,7 +97,7 @@ GROUND_REACH = 3.0
 #: BEV cell (metres) of the ground query's index (coarsened when the boxes spread so far that
 #: the grid would exceed :data:`_MAX_CELLS`).
 _GROUND_CELL = 1.0
-#: Cells of an index grid: below 2^15, so a cell key is an int16 (numpy's radix sort).
+#: Cells of the ground query's grid at most (the counting sort's table of cell starts).
 _MAX_CELLS = 32_000
 #: Most beam columns sampled per box for the expected return count.
 EXPECTED_COLUMNS = 64
@@ -109,9 +110,6 @@ _EL_BANDS = 16
 #: precision): it must stay a superset of the rays that reach a box (the exact float64 box
 #: test comes after); orders of magnitude above float32 rounding of a slope.
 _SLOPE_SLACK = 1e-4
-#: The ray index works on the points of the boxes' azimuth sectors only when these cover less
-#: than this share of the circle.
-_SUBSET_SHARE = 0.75
 #: Slack (metres) of the ground query's cell test: a point the exact test (in the scan's
 #: precision) accepts lies in a cell listed for the box even after float32 rounding.
 _GROUND_SLACK = 0.01
@@ -142,6 +140,10 @@ class _BoxTable:
 
     def __init__(self, boxes: Boxes) -> None:
         self.cos, self.sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
+        # the kernels' argument: C order, aligned, writable whatever the caller's array (a
+        # read-only or unaligned one, e.g. over a message buffer, is another numba signature: a
+        # compilation of seconds in the middle of a run)
+        self.center = np.require(boxes.center, np.float64, ["C", "A", "W"])
         cx, cy, cz = boxes.center.T
         # the sensor (the scan frame's origin) in each box's frame
         self.origin = np.stack(to_box_local(0.0, 0.0, 0.0, cx, cy, cz, self.cos, self.sin), axis=1)
@@ -224,14 +226,14 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
         _clamp(scaled, _AZ_BINS - 1, ws("nan", p, bool))  # NaN -> 0 (band 0 below: no box)
     key = ws("key", p, np.int16)
     np.copyto(key, scaled, casting="unsafe")  # truncation: the floor of these non-negative bins
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # over: z / tiny below
         r = np.multiply(x, x, out=ws("r", p, dt))
         tmp = ws("tmp", p, dt)
         r += np.multiply(y, y, out=tmp)
         np.sqrt(r, out=r)
         # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e
         # index paired it with the boxes at azimuth and elevation 0); straight up / down is
-        # beyond every box's window; NaN points stay NaN.
+        # beyond every box's window (a slope of +-inf, or huge: its band clamps); NaN points stay NaN.
         np.clip(r, np.finfo(dt).tiny, np.inf, out=r)
         slope = np.divide(z, r, out=r)
         band = np.subtract(slope, dt(e0), out=tmp)
@@ -256,7 +258,7 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
     start, order = ws("start", cells + 1, np.int64), ws("order", p, np.int64)
     kernels.counting_sort(key, wanted, start, order)
     kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, np.cumsum(nbins), boxes_idx,
-                       s_lo.astype(dt), s_hi.astype(dt), np.ascontiguousarray(boxes.center), table.cos, table.sin,
+                       s_lo.astype(dt), s_hi.astype(dt), table.center, table.cos, table.sin,
                        table.origin, *table.body, *table.core, out)
     return tuple(out.T.copy())
 
@@ -414,12 +416,10 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
-    Vectorised over (ray, box) pairs generated box by box: no loop over points or boxes; the
-    pairs' geometry runs column by column in float64 on per-box values repeated over each
-    box's run. ``workers`` >= 2: the local ground (a query of its own over the scan) and the
-    sensor model's expected returns (about 40 % of the work at 20 cars) are measured on a second
-    thread while this one follows the rays (numpy releases the GIL in its loops); the values are
-    the same either way.
+    Numpy passes index the scan; compiled kernels visit each box's candidate rays, points and
+    beams. ``workers`` >= 2: the local ground (a query of its own over the scan) and the
+    sensor model's expected returns are measured on a second thread while this one follows the
+    rays (numpy and the kernels release the GIL); the values are the same either way.
     """
     sensor = sensor or SensorModel()
     n = len(boxes)
@@ -433,10 +433,13 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     # The side thread's jobs, in order: the ground (it needs only the scan and the boxes, so it
     # starts before the box-level setup below), then the expected returns; the two take about
     # as long as the rays do here.
-    ground_job = pool.submit(_ground, x, y, z, boxes, GROUND_REACH, 0.05, _SCRATCH) if pool else None
+    # (each in a copy of this thread's context: a line logged there is the calling node's)
+    ground_job = pool.submit(contextvars.copy_context().run, _ground, x, y, z, boxes, GROUND_REACH, 0.05,
+                             _SCRATCH) if pool else None
     window = angular_window(boxes)
     table = _BoxTable(boxes)
-    expected_job = pool.submit(_expected_beams, boxes, sensor, *window, table=table) if pool else None
+    expected_job = pool.submit(contextvars.copy_context().run, _expected_beams, boxes, sensor, *window,
+                               table=table) if pool else None
     n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
     if pool:
         ground, expected = ground_job.result(), expected_job.result()
