@@ -114,6 +114,7 @@ def test_messages_round_trip_and_outputs(pipeline):
     first = outputs["detections_filtered"].detections[0]
     assert first.results[0] is originals[0].results[0] and first.bbox is originals[0].bbox
     assert first.id == originals[0].id and first.results[-1].hypothesis.class_id == "pcc_filter/mismatch"
+    assert not any(r.hypothesis.class_id.startswith("pcc_filter") for r in originals[0].results)  # not mutated
 
 
 def test_nan_box_is_skipped_and_counted(pipeline):

@@ -40,6 +40,7 @@ makes the conversion explicit.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -289,6 +290,10 @@ def annotate_detections(detections: list, result, index: np.ndarray, classes=Non
     value), all with the box pose. The detector's own hypotheses come first, untouched."""
     if result.filter_score is None and not np.isfinite(result.mismatch).any():
         return list(detections)
+    # Built from per-call templates (a message class fills every default sub-message on
+    # construction, rclpy's even those given: 11 us per hypothesis against 3 us for a copy with
+    # its hypothesis set); a detection's filter hypotheses share one pose message, the box pose.
+    template = new_message("vision_msgs/msg/ObjectHypothesisWithPose", classes)
     out = []
     for det, i in zip(detections, index):  # a few dozen detections per frame
         values: list[tuple[str, float]] = []
@@ -301,24 +306,17 @@ def annotate_detections(detections: list, result, index: np.ndarray, classes=Non
                 values.append((TERM_CLASS_PREFIX + term, float(v[i])))
         if np.isfinite(result.mismatch[i]) and not any(k.endswith("/mismatch") for k, _ in values):
             values.append((TERM_CLASS_PREFIX + "mismatch", float(result.mismatch[i])))
-        extra = [
-            new_message(
-                "vision_msgs/msg/ObjectHypothesisWithPose",
-                classes,
-                hypothesis=new_message("vision_msgs/msg/ObjectHypothesis", classes, class_id=k, score=v),
-                pose=new_message(
-                    "geometry_msgs/msg/PoseWithCovariance", classes, pose=det.bbox.center,
-                    covariance=np.zeros(36, dtype=np.float64),
-                ),
-            )
-            for k, v in values
-        ]
-        out.append(
-            new_message(
-                "vision_msgs/msg/Detection3D", classes, header=det.header, results=[*det.results, *extra],
-                bbox=det.bbox, id=det.id,
-            )
-        )
+        pose = new_message("geometry_msgs/msg/PoseWithCovariance", classes, pose=det.bbox.center,
+                           covariance=np.zeros(36, dtype=np.float64))
+        extra = []
+        for k, v in values:
+            hypothesis = copy.copy(template)
+            hypothesis.hypothesis = new_message("vision_msgs/msg/ObjectHypothesis", classes, class_id=k, score=v)
+            hypothesis.pose = pose
+            extra.append(hypothesis)
+        annotated = copy.copy(det)  # the header, box and id as received
+        annotated.results = [*det.results, *extra]
+        out.append(annotated)
     return out
 
 
