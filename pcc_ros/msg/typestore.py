@@ -22,6 +22,7 @@ container it expects.
 from __future__ import annotations
 
 import array
+import copy
 import dataclasses
 import functools
 from collections.abc import Callable
@@ -206,6 +207,18 @@ def new_message(typename: str, classes: ClassResolver | None = None, **fields):
             if name not in fields:
                 fields[name] = make()
     return cls(**fields)
+
+
+def from_template(template, **fields):
+    """A shallow copy of the message ``template`` with ``fields`` set: the fast way to make many
+    messages of one type that differ in a few fields (a message class fills every default
+    sub-message on construction, rclpy's even those given: 5-13 us for a Marker or a hypothesis,
+    about 3 us for a copy). The copies share every field not set here with ``template``, list
+    fields included: set those each copy may be given more of."""
+    message = copy.copy(template)
+    for name, value in fields.items():
+        setattr(message, name, value)
+    return message
 
 
 def byte_array(cls_or_msg, data: np.ndarray):
