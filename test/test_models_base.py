@@ -359,7 +359,7 @@ def test_worker_threads_log_as_the_node_whose_frame_they_complete():
 
     class Keep(logging.Handler):
         def emit(self, record):
-            seen.append((record.name, record.threadName))
+            seen.append((getattr(record, "pcc_node", record.name), record.threadName))
 
     handler, package = Keep(), logging.getLogger("pcc_ros")
     package.addHandler(handler)

@@ -633,3 +633,35 @@ def test_a_node_core_dropped_earlier_is_not_frozen_by_the_next_ones_start_up():
     _node(LocalGraph(simulated=True), "completion")
     gc.collect()
     assert gone() is None
+
+
+def test_a_nodes_log_lines_keep_their_module_name_and_carry_the_node():
+    """While a node core works, the package's records keep their module's name (a logging filter
+    by module still selects them) and carry the node's (``pcc_node``), which pcc's console shows
+    in the name's place; a record made by hand (``makeLogRecord``, no name) is left alone."""
+    import logging
+
+    from pcc_ros.cli.main import NodeNameFormatter
+    from pcc_ros.runtime.node import working_for
+
+    class Node:
+        name = "pcc_ros.completion_node"
+
+    seen = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            seen.append(record)
+
+    handler, package = Keep(), logging.getLogger("pcc_ros")
+    handler.addFilter(logging.Filter("pcc_ros.pipeline"))
+    package.addHandler(handler)
+    try:
+        with working_for(Node()):
+            logging.getLogger("pcc_ros.pipeline.core").warning("a pipeline line")
+            assert not hasattr(logging.makeLogRecord({"msg": "by hand"}), "pcc_node")
+    finally:
+        package.removeHandler(handler)
+    assert [(r.name, r.pcc_node) for r in seen] == [("pcc_ros.pipeline.core", "pcc_ros.completion_node")]
+    assert NodeNameFormatter().format(seen[0]) == "WARNING pcc_ros.completion_node: a pipeline line"
+    assert seen[0].name == "pcc_ros.pipeline.core"  # formatting did not rename it

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import importlib
 import importlib.util
 import logging
@@ -88,10 +89,10 @@ def main(argv: list[str] | None = None) -> int:
         if not hasattr(args, "passthrough"):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.passthrough = extra + args.passthrough
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO)
+    for handler in logging.getLogger().handlers:  # basicConfig's (tqdm's redirect copies the formatter)
+        if handler.formatter is None or type(handler.formatter) is logging.Formatter:
+            handler.setFormatter(NodeNameFormatter())
     if args.command is None:
         parser.print_help()
         return 2
@@ -110,6 +111,22 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         _report(describe_error(exc))
         return 1
+
+
+class NodeNameFormatter(logging.Formatter):
+    """``LEVEL name: message``, the name being the node's (``pcc_node``, set while a node core
+    works: :func:`pcc_ros.runtime.node.working_for`) for a line a node's pipeline logged."""
+
+    def __init__(self) -> None:
+        super().__init__("%(levelname)s %(name)s: %(message)s")
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        node = getattr(record, "pcc_node", None)
+        if node is None:
+            return super().formatMessage(record)
+        shown = copy.copy(record)  # other handlers see the record as logged
+        shown.name = node
+        return super().formatMessage(shown)
 
 
 def _log_above_progress_bars():

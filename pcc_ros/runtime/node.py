@@ -68,7 +68,7 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 
 #: The logger of the node whose work runs here now (:func:`working_for`; a context variable, so per
 #: thread): a line the package's modules log meanwhile (the pipeline, the message decoders, a backend
-#: loading) is that node's line: its record is named after the node, and the rclpy host says it on
+#: loading) is that node's line: its record is tagged with the node (``pcc_node``), and the rclpy host says it on
 #: that node's ROS logger only (:class:`pcc_ros.nodes.ros_node.RclpyLogHandler`).
 node_at_work: ContextVar[Any] = ContextVar("pcc_ros_node_at_work", default=None)
 
@@ -83,22 +83,23 @@ def working_for(logger: Any) -> Iterator[None]:
         node_at_work.reset(token)
 
 
-def _named_after_the_node(factory):
+def _tagged_with_the_node(factory):
     """A log record factory: a record of a ``pcc_ros.*`` module logger made while a node works
-    carries the node's logger name (``pcc replay``: ``WARNING pcc_ros.detection_filter_node: ...``,
-    as the node's own lines, not ``pcc_ros.pipeline.core``)."""
+    carries the node's logger name as ``record.pcc_node`` (its ``name`` stays the module's, so
+    logging filters by module keep working); ``pcc``'s console shows it in the name's place
+    (``pcc replay``: ``WARNING pcc_ros.detection_filter_node: ...``, as the node's own lines)."""
 
     def make(name, *args, **kwargs):
         record = factory(name, *args, **kwargs)
         node = node_at_work.get()
-        if node is not None and name.startswith("pcc_ros."):
-            record.name = getattr(node, "name", name)
+        if node is not None and isinstance(name, str) and name.startswith("pcc_ros."):  # (makeLogRecord: None)
+            record.pcc_node = getattr(node, "name", name)
         return record
 
     return make
 
 
-logging.setLogRecordFactory(_named_after_the_node(logging.getLogRecordFactory()))
+logging.setLogRecordFactory(_tagged_with_the_node(logging.getLogRecordFactory()))
 
 def output_names(mode: str, with_completion: bool = False) -> list[str]:
     """The outputs a node of ``mode`` publishes; ``with_completion`` adds the completion
