@@ -340,8 +340,11 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     """Section 5: the network against a replay of its own matrix products, one thread."""
     import torch
 
+    from pcc_ros.models.layers import compiled_kernels
+
     torch.set_num_threads(1)
-    shapes = recorded_matmuls(lambda: completer.complete(batch))
+    with compiled_kernels(False):  # the same products as torch operators: the profiler records them
+        shapes = recorded_matmuls(lambda: completer.complete(batch))
     replay = matmul_replay(shapes)
     alts: dict[str, Callable[[], object]] = {"network": lambda: completer.complete(batch), "matmul_replay": replay}
     ceiling_set = ceiling_calls()  # as in section 2: the fastest of the two shapes, fresh or reused output
@@ -384,9 +387,11 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     out["parts"] = part_times(completer, batch, repeat)
     print_table("time per part of the network (1 thread, batch 32, fast path; FLOP share of the nominal count)",
                 out["parts"])
-    out["operators"] = op_profile(lambda: completer.complete(batch), repeat)
-    print_table(f"the network's operators by kind (torch.profiler, {repeat} batches; ms per batch with the "
-                "profiler's overhead, share of the profiled operator time)", out["operators"]["groups"])
+    with compiled_kernels(False):  # the compiled loops are one opaque call to the profiler
+        out["operators"] = op_profile(lambda: completer.complete(batch), repeat)
+    print_table(f"the fast path's operators with the compiled loops off, by kind (torch.profiler, {repeat} batches; "
+                "ms per batch with the profiler's overhead, share of the profiled operator time)",
+                out["operators"]["groups"])
     print_table("its 12 costliest operators", out["operators"]["ops"][:12], ["op", "group", "ms", "calls", "share"])
     print(f"network {out['network_ms']:.1f} ms per batch = {out['network_gflop_s']:.1f} GFLOP/s "
           f"({out['network_of_ceiling']:.0%} of the ceiling {ceiling:.1f} GFLOP/s); its matrix products replayed "
@@ -414,7 +419,7 @@ def run(args: argparse.Namespace) -> dict:
     import torch
 
     from pcc_ros.models import available, backend_names, default_checkpoint, get_backend, load_completer
-    from pcc_ros.models.layers import reference_path
+    from pcc_ros.models.layers import compiled_kernels, reference_path
     from pcc_ros.models.registry import create
 
     # named backends are checked now, not at section 4 after minutes of timing
@@ -439,6 +444,10 @@ def run(args: argparse.Namespace) -> dict:
         with reference_path():  # a process-wide switch: set it around the worker threads
             run_with(setting, completer.complete, batch)
 
+    def operators(setting: tuple[int, int], batch: list) -> None:
+        with compiled_kernels(False):  # the fast path as torch operators (the compiled loops off)
+            run_with(setting, completer.complete, batch)
+
     settings = parse_threads(args.threads)
     densities = [int(d) for d in args.densities.split(",") if d.strip()]
     rows, per_setting, counts = [], {}, {}
@@ -453,7 +462,10 @@ def run(args: argparse.Namespace) -> dict:
             raise SystemExit(f"decode density {density}: fast and original network paths disagree: "
                              f"max |diff| {max_diff:.2e} (canonical)")
         nominal = linear_flops(completer.model, lambda: completer.complete(batch32)) / len(batch32)
-        executed = sum(2 * m * k * n for m, k, n in recorded_matmuls(lambda: completer.complete(batch32)))
+        with compiled_kernels(False):  # the compiled loops run the same products: count them as operators
+            ops_out = completer.complete(batch32)
+            executed = sum(2 * m * k * n for m, k, n in recorded_matmuls(lambda: completer.complete(batch32)))
+        max_diff = max(max_diff, max(float(np.abs(a - b).max()) for a, b in zip(ops_out, ref_out)))
         executed /= len(batch32)
         counts[density] = {"nominal_flops_per_instance": nominal, "executed_flops_per_instance": executed,
                            "output_points": int(completer.num_output_points), "output_max_abs_diff": max_diff}
@@ -461,13 +473,14 @@ def run(args: argparse.Namespace) -> dict:
             alts: dict[str, Callable[[], object]] = {
                 "original": lambda s=setting: reference(s, batch32),
                 "fast": lambda s=setting: run_with(s, completer.complete, batch32),
+                "fast_ops": lambda s=setting: operators(s, batch32),
             }
             ceiling_set = ceiling_calls(setting)  # fresh output and a reused one: the faster counts
             alts.update({name: call for name, (call, _) in ceiling_set.items()})
             times = interleaved(alts, args.repeat)
             mm_rates, mm_best = ceiling_rates(ceiling_set, times)
             ceiling = max(mm_rates.values())
-            orig, fast = summary_ms(times["original"]), summary_ms(times["fast"])
+            orig, fast, ops = summary_ms(times["original"]), summary_ms(times["fast"]), summary_ms(times["fast_ops"])
             fast_gflops = executed * len(batch32) / (fast["median_ms"] / 1e3) / 1e9
             # least-disturbed rounds: the fastest network call against the fastest ceiling call
             # (on a shared machine the median absorbs other jobs' load unevenly: a ceiling call is
@@ -476,7 +489,7 @@ def run(args: argparse.Namespace) -> dict:
             row = {
                 "density": density, "points": counts[density]["output_points"],
                 "threads": thread_label(setting),
-                "original_ms": orig["median_ms"], "fast_ms": fast["median_ms"],
+                "original_ms": orig["median_ms"], "fast_ops_ms": ops["median_ms"], "fast_ms": fast["median_ms"],
                 "fast_min_ms": fast["min_ms"], "fast_max_ms": fast["max_ms"],
                 "original_inst_s": len(batch32) / (orig["median_ms"] / 1e3),
                 "fast_inst_s": len(batch32) / (fast["median_ms"] / 1e3),
@@ -487,7 +500,8 @@ def run(args: argparse.Namespace) -> dict:
                 "of_ceiling_min": best_of_ceiling,
             }
             rows.append(row)
-            per_setting[f"d{density}/{row['threads']}"] = {"original": orig, "fast": fast, "matmul_gflop_s": mm_rates,
+            per_setting[f"d{density}/{row['threads']}"] = {"original": orig, "fast": fast, "fast_ops": ops,
+                                                          "matmul_gflop_s": mm_rates,
                                                           "matmul_gflop_s_min_time": mm_best, **row}
     set_decode_density(completer.model, 1)
     flops, executed = counts[1]["nominal_flops_per_instance"], counts[1]["executed_flops_per_instance"]
@@ -496,11 +510,13 @@ def run(args: argparse.Namespace) -> dict:
         f"PointPnCNet default, batch 32, {args.points if not args.data else 'cached'}-point inputs "
         f"(median of {args.repeat} interleaved rounds; ms per batch; GFLOP/s of the FLOPs the fast path executes)",
         rows,
-        ["density", "points", "threads", "original_ms", "fast_ms", "fast_min_ms", "fast_max_ms", "original_inst_s",
+        ["density", "points", "threads", "original_ms", "fast_ops_ms", "fast_ms", "fast_min_ms", "fast_max_ms",
+         "original_inst_s",
          "fast_inst_s", "speedup", "gflop_s", "mm_gflop_s", "of_ceiling", "of_ceiling_min"],
     )
-    print("of_ceiling: medians; of_ceiling_min: the fastest round of the network against the fastest of the "
-          "ceiling's matrix products")
+    print("fast_ops: the fast path with its compiled CPU loops off (pcc_ros.models.layers.compiled_kernels): the "
+          "same steps as torch operators; of_ceiling: medians; of_ceiling_min: the fastest round of the network "
+          "against the fastest of the ceiling's matrix products")
     for density, c in counts.items():
         print(f"decode density {density} ({c['output_points']} points): {c['executed_flops_per_instance'] / 1e6:.1f} "
               f"MFLOP per instance executed by the fast path (its matrix products), "

@@ -16,6 +16,14 @@ from pcc_ros.models import default_checkpoint, layers, load_completer
 from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, reference_path, segment_max, using_reference_path
 
 
+@pytest.fixture(autouse=True, params=[True, False], ids=["compiled", "operators"])
+def _compiled_loops(request):
+    """Every test here runs with the fast path's compiled CPU loops (pcc_ros.models.kernels) and
+    with the same steps as torch operators: both are fast paths of the layers."""
+    with layers.compiled_kernels(request.param):
+        yield request.param
+
+
 def _packed(rng: np.random.Generator, sizes: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
     points = torch.from_numpy(rng.normal(size=(sum(sizes), 3)).astype(np.float32))
     segment = torch.from_numpy(np.repeat(np.arange(len(sizes)), sizes))

@@ -581,6 +581,10 @@ class TorchCompleter(Completer):
             self.model.to(dtype)  # a checkpoint loaded later is cast by load_state_dict
             self.model.register_forward_pre_hook(_cast_floating_inputs(dtype))
         self.model.eval()
+        if self.device.type == "cpu" and not self.half_precision:
+            from pcc_ros.models.layers import warm_up_kernels
+
+            warm_up_kernels()  # the compiled CPU loops, before the first batch
         #: What the weights were trained on, their metrics ... (from a loaded checkpoint).
         self.checkpoint_config: dict[str, Any] | None = None
 

@@ -26,6 +26,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from pcc_ros.scratch import Scratch
+
 #: Bytes of intermediates per chunk of the fused inference paths (one thread): a chunk's
 #: features (every layer's output for its rows, float32) stay in a core's L2 cache (2 MiB here)
 #: instead of ``(P, C)`` tensors that make a round trip through memory; a chunk's rows follow
@@ -73,6 +75,48 @@ def reference_path(enabled: bool = True) -> Iterator[None]:
 def using_reference_path() -> bool:
     """True inside :func:`reference_path`."""
     return _reference
+
+
+_kernels_enabled = True
+
+
+@contextmanager
+def compiled_kernels(enabled: bool = True) -> Iterator[None]:
+    """Whether the fast path may run its compiled CPU loops (:mod:`pcc_ros.models.kernels`) inside
+    this block (default: yes). Off, it runs the same steps as torch operators: the comparison of
+    ``pcc bench complete`` and the tests. A process-wide switch, like :func:`reference_path`."""
+    global _kernels_enabled
+    previous, _kernels_enabled = _kernels_enabled, bool(enabled)
+    try:
+        yield
+    finally:
+        _kernels_enabled = previous
+
+
+def warm_up_kernels() -> None:
+    """Compile the fast path's CPU loops now (:func:`pcc_ros.models.kernels.warm_up`), unless
+    they are switched off (:func:`compiled_kernels`)."""
+    if _kernels_enabled:
+        from pcc_ros.models import kernels
+
+        kernels.warm_up()
+
+
+def _array(t: torch.Tensor) -> np.ndarray:
+    """A C-ordered numpy view (or copy) of a CPU tensor, for the compiled kernels."""
+    return t.detach().contiguous().numpy()
+
+
+def _kernels_for(tensor: torch.Tensor):
+    """The compiled kernels module when they may run on ``tensor`` (CPU, float32), else None."""
+    if not _kernels_enabled or tensor.device.type != "cpu" or tensor.dtype != torch.float32:
+        return None
+    from pcc_ros.models import kernels  # numba: heavy, only for CPU inference
+
+    if not kernels.AVAILABLE:
+        return None
+    kernels.set_threads(torch.get_num_threads())
+    return kernels
 
 
 def segment_max(
@@ -139,6 +183,22 @@ class _Workspace:
 
 
 _workspace = _Workspace()
+_SCRATCH = Scratch()  # the compiled kernels' work arrays (numpy, per thread)
+
+
+def _derived(module: nn.Module, slot: str, deps: Sequence[torch.Tensor | None], make):
+    """``make()`` (values derived from ``deps``, ``module``'s parameters), computed once and kept
+    in ``module`` under ``slot`` until a parameter it depends on changes (its storage or its
+    in-place version: optimizer steps and ``load_state_dict`` bump it; an edit through
+    ``param.data`` does not, and would leave it stale)."""
+    key = tuple((None, 0) if t is None else (t.data_ptr(), t._version) for t in deps)
+    cached = module.__dict__.get(slot)
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    with torch.no_grad():
+        value = make()
+    module.__dict__[slot] = (key, value)
+    return value
 
 
 def _plan(linears: Sequence[nn.Linear], last_bias: bool = True) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
@@ -215,7 +275,8 @@ class PCNEncoder(nn.Module):
     def forward(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor:
         """``points`` ``(P, 3)``, ``segment`` ``(P,)`` in ``[0, num_segments)`` -> ``(S, out_dim)``."""
         if _fast_inference(self):
-            return self._forward_chunked(points, segment, num_segments)
+            pooled = self._forward_compiled(points, segment, num_segments)
+            return self._forward_chunked(points, segment, num_segments) if pooled is None else pooled
         f = self.mlp1(points)
         g = segment_max(f, segment, num_segments)
         h = self.point_proj(f) + self.segment_proj(g)[segment]
@@ -319,25 +380,56 @@ class PCNEncoder(nn.Module):
             pool += rest[-1].bias
         return pool.masked_fill_(~nonempty, 0.0)
 
+    def _forward_compiled(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor | None:
+        """:meth:`_forward_chunked`'s composed path in one compiled call
+        (:func:`pcc_ros.models.kernels.pcn_encode`: the same products and folded constants, the
+        chunks, the pooling, the last bias and the empty segments in the kernel, no torch
+        operator between them); None where it does not apply (GPU, not float32, the compiled
+        loops switched off, other than two ``mlp1`` layers composed with one ``mlp2`` layer,
+        segments not sorted), and :meth:`_forward_chunked` runs instead."""
+        first, rest = _linears(self.mlp1), _linears(self.mlp2)
+        if len(first) != 2 or len(rest) != 1 or first[1].in_features >= first[1].out_features or not len(points):
+            return None
+        kernels = _kernels_for(points)
+        seg = segment.numpy() if kernels is not None else None
+        if seg is None or np.any(seg[1:] < seg[:-1]):
+            return None
+        last, s = rest[0], num_segments
+        counts = np.bincount(seg, minlength=s)
+        c0, c1, hp = first[0].out_features, first[1].out_features, self.point_proj.out_features
+        rows = _rows_for([c0, c1, hp, self.out_dim])
+        most = max(rows, int(counts.max()))
+        wc, const = self._folded(True)
+        deps = (self.point_proj.weight, self.point_proj.bias, self.segment_proj.weight, *first[0].parameters(),
+                *first[1].parameters(), *last.parameters())
+        weights = _derived(self, "_kernel_weights", deps, lambda: [
+            _array(t) for t in (first[0].weight.t(), first[0].bias, first[1].weight.t(), wc,
+                                self.segment_proj.weight.t(), const, last.weight.t(),
+                                last.bias if last.bias is not None else torch.zeros(self.out_dim))])
+        pool = np.empty((s, self.out_dim), np.float32)
+        kernels.pcn_encode(
+            _array(points), counts, rows, *weights, pool,
+            *(_SCRATCH(f"encoder.{name}", n * width, np.float32).reshape(n, width) for name, n, width in (
+                ("t", most, c0), ("f", most, c1), ("h", most, hp), ("y", most, self.out_dim), ("g", s, c1),
+                ("gp", s, hp))),
+        )
+        return torch.from_numpy(pool)
+
     def _folded(self, composed: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
         """The folded constants of :meth:`_forward_chunked`: ``(W_p W1)^T`` (``composed``; else
-        None) and the per-segment half's constant ``b_p + (W_p + W_s) b1``, computed once and
-        kept until a parameter they depend on changes (its storage or its in-place version:
-        optimizer steps and ``load_state_dict`` bump it; an edit through ``param.data`` does not,
-        and would leave these stale)."""
+        None) and the per-segment half's constant ``b_p + (W_p + W_s) b1``, kept while the
+        parameters they come from are unchanged (:func:`_derived`)."""
         last = _linears(self.mlp1)[-1]
-        deps = (self.point_proj.weight, self.point_proj.bias, self.segment_proj.weight, last.weight, last.bias)
-        key = (composed, *((None, 0) if t is None else (t.data_ptr(), t._version) for t in deps))
-        cached = self.__dict__.get("_folded_cache")
-        if cached is not None and cached[0] == key:
-            return cached[1], cached[2]
-        with torch.no_grad():
+
+        def make():
             wc = (self.point_proj.weight @ last.weight).t() if composed else None  # a transposed weight
             b1 = last.bias
             const = self.point_proj.bias.clone() if b1 is None else torch.addmv(
                 self.point_proj.bias, self.point_proj.weight + self.segment_proj.weight, b1)
-        self.__dict__["_folded_cache"] = (key, wc, const)
-        return wc, const
+            return wc, const
+
+        deps = (self.point_proj.weight, self.point_proj.bias, self.segment_proj.weight, last.weight, last.bias)
+        return _derived(self, f"_folded_{composed}", deps, make)
 
 
 def _segment_chunks(counts: torch.Tensor, rows: int) -> list[tuple[int, int, int, int]]:
@@ -462,21 +554,24 @@ class FoldingDecoder(nn.Module):
         s, k = coarse.shape[:2]
         g = self.grid.shape[0]
         hdim = self.fold_point.out_features
-        ws = _workspace
-        base = ws.get(self, "base", s * k, hdim, code)
-        torch.mm(coarse.reshape(s * k, 3), self.fold_point.weight.t(), out=base)
-        base = base.view(s, k, hdim).add_(self.fold_code(code)[:, None, :])  # (S, K, H)
-        grid = self.fold_grid(self.grid)  # (G, H)
         layers = _linears(self.fold_mlp)
-        plan, last = _plan(layers[:-1]), layers[-1]
-        start_points = (coarse if last.bias is None else coarse + last.bias)[:, :, None, :]  # (S, K, 1, 3)
         if out is None:
             out = torch.empty(s, k * g, 3, dtype=coarse.dtype, device=coarse.device)
         m = s // out.shape[0] if out.shape[0] else 1  # codes per row of out
         step = max(1, _rows_for([hdim, *(lin.out_features for lin in layers)]) // (k * g * m)) * m
+        kernels = _kernels_for(code) if len(layers) == 2 and layers[1].out_features == 3 else None
+        if kernels is not None:  # the same steps as the loop below, compiled
+            return self._fold_compiled(kernels, code, coarse, out, m, step)
+        ws = _workspace
+        grid = self.fold_grid(self.grid)  # (G, H)
+        plan, last = _plan(layers[:-1]), layers[-1]
+        start_points = (coarse if last.bias is None else coarse + last.bias)[:, :, None, :]  # (S, K, 1, 3)
         most = min(step, s) * k * g
         h = ws.get(self, "h", most, hdim, code)
         hidden = [ws.get(self, f"fold.{i}", most, lin.out_features, code) for i, lin in enumerate(layers[:-1])]
+        base = ws.get(self, "base", s * k, hdim, code)
+        torch.mm(coarse.reshape(s * k, 3), self.fold_point.weight.t(), out=base)
+        base = base.view(s, k, hdim).add_(self.fold_code(code)[:, None, :])  # (S, K, H)
         for start in range(0, s, step):
             stop = min(start + step, s)
             n, r = stop - start, (stop - start) * k * g
@@ -486,6 +581,24 @@ class FoldingDecoder(nn.Module):
             yt = torch.mm(last.weight, x.t(), out=ws.get(self, "yt", 3, r, code))  # (3, r)
             dest = out[start // m : stop // m].view(n // m, m, k, g, 3)
             torch.add(start_points[start:stop].view(n // m, m, k, 1, 3), yt.t().view(n // m, m, k, g, 3), out=dest)
+        return out
+
+
+    def _fold_compiled(self, kernels, code: torch.Tensor, coarse: torch.Tensor, out: torch.Tensor, m: int,
+                       step: int) -> torch.Tensor:
+        """:meth:`_fold_chunked` (one hidden folding layer) in one compiled call
+        (:func:`pcc_ros.models.kernels.fold`): the same function, the first layer's point and grid
+        halves and the output layer's residual inside the kernel."""
+        hidden, last = _linears(self.fold_mlp)
+        deps = (self.grid, self.fold_grid.weight, self.fold_point.weight, *hidden.parameters(), *last.parameters())
+        grid, wpt, w1t, b1, w2, b2 = _derived(self, "_kernel_weights", deps, lambda: [_array(t) for t in (
+            self.fold_grid(self.grid), self.fold_point.weight.t(), hidden.weight.t(), hidden.bias, last.weight,
+            last.bias if last.bias is not None else torch.zeros(3))])
+        s, k = coarse.shape[:2]
+        rows = min(step, s) * k * grid.shape[0]
+        kernels.fold(_array(coarse), wpt, _array(self.fold_code(code)), grid, w1t, b1, w2, b2, out.numpy(), m, step,
+                     _SCRATCH("fold.h", rows * wpt.shape[1], np.float32).reshape(rows, wpt.shape[1]),
+                     _SCRATCH("fold.x", rows * w1t.shape[1], np.float32).reshape(rows, w1t.shape[1]))
         return out
 
 

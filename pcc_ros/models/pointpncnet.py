@@ -38,7 +38,7 @@ import torch
 from torch import nn
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.geometry.partitions import octant_index, octant_masks
+from pcc_ros.geometry.partitions import octant_masks
 from pcc_ros.models.base import (
     CacheRecipe,
     CacheTrainOptions,
@@ -119,30 +119,17 @@ def octant_pairs(points: np.ndarray, lengths: np.ndarray, overlap: float) -> tup
     """Every (point, octant) membership of a packed batch, grouped by instance and octant.
 
     The same memberships as ``region_masks`` (``np.nonzero`` of it), without building and
-    scanning the ``(P, 8)`` mask for every point: a point lies in its own octant
+    scanning the ``(P, 8)`` mask: a point lies in its own octant
     (:func:`~pcc_ros.geometry.partitions.octant_index`), and only points within ``overlap`` of a
-    coordinate plane (a few per cent) belong to more, which
-    :func:`~pcc_ros.geometry.partitions.octant_masks` lists for those rows alone.
-    Returns ``(point_index, local_segment)`` with ``local_segment = instance * 8 + octant``
-    sorted ascending (a stable radix sort), so the local encoder gets whole segments in order.
+    coordinate plane (a few per cent) belong to more (one compiled pass and a counting sort,
+    :func:`pcc_ros.models.kernels.octant_pairs`). Returns ``(point_index, local_segment)`` with
+    ``local_segment = instance * 8 + octant`` ascending, so the local encoder gets whole
+    segments in order.
     """
-    p = len(points)
-    segment = np.repeat(np.arange(len(lengths)), lengths)
-    core = octant_index(points)
-    band = (points >= -overlap) & (points < overlap)  # on both sides of a plane
-    rows = np.flatnonzero(band[:, 0] | band[:, 1] | band[:, 2])
-    if len(rows):
-        member = octant_masks(points[rows], overlap)
-        member[np.arange(len(rows)), core[rows]] = False  # the own octant is already listed
-        extra_row, extra_octant = np.nonzero(member)
-        point_index = np.concatenate([np.arange(p), rows[extra_row]])
-        octant = np.concatenate([core, extra_octant])
-    else:
-        point_index, octant = np.arange(p), core
-    local = segment[point_index] * NUM_REGIONS + octant
-    key = local.astype(np.uint16) if len(lengths) * NUM_REGIONS <= 1 << 16 else local  # radix-sortable
-    order = np.argsort(key, kind="stable")
-    return point_index[order], local[order]
+    from pcc_ros.models import kernels  # numba: heavy, only for inference
+
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    return kernels.octant_pairs(points, np.asarray(lengths, dtype=np.int64), np.float32(overlap))
 
 
 # --------------------------------------------------------------------------- network

@@ -16,40 +16,16 @@ fused multiply-adds), so the counts and heights are bit-identical to the vectori
 points a box looks at) are counting sorts over grid cells; they only pick a superset of the
 points the exact tests accept, so they do not change any value.
 
-Compiled on first use and cached on disk (numba's cache next to this file, or the user's cache
-directory when the package is read-only; ``NUMBA_CACHE_DIR`` names another): ``warm_up``
-compiles them for both scan precisions so a node's first frame does not pay for it. Where no
-cache directory is writable (a read-only install run by a user without a writable home) they
-are compiled without a cache, in every process (a warning says so), instead of failing at import.
+Compiled on first use and cached on disk (:func:`pcc_ros.jit.compiled`): ``warm_up`` compiles
+them for both scan precisions so a node's first frame does not pay for it.
 """
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 from numba import njit
 
-log = logging.getLogger(__name__)
-
-_JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
-_uncached: list[str] = []  # the kernels compiled without a disk cache (none writable)
-
-
-def _compiled(func):
-    """``njit(**_JIT)``, without the disk cache where numba finds no writable place for it (it
-    raises at decoration then: "cannot cache function ...: no locator available")."""
-    try:
-        return njit(**_JIT)(func)
-    except RuntimeError as exc:
-        if "no locator available" not in str(exc):
-            raise
-    if not _uncached:
-        log.warning("no writable cache directory for the evidence filter's compiled kernels (the package's "
-                    "__pycache__, the user's cache; NUMBA_CACHE_DIR names one): they compile in every process "
-                    "(about 6 s at start-up)")
-    _uncached.append(func.__name__)
-    return njit(**{**_JIT, "cache": False})(func)
+from pcc_ros.jit import compiled
 
 # Per-box ray counts, columns of :func:`ray_counts`' output.
 IN, OCCLUDED, STOP, PASS, RAYS = range(5)
@@ -133,7 +109,7 @@ def kth_smallest(values, count, rank):
     return values[rank]
 
 
-@_compiled
+@compiled()
 def counting_sort(key, wanted, start, order):
     """The positions of the points whose cell ``key`` (``-1``: none) is ``wanted``, grouped by cell in ``order``
     (ascending positions within a cell); ``start`` (cells + 1) gets each cell's first slot.
@@ -155,7 +131,7 @@ def counting_sort(key, wanted, start, order):
     return placed
 
 
-@_compiled
+@compiled()
 def ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, boxes_idx, s_lo, s_hi,
                centre, cos, sin, origin, body_lo, body_hi, core_lo, core_hi, out):
     """``out[box, IN / OCCLUDED / STOP / PASS / RAYS]`` += the rays of the cells each judged box
@@ -202,7 +178,7 @@ def ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, bo
         out[b, RAYS] = n_rays
 
 
-@_compiled
+@compiled()
 def ground_cells(x, y, z, offset_x, offset_y, scale, nx, ny, zmin, zmax, key):
     """Each point's cell of the ground query's BEV grid (in the scan's precision: ``(x - offset)
     * scale`` clipped into the grid, truncated), or ``-1`` for a point outside ``[zmin, zmax]``
@@ -221,7 +197,7 @@ def ground_cells(x, y, z, offset_x, offset_y, scale, nx, ny, zmin, zmax, key):
         key[i] = gx * ny + gy
 
 
-@_compiled
+@compiled()
 def ground_quantiles(x, y, z, order, start, run_first, run_last, run_ends, zlo, zhi, cx, cy, c, s, hl, hw,
                      quantile, values, out):
     """``out[box]``: the ``int(quantile * (members - 1))``-th smallest height of the box's members
@@ -247,7 +223,7 @@ def ground_quantiles(x, y, z, order, start, run_first, run_last, run_ends, zlo, 
             out[b] = kth_smallest(values, members, np.int64(quantile * np.float64(members - 1)))
 
 
-@_compiled
+@compiled()
 def expected_counts(boxes_idx, r_lo, n_ring, n_az, ring_cos, ring_sin, cos_az, sin_az, cos, sin,
                     body_lo, body_hi, counts):
     """``counts[j]``: the sensor model's beams (rings ``r_lo[j] ..`` x the first ``n_az[j]``

@@ -1,0 +1,264 @@
+"""Compiled CPU inference loops of the PCN encoder and the folding decoder (numba).
+
+Why: in eager PyTorch every step of a chunk is an operator call (5-10 us of dispatch) and a
+pass through memory: the max-pooling scatters, the ReLUs, the folding decoder's broadcast adds
+and its 3-wide output layer (a matrix product at a fifth of the matmul rate) took a fifth of
+the network's time (``pcc bench complete``). Here a chunk's matrix products are the same MKL
+``sgemm`` ``torch.mm`` runs (libtorch's own, called from the compiled code, the calling
+thread's MKL thread count set to torch's), and the work between them is fused loops over the
+chunk's rows while they are in cache (bias, ReLU, max-pooling, broadcast add, the 3-wide output
+layer with its residual), with no Python between them. The functions are the layers' inference
+paths (``layers.PCNEncoder._forward_chunked``, ``layers.FoldingDecoder._fold_chunked``), same
+weights, same folded constants; float rounding differs in the last bits (``pcc bench complete``
+and the tests compare them with the original path).
+
+Used on CPU float32 inference only (:func:`pcc_ros.models.layers.compiled_kernels`); compiled on
+first use and cached on disk like the filter's kernels (:func:`warm_up` at model load).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import threading
+
+import numpy as np
+import torch
+from numba import njit, types
+
+from pcc_ros.jit import compiled
+
+
+def _libtorch_blas():
+    """libtorch's Fortran ``sgemm_`` (MKL on x86) as a numba external function (resolved by name
+    when a kernel is linked, so the kernels can be cached) and MKL's per-thread thread count, or
+    ``(None, None)`` where this torch build has no such symbols."""
+    path = os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so")
+    try:
+        lib = ctypes.CDLL(path)
+        lib.sgemm_  # noqa: B018  (raises AttributeError where absent)
+        threads = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_int)(("MKL_Set_Num_Threads_Local", lib))  # by value
+    except (OSError, AttributeError):
+        return None, None
+    import llvmlite.binding
+
+    llvmlite.binding.load_library_permanently(path)
+    return types.ExternalFunction("sgemm_", types.void(*([types.intp] * 13))), threads
+
+
+_sgemm, _set_threads = _libtorch_blas()
+AVAILABLE = _sgemm is not None
+
+
+_threads = threading.local()
+
+
+def set_threads(n: int) -> None:
+    """MKL's thread count for the calling thread's products (torch's intra-op threads); set only
+    when it changes (MKL re-plans on every call that sets it)."""
+    if _set_threads is not None and getattr(_threads, "n", None) != n:
+        _set_threads(int(n))
+        _threads.n = n
+
+
+@njit(inline="always")
+def _mm(a, b, c, ints, floats, chars):
+    """``c = a @ b`` (row-major, unit inner strides): column-major ``c^T = b^T a^T``."""
+    m, k = a.shape
+    n = b.shape[1]
+    ints[0], ints[1], ints[2] = n, m, k
+    ints[3], ints[4], ints[5] = b.strides[0] // 4, a.strides[0] // 4, c.strides[0] // 4
+    floats[0], floats[1] = 1.0, 0.0
+    _sgemm(chars.ctypes.data, chars.ctypes.data, ints[0:].ctypes.data, ints[1:].ctypes.data,
+           ints[2:].ctypes.data, floats[0:].ctypes.data, b.ctypes.data, ints[3:].ctypes.data,
+           a.ctypes.data, ints[4:].ctypes.data, floats[1:].ctypes.data, c.ctypes.data, ints[5:].ctypes.data)
+
+
+@compiled()
+def pcn_encode(points, counts, rows, w0t, b0, w1t, wct, wst, const, w2t, b2, out, t, f, h, y, g, gp):
+    """The PCN encoder's composed inference path (points sorted by segment, ``counts`` per
+    segment) on chunks of whole segments of about ``rows`` rows (one longer segment alone):
+    ``t = relu(p W0^T + b0)``, ``g = max_seg(t W1^T)``, ``h = relu(t Wc + (g Ws + const)[seg])``,
+    ``out = max_seg(h W2^T) + b2`` (0 for an empty segment).
+    ``t, f, h, y``: work arrays of ``max(rows, largest segment)`` rows; ``g, gp``: of a row per
+    segment."""
+    ints = np.empty(6, np.int32)
+    floats = np.empty(2, np.float32)
+    chars = np.full(1, 78, np.uint8)  # "N": no transposes
+    c0, c1, hp, c2 = w0t.shape[1], w1t.shape[1], wct.shape[1], w2t.shape[1]
+    segments = len(counts)
+    starts = np.zeros(segments + 1, np.int64)
+    for s in range(segments):
+        starts[s + 1] = starts[s] + counts[s]
+    slo = 0
+    while slo < segments:
+        shi = slo + 1
+        while shi < segments and starts[shi + 1] - starts[slo] <= rows:
+            shi += 1
+        a, r = starts[slo], starts[shi] - starts[slo]
+        tt = t[:r]
+        for i in range(r):
+            x0, x1, x2 = points[a + i, 0], points[a + i, 1], points[a + i, 2]
+            row = tt[i]
+            for j in range(c0):
+                row[j] = max(x0 * w0t[0, j] + x1 * w0t[1, j] + x2 * w0t[2, j] + b0[j], np.float32(0.0))
+        ff = f[:r]
+        _mm(tt, w1t, ff, ints, floats, chars)
+        gg = g[: shi - slo]
+        for s in range(slo, shi):
+            acc = gg[s - slo]
+            acc[:] = -np.inf
+            for i in range(starts[s] - a, starts[s + 1] - a):
+                row = ff[i]
+                for j in range(c1):
+                    acc[j] = max(acc[j], row[j])
+        gpc = gp[: shi - slo]
+        _mm(gg, wst, gpc, ints, floats, chars)
+        hh = h[:r]
+        _mm(tt, wct, hh, ints, floats, chars)
+        for s in range(slo, shi):
+            seg = gpc[s - slo]
+            for j in range(hp):
+                seg[j] += const[j]
+            for i in range(starts[s] - a, starts[s + 1] - a):
+                row = hh[i]
+                for j in range(hp):
+                    row[j] = max(row[j] + seg[j], np.float32(0.0))
+        yy = y[:r]
+        _mm(hh, w2t, yy, ints, floats, chars)
+        for s in range(slo, shi):
+            acc = out[s]
+            if starts[s + 1] == starts[s]:
+                acc[:] = 0.0
+                continue
+            acc[:] = yy[starts[s] - a]
+            for i in range(starts[s] - a + 1, starts[s + 1] - a):
+                row = yy[i]
+                for j in range(c2):
+                    acc[j] = max(acc[j], row[j])
+            for j in range(c2):
+                acc[j] += b2[j]
+        slo = shi
+
+
+@compiled(fastmath=True)
+def fold(coarse, wpt, code_proj, grid, w1t, b1, w2, b2, out, m, step, hbuf, xbuf):
+    """The folding step (one hidden layer): for every code ``s``, coarse point ``k`` and grid
+    point ``g``, ``out = (coarse[s, k] + b2) + W2 relu(W1 h + b1)`` with ``h = relu(coarse[s, k]
+    Wp^T + code_proj[s] + grid[g])``, into ``out[s // m, (s % m) K G + k G + g]``, ``step``
+    codes per chunk (``hbuf`` / ``xbuf``: work arrays of ``step K G`` rows). Fast-math: sums may
+    be reassociated (float rounding in the last bits)."""
+    ints = np.empty(6, np.int32)
+    floats = np.empty(2, np.float32)
+    chars = np.full(1, 78, np.uint8)
+    codes, k_points = coarse.shape[0], coarse.shape[1]
+    hdim, g_points, h1 = wpt.shape[1], grid.shape[0], w1t.shape[1]
+    base = np.empty(hdim, np.float32)
+    for start in range(0, codes, step):
+        stop = min(start + step, codes)
+        r = (stop - start) * k_points * g_points
+        row = 0
+        for s in range(start, stop):
+            cp = code_proj[s]
+            for k in range(k_points):
+                x0, x1, x2 = coarse[s, k, 0], coarse[s, k, 1], coarse[s, k, 2]
+                for j in range(hdim):
+                    base[j] = x0 * wpt[0, j] + x1 * wpt[1, j] + x2 * wpt[2, j] + cp[j]
+                for gi in range(g_points):
+                    gr = grid[gi]
+                    hr = hbuf[row]
+                    for j in range(hdim):
+                        hr[j] = max(base[j] + gr[j], np.float32(0.0))
+                    row += 1
+        xs = xbuf[:r]
+        _mm(hbuf[:r], w1t, xs, ints, floats, chars)
+        row = 0
+        for s in range(start, stop):
+            q, p0 = s // m, (s % m) * k_points * g_points
+            for k in range(k_points):
+                sp0, sp1, sp2 = coarse[s, k, 0] + b2[0], coarse[s, k, 1] + b2[1], coarse[s, k, 2] + b2[2]
+                for gi in range(g_points):
+                    x = xs[row]
+                    a0 = a1 = a2 = np.float32(0.0)
+                    for j in range(h1):
+                        v = max(x[j] + b1[j], np.float32(0.0))
+                        a0 += w2[0, j] * v
+                        a1 += w2[1, j] * v
+                        a2 += w2[2, j] * v
+                    o = p0 + k * g_points + gi
+                    out[q, o, 0] = sp0 + a0
+                    out[q, o, 1] = sp1 + a1
+                    out[q, o, 2] = sp2 + a2
+                    row += 1
+
+
+@compiled()
+def octant_pairs(points, lengths, overlap):
+    """Every (point, octant) membership of a packed batch (``lengths`` points per instance), as
+    ``(point index, instance * 8 + octant)`` grouped by the latter, ascending (a counting sort;
+    within a group a point's own octant's members come first, then the points it shares from
+    the overlap bands, each in point order). A point lies in its own octant (``bit0 = x >= 0``,
+    ``bit1 = y >= 0``, ``bit2 = z >= 0``) and, within ``overlap`` of a coordinate plane, in the
+    octants across it: the memberships of :func:`pcc_ros.geometry.partitions.octant_masks`
+    (the comparisons in the points' precision)."""
+    p, instances = points.shape[0], len(lengths)
+    counts = np.zeros(instances * 8 + 1, np.int64)
+    key = np.empty(p, np.int64)  # instance * 8 + own octant
+    shared = np.zeros(p, np.int64)  # bit o: also in octant o
+    zero, below = points.dtype.type(0), -overlap
+    i = 0
+    for s in range(instances):
+        for _ in range(lengths[s]):
+            x, y, z = points[i, 0], points[i, 1], points[i, 2]
+            own = (1 if x >= zero else 0) | (2 if y >= zero else 0) | (4 if z >= zero else 0)
+            key[i] = s * 8 + own
+            counts[key[i] + 1] += 1
+            px, py, pz = x >= below, y >= below, z >= below  # may be on the >= 0 side
+            nx, ny, nz = x < overlap, y < overlap, z < overlap  # may be on the < 0 side
+            if (px and nx) or (py and ny) or (pz and nz):
+                for o in range(8):
+                    if o != own and (px if o & 1 else nx) and (py if o & 2 else ny) and (pz if o & 4 else nz):
+                        shared[i] |= 1 << o
+                        counts[s * 8 + o + 1] += 1
+            i += 1
+    for c in range(1, len(counts)):
+        counts[c] += counts[c - 1]
+    point_index = np.empty(counts[-1], np.int64)
+    local = np.empty(counts[-1], np.int64)
+    fill = counts[:-1].copy()
+    for i in range(p):
+        point_index[fill[key[i]]] = i
+        local[fill[key[i]]] = key[i]
+        fill[key[i]] += 1
+    for i in range(p):
+        if shared[i]:
+            base = key[i] - key[i] % 8
+            for o in range(8):
+                if shared[i] >> o & 1:
+                    point_index[fill[base + o]] = i
+                    local[fill[base + o]] = base + o
+                    fill[base + o] += 1
+    return point_index, local
+
+
+def warm_up() -> None:
+    """Compile every kernel for the argument types inference passes (numba compiles on first
+    call, or loads its disk cache: seconds the first time on a machine, about 0.3 s after), on
+    tiny arrays, so a model's first real batch does not pay for it: ``fold`` for an output of
+    its own and for a view of a bigger one (PointPnCNet's global points and octants)."""
+    if not AVAILABLE:
+        return
+    f32 = np.float32
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(6, 3)).astype(f32)
+    octant_pairs(points, np.array([4, 2], np.int64), f32(0.005))
+
+    def w(*shape):
+        return rng.normal(size=shape).astype(f32)
+
+    pcn_encode(points, np.array([4, 2], np.int64), 4, w(3, 2), w(2), w(2, 3), w(2, 3), w(3, 3), w(3), w(3, 4), w(4),
+               np.empty((2, 4), f32), *(np.empty((4, n), f32) for n in (2, 3, 3, 4)), np.empty((2, 3), f32),
+               np.empty((2, 3), f32))
+    for out in (np.empty((2, 4, 3), f32), np.empty((2, 9, 3), f32)[:, 5:]):
+        fold(w(2, 2, 3), w(3, 5), w(2, 5), w(2, 5), w(5, 4), w(4), w(3, 4), w(3), out, 1, 1, np.empty((4, 5), f32),
+             np.empty((4, 4), f32))
