@@ -3,7 +3,7 @@ every import counted (module level and inside functions alike).
 
 Layers, lowest first — a module may import its own layer and the ones below, never above:
 
-0. base: the shared nouns and helpers (``errors``, ``types``, ``files``, ``paths``, ``scratch``,
+0. base: the shared nouns and helpers (``errors``, ``types``, ``files``, ``paths``, ``scratch``, ``jit``,
    ``tables``, ``assignments``, ``lograte``, the package itself);
 1. ``geometry/``: numpy math on boxes and rotations (the one ``box_corners``, the one
    quaternion convention);
@@ -41,6 +41,7 @@ EXACT = {
     "pcc_ros.types": 0,
     "pcc_ros.files": 0,
     "pcc_ros.scratch": 0,
+    "pcc_ros.jit": 0,  # numba compilation of the compiled kernels (filter, networks)
     "pcc_ros.paths": 0,
     "pcc_ros.tables": 0,
     "pcc_ros.assignments": 0,

@@ -8,12 +8,14 @@ the network's time (``pcc bench complete``). Here a chunk's matrix products are 
 thread's MKL thread count set to torch's), and the work between them is fused loops over the
 chunk's rows while they are in cache (bias, ReLU, max-pooling, broadcast add, the 3-wide output
 layer with its residual), with no Python between them. The functions are the layers' inference
-paths (``layers.PCNEncoder._forward_chunked``, ``layers.FoldingDecoder._fold_chunked``), same
-weights, same folded constants; float rounding differs in the last bits (``pcc bench complete``
-and the tests compare them with the original path).
+paths (``layers.PCNEncoder._forward_compiled``, ``layers.FoldingDecoder._fold_compiled``; the
+torch-operator versions beside them stay for other layer shapes, the GPU and the comparison),
+same weights, same folded constants; float rounding differs in the last bits (``pcc bench
+complete`` and the tests compare them with the original path).
 
-Used on CPU float32 inference only (:func:`pcc_ros.models.layers.compiled_kernels`); compiled on
-first use and cached on disk like the filter's kernels (:func:`warm_up` at model load).
+Used on CPU float32 inference only (:func:`pcc_ros.models.layers.compiled_kernels` switches them
+off); compiled on first use and cached on disk (:func:`pcc_ros.jit.compiled`; :func:`warm_up` at
+model load).
 """
 
 from __future__ import annotations
