@@ -39,6 +39,11 @@ CHUNK_BYTES = 5 << 19
 #: and a barrier stalls whenever another process holds one of the cores: there, fewer and
 #: larger operators win (measured with ``pcc bench complete``), so chunks grow by this factor.
 MULTI_THREAD_CHUNK_FACTOR = 16
+#: Bytes of intermediates per chunk of the compiled loops (:mod:`pcc_ros.models.kernels`): they
+#: keep every layer's output of a chunk in its own work array (no buffer shared between two
+#: layers as the operator path does), and half the operator path's budget measured about 1 %
+#: faster on the whole network (``pcc bench complete``, 1 thread; a third: the same).
+COMPILED_CHUNK_BYTES = CHUNK_BYTES // 2
 #: A reused inference buffer (:class:`_Workspace`) bigger than this is not kept between calls
 #: (the ``paper`` size's wide layers in multi-thread chunks would hold hundreds of MiB).
 WORKSPACE_KEEP_BYTES = 16 << 20
@@ -48,9 +53,10 @@ def _chunk_rows(rows: int) -> int:
     return rows if torch.get_num_threads() == 1 else rows * MULTI_THREAD_CHUNK_FACTOR
 
 
-def _rows_for(widths: Sequence[int]) -> int:
-    """Rows per chunk when each row has float32 intermediates of these ``widths`` (:data:`CHUNK_BYTES`)."""
-    return _chunk_rows(max(1, CHUNK_BYTES // (4 * max(1, sum(widths)))))
+def _rows_for(widths: Sequence[int], budget: int | None = None) -> int:
+    """Rows per chunk when each row has float32 intermediates of these ``widths`` (``budget``
+    bytes, default :data:`CHUNK_BYTES`)."""
+    return _chunk_rows(max(1, (budget or CHUNK_BYTES) // (4 * max(1, sum(widths)))))
 
 _reference = False
 
@@ -397,7 +403,7 @@ class PCNEncoder(nn.Module):
         last, s = rest[0], num_segments
         counts = np.bincount(seg, minlength=s)
         c0, c1, hp = first[0].out_features, first[1].out_features, self.point_proj.out_features
-        rows = _rows_for([c0, c1, hp, self.out_dim])
+        rows = _rows_for([c0, c1, hp, self.out_dim], COMPILED_CHUNK_BYTES)
         most = max(rows, int(counts.max()))
         wc, const = self._folded(True)
         deps = (self.point_proj.weight, self.point_proj.bias, self.segment_proj.weight, *first[0].parameters(),
@@ -558,10 +564,12 @@ class FoldingDecoder(nn.Module):
         if out is None:
             out = torch.empty(s, k * g, 3, dtype=coarse.dtype, device=coarse.device)
         m = s // out.shape[0] if out.shape[0] else 1  # codes per row of out
-        step = max(1, _rows_for([hdim, *(lin.out_features for lin in layers)]) // (k * g * m)) * m
+        widths = [hdim, *(lin.out_features for lin in layers)]
         kernels = _kernels_for(code) if len(layers) == 2 and layers[1].out_features == 3 else None
         if kernels is not None:  # the same steps as the loop below, compiled
+            step = max(1, _rows_for(widths, COMPILED_CHUNK_BYTES) // (k * g * m)) * m
             return self._fold_compiled(kernels, code, coarse, out, m, step)
+        step = max(1, _rows_for(widths) // (k * g * m)) * m
         ws = _workspace
         grid = self.fold_grid(self.grid)  # (G, H)
         plan, last = _plan(layers[:-1]), layers[-1]
