@@ -394,7 +394,8 @@ class PCNEncoder(nn.Module):
         loops switched off, other than two ``mlp1`` layers composed with one ``mlp2`` layer,
         segments not sorted), and :meth:`_forward_chunked` runs instead."""
         first, rest = _linears(self.mlp1), _linears(self.mlp2)
-        if len(first) != 2 or len(rest) != 1 or first[1].in_features >= first[1].out_features or not len(points):
+        if (len(first) != 2 or len(rest) != 1 or first[1].in_features >= first[1].out_features
+                or first[0].bias is None or not len(points)):
             return None
         kernels = _kernels_for(points)
         seg = segment.numpy() if kernels is not None else None
@@ -565,7 +566,8 @@ class FoldingDecoder(nn.Module):
             out = torch.empty(s, k * g, 3, dtype=coarse.dtype, device=coarse.device)
         m = s // out.shape[0] if out.shape[0] else 1  # codes per row of out
         widths = [hdim, *(lin.out_features for lin in layers)]
-        kernels = _kernels_for(code) if len(layers) == 2 and layers[1].out_features == 3 else None
+        kernels = _kernels_for(code) if len(layers) == 2 and layers[1].out_features == 3 and \
+            layers[0].bias is not None else None
         if kernels is not None:  # the same steps as the loop below, compiled
             step = max(1, _rows_for(widths, COMPILED_CHUNK_BYTES) // (k * g * m)) * m
             return self._fold_compiled(kernels, code, coarse, out, m, step)
@@ -590,7 +592,6 @@ class FoldingDecoder(nn.Module):
             dest = out[start // m : stop // m].view(n // m, m, k, g, 3)
             torch.add(start_points[start:stop].view(n // m, m, k, 1, 3), yt.t().view(n // m, m, k, g, 3), out=dest)
         return out
-
 
     def _fold_compiled(self, kernels, code: torch.Tensor, coarse: torch.Tensor, out: torch.Tensor, m: int,
                        step: int) -> torch.Tensor:
