@@ -213,7 +213,8 @@ class PointPnCNetNet(nn.Module):
             if using_reference_path():  # segment_reduce needs sorted segments; the scatter max does not
                 order = torch.argsort(local_segment, stable=True)
                 point_idx, local_segment = point_idx[order], local_segment[order]
-        if points.device.type == "cpu" and not points.requires_grad:  # numpy's gather: a fifth of torch's here
+        if points.device.type == "cpu" and points.dtype == torch.float32 and not points.requires_grad:
+            # numpy's gather: a fifth of torch's here (numpy has no bfloat16: half precision gathers in torch)
             local_points = torch.from_numpy(points.numpy().take(point_idx.numpy(), axis=0))
         else:
             local_points = points[point_idx]
