@@ -584,7 +584,7 @@ class TorchCompleter(Completer):
         if self.device.type == "cpu" and not self.half_precision:
             from pcc_ros.models.layers import warm_up_kernels
 
-            warm_up_kernels()  # the compiled CPU loops, before the first batch
+            warm_up_kernels(self.model)  # the compiled CPU loops its layers run, before the first batch
         #: What the weights were trained on, their metrics ... (from a loaded checkpoint).
         self.checkpoint_config: dict[str, Any] | None = None
 

@@ -56,8 +56,8 @@ _threads = threading.local()
 
 
 def set_threads(n: int) -> None:
-    """MKL's thread count for the calling thread's products (torch's intra-op threads); set only
-    when it changes (MKL re-plans on every call that sets it)."""
+    """MKL's thread count for the calling thread's products (torch's intra-op threads); the
+    ctypes call is made only when the count changes, not once per kernel call."""
     if _set_threads is not None and getattr(_threads, "n", None) != n:
         _set_threads(int(n))
         _threads.n = n

@@ -39,11 +39,11 @@ CHUNK_BYTES = 5 << 19
 #: and a barrier stalls whenever another process holds one of the cores: there, fewer and
 #: larger operators win (measured with ``pcc bench complete``), so chunks grow by this factor.
 MULTI_THREAD_CHUNK_FACTOR = 16
-#: Bytes of intermediates per chunk of the compiled loops (:mod:`pcc_ros.models.kernels`): they
-#: keep every layer's output of a chunk in its own work array (no buffer shared between two
-#: layers as the operator path does), and half the operator path's budget measured about 1 %
+#: The compiled loops (:mod:`pcc_ros.models.kernels`) chunk with :data:`CHUNK_BYTES` divided by
+#: this: they keep every layer's output of a chunk in its own work array (no buffer shared between
+#: two layers as the operator path does), and half the operator path's budget measured about 1 %
 #: faster on the whole network (``pcc bench complete``, 1 thread; a third: the same).
-COMPILED_CHUNK_BYTES = CHUNK_BYTES // 2
+COMPILED_CHUNK_DIVISOR = 2
 #: A reused inference buffer (:class:`_Workspace`) bigger than this is not kept between calls
 #: (the ``paper`` size's wide layers in multi-thread chunks would hold hundreds of MiB).
 WORKSPACE_KEEP_BYTES = 16 << 20
@@ -53,10 +53,11 @@ def _chunk_rows(rows: int) -> int:
     return rows if torch.get_num_threads() == 1 else rows * MULTI_THREAD_CHUNK_FACTOR
 
 
-def _rows_for(widths: Sequence[int], budget: int | None = None) -> int:
-    """Rows per chunk when each row has float32 intermediates of these ``widths`` (``budget``
-    bytes, default :data:`CHUNK_BYTES`)."""
-    return _chunk_rows(max(1, (budget or CHUNK_BYTES) // (4 * max(1, sum(widths)))))
+def _rows_for(widths: Sequence[int], compiled: bool = False) -> int:
+    """Rows per chunk when each row has float32 intermediates of these ``widths``
+    (:data:`CHUNK_BYTES`; for the ``compiled`` loops that over :data:`COMPILED_CHUNK_DIVISOR`)."""
+    budget = CHUNK_BYTES // COMPILED_CHUNK_DIVISOR if compiled else CHUNK_BYTES
+    return _chunk_rows(max(1, budget // (4 * max(1, sum(widths)))))
 
 _reference = False
 
@@ -99,10 +100,11 @@ def compiled_kernels(enabled: bool = True) -> Iterator[None]:
         _kernels_enabled = previous
 
 
-def warm_up_kernels() -> None:
-    """Compile the fast path's CPU loops now (:func:`pcc_ros.models.kernels.warm_up`), unless
-    they are switched off (:func:`compiled_kernels`)."""
-    if _kernels_enabled:
+def warm_up_kernels(model: nn.Module) -> None:
+    """Compile the fast path's CPU loops now (:func:`pcc_ros.models.kernels.warm_up`) when
+    ``model`` has layers that run them (a PCN encoder or a folding decoder), unless they are
+    switched off (:func:`compiled_kernels`)."""
+    if _kernels_enabled and any(isinstance(m, PCNEncoder | FoldingDecoder) for m in model.modules()):
         from pcc_ros.models import kernels
 
         kernels.warm_up()
@@ -404,7 +406,7 @@ class PCNEncoder(nn.Module):
         last, s = rest[0], num_segments
         counts = np.bincount(seg, minlength=s)
         c0, c1, hp = first[0].out_features, first[1].out_features, self.point_proj.out_features
-        rows = _rows_for([c0, c1, hp, self.out_dim], COMPILED_CHUNK_BYTES)
+        rows = _rows_for([c0, c1, hp, self.out_dim], compiled=True)
         most = max(rows, int(counts.max()))
         wc, const = self._folded(True)
         deps = (self.point_proj.weight, self.point_proj.bias, self.segment_proj.weight, *first[0].parameters(),
@@ -565,13 +567,12 @@ class FoldingDecoder(nn.Module):
         if out is None:
             out = torch.empty(s, k * g, 3, dtype=coarse.dtype, device=coarse.device)
         m = s // out.shape[0] if out.shape[0] else 1  # codes per row of out
-        widths = [hdim, *(lin.out_features for lin in layers)]
         kernels = _kernels_for(code) if len(layers) == 2 and layers[1].out_features == 3 and \
             layers[0].bias is not None else None
+        widths = [hdim, *(lin.out_features for lin in layers)]
+        step = max(1, _rows_for(widths, compiled=kernels is not None) // (k * g * m)) * m
         if kernels is not None:  # the same steps as the loop below, compiled
-            step = max(1, _rows_for(widths, COMPILED_CHUNK_BYTES) // (k * g * m)) * m
             return self._fold_compiled(kernels, code, coarse, out, m, step)
-        step = max(1, _rows_for(widths) // (k * g * m)) * m
         ws = _workspace
         grid = self.fold_grid(self.grid)  # (G, H)
         plan, last = _plan(layers[:-1]), layers[-1]
