@@ -34,6 +34,17 @@ class Scratch(threading.local):
                 self.buffers[name] = buf
         return buf[:n]
 
+    def whole(self, name: str, dtype) -> np.ndarray:
+        """All of ``name``'s buffer (empty if none yet), for a compiled kernel that sizes its
+        own work memory and grows it when short; :meth:`keep` what it returns."""
+        buf = self.buffers.get(name)
+        return buf if buf is not None and buf.dtype == dtype else np.empty(0, dtype)
+
+    def keep(self, name: str, buf: np.ndarray) -> None:
+        """Hand ``buf`` out for ``name`` from now on (see :meth:`whole`)."""
+        if buf.nbytes <= MAX_KEPT_BYTES:
+            self.buffers[name] = buf
+
     def nonzero(self, mask: np.ndarray, name: str) -> np.ndarray:
         """``np.flatnonzero(mask)`` into a kept buffer (through a transient array: numpy's
         nonzero and a copy cost about half of ``np.compress`` into the buffer)."""

@@ -299,3 +299,85 @@ def test_workspace_keeps_small_buffers_and_drops_big_ones(monkeypatch):
     assert ws.get(owner, "y", 10, 20, like).data_ptr() != a.data_ptr()  # another slot, another buffer
     big = ws.get(owner, "x", 100, 20, like)  # 8000 bytes: fresh, not kept
     assert big.shape == (100, 20) and ws.get(owner, "x", 100, 20, like).data_ptr() != big.data_ptr()
+
+
+def _pointpncnet_batch(seed: int, sizes: tuple[int, ...]):
+    from pcc_ros.models import create
+    from pcc_ros.models.pointpncnet import pack
+
+    torch.manual_seed(seed)
+    completer = create("pointpncnet", device="cpu", batch_size=len(sizes))
+    rng = np.random.default_rng(seed)
+    clouds = [(rng.uniform(-1, 1, (n, 3)) * [0.5, 0.2, 0.15]).astype(np.float32) for n in sizes]
+    clouds[0][:] = [0.1, 0.05, 0.02]  # every point in one octant: the others absent
+    return completer, pack(clouds, float(completer.config["region_overlap"]), pairs=True)
+
+
+def _run(net, packed, layer_by_layer: bool, monkeypatch):
+    """The network's outputs on ``packed``, in one compiled call or layer by layer."""
+    from pcc_ros.models.pointpncnet import PointPnCNetNet
+
+    out = torch.empty(packed.batch_size, net.num_global_points + 8 * net.num_local_points, 3)
+    with monkeypatch.context() as patch, torch.inference_mode():
+        if layer_by_layer:
+            patch.setattr(PointPnCNetNet, "_forward_compiled", lambda *args: None)
+        y_global, y_local, present = net(packed.points, packed.segment, None, packed.batch_size, packed.pairs,
+                                         out=out)
+    return y_global.clone(), y_local.clone(), present.clone()
+
+
+@pytest.mark.parametrize("chunk_bytes", [None, 3000])  # the default chunks, or many small ones
+def test_pointpncnet_in_one_compiled_call_equals_the_layers_one_by_one(monkeypatch, _compiled_loops, chunk_bytes):
+    """PointPnCNetNet's whole-network kernel (kernels.pointpncnet_infer) against the same layers
+    run one by one: a cloud with one octant, tiny clouds (no octant with enough points) and
+    bigger ones, in one chunk or in many."""
+    from pcc_ros.models import kernels
+
+    if chunk_bytes is not None:
+        monkeypatch.setattr(layers, "CHUNK_BYTES", chunk_bytes)
+    completer, packed = _pointpncnet_batch(21, (40, 2, 300, 1, 900, 60))
+    calls = []
+    infer = kernels.pointpncnet_infer
+    monkeypatch.setattr(kernels, "pointpncnet_infer", lambda *args: calls.append(1) or infer(*args))
+    whole = _run(completer.model, packed, False, monkeypatch)
+    assert len(calls) == (1 if _compiled_loops and kernels.AVAILABLE else 0)
+    one_by_one = _run(completer.model, packed, True, monkeypatch)
+    assert len(calls) == len(calls[:1])  # the layers' path never calls it
+    for a, b in zip(whole, one_by_one):
+        torch.testing.assert_close(a, b, rtol=0, atol=2e-5)
+    assert whole[2][0].sum() == 1 and not whole[2][1].any() and not whole[2][3].any()  # one octant, then none
+
+
+def test_pointpncnet_compiled_call_grows_its_work_memory_and_keeps_it(monkeypatch, _compiled_loops):
+    from pcc_ros.models import kernels
+    from pcc_ros.models.pointpncnet import SCRATCH
+
+    monkeypatch.setattr(SCRATCH, "buffers", {})
+    small_completer, small = _pointpncnet_batch(22, (30, 20))
+    small_net = small_completer.model
+    first = _run(small_net, small, False, monkeypatch)
+    kept = SCRATCH.whole("network", np.float32)
+    if not (_compiled_loops and kernels.AVAILABLE):  # the layers ran one by one: no such memory
+        assert len(kept) == 0
+        return
+    assert len(kept) > 0
+    completer, big = _pointpncnet_batch(22, (30, 20, 800, 20000, 700))  # one segment longer than any chunk
+    _run(completer.model, big, False, monkeypatch)
+    grown = SCRATCH.whole("network", np.float32)
+    assert len(grown) > len(kept)
+    again = _run(small_net, small, False, monkeypatch)  # through the grown memory: the same values
+    assert SCRATCH.whole("network", np.float32) is grown
+    for a, b in zip(first, again):
+        assert torch.equal(a, b)
+
+
+def test_pointpncnet_with_unsorted_octant_pairs_runs_layer_by_layer(monkeypatch):
+    """The one-call kernel needs the pairs grouped by octant; otherwise the layers run (same values)."""
+    completer, packed = _pointpncnet_batch(23, (50, 80, 20))
+    expected = _run(completer.model, packed, True, monkeypatch)
+    point_index, local = packed.pairs
+    order = torch.from_numpy(np.random.default_rng(0).permutation(len(local)))
+    packed.pairs = (point_index[order], local[order])
+    got = _run(completer.model, packed, False, monkeypatch)
+    for a, b in zip(got, expected):
+        torch.testing.assert_close(a, b, rtol=0, atol=2e-5)

@@ -195,6 +195,173 @@ def fold(coarse, wpt, code_proj, grid, w1t, b1, w2, b2, out, m, step, hbuf, xbuf
 
 
 @compiled()
+def dense(x, weights, biases, dims, out, work):
+    """``x`` through fully connected layers: layer ``l`` maps ``dims[l]`` to ``dims[l + 1]``
+    columns, its transposed weight ``(dims[l], dims[l + 1])`` and its bias stored one after the
+    other in the flat ``weights`` / ``biases``; ReLU after every layer but the last, which
+    writes ``out``. ``work``: at least ``2 * rows * max(dims[1:-1])`` floats (hidden layers)."""
+    ints = np.empty(6, np.int32)
+    floats = np.empty(2, np.float32)
+    chars = np.full(1, 78, np.uint8)
+    rows, layers = x.shape[0], len(dims) - 1
+    src = x
+    wo = bo = 0
+    for layer in range(layers):
+        k, n = dims[layer], dims[layer + 1]
+        if layer == layers - 1:
+            dst = out
+        else:  # the hidden layers alternate between the two halves of work
+            half = (layer % 2) * (len(work) // 2)
+            dst = work[half: half + rows * n].reshape((rows, n))
+        _mm(src, weights[wo: wo + k * n].reshape((k, n)), dst, ints, floats, chars)
+        bias = biases[bo: bo + n]
+        relu = layer < layers - 1
+        for i in range(rows):
+            row = dst[i]
+            for j in range(n):
+                v = row[j] + bias[j]
+                row[j] = max(v, np.float32(0.0)) if relu else v
+        wo += k * n
+        bo += n
+        src = dst
+
+
+@compiled()
+def sorted_counts(segment, segments):
+    """Rows per segment id of a sorted ``segment`` (ids in ``[0, segments)``), or an empty
+    array where it is not sorted or out of range (the caller takes the general path)."""
+    counts = np.zeros(segments, np.int64)
+    previous = 0
+    for i in range(len(segment)):
+        s = segment[i]
+        if s < previous or s >= segments:
+            return np.zeros(0, np.int64)
+        counts[s] += 1
+        previous = s
+    return counts
+
+
+@njit(inline="always")
+def _carve(work, offset, rows, cols):
+    """A ``(rows, cols)`` view of ``work`` from ``offset`` and the offset after it."""
+    return work[offset: offset + rows * cols].reshape((rows, cols)), offset + rows * cols
+
+
+@njit(inline="always")
+def _encoder_floats(enc, most, segments):
+    """Work floats :func:`_encode` carves (``most``: its chunk's rows)."""
+    return most * (enc[0].shape[1] + enc[2].shape[1] + enc[3].shape[1] + enc[6].shape[1]) + \
+        segments * (enc[2].shape[1] + enc[3].shape[1])
+
+
+@njit(inline="always")
+def _encode(enc, points, counts, rows, most, pooled, work):
+    """:func:`pcn_encode` with its work arrays carved from ``work``."""
+    t, o = _carve(work, 0, most, enc[0].shape[1])
+    f, o = _carve(work, o, most, enc[2].shape[1])
+    h, o = _carve(work, o, most, enc[3].shape[1])
+    y, o = _carve(work, o, most, enc[6].shape[1])
+    g, o = _carve(work, o, len(counts), enc[2].shape[1])
+    gp, o = _carve(work, o, len(counts), enc[3].shape[1])
+    pcn_encode(points, counts, rows, enc[0], enc[1], enc[2], enc[3], enc[4], enc[5], enc[6], enc[7], pooled,
+               t, f, h, y, g, gp)
+
+
+@njit(inline="always")
+def _decoder_floats(dec, codes, step):
+    """Work floats :func:`_decode` uses for ``codes`` codes."""
+    fc = dec[2]
+    hidden = 2 * codes * fc[1:-1].max() if len(fc) > 2 else 0
+    return max(hidden, min(step, codes) * (fc[-1] // 3) * dec[6].shape[0] * (dec[7].shape[1] + dec[8].shape[1]))
+
+
+@njit(inline="always")
+def _decode(dec, code, step, m, out, work):
+    """A folding decoder (``dec``: see :func:`pointpncnet_infer`) from ``code`` into ``out``."""
+    s, k = code.shape[0], dec[2][-1] // 3
+    coarse = np.empty((s, k * 3), np.float32)
+    dense(code, dec[0], dec[1], dec[2], coarse, work)
+    proj = np.empty((s, dec[5][-1]), np.float32)
+    dense(code, dec[3], dec[4], dec[5], proj, work)
+    rows = min(step, s) * k * dec[6].shape[0]
+    hbuf, o = _carve(work, 0, rows, dec[7].shape[1])
+    xbuf, o = _carve(work, o, rows, dec[8].shape[1])
+    fold(coarse.reshape((s, k, 3)), dec[7], proj, dec[6], dec[8], dec[9], dec[10], dec[11], out, m, step, hbuf, xbuf)
+
+
+@compiled()
+def pointpncnet_infer(points, counts, point_index, local_counts, min_points, genc, grows, lenc, lrows,
+                      attention, gdec, gstep, ldec, lstep, out, present, work):
+    """PointPnCNet's whole inference (``PointPnCNetNet.forward`` on the fast path) in one call,
+    no Python between its steps: the global encoder over ``points`` (``counts`` per instance,
+    sorted), the local one over the gathered ``points[point_index]`` (``local_counts`` per
+    instance and octant), the attention-weighted fusion, and both folding decoders into ``out``
+    ``(B, Mg + 8 Ml, 3)`` (the global points, then the octants'); ``present`` ``(B, 8)`` gets the
+    octants with at least ``min_points`` points.
+
+    ``genc`` / ``lenc``: :func:`pcn_encode`'s weights, ``grows`` / ``lrows`` its chunk rows;
+    ``attention``: :func:`dense`'s ``(weights, biases, dims)``; ``gdec`` / ``ldec``: the fully
+    connected layers' and the code projection's ``(weights, biases, dims)`` then :func:`fold`'s
+    ``grid, wpt, w1t, b1, w2, b2``; ``gstep`` / ``lstep``: codes per folding chunk. ``work``:
+    float32 work memory, replaced by a bigger array where too small; returns the one used, for
+    the caller to keep (fresh megabytes cost page faults on every call)."""
+    b, regions = len(counts), 8
+    most_g, most_l = max(grows, counts.max()), max(lrows, local_counts.max())
+    embed = genc[6].shape[1]
+    need = max(_encoder_floats(genc, most_g, b), _encoder_floats(lenc, most_l, b * regions),
+               _decoder_floats(gdec, b, gstep), _decoder_floats(ldec, b * regions, lstep),
+               2 * b * regions * attention[2][1:].max())
+    if len(work) < need:
+        work = np.empty(need + need // 4, np.float32)
+
+    e_g = np.empty((b, embed), np.float32)
+    _encode(genc, points, counts, grows, most_g, e_g, work)
+    local_points = np.empty((len(point_index), 3), np.float32)
+    for i in range(len(point_index)):
+        if not 0 <= point_index[i] < len(points):
+            raise IndexError("pointpncnet_infer: a point index out of range")
+        local_points[i] = points[point_index[i]]
+    e_l = np.empty((b * regions, embed), np.float32)
+    _encode(lenc, local_points, local_counts, lrows, most_l, e_l, work)
+
+    # attention over the present octants (a softmax), its weighted code max-fused with the global one
+    logits = np.empty((b * regions, 1), np.float32)
+    dense(e_l, attention[0], attention[1], attention[2], logits, work)
+    fused = e_g.copy()
+    weights = np.empty(regions, np.float32)
+    for s in range(b):
+        top = np.float32(-np.inf)
+        for r in range(regions):
+            present[s, r] = local_counts[s * regions + r] >= min_points
+            if present[s, r]:
+                top = max(top, logits[s * regions + r, 0])
+        if top == -np.inf:  # no octant: the global code alone
+            continue
+        total = np.float32(0.0)
+        for r in range(regions):
+            weights[r] = np.exp(logits[s * regions + r, 0] - top) if present[s, r] else np.float32(0.0)
+            total += weights[r]
+        for r in range(regions):
+            weights[r] /= total
+        for j in range(embed):
+            acc = np.float32(0.0)
+            for r in range(regions):
+                acc += weights[r] * e_l[s * regions + r, j]
+            fused[s, j] = max(fused[s, j], acc)
+
+    # the octants' codes: the fused code and the octant's one-hot
+    code = np.zeros((b * regions, embed + regions), np.float32)
+    for s in range(b):
+        for r in range(regions):
+            code[s * regions + r, :embed] = fused[s]
+            code[s * regions + r, embed + r] = 1.0
+    mg = gdec[2][-1] // 3 * gdec[6].shape[0]
+    _decode(gdec, fused, gstep, 1, out[:, :mg], work)
+    _decode(ldec, code, lstep, regions, out[:, mg:], work)
+    return work
+
+
+@compiled()
 def octant_pairs(points, lengths, overlap):
     """Every (point, octant) membership of a packed batch (``lengths`` points per instance), as
     ``(point index, instance * 8 + octant)`` grouped by the latter, ascending (a counting sort;

@@ -103,19 +103,23 @@ def compiled_kernels(enabled: bool = True) -> Iterator[None]:
 def warm_up_kernels(model: nn.Module) -> None:
     """Compile the fast path's CPU loops now (:func:`pcc_ros.models.kernels.warm_up`) when
     ``model`` has layers that run them (a PCN encoder or a folding decoder), unless they are
-    switched off (:func:`compiled_kernels`)."""
+    switched off (:func:`compiled_kernels`); a module with a ``warm_up_compiled()`` method (a
+    network compiled whole) runs it too."""
     if _kernels_enabled and any(isinstance(m, PCNEncoder | FoldingDecoder) for m in model.modules()):
         from pcc_ros.models import kernels
 
         kernels.warm_up()
+        for module in model.modules():
+            if callable(getattr(module, "warm_up_compiled", None)):
+                module.warm_up_compiled()
 
 
-def _array(t: torch.Tensor) -> np.ndarray:
+def as_numpy(t: torch.Tensor) -> np.ndarray:
     """A C-ordered numpy view (or copy) of a CPU tensor, for the compiled kernels."""
     return t.detach().contiguous().numpy()
 
 
-def _kernels_for(tensor: torch.Tensor):
+def kernels_for(tensor: torch.Tensor):
     """The compiled kernels module when they may run on ``tensor`` (CPU, float32), else None."""
     if not _kernels_enabled or tensor.device.type != "cpu" or tensor.dtype != torch.float32:
         return None
@@ -152,7 +156,7 @@ def segment_max(
     return out.scatter_reduce(0, index, features, "amax", include_self=False)
 
 
-def _fast_inference(module: nn.Module) -> bool:
+def fast_inference(module: nn.Module) -> bool:
     """The fused chunked path applies: no autograd needed and not in the reference block."""
     return not _reference and not (torch.is_grad_enabled() and any(p.requires_grad for p in module.parameters()))
 
@@ -282,7 +286,7 @@ class PCNEncoder(nn.Module):
 
     def forward(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor:
         """``points`` ``(P, 3)``, ``segment`` ``(P,)`` in ``[0, num_segments)`` -> ``(S, out_dim)``."""
-        if _fast_inference(self):
+        if fast_inference(self):
             pooled = self._forward_compiled(points, segment, num_segments)
             return self._forward_chunked(points, segment, num_segments) if pooled is None else pooled
         f = self.mlp1(points)
@@ -395,34 +399,47 @@ class PCNEncoder(nn.Module):
         operator between them); None where it does not apply (GPU, not float32, the compiled
         loops switched off, other than two ``mlp1`` layers composed with one ``mlp2`` layer,
         segments not sorted), and :meth:`_forward_chunked` runs instead."""
-        first, rest = _linears(self.mlp1), _linears(self.mlp2)
-        if (len(first) != 2 or len(rest) != 1 or first[1].in_features >= first[1].out_features
-                or first[0].bias is None or not len(points)):
+        kernels = kernels_for(points)
+        weights = self.kernel_weights() if kernels is not None and len(points) else None
+        if weights is None:
             return None
-        kernels = _kernels_for(points)
-        seg = segment.numpy() if kernels is not None else None
-        if seg is None or np.any(seg[1:] < seg[:-1]):
+        counts = kernels.sorted_counts(segment.numpy(), num_segments)
+        if len(counts) != num_segments:
             return None
-        last, s = rest[0], num_segments
-        counts = np.bincount(seg, minlength=s)
-        c0, c1, hp = first[0].out_features, first[1].out_features, self.point_proj.out_features
-        rows = _rows_for([c0, c1, hp, self.out_dim], compiled=True)
+        rows, s = self.kernel_rows(), num_segments
         most = max(rows, int(counts.max()))
-        wc, const = self._folded(True)
-        deps = (self.point_proj.weight, self.point_proj.bias, self.segment_proj.weight, *first[0].parameters(),
-                *first[1].parameters(), *last.parameters())
-        weights = _derived(self, "_kernel_weights", deps, lambda: [
-            _array(t) for t in (first[0].weight.t(), first[0].bias, first[1].weight.t(), wc,
-                                self.segment_proj.weight.t(), const, last.weight.t(),
-                                last.bias if last.bias is not None else torch.zeros(self.out_dim))])
+        c0, c1, hp = weights[0].shape[1], weights[2].shape[1], weights[3].shape[1]
         pool = np.empty((s, self.out_dim), np.float32)
         kernels.pcn_encode(
-            _array(points), counts, rows, *weights, pool,
+            as_numpy(points), counts, rows, *weights, pool,
             *(_SCRATCH(f"encoder.{name}", n * width, np.float32).reshape(n, width) for name, n, width in (
                 ("t", most, c0), ("f", most, c1), ("h", most, hp), ("y", most, self.out_dim), ("g", s, c1),
                 ("gp", s, hp))),
         )
         return torch.from_numpy(pool)
+
+    def kernel_weights(self) -> tuple[np.ndarray, ...] | None:
+        """The compiled encoder's weights (:func:`pcc_ros.models.kernels.pcn_encode`'s, kept while
+        the parameters are unchanged: :func:`_derived`), or None where its structure is not the
+        one the kernel runs (two ``mlp1`` layers composed with one ``mlp2`` layer, biases)."""
+        first, rest = _linears(self.mlp1), _linears(self.mlp2)
+        if len(first) != 2 or len(rest) != 1 or first[1].in_features >= first[1].out_features or first[0].bias is None:
+            return None
+        last = rest[0]
+
+        def make():
+            wc, const = self._folded(True)
+            return tuple(as_numpy(t) for t in (
+                first[0].weight.t(), first[0].bias, first[1].weight.t(), wc, self.segment_proj.weight.t(), const,
+                last.weight.t(), last.bias if last.bias is not None else torch.zeros(self.out_dim)))
+
+        return _derived(self, "_kernel_weights", tuple(self.parameters()), make)
+
+    def kernel_rows(self) -> int:
+        """Rows per chunk of the compiled encoder (:func:`_rows_for`)."""
+        first = _linears(self.mlp1)
+        return _rows_for([first[0].out_features, first[1].out_features, self.point_proj.out_features, self.out_dim],
+                         compiled=True)
 
     def _folded(self, composed: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
         """The folded constants of :meth:`_forward_chunked`: ``(W_p W1)^T`` (``composed``; else
@@ -540,7 +557,7 @@ class FoldingDecoder(nn.Module):
         if out is not None and not _fits(out, s, self.num_points):
             raise ValueError(f"FoldingDecoder: out of shape {tuple(out.shape)} for {s} codes of "
                              f"{self.num_points} points")
-        if _fast_inference(self):
+        if fast_inference(self):
             return coarse, self._fold_chunked(code, coarse, out)
         h = (
             self.fold_code(code)[:, None, None, :]
@@ -567,10 +584,8 @@ class FoldingDecoder(nn.Module):
         if out is None:
             out = torch.empty(s, k * g, 3, dtype=coarse.dtype, device=coarse.device)
         m = s // out.shape[0] if out.shape[0] else 1  # codes per row of out
-        kernels = _kernels_for(code) if len(layers) == 2 and layers[1].out_features == 3 and \
-            layers[0].bias is not None else None
-        widths = [hdim, *(lin.out_features for lin in layers)]
-        step = max(1, _rows_for(widths, compiled=kernels is not None) // (k * g * m)) * m
+        kernels = kernels_for(code) if self._fold_weights() is not None else None
+        step = self.fold_step(m, compiled=kernels is not None)
         if kernels is not None:  # the same steps as the loop below, compiled
             return self._fold_compiled(kernels, code, coarse, out, m, step)
         ws = _workspace
@@ -594,22 +609,63 @@ class FoldingDecoder(nn.Module):
             torch.add(start_points[start:stop].view(n // m, m, k, 1, 3), yt.t().view(n // m, m, k, g, 3), out=dest)
         return out
 
+    def fold_step(self, m: int, compiled: bool) -> int:
+        """Codes per chunk of the folding step (a multiple of ``m``, the codes per output row):
+        as many as :func:`_rows_for` allows for the ``compiled`` loops or the operators."""
+        widths = [self.fold_point.out_features, *(lin.out_features for lin in _linears(self.fold_mlp))]
+        return max(1, _rows_for(widths, compiled=compiled) // (self.num_points * m)) * m
+
+    def _fold_weights(self) -> tuple[np.ndarray, ...] | None:
+        """:func:`pcc_ros.models.kernels.fold`'s ``grid, wpt, w1t, b1, w2, b2`` (kept while the
+        parameters and the grid are unchanged: :func:`_derived`), or None where the folding MLP
+        is not the one it runs (one hidden layer with a bias, 3 outputs)."""
+        layers = _linears(self.fold_mlp)
+        if len(layers) != 2 or layers[1].out_features != 3 or layers[0].bias is None:
+            return None
+        hidden, last = layers
+        deps = (self.grid, self.fold_grid.weight, self.fold_point.weight, *hidden.parameters(), *last.parameters())
+        return _derived(self, "_kernel_weights", deps, lambda: tuple(as_numpy(t) for t in (
+            self.fold_grid(self.grid), self.fold_point.weight.t(), hidden.weight.t(), hidden.bias, last.weight,
+            last.bias if last.bias is not None else torch.zeros(3))))
+
+    def kernel_weights(self) -> tuple[np.ndarray, ...] | None:
+        """The whole decoder for :func:`pcc_ros.models.kernels.pointpncnet_infer`: the fully
+        connected layers' and the code projection's :func:`dense_weights`, then
+        :meth:`_fold_weights`; None where the folding MLP is not the compiled one."""
+        fold = self._fold_weights()
+        if fold is None:
+            return None
+        return (*dense_weights(self.fc), *dense_weights(self.fold_code), *fold)
+
     def _fold_compiled(self, kernels, code: torch.Tensor, coarse: torch.Tensor, out: torch.Tensor, m: int,
                        step: int) -> torch.Tensor:
         """:meth:`_fold_chunked` (one hidden folding layer) in one compiled call
         (:func:`pcc_ros.models.kernels.fold`): the same function, the first layer's point and grid
         halves and the output layer's residual inside the kernel."""
-        hidden, last = _linears(self.fold_mlp)
-        deps = (self.grid, self.fold_grid.weight, self.fold_point.weight, *hidden.parameters(), *last.parameters())
-        grid, wpt, w1t, b1, w2, b2 = _derived(self, "_kernel_weights", deps, lambda: [_array(t) for t in (
-            self.fold_grid(self.grid), self.fold_point.weight.t(), hidden.weight.t(), hidden.bias, last.weight,
-            last.bias if last.bias is not None else torch.zeros(3))])
+        grid, wpt, w1t, b1, w2, b2 = self._fold_weights()
         s, k = coarse.shape[:2]
         rows = min(step, s) * k * grid.shape[0]
-        kernels.fold(_array(coarse), wpt, _array(self.fold_code(code)), grid, w1t, b1, w2, b2, out.numpy(), m, step,
+        kernels.fold(as_numpy(coarse), wpt, as_numpy(self.fold_code(code)), grid, w1t, b1, w2, b2, out.numpy(), m, step,
                      _SCRATCH("fold.h", rows * wpt.shape[1], np.float32).reshape(rows, wpt.shape[1]),
                      _SCRATCH("fold.x", rows * w1t.shape[1], np.float32).reshape(rows, w1t.shape[1]))
         return out
+
+
+def dense_weights(module: nn.Module) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``module``'s fully connected layers (a :class:`SharedMLP` without a final ReLU, or one
+    ``nn.Linear``) packed for :func:`pcc_ros.models.kernels.dense`: the transposed weights and
+    the biases each in one flat float32 array, and the widths; kept while the parameters are
+    unchanged (:func:`_derived`)."""
+    linears = [module] if isinstance(module, nn.Linear) else _linears(module)
+    if isinstance(module, SharedMLP) and isinstance(module.net[-1], nn.ReLU):
+        raise ValueError("dense_weights: the compiled layers end without a ReLU")
+
+    def make():
+        zeros = [torch.zeros(lin.out_features) if lin.bias is None else lin.bias for lin in linears]
+        return (as_numpy(torch.cat([lin.weight.t().reshape(-1) for lin in linears])), as_numpy(torch.cat(zeros)),
+                np.array([linears[0].in_features, *(lin.out_features for lin in linears)], np.int64))
+
+    return _derived(module, "_dense_weights", tuple(module.parameters()), make)
 
 
 # --------------------------------------------------------------------------- losses

@@ -28,6 +28,7 @@ up to 3096 duplicates), capped at ``max_input_points`` by a content-seeded rando
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -52,15 +53,22 @@ from pcc_ros.models.layers import (
     FoldingDecoder,
     PCNEncoder,
     SharedMLP,
+    as_numpy,
+    dense_weights,
+    fast_inference,
+    kernels_for,
     masked_mean,
     using_reference_path,
     weighted_chamfer,
 )
 from pcc_ros.models.registry import register
+from pcc_ros.scratch import Scratch
 
 log = logging.getLogger(__name__)
 
 NUM_REGIONS = 8
+#: The whole-network kernel's work memory (:meth:`PointPnCNetNet._forward_compiled`), per thread.
+SCRATCH = Scratch()
 
 #: The two sizes. ``paper``: PCN widths (encoder 3-128-256 / 512-1024, decoder FC 1024-1024,
 #: folding 512-512), local streams at 1/8 of the hidden width, 4096 + 8 x 512 points.
@@ -204,6 +212,11 @@ class PointPnCNetNet(nn.Module):
             with at least ``min_region_points`` input points, the ones the local stream used).
         """
         b = batch_size
+        if pairs is not None and out is not None and fast_inference(self):
+            present = self._forward_compiled(points, segment, pairs, b, out)
+            if present is not None:
+                mg = self.num_global_points
+                return out[:, :mg], out[:, mg:].view(b, NUM_REGIONS, -1, 3), present
         e_g = self.global_encoder(points, segment, b)
         if pairs is not None:
             point_idx, local_segment = pairs
@@ -234,6 +247,45 @@ class PointPnCNetNet(nn.Module):
         ).reshape(b * NUM_REGIONS, -1)
         _, y_local = self.local_decoder(code, None if out is None else out[:, mg:])
         return y_global, y_local.view(b, NUM_REGIONS, -1, 3), present
+
+
+    def warm_up_compiled(self) -> None:
+        """Compile :meth:`_forward_compiled`'s kernel now (a batch of one tiny cloud, the argument
+        types of every later call), not on the first real batch."""
+        corners = np.array(list(itertools.product((-0.5, 0.5), repeat=3)), np.float32)
+        packed = pack([np.repeat(corners, self.min_region_points, axis=0)], 0.0, pairs=True)
+        out = torch.empty(1, self.num_global_points + NUM_REGIONS * self.num_local_points, 3)
+        with torch.inference_mode():
+            self._forward_compiled(packed.points, packed.segment, packed.pairs, 1, out)
+
+    def _forward_compiled(self, points: torch.Tensor, segment: torch.Tensor, pairs: tuple[torch.Tensor, torch.Tensor],
+                          b: int, out: torch.Tensor) -> torch.Tensor | None:
+        """:meth:`forward` in one compiled call (:func:`pcc_ros.models.kernels.pointpncnet_infer`:
+        the layers' compiled loops and the steps between them, no Python or torch operator in
+        between), writing ``out``; returns ``present``, or None where it does not apply (the
+        compiled loops do not run on these tensors or these layers, segments not sorted, ``out``
+        not a contiguous float32 CPU tensor) and the layers run one by one."""
+        kernels = kernels_for(points)
+        if kernels is None or not len(points) or not out.is_contiguous() or out.dtype != torch.float32:
+            return None
+        parts = (self.global_encoder.kernel_weights(), self.local_encoder.kernel_weights(),
+                 self.global_decoder.kernel_weights(), self.local_decoder.kernel_weights())
+        if any(p is None for p in parts):
+            return None
+        point_index, local_segment = pairs
+        counts = kernels.sorted_counts(segment.numpy(), b)
+        local_counts = kernels.sorted_counts(local_segment.numpy(), b * NUM_REGIONS)
+        if len(counts) != b or len(local_counts) != b * NUM_REGIONS:
+            return None
+        present = np.empty((b, NUM_REGIONS), np.bool_)
+        work = kernels.pointpncnet_infer(
+            as_numpy(points), counts, point_index.numpy(), local_counts, self.min_region_points,
+            parts[0], self.global_encoder.kernel_rows(), parts[1], self.local_encoder.kernel_rows(),
+            dense_weights(self.attention), parts[2], self.global_decoder.fold_step(1, compiled=True),
+            parts[3], self.local_decoder.fold_step(NUM_REGIONS, compiled=True), out.numpy(), present,
+            SCRATCH.whole("network", np.float32))
+        SCRATCH.keep("network", work)
+        return torch.from_numpy(present)
 
 
 @dataclass
