@@ -10,7 +10,10 @@ is recorded):
    ``segment_reduce`` max-pooling, whole ``(P, C)`` intermediates, the ``(P, 8)`` octant
    mask) against the fast path, for every ``--threads`` setting (intra-op threads; ``2x1`` =
    two Python worker threads, one intra-op thread each, each completing half the batch:
-   inter-op parallelism). Outputs are checked equal first.
+   inter-op parallelism). Outputs are checked equal first. Two more columns, the fast path
+   with parts of it off: ``fast_ops`` (its compiled CPU loops off: the same steps as torch
+   operators) and ``fast_layers`` (the loops on, the network's layers called one by one from
+   Python instead of PointPnCNet's single compiled call).
 2. FLOPs per instance, two counts: *executed* -- every ``mm`` / ``addmm`` the fast path
    runs on these inputs (shapes recorded by ``torch.profiler``, 2 * M * K * N), what the
    achieved GFLOP/s and the ratio use -- and *nominal* -- every ``nn.Linear`` call of the
@@ -384,9 +387,10 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     out["network_of_ceiling_min"] = flops_per_batch / float(np.min(times["network"])) / 1e9 / ceiling_min
     out["replay_of_ceiling_min"] = replay_flops / float(np.min(times["matmul_replay"])) / 1e9 / ceiling_min
     out["outside_matmul_share_min"] = 1.0 - float(np.min(times["matmul_replay"])) / float(np.min(times["network"]))
-    out["parts"] = part_times(completer, batch, repeat)
-    print_table("time per part of the network (1 thread, batch 32, fast path; FLOP share of the nominal count)",
-                out["parts"])
+    with compiled_kernels(True, whole_networks=False):  # one compiled call has no parts to hook
+        out["parts"] = part_times(completer, batch, repeat)
+    print_table("time per part of the network (1 thread, batch 32, fast path with the layers called one by one; "
+                "FLOP share of the nominal count)", out["parts"])
     with compiled_kernels(False):  # the compiled loops are one opaque call to the profiler
         out["operators"] = op_profile(lambda: completer.complete(batch), repeat)
     print_table(f"the fast path's operators with the compiled loops off, by kind (torch.profiler, {repeat} batches; "
@@ -448,6 +452,10 @@ def run(args: argparse.Namespace) -> dict:
         with compiled_kernels(False):  # the fast path as torch operators (the compiled loops off)
             run_with(setting, completer.complete, batch)
 
+    def layer_by_layer(setting: tuple[int, int], batch: list) -> None:
+        with compiled_kernels(True, whole_networks=False):  # the layers' compiled loops, Python between them
+            run_with(setting, completer.complete, batch)
+
     settings = parse_threads(args.threads)
     densities = [int(d) for d in args.densities.split(",") if d.strip()]
     rows, per_setting, counts = [], {}, {}
@@ -474,6 +482,7 @@ def run(args: argparse.Namespace) -> dict:
                 "original": lambda s=setting: reference(s, batch32),
                 "fast": lambda s=setting: run_with(s, completer.complete, batch32),
                 "fast_ops": lambda s=setting: operators(s, batch32),
+                "fast_layers": lambda s=setting: layer_by_layer(s, batch32),
             }
             ceiling_set = ceiling_calls(setting)  # fresh output and a reused one: the faster counts
             alts.update({name: call for name, (call, _) in ceiling_set.items()})
@@ -481,6 +490,7 @@ def run(args: argparse.Namespace) -> dict:
             mm_rates, mm_best = ceiling_rates(ceiling_set, times)
             ceiling = max(mm_rates.values())
             orig, fast, ops = summary_ms(times["original"]), summary_ms(times["fast"]), summary_ms(times["fast_ops"])
+            layered = summary_ms(times["fast_layers"])
             fast_gflops = executed * len(batch32) / (fast["median_ms"] / 1e3) / 1e9
             # least-disturbed rounds: the fastest network call against the fastest ceiling call
             # (on a shared machine the median absorbs other jobs' load unevenly: a ceiling call is
@@ -489,7 +499,8 @@ def run(args: argparse.Namespace) -> dict:
             row = {
                 "density": density, "points": counts[density]["output_points"],
                 "threads": thread_label(setting),
-                "original_ms": orig["median_ms"], "fast_ops_ms": ops["median_ms"], "fast_ms": fast["median_ms"],
+                "original_ms": orig["median_ms"], "fast_ops_ms": ops["median_ms"],
+                "fast_layers_ms": layered["median_ms"], "fast_ms": fast["median_ms"],
                 "fast_min_ms": fast["min_ms"], "fast_max_ms": fast["max_ms"],
                 "original_inst_s": len(batch32) / (orig["median_ms"] / 1e3),
                 "fast_inst_s": len(batch32) / (fast["median_ms"] / 1e3),
@@ -501,6 +512,7 @@ def run(args: argparse.Namespace) -> dict:
             }
             rows.append(row)
             per_setting[f"d{density}/{row['threads']}"] = {"original": orig, "fast": fast, "fast_ops": ops,
+                                                          "fast_layers": layered,
                                                           "matmul_gflop_s": mm_rates,
                                                           "matmul_gflop_s_min_time": mm_best, **row}
     set_decode_density(completer.model, 1)
@@ -510,13 +522,14 @@ def run(args: argparse.Namespace) -> dict:
         f"PointPnCNet default, batch 32, {args.points if not args.data else 'cached'}-point inputs "
         f"(median of {args.repeat} interleaved rounds; ms per batch; GFLOP/s of the FLOPs the fast path executes)",
         rows,
-        ["density", "points", "threads", "original_ms", "fast_ops_ms", "fast_ms", "fast_min_ms", "fast_max_ms",
-         "original_inst_s",
-         "fast_inst_s", "speedup", "gflop_s", "mm_gflop_s", "of_ceiling", "of_ceiling_min"],
+        ["density", "points", "threads", "original_ms", "fast_ops_ms", "fast_layers_ms", "fast_ms", "fast_min_ms",
+         "fast_max_ms", "original_inst_s", "fast_inst_s", "speedup", "gflop_s", "mm_gflop_s", "of_ceiling",
+         "of_ceiling_min"],
     )
     print("fast_ops: the fast path with its compiled CPU loops off (pcc_ros.models.layers.compiled_kernels): the "
-          "same steps as torch operators; of_ceiling: medians; of_ceiling_min: the fastest round of the network "
-          "against the fastest of the ceiling's matrix products")
+          "same steps as torch operators; fast_layers: the loops on, the layers called one by one from Python (not "
+          "in PointPnCNet's single compiled call); of_ceiling: medians; of_ceiling_min: the fastest round of the "
+          "network against the fastest of the ceiling's matrix products")
     for density, c in counts.items():
         print(f"decode density {density} ({c['output_points']} points): {c['executed_flops_per_instance'] / 1e6:.1f} "
               f"MFLOP per instance executed by the fast path (its matrix products), "

@@ -313,14 +313,11 @@ def _pointpncnet_batch(seed: int, sizes: tuple[int, ...]):
     return completer, pack(clouds, float(completer.config["region_overlap"]), pairs=True)
 
 
-def _run(net, packed, layer_by_layer: bool, monkeypatch):
-    """The network's outputs on ``packed``, in one compiled call or layer by layer."""
-    from pcc_ros.models.pointpncnet import PointPnCNetNet
-
+def _run(net, packed, compiled: bool, whole: bool = True):
+    """The network's outputs on ``packed``: its compiled loops on or off, with them ``whole`` in
+    one call or layer by layer (``layers.compiled_kernels``)."""
     out = torch.empty(packed.batch_size, net.num_global_points + 8 * net.num_local_points, 3)
-    with monkeypatch.context() as patch, torch.inference_mode():
-        if layer_by_layer:
-            patch.setattr(PointPnCNetNet, "_forward_compiled", lambda *args: None)
+    with layers.compiled_kernels(compiled, whole_networks=compiled and whole), torch.inference_mode():
         y_global, y_local, present = net(packed.points, packed.segment, None, packed.batch_size, packed.pairs,
                                          out=out)
     return y_global.clone(), y_local.clone(), present.clone()
@@ -339,10 +336,10 @@ def test_pointpncnet_in_one_compiled_call_equals_the_layers_one_by_one(monkeypat
     calls = []
     infer = kernels.pointpncnet_infer
     monkeypatch.setattr(kernels, "pointpncnet_infer", lambda *args: calls.append(1) or infer(*args))
-    whole = _run(completer.model, packed, False, monkeypatch)
+    whole = _run(completer.model, packed, _compiled_loops)
     assert len(calls) == (1 if _compiled_loops and kernels.AVAILABLE else 0)
-    one_by_one = _run(completer.model, packed, True, monkeypatch)
-    assert len(calls) == len(calls[:1])  # the layers' path never calls it
+    one_by_one = _run(completer.model, packed, _compiled_loops, whole=False)
+    assert len(calls) <= 1  # layer by layer never calls it
     for a, b in zip(whole, one_by_one):
         torch.testing.assert_close(a, b, rtol=0, atol=2e-5)
     assert whole[2][0].sum() == 1 and not whole[2][1].any() and not whole[2][3].any()  # one octant, then none
@@ -354,30 +351,29 @@ def test_pointpncnet_compiled_call_grows_its_work_memory_and_keeps_it(monkeypatc
 
     monkeypatch.setattr(SCRATCH, "buffers", {})
     small_completer, small = _pointpncnet_batch(22, (30, 20))
-    small_net = small_completer.model
-    first = _run(small_net, small, False, monkeypatch)
+    first = _run(small_completer.model, small, _compiled_loops)
     kept = SCRATCH.whole("network", np.float32)
     if not (_compiled_loops and kernels.AVAILABLE):  # the layers ran one by one: no such memory
         assert len(kept) == 0
         return
     assert len(kept) > 0
     completer, big = _pointpncnet_batch(22, (30, 20, 800, 20000, 700))  # one segment longer than any chunk
-    _run(completer.model, big, False, monkeypatch)
+    _run(completer.model, big, True)
     grown = SCRATCH.whole("network", np.float32)
     assert len(grown) > len(kept)
-    again = _run(small_net, small, False, monkeypatch)  # through the grown memory: the same values
+    again = _run(small_completer.model, small, True)  # through the grown memory: the same values
     assert SCRATCH.whole("network", np.float32) is grown
     for a, b in zip(first, again):
         assert torch.equal(a, b)
 
 
-def test_pointpncnet_with_unsorted_octant_pairs_runs_layer_by_layer(monkeypatch):
+def test_pointpncnet_with_unsorted_octant_pairs_runs_layer_by_layer(_compiled_loops):
     """The one-call kernel needs the pairs grouped by octant; otherwise the layers run (same values)."""
     completer, packed = _pointpncnet_batch(23, (50, 80, 20))
-    expected = _run(completer.model, packed, True, monkeypatch)
+    expected = _run(completer.model, packed, _compiled_loops, whole=False)
     point_index, local = packed.pairs
     order = torch.from_numpy(np.random.default_rng(0).permutation(len(local)))
     packed.pairs = (point_index[order], local[order])
-    got = _run(completer.model, packed, False, monkeypatch)
+    got = _run(completer.model, packed, _compiled_loops)
     for a, b in zip(got, expected):
         torch.testing.assert_close(a, b, rtol=0, atol=2e-5)

@@ -85,19 +85,25 @@ def using_reference_path() -> bool:
 
 
 _kernels_enabled = True
+_whole_enabled = True
 
 
 @contextmanager
-def compiled_kernels(enabled: bool = True) -> Iterator[None]:
+def compiled_kernels(enabled: bool = True, whole_networks: bool | None = None) -> Iterator[None]:
     """Whether the fast path may run its compiled CPU loops (:mod:`pcc_ros.models.kernels`) inside
     this block (default: yes). Off, it runs the same steps as torch operators: the comparison of
-    ``pcc bench complete`` and the tests. A process-wide switch, like :func:`reference_path`."""
-    global _kernels_enabled
-    previous, _kernels_enabled = _kernels_enabled, bool(enabled)
+    ``pcc bench complete`` and the tests. ``whole_networks``: whether a network compiled whole
+    (PointPnCNet: :func:`pcc_ros.models.kernels.pointpncnet_infer`) runs in one call (default:
+    as ``enabled``); False runs its layers' compiled loops one by one, Python between them. A
+    process-wide switch, like :func:`reference_path`."""
+    global _kernels_enabled, _whole_enabled
+    previous = _kernels_enabled, _whole_enabled
+    _kernels_enabled = bool(enabled)
+    _whole_enabled = _kernels_enabled if whole_networks is None else bool(whole_networks)
     try:
         yield
     finally:
-        _kernels_enabled = previous
+        _kernels_enabled, _whole_enabled = previous
 
 
 def warm_up_kernels(model: nn.Module) -> None:
@@ -119,9 +125,11 @@ def as_numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
-def kernels_for(tensor: torch.Tensor):
-    """The compiled kernels module when they may run on ``tensor`` (CPU, float32), else None."""
-    if not _kernels_enabled or tensor.device.type != "cpu" or tensor.dtype != torch.float32:
+def kernels_for(tensor: torch.Tensor, whole_network: bool = False):
+    """The compiled kernels module when they may run on ``tensor`` (CPU, float32), else None;
+    ``whole_network``: for a network's single call (see :func:`compiled_kernels`)."""
+    if (not _kernels_enabled or (whole_network and not _whole_enabled) or tensor.device.type != "cpu"
+            or tensor.dtype != torch.float32):
         return None
     from pcc_ros.models import kernels  # numba: heavy, only for CPU inference
 
@@ -584,7 +592,9 @@ class FoldingDecoder(nn.Module):
         if out is None:
             out = torch.empty(s, k * g, 3, dtype=coarse.dtype, device=coarse.device)
         m = s // out.shape[0] if out.shape[0] else 1  # codes per row of out
-        kernels = kernels_for(code) if self._fold_weights() is not None else None
+        kernels = kernels_for(code)
+        if kernels is not None and self._fold_weights() is None:  # not the folding MLP they run
+            kernels = None
         step = self.fold_step(m, compiled=kernels is not None)
         if kernels is not None:  # the same steps as the loop below, compiled
             return self._fold_compiled(kernels, code, coarse, out, m, step)

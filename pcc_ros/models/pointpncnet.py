@@ -265,7 +265,7 @@ class PointPnCNetNet(nn.Module):
         between), writing ``out``; returns ``present``, or None where it does not apply (the
         compiled loops do not run on these tensors or these layers, segments not sorted, ``out``
         not a contiguous float32 CPU tensor) and the layers run one by one."""
-        kernels = kernels_for(points)
+        kernels = kernels_for(points, whole_network=True)
         if kernels is None or not len(points) or not out.is_contiguous() or out.dtype != torch.float32:
             return None
         parts = (self.global_encoder.kernel_weights(), self.local_encoder.kernel_weights(),
