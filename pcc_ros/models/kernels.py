@@ -426,6 +426,7 @@ def warm_up() -> None:
     rng = np.random.default_rng(0)
     points = rng.normal(size=(6, 3)).astype(f32)
     octant_pairs(points, np.array([4, 2], np.int64), f32(0.005))
+    sorted_counts(np.array([0, 0, 1], np.int64), 2)
 
     def w(*shape):
         return rng.normal(size=shape).astype(f32)

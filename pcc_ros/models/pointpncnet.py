@@ -248,7 +248,6 @@ class PointPnCNetNet(nn.Module):
         _, y_local = self.local_decoder(code, None if out is None else out[:, mg:])
         return y_global, y_local.view(b, NUM_REGIONS, -1, 3), present
 
-
     def warm_up_compiled(self) -> None:
         """Compile :meth:`_forward_compiled`'s kernel now (a batch of one tiny cloud, the argument
         types of every later call), not on the first real batch."""
