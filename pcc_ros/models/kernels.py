@@ -199,12 +199,24 @@ def fold(coarse, wpt, code_proj, grid, w1t, b1, w2, b2, out, m, step, hbuf, xbuf
                     row += 1
 
 
+#: Floats :func:`_carve` may skip to align a view (a cache line).
+ALIGN = 16
+
+
+@njit(inline="always")
+def _carve(work, offset, rows, cols):
+    """A ``(rows, cols)`` view of ``work`` from ``offset`` or up to :data:`ALIGN` floats later (a
+    cache-line aligned start: misaligned operands slow the products), and the offset after it."""
+    offset += (ALIGN - (work.ctypes.data // 4 + offset) % ALIGN) % ALIGN
+    return work[offset: offset + rows * cols].reshape((rows, cols)), offset + rows * cols
+
+
 @compiled()
 def dense(x, weights, biases, dims, out, work):
     """``x`` through fully connected layers: layer ``l`` maps ``dims[l]`` to ``dims[l + 1]``
     columns, its transposed weight ``(dims[l], dims[l + 1])`` and its bias stored one after the
     other in the flat ``weights`` / ``biases``; ReLU after every layer but the last, which
-    writes ``out``. ``work``: at least ``2 * rows * max(dims[1:-1])`` floats (hidden layers)."""
+    writes ``out``. ``work``: at least ``2 * (rows * max(dims[1:-1]) + ALIGN)`` floats (hidden layers)."""
     ints = np.empty(6, np.int32)
     floats = np.empty(2, np.float32)
     chars = np.full(1, 78, np.uint8)
@@ -216,8 +228,7 @@ def dense(x, weights, biases, dims, out, work):
         if layer == layers - 1:
             dst = out
         else:  # the hidden layers alternate between the two halves of work
-            half = (layer % 2) * (len(work) // 2)
-            dst = work[half: half + rows * n].reshape((rows, n))
+            dst, _ = _carve(work, (layer % 2) * (len(work) // 2), rows, n)
         _mm(src, weights[wo: wo + k * n].reshape((k, n)), dst, ints, floats, chars)
         bias = biases[bo: bo + n]
         relu = layer < layers - 1
@@ -247,16 +258,10 @@ def sorted_counts(segment, segments):
 
 
 @njit(inline="always")
-def _carve(work, offset, rows, cols):
-    """A ``(rows, cols)`` view of ``work`` from ``offset`` and the offset after it."""
-    return work[offset: offset + rows * cols].reshape((rows, cols)), offset + rows * cols
-
-
-@njit(inline="always")
 def _encoder_floats(enc, most, segments):
     """Work floats :func:`_encode` carves (``most``: its chunk's rows)."""
     return most * (enc[0].shape[1] + enc[2].shape[1] + enc[3].shape[1] + enc[6].shape[1]) + \
-        segments * (enc[2].shape[1] + enc[3].shape[1])
+        segments * (enc[2].shape[1] + enc[3].shape[1]) + 6 * ALIGN
 
 
 @njit(inline="always")
@@ -274,23 +279,25 @@ def _encode(enc, points, counts, rows, most, pooled, work):
 
 @njit(inline="always")
 def _decoder_floats(dec, codes, step):
-    """Work floats :func:`_decode` uses for ``codes`` codes."""
-    fc = dec[2]
-    hidden = 2 * codes * fc[1:-1].max() if len(fc) > 2 else 0
-    return max(hidden, min(step, codes) * (fc[-1] // 3) * dec[6].shape[0] * (dec[7].shape[1] + dec[8].shape[1]))
+    """Work floats :func:`_decode` carves for ``codes`` codes."""
+    fc, k, hdim = dec[2], dec[2][-1] // 3, dec[7].shape[1]
+    hidden = 2 * (codes * fc[1:-1].max() + ALIGN) if len(fc) > 2 else 0
+    folding = min(step, codes) * k * dec[6].shape[0] * (hdim + dec[8].shape[1])
+    return codes * (3 * k + hdim) + max(hidden, folding) + 4 * ALIGN
 
 
 @njit(inline="always")
 def _decode(dec, code, step, m, out, work):
     """A folding decoder (``dec``: see :func:`pointpncnet_infer`) from ``code`` into ``out``."""
     s, k = code.shape[0], dec[2][-1] // 3
-    coarse = np.empty((s, k * 3), np.float32)
-    dense(code, dec[0], dec[1], dec[2], coarse, work)
-    proj = np.empty((s, dec[5][-1]), np.float32)
-    dense(code, dec[3], dec[4], dec[5], proj, work)
+    coarse, o = _carve(work, 0, s, 3 * k)
+    proj, o = _carve(work, o, s, dec[7].shape[1])
+    rest = work[o:]
+    dense(code, dec[0], dec[1], dec[2], coarse, rest)
+    dense(code, dec[3], dec[4], dec[5], proj, rest)
     rows = min(step, s) * k * dec[6].shape[0]
-    hbuf, o = _carve(work, 0, rows, dec[7].shape[1])
-    xbuf, o = _carve(work, o, rows, dec[8].shape[1])
+    hbuf, o = _carve(rest, 0, rows, dec[7].shape[1])
+    xbuf, o = _carve(rest, o, rows, dec[8].shape[1])
     fold(coarse.reshape((s, k, 3)), dec[7], proj, dec[6], dec[8], dec[9], dec[10], dec[11], out, m, step, hbuf, xbuf)
 
 
@@ -308,31 +315,37 @@ def pointpncnet_infer(points, counts, point_index, local_counts, min_points, gen
     ``attention``: :func:`dense`'s ``(weights, biases, dims)``; ``gdec`` / ``ldec``: the fully
     connected layers' and the code projection's ``(weights, biases, dims)`` then :func:`fold`'s
     ``grid, wpt, w1t, b1, w2, b2``; ``gstep`` / ``lstep``: codes per folding chunk. ``work``:
-    float32 work memory, replaced by a bigger array where too small; returns the one used, for
-    the caller to keep (fresh megabytes cost page faults on every call)."""
+    float32 work memory for every intermediate, replaced by a bigger array where too small;
+    returns the one used, for the caller to keep (fresh memory costs page faults on every call,
+    and its release stalls the other threads of the process)."""
     b, regions = len(counts), 8
+    codes = b * regions
     most_g, most_l = max(grows, counts.max()), max(lrows, local_counts.max())
     embed = genc[6].shape[1]
-    need = max(_encoder_floats(genc, most_g, b), _encoder_floats(lenc, most_l, b * regions),
-               _decoder_floats(gdec, b, gstep), _decoder_floats(ldec, b * regions, lstep),
-               2 * b * regions * attention[2][1:].max())
+    kept = b * embed * 2 + codes * (2 * embed + regions + 1) + len(point_index) * 3 + 7 * ALIGN  # the carving below
+    need = kept + max(_encoder_floats(genc, most_g, b), _encoder_floats(lenc, most_l, codes),
+                      _decoder_floats(gdec, b, gstep), _decoder_floats(ldec, codes, lstep),
+                      2 * (codes * attention[2][1:].max() + ALIGN))
     if len(work) < need:
         work = np.empty(need + need // 4, np.float32)
+    e_g, o = _carve(work, 0, b, embed)
+    fused, o = _carve(work, o, b, embed)
+    e_l, o = _carve(work, o, codes, embed)
+    code, o = _carve(work, o, codes, embed + regions)
+    logits, o = _carve(work, o, codes, 1)
+    local_points, o = _carve(work, o, len(point_index), 3)
+    phase = work[o:]  # each step's own work memory
 
-    e_g = np.empty((b, embed), np.float32)
-    _encode(genc, points, counts, grows, most_g, e_g, work)
-    local_points = np.empty((len(point_index), 3), np.float32)
+    _encode(genc, points, counts, grows, most_g, e_g, phase)
     for i in range(len(point_index)):
         if not 0 <= point_index[i] < len(points):
             raise IndexError("pointpncnet_infer: a point index out of range")
         local_points[i] = points[point_index[i]]
-    e_l = np.empty((b * regions, embed), np.float32)
-    _encode(lenc, local_points, local_counts, lrows, most_l, e_l, work)
+    _encode(lenc, local_points, local_counts, lrows, most_l, e_l, phase)
 
     # attention over the present octants (a softmax), its weighted code max-fused with the global one
-    logits = np.empty((b * regions, 1), np.float32)
-    dense(e_l, attention[0], attention[1], attention[2], logits, work)
-    fused = e_g.copy()
+    dense(e_l, attention[0], attention[1], attention[2], logits, phase)
+    fused[:] = e_g
     weights = np.empty(regions, np.float32)
     for s in range(b):
         top = np.float32(-np.inf)
@@ -355,14 +368,15 @@ def pointpncnet_infer(points, counts, point_index, local_counts, min_points, gen
             fused[s, j] = max(fused[s, j], acc)
 
     # the octants' codes: the fused code and the octant's one-hot
-    code = np.zeros((b * regions, embed + regions), np.float32)
     for s in range(b):
         for r in range(regions):
-            code[s * regions + r, :embed] = fused[s]
-            code[s * regions + r, embed + r] = 1.0
+            row = code[s * regions + r]
+            row[:embed] = fused[s]
+            row[embed:] = 0.0
+            row[embed + r] = 1.0
     mg = gdec[2][-1] // 3 * gdec[6].shape[0]
-    _decode(gdec, fused, gstep, 1, out[:, :mg], work)
-    _decode(ldec, code, lstep, regions, out[:, mg:], work)
+    _decode(gdec, fused, gstep, 1, out[:, :mg], phase)
+    _decode(ldec, code, lstep, regions, out[:, mg:], phase)
     return work
 
 
