@@ -403,6 +403,37 @@ def test_kth_smallest_equals_a_partition(dtype):
         assert kth_smallest(short.copy(), len(short), k) == np.sort(short)[k]
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_bracketed_selection_equals_a_partition(dtype):
+    """The ground's selection through a sampled bracket gives np.partition's value at the rank:
+    long runs of random, tied, flat and sorted heights at the ground's quantile and others, and
+    runs whose sample lies far from the rest (the bracket misses: the full selection runs)."""
+    from pcc_ros.pipeline.evidence_kernels import BRACKET_SAMPLES, bracketed_kth
+
+    rng = np.random.default_rng(8)
+    cases = []
+    for kind in ["random", "ties", "flat", "sorted", "reversed", "short"] * 3:
+        size = int(rng.integers(2, 4 * BRACKET_SAMPLES)) if kind == "short" else int(rng.integers(1100, 9000))
+        v = rng.normal(-1.7, 0.3, size).astype(dtype)
+        if kind == "ties":
+            v = np.round(v, 1)
+        elif kind == "flat":
+            v[:] = dtype(-1.73)
+            v[: size // 50] -= 0.5
+        elif kind in ("sorted", "reversed"):
+            v = np.sort(v)[:: 1 if kind == "sorted" else -1].copy()
+        cases.append(v)
+    for low in (True, False):  # every sampled value far above (or below) all the others
+        v = rng.normal(-1.7, 0.3, 5000).astype(dtype)
+        v[:: 5000 // BRACKET_SAMPLES] = dtype(50.0 if low else -50.0)
+        cases.append(v)
+    for v in cases:
+        for quantile in (0.05, 0.5, 0.0, 1.0, 0.97):
+            k = int(quantile * (len(v) - 1))
+            work, spare = v.copy(), np.empty_like(v)
+            assert bracketed_kth(work, len(v), k, spare) == np.partition(v, k)[k], (len(v), quantile)
+
+
 def test_side_pool_is_made_once_when_first_frames_race(monkeypatch):
     """Two pipelines' first filter frames at once share one second thread (none made and leaked)."""
     import threading
@@ -443,7 +474,7 @@ def test_side_pool_is_made_once_when_first_frames_race(monkeypatch):
 def _kernels():
     from pcc_ros.pipeline import evidence_kernels as k
 
-    return (k.counting_sort, k.ray_counts, k.ground_cells, k.ground_quantiles, k.expected_counts)
+    return (k.counting_sort, k.ray_keys, k.ray_counts, k.ground_cells, k.ground_quantiles, k.expected_counts)
 
 
 def test_frames_after_warm_up_compile_nothing_new():

@@ -181,20 +181,12 @@ def angular_window(boxes: Boxes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
 _SCRATCH = Scratch()  # this module's work arrays (pcc_ros.scratch)
 
 
-def _clamp(values: np.ndarray, hi: int, nan: np.ndarray) -> None:
-    """``values`` clipped to ``[0, hi]`` in place, NaN to 0 (``nan``: a work mask). What
-    ``fmin(fmax(values, 0), hi)`` gives, at a third of its cost (numpy's fmax / fmin with a
-    scalar take no SIMD path)."""
-    np.clip(values, 0, hi, out=values)
-    np.copyto(values, 0, where=np.isnan(values, out=nan))
-
-
 def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) -> tuple[np.ndarray, ...]:
     """``n_in, n_occluded, n_stop, n_pass, n_rays`` of every box (float64).
 
-    The ray index: numpy passes over the scan in its own precision (contiguous, SIMD) give
-    every point's cell, its azimuth bin and slope band (the slope ``z / r`` is monotone in
-    elevation: no elevation ``arctan2`` per point); a counting sort groups the points of the
+    The ray index: numpy's SIMD ``arctan2`` and one compiled pass over the scan, both in its
+    own precision, give every point's cell, its azimuth bin and slope band (the slope ``z / r``
+    is monotone in elevation: no elevation ``arctan2`` per point); a counting sort groups the points of the
     cells some judged box searches (its azimuth sector widened by one bin each way, the bands
     of its slope window); the compiled kernel then visits each box's cells, tests the box's
     slope window (with a slack far above float32 rounding: a superset of the rays that reach the
@@ -219,31 +211,15 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
     box_of_bin = np.repeat(np.arange(m), nbins)
     az_bin = (np.repeat(b0, nbins) + positions_in_runs(nbins)) % _AZ_BINS
     p = len(x)
+    from pcc_ros.pipeline import evidence_kernels as kernels  # numba: heavy, only when measuring
+
+    key, slope = ws("key", p, np.int16), ws("slope", p, dt)
     with np.errstate(invalid="ignore"):
-        scaled = np.arctan2(y, x, out=ws("az", p, dt))
-        scaled += dt(np.pi)
-        scaled *= dt(_AZ_BINS / (2 * np.pi))
-        _clamp(scaled, _AZ_BINS - 1, ws("nan", p, bool))  # NaN -> 0 (band 0 below: no box)
-    key = ws("key", p, np.int16)
-    np.copyto(key, scaled, casting="unsafe")  # truncation: the floor of these non-negative bins
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # over: z / tiny below
-        r = np.multiply(x, x, out=ws("r", p, dt))
-        tmp = ws("tmp", p, dt)
-        r += np.multiply(y, y, out=tmp)
-        np.sqrt(r, out=r)
-        # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e
-        # index paired it with the boxes at azimuth and elevation 0); straight up / down is
-        # beyond every box's window (a slope of +-inf, or huge: its band clamps); NaN points stay NaN.
-        np.clip(r, np.finfo(dt).tiny, np.inf, out=r)
-        slope = np.divide(z, r, out=r)
-        band = np.subtract(slope, dt(e0), out=tmp)
-        band *= dt(1.0 / width)
-        band += 1
-        _clamp(band, _EL_BANDS + 1, ws("nan", p, bool))  # NaN -> band 0: no box
-    band16 = ws("band", p, np.int16)
-    np.copyto(band16, band, casting="unsafe")
-    key *= np.int16(_EL_BANDS + 2)
-    key += band16
+        azimuth = np.arctan2(y, x, out=ws("az", p, dt))  # numpy's SIMD pass
+    # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e index
+    # paired it with the boxes at azimuth and elevation 0); straight up / down is beyond every
+    # box's window (a slope of +-inf, or huge: its band clamps); NaN points get cell 0 (no box).
+    kernels.ray_keys(azimuth, x, y, z, _AZ_BINS, _EL_BANDS, e0, 1.0 / width, key, slope)
     band_lo = np.clip(np.floor((s_lo - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
     band_hi = np.clip(np.floor((s_hi - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
     bins = az_bin * (_EL_BANDS + 2)
@@ -253,8 +229,6 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
     cells = _AZ_BINS * (_EL_BANDS + 2)
     wanted = np.zeros(cells, dtype=bool)
     wanted[np.repeat(first_cell, n_cells) + positions_in_runs(n_cells)] = True
-    from pcc_ros.pipeline import evidence_kernels as kernels  # numba: heavy, only when measuring
-
     start, order = ws("start", cells + 1, np.int64), ws("order", p, np.int64)
     kernels.counting_sort(key, wanted, start, order)
     kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, np.cumsum(nbins), boxes_idx,
@@ -366,7 +340,7 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     last = np.r_[first[1:] - 1, len(key) - 1]
     run_ends = np.cumsum(np.bincount(box_of[first], minlength=n))
     kernels.ground_quantiles(x, y, z, order, start, key[first], key[last], run_ends, zlo, zhi, cx, cy, c, s, hl, hw,
-                             float(quantile), ws("g_values", len(x), dt), out)
+                             float(quantile), ws("g_values", len(x), dt), ws("g_spare", len(x), dt), out)
     return out
 
 
