@@ -186,8 +186,8 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
 
     The ray index: numpy's SIMD ``arctan2`` and one compiled pass over the scan, both in its
     own precision, give every point's cell, its azimuth bin and slope band (the slope ``z / r``
-    is monotone in elevation: no elevation ``arctan2`` per point); a counting sort groups the points of the
-    cells some judged box searches (its azimuth sector widened by one bin each way, the bands
+    is monotone in elevation: no elevation ``arctan2`` per point); a counting sort groups the
+    points of the cells some judged box searches (its azimuth sector widened by one bin each way, the bands
     of its slope window); the compiled kernel then visits each box's cells, tests the box's
     slope window (with a slack far above float32 rounding: a superset of the rays that reach the
     box) and runs the exact float64 slab tests. Non-finite points never count.
