@@ -373,6 +373,24 @@ def test_mismatch_work_runs_only_when_its_weight_is_non_zero():
         assert ("mismatch" in result.filter_terms and np.isfinite(result.filter_terms["mismatch"][0])) == bool(weight)
 
 
+def _heights(rng: np.random.Generator, dtype, kinds: list[str], size) -> list[np.ndarray]:
+    """Runs of ground-like heights for the selection tests, one per kind: random, ties (rounded),
+    flat with a few lower returns, sorted, reversed, one value; ``size()`` draws each length."""
+    cases = []
+    for kind in kinds:
+        n = 1 if kind == "one" else size()
+        v = rng.normal(-1.7, 0.3, n).astype(dtype)
+        if kind == "ties":
+            v = np.round(v, 1)
+        elif kind == "flat":
+            v[:] = dtype(-1.73)
+            v[: n // 50] -= 0.5
+        elif kind in ("sorted", "reversed"):
+            v = np.sort(v)[:: 1 if kind == "sorted" else -1].copy()
+        cases.append(v)
+    return cases
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_kth_smallest_equals_a_partition(dtype):
     """The ground's quantile selection (in place, on a prefix of a work array) gives the value
@@ -381,19 +399,8 @@ def test_kth_smallest_equals_a_partition(dtype):
     from pcc_ros.pipeline.evidence_kernels import kth_smallest
 
     rng = np.random.default_rng(7)
-    cases = []
-    for kind in ["random", "ties", "flat", "sorted", "reversed", "one"] * 4:
-        size = 1 if kind == "one" else int(rng.integers(2, 3000))
-        v = rng.normal(-1.7, 0.3, size).astype(dtype)
-        if kind == "ties":
-            v = np.round(v, 1)
-        elif kind == "flat":
-            v[:] = dtype(-1.73)
-            v[: size // 50] -= 0.5
-        elif kind in ("sorted", "reversed"):
-            v = np.sort(v)[:: 1 if kind == "sorted" else -1].copy()
-        cases.append(v)
-    for v in cases:
+    kinds = ["random", "ties", "flat", "sorted", "reversed", "one"] * 4
+    for v in _heights(rng, dtype, kinds, lambda: int(rng.integers(2, 3000))):
         work = np.r_[v, rng.normal(size=7).astype(dtype)]  # a longer work array: only the prefix counts
         for quantile in (0.05, 0.5, 0.0, 1.0):
             k = int(quantile * (len(v) - 1))
@@ -406,23 +413,15 @@ def test_kth_smallest_equals_a_partition(dtype):
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_bracketed_selection_equals_a_partition(dtype):
     """The ground's selection through a sampled bracket gives np.partition's value at the rank:
-    long runs of random, tied, flat and sorted heights at the ground's quantile and others, and
-    runs whose sample lies far from the rest (the bracket misses: the full selection runs)."""
+    long runs (and short ones, below the sampling) of random, tied, flat and sorted heights at
+    the ground's quantile and others, and runs whose sample lies far from the rest (the bracket
+    misses: the full selection runs)."""
     from pcc_ros.pipeline.evidence_kernels import BRACKET_SAMPLES, bracketed_kth
 
     rng = np.random.default_rng(8)
-    cases = []
-    for kind in ["random", "ties", "flat", "sorted", "reversed", "short"] * 3:
-        size = int(rng.integers(2, 4 * BRACKET_SAMPLES)) if kind == "short" else int(rng.integers(1100, 9000))
-        v = rng.normal(-1.7, 0.3, size).astype(dtype)
-        if kind == "ties":
-            v = np.round(v, 1)
-        elif kind == "flat":
-            v[:] = dtype(-1.73)
-            v[: size // 50] -= 0.5
-        elif kind in ("sorted", "reversed"):
-            v = np.sort(v)[:: 1 if kind == "sorted" else -1].copy()
-        cases.append(v)
+    kinds = ["random", "ties", "flat", "sorted", "reversed"] * 3
+    cases = _heights(rng, dtype, kinds, lambda: int(rng.integers(1100, 9000)))
+    cases += _heights(rng, dtype, kinds[:5], lambda: int(rng.integers(2, 4 * BRACKET_SAMPLES)))
     for low in (True, False):  # every sampled value far above (or below) all the others
         v = rng.normal(-1.7, 0.3, 5000).astype(dtype)
         v[:: 5000 // BRACKET_SAMPLES] = dtype(50.0 if low else -50.0)
