@@ -16,7 +16,8 @@ complete`` and the tests compare them with the original path).
 :func:`pointpncnet_infer` runs PointPnCNet's whole network in one call (both encoders, the
 octant gather, the attention and fusion, both decoders' fully connected layers and folding):
 called layer by layer, the Python and torch operators between the kernels, run while the
-caches are cold from the kernel before, cost about 4 % of the network's time.
+caches are cold from the kernel before, cost 4-5 % of the network's time (``pcc bench complete``,
+``fast_layers``).
 
 Used on CPU float32 inference only (:func:`pcc_ros.models.layers.compiled_kernels` switches them
 off); compiled on first use and cached on disk (:func:`pcc_ros.jit.compiled`; :func:`warm_up` at
