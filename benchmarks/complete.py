@@ -473,7 +473,13 @@ def run(args: argparse.Namespace) -> dict:
         with compiled_kernels(False):  # the compiled loops run the same products: count them as operators
             ops_out = completer.complete(batch32)
             executed = sum(2 * m * k * n for m, k, n in recorded_matmuls(lambda: completer.complete(batch32)))
-        max_diff = max(max_diff, max(float(np.abs(a - b).max()) for a, b in zip(ops_out, ref_out)))
+        with compiled_kernels(True, whole_networks=False):
+            layers_out = completer.complete(batch32)
+        max_diff = max(max_diff, *(float(np.abs(a - b).max()) for out in (ops_out, layers_out)
+                                   for a, b in zip(out, ref_out)))
+        if max_diff > 1e-4:
+            raise SystemExit(f"decode density {density}: the fast path's operator or layer-by-layer runs disagree "
+                             f"with the original path: max |diff| {max_diff:.2e} (canonical)")
         executed /= len(batch32)
         counts[density] = {"nominal_flops_per_instance": nominal, "executed_flops_per_instance": executed,
                            "output_points": int(completer.num_output_points), "output_max_abs_diff": max_diff}
