@@ -92,7 +92,7 @@ def pcn_encode(points, counts, rows, w0t, b0, w1t, wct, wst, const, w2t, b2, out
     segment."""
     ints = np.empty(6, np.int32)
     floats = np.empty(2, np.float32)
-    chars = np.full(1, 78, np.uint8)  # "N": no transposes
+    chars = np.full(1, 78, np.uint8)
     c0, c1, hp, c2 = w0t.shape[1], w1t.shape[1], wct.shape[1], w2t.shape[1]
     segments = len(counts)
     starts = np.zeros(segments + 1, np.int64)
@@ -278,13 +278,54 @@ def _encode(enc, points, counts, rows, most, pooled, work):
                t, f, h, y, g, gp)
 
 
+@compiled()
+def encode(enc, points, counts, rows, pooled, work):
+    """:func:`pcn_encode` on its own (``PCNEncoder``'s compiled path, its layers called one by
+    one): its work arrays carved from ``work``, replaced by a bigger array where too small;
+    returns the one used, for the caller to keep."""
+    most = max(rows, counts.max())
+    need = _encoder_floats(enc, most, len(counts))
+    if len(work) < need:
+        work = np.empty(need + need // 4, np.float32)
+    _encode(enc, points, counts, rows, most, pooled, work)
+    return work
+
+
+@njit(inline="always")
+def _fold_floats(fw, codes, k, step):
+    """Work floats :func:`_fold` carves for ``codes`` codes of ``k`` coarse points."""
+    return min(step, codes) * k * fw[0].shape[0] * (fw[1].shape[1] + fw[2].shape[1]) + 2 * ALIGN
+
+
+@njit(inline="always")
+def _fold(coarse, proj, fw, out, m, step, work):
+    """:func:`fold` with its work arrays carved from ``work``; ``fw``: its ``grid, wpt, w1t, b1,
+    w2, b2``."""
+    s, k = coarse.shape[0], coarse.shape[1]
+    rows = min(step, s) * k * fw[0].shape[0]
+    hbuf, o = _carve(work, 0, rows, fw[1].shape[1])
+    xbuf, o = _carve(work, o, rows, fw[2].shape[1])
+    fold(coarse, fw[1], proj, fw[0], fw[2], fw[3], fw[4], fw[5], out, m, step, hbuf, xbuf)
+
+
+@compiled()
+def fold_into(coarse, proj, fw, out, m, step, work):
+    """:func:`fold` on its own (``FoldingDecoder``'s compiled path, the layers called one by one):
+    its work arrays carved from ``work``, replaced by a bigger array where too small; returns the
+    one used, for the caller to keep."""
+    need = _fold_floats(fw, coarse.shape[0], coarse.shape[1], step)
+    if len(work) < need:
+        work = np.empty(need + need // 4, np.float32)
+    _fold(coarse, proj, fw, out, m, step, work)
+    return work
+
+
 @njit(inline="always")
 def _decoder_floats(dec, codes, step):
     """Work floats :func:`_decode` carves for ``codes`` codes."""
-    fc, k, hdim = dec[2], dec[2][-1] // 3, dec[7].shape[1]
+    fc, k = dec[2], dec[2][-1] // 3
     hidden = 2 * (codes * fc[1:-1].max() + ALIGN) if len(fc) > 2 else 0
-    folding = min(step, codes) * k * dec[6].shape[0] * (hdim + dec[8].shape[1])
-    return codes * (3 * k + hdim) + max(hidden, folding) + 4 * ALIGN
+    return codes * (3 * k + dec[7].shape[1]) + max(hidden, _fold_floats(dec[6:], codes, k, step)) + 2 * ALIGN
 
 
 @njit(inline="always")
@@ -296,10 +337,7 @@ def _decode(dec, code, step, m, out, work):
     rest = work[o:]
     dense(code, dec[0], dec[1], dec[2], coarse, rest)
     dense(code, dec[3], dec[4], dec[5], proj, rest)
-    rows = min(step, s) * k * dec[6].shape[0]
-    hbuf, o = _carve(rest, 0, rows, dec[7].shape[1])
-    xbuf, o = _carve(rest, o, rows, dec[8].shape[1])
-    fold(coarse.reshape((s, k, 3)), dec[7], proj, dec[6], dec[8], dec[9], dec[10], dec[11], out, m, step, hbuf, xbuf)
+    _fold(coarse.reshape((s, k, 3)), proj, dec[6:], out, m, step, rest)
 
 
 @compiled()
@@ -433,7 +471,7 @@ def octant_pairs(points, lengths, overlap):
 def warm_up() -> None:
     """Compile every kernel for the argument types inference passes (numba compiles on first
     call, or loads its disk cache: seconds the first time on a machine, about 0.3 s after), on
-    tiny arrays, so a model's first real batch does not pay for it: ``fold`` for an output of
+    tiny arrays, so a model's first real batch does not pay for it: ``fold_into`` for an output of
     its own and for a view of a bigger one (PointPnCNet's global points and octants)."""
     if not AVAILABLE:
         return
@@ -446,9 +484,7 @@ def warm_up() -> None:
     def w(*shape):
         return rng.normal(size=shape).astype(f32)
 
-    pcn_encode(points, np.array([4, 2], np.int64), 4, w(3, 2), w(2), w(2, 3), w(2, 3), w(3, 3), w(3), w(3, 4), w(4),
-               np.empty((2, 4), f32), *(np.empty((4, n), f32) for n in (2, 3, 3, 4)), np.empty((2, 3), f32),
-               np.empty((2, 3), f32))
+    encode((w(3, 2), w(2), w(2, 3), w(2, 3), w(3, 3), w(3), w(3, 4), w(4)), points, np.array([4, 2], np.int64), 4,
+           np.empty((2, 4), f32), np.empty(0, f32))
     for out in (np.empty((2, 4, 3), f32), np.empty((2, 9, 3), f32)[:, 5:]):
-        fold(w(2, 2, 3), w(3, 5), w(2, 5), w(2, 5), w(5, 4), w(4), w(3, 4), w(3), out, 1, 1, np.empty((4, 5), f32),
-             np.empty((4, 4), f32))
+        fold_into(w(2, 2, 3), w(2, 5), (w(2, 5), w(3, 5), w(5, 4), w(4), w(3, 4), w(3)), out, 1, 1, np.empty(0, f32))

@@ -402,7 +402,7 @@ class PCNEncoder(nn.Module):
 
     def _forward_compiled(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor | None:
         """:meth:`_forward_chunked`'s composed path in one compiled call
-        (:func:`pcc_ros.models.kernels.pcn_encode`: the same products and folded constants, the
+        (:func:`pcc_ros.models.kernels.encode`: the same products and folded constants, the
         chunks, the pooling, the last bias and the empty segments in the kernel, no torch
         operator between them); None where it does not apply (GPU, not float32, the compiled
         loops switched off, other than two ``mlp1`` layers composed with one ``mlp2`` layer,
@@ -414,16 +414,10 @@ class PCNEncoder(nn.Module):
         counts = kernels.sorted_counts(segment.numpy(), num_segments)
         if len(counts) != num_segments:
             return None
-        rows, s = self.kernel_rows(), num_segments
-        most = max(rows, int(counts.max()))
-        c0, c1, hp = weights[0].shape[1], weights[2].shape[1], weights[3].shape[1]
-        pool = np.empty((s, self.out_dim), np.float32)
-        kernels.pcn_encode(
-            as_numpy(points), counts, rows, *weights, pool,
-            *(_SCRATCH(f"encoder.{name}", n * width, np.float32).reshape(n, width) for name, n, width in (
-                ("t", most, c0), ("f", most, c1), ("h", most, hp), ("y", most, self.out_dim), ("g", s, c1),
-                ("gp", s, hp))),
-        )
+        pool = np.empty((num_segments, self.out_dim), np.float32)
+        work = kernels.encode(weights, as_numpy(points), counts, self.kernel_rows(), pool,
+                              _SCRATCH.whole("encoder", np.float32))
+        _SCRATCH.keep("encoder", work)
         return torch.from_numpy(pool)
 
     def kernel_weights(self) -> tuple[np.ndarray, ...] | None:
@@ -650,14 +644,11 @@ class FoldingDecoder(nn.Module):
     def _fold_compiled(self, kernels, code: torch.Tensor, coarse: torch.Tensor, out: torch.Tensor, m: int,
                        step: int) -> torch.Tensor:
         """:meth:`_fold_chunked` (one hidden folding layer) in one compiled call
-        (:func:`pcc_ros.models.kernels.fold`): the same function, the first layer's point and grid
+        (:func:`pcc_ros.models.kernels.fold_into`): the same function, the first layer's point and grid
         halves and the output layer's residual inside the kernel."""
-        grid, wpt, w1t, b1, w2, b2 = self._fold_weights()
-        s, k = coarse.shape[:2]
-        rows = min(step, s) * k * grid.shape[0]
-        kernels.fold(as_numpy(coarse), wpt, as_numpy(self.fold_code(code)), grid, w1t, b1, w2, b2, out.numpy(), m, step,
-                     _SCRATCH("fold.h", rows * wpt.shape[1], np.float32).reshape(rows, wpt.shape[1]),
-                     _SCRATCH("fold.x", rows * w1t.shape[1], np.float32).reshape(rows, w1t.shape[1]))
+        work = kernels.fold_into(as_numpy(coarse), as_numpy(self.fold_code(code)), self._fold_weights(), out.numpy(),
+                                 m, step, _SCRATCH.whole("fold", np.float32))
+        _SCRATCH.keep("fold", work)
         return out
 
 
