@@ -70,6 +70,13 @@ def set_threads(n: int) -> None:
 
 
 @njit(inline="always")
+def _mm_args():
+    """:func:`_mm`'s argument memory (sgemm takes every argument by reference): sizes and strides,
+    alpha and beta, and the transpose flag "N" (none)."""
+    return np.empty(6, np.int32), np.empty(2, np.float32), np.full(1, 78, np.uint8)
+
+
+@njit(inline="always")
 def _mm(a, b, c, ints, floats, chars):
     """``c = a @ b`` (row-major, unit inner strides): column-major ``c^T = b^T a^T``."""
     m, k = a.shape
@@ -90,9 +97,7 @@ def pcn_encode(points, counts, rows, w0t, b0, w1t, wct, wst, const, w2t, b2, out
     ``out = max_seg(h W2^T) + b2`` (0 for an empty segment).
     ``t, f, h, y``: work arrays of ``max(rows, largest segment)`` rows; ``g, gp``: of a row per
     segment."""
-    ints = np.empty(6, np.int32)
-    floats = np.empty(2, np.float32)
-    chars = np.full(1, 78, np.uint8)
+    ints, floats, chars = _mm_args()
     c0, c1, hp, c2 = w0t.shape[1], w1t.shape[1], wct.shape[1], w2t.shape[1]
     segments = len(counts)
     starts = np.zeros(segments + 1, np.int64)
@@ -156,9 +161,7 @@ def fold(coarse, wpt, code_proj, grid, w1t, b1, w2, b2, out, m, step, hbuf, xbuf
     Wp^T + code_proj[s] + grid[g])``, into ``out[s // m, (s % m) K G + k G + g]``, ``step``
     codes per chunk (``hbuf`` / ``xbuf``: work arrays of ``step K G`` rows). Fast-math: sums may
     be reassociated (float rounding in the last bits)."""
-    ints = np.empty(6, np.int32)
-    floats = np.empty(2, np.float32)
-    chars = np.full(1, 78, np.uint8)
+    ints, floats, chars = _mm_args()
     codes, k_points = coarse.shape[0], coarse.shape[1]
     hdim, g_points, h1 = wpt.shape[1], grid.shape[0], w1t.shape[1]
     base = np.empty(hdim, np.float32)
@@ -218,9 +221,7 @@ def dense(x, weights, biases, dims, out, work):
     columns, its transposed weight ``(dims[l], dims[l + 1])`` and its bias stored one after the
     other in the flat ``weights`` / ``biases``; ReLU after every layer but the last, which
     writes ``out``. ``work``: at least ``2 * (rows * max(dims[1:-1]) + ALIGN)`` floats (hidden layers)."""
-    ints = np.empty(6, np.int32)
-    floats = np.empty(2, np.float32)
-    chars = np.full(1, 78, np.uint8)
+    ints, floats, chars = _mm_args()
     rows, layers = x.shape[0], len(dims) - 1
     src = x
     wo = bo = 0
