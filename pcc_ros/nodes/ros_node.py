@@ -151,8 +151,7 @@ class RclpyLogHandler(logging.Handler):
                 self._owns_level = package.level == logging.NOTSET
                 package.addHandler(self)
             self.loggers.append(logger)
-            if self._owns_level:
-                package.setLevel(min(int(log.get_effective_level()) or logging.INFO for log in self.loggers))
+            self._follow_level(package)
 
     def detach(self, logger) -> None:
         package = logging.getLogger("pcc_ros")
@@ -161,12 +160,17 @@ class RclpyLogHandler(logging.Handler):
                 return
             self.loggers.remove(logger)
             if self.loggers:
-                if self._owns_level:
-                    package.setLevel(min(int(log.get_effective_level()) or logging.INFO for log in self.loggers))
+                self._follow_level(package)
                 return
             package.removeHandler(self)
             if self._owns_level:
                 package.setLevel(logging.NOTSET)
+
+    def _follow_level(self, package: logging.Logger) -> None:
+        """The package logger's level: the lowest of the live nodes' (INFO for an unset one),
+        unless someone else set it before the first node attached."""
+        if self._owns_level:
+            package.setLevel(min(int(log.get_effective_level()) or logging.INFO for log in self.loggers))
 
     def emit(self, record: logging.LogRecord) -> None:
         try:

@@ -101,6 +101,7 @@ def _tagged_with_the_node(factory):
 
 logging.setLogRecordFactory(_tagged_with_the_node(logging.getLogRecordFactory()))
 
+
 def output_names(mode: str, with_completion: bool = False) -> list[str]:
     """The outputs a node of ``mode`` publishes; ``with_completion`` adds the completion
     outputs to a filter node's (``pcc replay --filter`` records both from one pipeline run)."""
