@@ -25,7 +25,7 @@ from pcc_ros.errors import PccError
 # name -> (module, one-line help). Keep sorted by workflow order.
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("pcc_ros.cli.synth", "generate a SynthCars LiDAR dataset (KITTI tracking layout)"),
-    "convert": ("pcc_ros.cli.convert", "convert KITTI / nuScenes / SynthCars to a ROS 2 bag"),
+    "convert": ("pcc_ros.cli.convert", "convert KITTI / nuScenes / Argoverse 2 / SynthCars to a ROS 2 bag"),
     "info": ("pcc_ros.cli.info", "summarise a ROS 2 bag"),
     "extract": ("pcc_ros.cli.extract", "extract canonical car instances from bags or datasets"),
     "train": ("pcc_ros.cli.train", "train a completion backend self-supervised"),
