@@ -181,3 +181,13 @@ def test_damaged_logs_name_the_file(av2_log, tmp_path, caplog, damage, named):
     assert not (tmp_path / "bag").exists()
     with pytest.raises(DataError, match="feather"):
         list(Av2Log(root).frames())
+
+
+def test_a_test_split_log_without_annotations_converts_with_no_labels(av2_log, tmp_path):
+    root = tmp_path / "log"
+    shutil.copytree(av2_log.root, root)
+    (root / "annotations.feather").unlink()
+    bag = tmp_path / "bag"
+    assert main(["convert", "av2", str(root), "--no-labels", "--out", str(bag)]) == 0
+    frames = list(read_frames(bag))
+    assert len(frames) == 4 and all(f.ground_truth is None for f in frames)

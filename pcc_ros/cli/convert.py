@@ -43,6 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             p.add_argument("--frame", default=EGO_FRAME,
                            help=f"frame of /points: {EGO_FRAME} (as recorded, default) or a sensor of the "
                            "calibration, e.g. up_lidar")
+            p.add_argument("--no-labels", action="store_true",
+                           help="read no annotations.feather (test-split logs have none): no /ground_truth")
         else:
             p.add_argument("src", type=Path, help="dataset root")
         p.add_argument("--out", type=Path, required=True, help="output bag: a folder (rosbag2 writes metadata.yaml "
@@ -137,7 +139,7 @@ def _av2(args: argparse.Namespace) -> int:
     for _, out in jobs:  # every output is checked before the first log is read
         check_output_bag(out, args.force)
     for log_dir, out in jobs:
-        reader = Av2Log(log_dir, frame=args.frame)
+        reader = Av2Log(log_dir, frame=args.frame, labels=not args.no_labels)
         reader.sensor_to_ego()  # an unknown --frame fails before any sweep is read
         total = len(reader.sweep_paths()[args.first : _stop(args)])
         frames = reader.frames(start=args.first, stop=_stop(args))

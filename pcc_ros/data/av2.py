@@ -143,13 +143,15 @@ def log_dirs(path: str | Path) -> list[Path]:
 
 
 class Av2Log:
-    """One AV2 sensor-dataset log; ``frame`` = ``ego_vehicle`` or a sensor of the calibration.
+    """One AV2 sensor-dataset log; ``frame`` = ``ego_vehicle`` or a sensor of the calibration;
+    ``labels=False`` reads no annotations (frames without ground truth).
 
     ``counts`` accumulates, over passes, the annotations placed on sweeps and those left out
     (at a stamp with no sweep, invalid geometry)."""
 
-    def __init__(self, root: str | Path, frame: str = EGO_FRAME) -> None:
+    def __init__(self, root: str | Path, frame: str = EGO_FRAME, labels: bool = True) -> None:
         self.root = Path(root)
+        self.labels = labels  # False: no ground truth read (the test split's logs have no annotations.feather)
         if not is_log(self.root):
             raise DataError(f"{self.root / LIDAR_DIR}: missing; {self.root} is not an Argoverse 2 log",
                             hint="`pcc check-data` says what a layout needs")
@@ -205,6 +207,9 @@ class Av2Log:
     def _boxes(self, ego_to_frame: np.ndarray) -> tuple[np.ndarray, Boxes, dict[str, np.ndarray]]:
         """Every annotation in the points' frame (stamps, boxes, extras columns), invalid ones left out."""
         path = self.root / ANNOTATIONS
+        if not path.is_file():
+            raise DataError(f"{path}: missing annotations",
+                            hint="a test-split log has none: convert it with --no-labels (no /ground_truth)")
         a = read_columns(path, ANNOTATION_COLUMNS, "annotations")
         n = len(a["timestamp_ns"])
         finite_pose = np.ones(n, dtype=bool)
@@ -233,7 +238,11 @@ class Av2Log:
         mount = self.sensor_to_ego()
         ego_to_frame = np.linalg.inv(mount)
         static_edges = [(EGO_FRAME, name, m) for name, m in sorted(self.calibration.items()) if name != self.frame]
-        box_stamps, boxes, box_extras = self._boxes(ego_to_frame)
+        if self.labels:
+            box_stamps, boxes, box_extras = self._boxes(ego_to_frame)
+        else:
+            box_stamps, boxes, box_extras = np.zeros(0, np.int64), Boxes.empty(), {
+                "category": np.zeros(0, object), "num_interior_pts": np.zeros(0, np.int64)}
         order = np.argsort(box_stamps, kind="stable")
         box_stamps, boxes = box_stamps[order], boxes[order]
         box_extras = {k: v[order] for k, v in box_extras.items()}
@@ -250,7 +259,7 @@ class Av2Log:
                 points=self.read_sweep(sweeps[index], ego_to_frame),
                 fields=FIELDS,
                 detections=None,
-                ground_truth=boxes[lo:hi],
+                ground_truth=boxes[lo:hi] if self.labels else None,
                 pose=self.pose_at(stamp) @ mount,
                 sequence=self.log_id,
                 index=index,
