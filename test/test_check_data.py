@@ -3,7 +3,6 @@ Argoverse 2 roots built broken by the tests; a missing default data folder says 
 
 from __future__ import annotations
 
-
 import numpy as np
 from av2_fixture import write_log
 
