@@ -49,3 +49,16 @@ def test_a_malformed_line_names_file_and_line(shared_data, tmp_path):
     (tmp_path / "0000.txt").write_text("\n".join(lines))
     with pytest.raises(DataError, match=r"0000\.txt:3: expected 15 comma-separated AB3DMOT columns"):
         list(KittiTracking(shared_data / "kitti_tracking").frames("0000", tmp_path, stop=1))
+
+
+def test_eval_detections_loader_reads_the_per_sequence_file_alike(shared_data, tmp_path):
+    from pcc_ros.detection_eval import load_kitti
+
+    root = shared_data / "kitti_tracking"
+    _ab3dmot_file(root / "detections" / "pointrcnn" / "0000", tmp_path / "0000.txt")
+    expected = load_kitti(root, root / "detections" / "pointrcnn", frames=slice(0, 5))
+    got = load_kitti(root, tmp_path, frames=slice(0, 5))
+    assert sum(len(f.dt.boxes) for f in got) > 0
+    for a, b in zip(expected, got):
+        np.testing.assert_allclose(b.dt.boxes.center, a.dt.boxes.center, atol=1e-9)
+        np.testing.assert_array_equal(b.dt.boxes.score, a.dt.boxes.score)
