@@ -114,7 +114,8 @@ def write_log(root: Path, sweeps: int = 4, seed: int = 0, start: int = T0, point
     table = pa.table({
         "timestamp_ns": pa.array([r["timestamp_ns"] for r in ann_rows], pa.int64()),
         "track_uuid": pa.array([r["track_uuid"] for r in ann_rows], pa.string()),
-        "category": pa.array([r["category"] for r in ann_rows], pa.string()),
+        # dictionary-encoded, as pandas writes a Categorical column; the reader takes plain strings alike
+        "category": pa.array([r["category"] for r in ann_rows], pa.string()).dictionary_encode(),
         **{c: pa.array([r[c] for r in ann_rows], pa.float32()) for c in floats},
         "num_interior_pts": pa.array([r["num_interior_pts"] for r in ann_rows], pa.uint32()),
     })

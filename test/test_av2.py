@@ -155,6 +155,8 @@ def test_extract_eval_real_and_replay_run_on_av2(av2_log, tmp_path, capsys):
     ("pose_column", "city_SE3_egovehicle.feather: ego poses lacks column(s) ['qw']"),
     ("pose_missing", "city_SE3_egovehicle.feather: no pose at sweep time"),
     ("bad_sweep_name", "a sweep file must be named <timestamp_ns>.feather"),
+    ("text_coordinates", "annotations column 'tx_m' has type string, expected numbers"),
+    ("null_uuid", "annotations column 'track_uuid' has 1 null value(s)"),
 ])
 def test_damaged_logs_name_the_file(av2_log, tmp_path, caplog, damage, named):
     import pyarrow as pa
@@ -174,6 +176,14 @@ def test_damaged_logs_name_the_file(av2_log, tmp_path, caplog, damage, named):
         table = feather.read_table(poses)
         keep = table.column("timestamp_ns").to_numpy() != av2_log.stamps[2]
         feather.write_feather(table.filter(pa.array(keep)), poses)
+    elif damage in ("text_coordinates", "null_uuid"):
+        path = root / "annotations.feather"
+        table = feather.read_table(path)
+        name = "tx_m" if damage == "text_coordinates" else "track_uuid"
+        values = table.column(name).to_pylist()
+        column = pa.array([str(v) for v in values]) if damage == "text_coordinates" else pa.array([None] + values[1:],
+                                                                                                   pa.string())
+        feather.write_feather(table.set_column(table.column_names.index(name), name, column), path)
     else:
         sweep.rename(sweep.with_name("sweep.feather"))
     assert main(["convert", "av2", str(root), "--out", str(tmp_path / "bag")]) == 1
@@ -181,6 +191,17 @@ def test_damaged_logs_name_the_file(av2_log, tmp_path, caplog, damage, named):
     assert not (tmp_path / "bag").exists()
     with pytest.raises(DataError, match="feather"):
         list(Av2Log(root).frames())
+
+
+def test_float16_sweeps_are_read_exactly(av2_log):
+    """AV2 stores x, y, z as float16: the reader widens them without loss (float16 -> float32 is exact)."""
+    import pyarrow as pa
+    import pyarrow.feather as feather
+
+    path = av2_log.root / "sensors" / "lidar" / f"{av2_log.stamps[0]}.feather"
+    assert feather.read_table(path).schema.field("x").type == pa.float16()
+    points = Av2Log(av2_log.root).read_sweep(path)
+    np.testing.assert_array_equal(points[:, 0], read_table(path)["x"])  # float16 values, exactly
 
 
 def test_a_test_split_log_without_annotations_converts_with_no_labels(av2_log, tmp_path):

@@ -173,7 +173,7 @@ class Av2Log:
     def calibration(self) -> dict[str, np.ndarray]:
         """Sensor name -> ``ego_vehicle <- sensor`` (4x4)."""
         path = self.root / CALIBRATION
-        columns = read_columns(path, CALIBRATION_COLUMNS, "sensor calibration")
+        columns = read_columns(path, CALIBRATION_COLUMNS, "sensor calibration", text=("sensor_name",))
         matrices = se3_matrices(columns, path)
         return {str(name): m for name, m in zip(columns["sensor_name"], matrices)}
 
@@ -210,7 +210,7 @@ class Av2Log:
         if not path.is_file():
             raise DataError(f"{path}: missing annotations",
                             hint="a test-split log has none: convert it with --no-labels (no /ground_truth)")
-        a = read_columns(path, ANNOTATION_COLUMNS, "annotations")
+        a = read_columns(path, ANNOTATION_COLUMNS, "annotations", text=("track_uuid", "category"))
         n = len(a["timestamp_ns"])
         finite_pose = np.ones(n, dtype=bool)
         q = np.stack([np.asarray(a[k], dtype=np.float64) for k in ("qw", "qx", "qy", "qz")], axis=-1).reshape(n, 4)

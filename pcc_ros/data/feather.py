@@ -28,11 +28,15 @@ def _pyarrow():
     return pyarrow
 
 
-def read_columns(path: str | Path, columns: Sequence[str], what: str = "table") -> dict[str, np.ndarray]:
-    """The ``columns`` of the feather file ``path`` as numpy arrays (strings as object arrays).
+def read_columns(
+    path: str | Path, columns: Sequence[str], what: str = "table", text: Sequence[str] = ()
+) -> dict[str, np.ndarray]:
+    """The ``columns`` of the feather file ``path`` as numpy arrays; the ``text`` ones as object
+    arrays of str (plain or dictionary-encoded strings), every other one must be numeric.
 
     Raises :class:`DataError` naming the file when it is missing or unreadable, lacks a column,
-    or has nulls in one (a damaged export; a null would otherwise become NaN or ``None``)."""
+    has nulls in one (a damaged export; a null would otherwise become NaN or ``None``) or a
+    column of the wrong kind."""
     pa = _pyarrow()
     path = Path(path)
     if not path.is_file():
@@ -50,10 +54,14 @@ def read_columns(path: str | Path, columns: Sequence[str], what: str = "table") 
         column = table.column(name)
         if column.null_count:
             raise DataError(f"{path}: {what} column {name!r} has {column.null_count} null value(s)")
-        if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
+        kind = column.type
+        numeric = pa.types.is_integer(kind) or pa.types.is_floating(kind)
+        if name in text:  # strings, large strings, dictionary-encoded ones (a pandas Categorical)
             values = np.empty(len(column), dtype=object)
-            values[:] = column.to_pylist()
+            values[:] = [str(v) for v in column.to_pylist()]
             out[name] = values
+        elif not numeric:
+            raise DataError(f"{path}: {what} column {name!r} has type {kind}, expected numbers")
         else:
             out[name] = column.to_numpy()
     return out
