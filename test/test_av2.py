@@ -181,8 +181,10 @@ def test_damaged_logs_name_the_file(av2_log, tmp_path, caplog, damage, named):
         table = feather.read_table(path)
         name = "tx_m" if damage == "text_coordinates" else "track_uuid"
         values = table.column(name).to_pylist()
-        column = pa.array([str(v) for v in values]) if damage == "text_coordinates" else pa.array([None] + values[1:],
-                                                                                                   pa.string())
+        if damage == "text_coordinates":
+            column = pa.array([str(v) for v in values])
+        else:
+            column = pa.array([None, *values[1:]], pa.string())
         feather.write_feather(table.set_column(table.column_names.index(name), name, column), path)
     else:
         sweep.rename(sweep.with_name("sweep.feather"))
