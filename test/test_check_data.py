@@ -65,7 +65,10 @@ def test_nuscenes_without_tables_or_scans(tmp_path):
 def test_av2_log_and_split_name_what_is_missing_or_damaged(tmp_path):
     split = tmp_path / "val"
     good = write_log(split / "log_good", sweeps=2)
-    assert check_layout(good.root).ok and check_layout(good.root).layout == "AV2 log"
+    report = check_layout(good.root)
+    assert report.ok and report.layout == "AV2 log" and report.found == ["log_good: 2 sweeps"]
+    assert report.notes == [f"{good.root / 'annotations.feather'}: 1 annotation(s) at a time without a sweep "
+                            "(counted and left out by the conversion)"]
     bad = write_log(split / "log_bad", sweeps=2)
     (bad.root / "calibration" / "egovehicle_SE3_sensor.feather").unlink()
     (bad.root / "city_SE3_egovehicle.feather").write_bytes(b"not arrow")
@@ -77,6 +80,13 @@ def test_av2_log_and_split_name_what_is_missing_or_damaged(tmp_path):
     assert any("--no-labels" in n for n in report.notes)  # a test-split log has no annotations
     whole = check_layout(split)
     assert whole.layout == "AV2 split" and whole.found == ["2 logs, 1 complete"] and len(whole.missing) == 2
+    import pyarrow as pa
+    import pyarrow.feather as feather
+
+    poses = good.root / "city_SE3_egovehicle.feather"
+    table = feather.read_table(poses)
+    feather.write_feather(table.filter(pa.array(table.column("timestamp_ns").to_numpy() != good.stamps[1])), poses)
+    assert check_layout(good.root).missing == [f"{poses}: no pose at 1 sweep time(s), first {good.stamps[1]}"]
 
 
 def test_cli_reports_and_exit_status(tmp_path, capsys):

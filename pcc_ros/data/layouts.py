@@ -15,8 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from pcc_ros.data import av2
-from pcc_ros.data.feather import schema_columns
+from pcc_ros.data.feather import read_columns, schema_columns
 from pcc_ros.data.nuscenes import TABLES as NUSCENES_TABLES
 from pcc_ros.errors import DataError
 
@@ -166,6 +168,23 @@ def check_av2_log(log: Path, report: LayoutReport) -> None:
                             "--no-labels; extract and eval --real need labels)")
     _check_table(log / av2.CALIBRATION, av2.CALIBRATION_COLUMNS, "sensor calibration", report)
     _check_table(log / av2.POSES, av2.POSE_COLUMNS, "ego poses", report)
+    if report.missing or not sweeps:
+        return
+    # the stamps the conversion will look up (small tables: a few thousand rows)
+    stamps = np.array([int(p.stem) for p in sweeps], dtype=np.int64)
+    try:
+        poses = read_columns(log / av2.POSES, ("timestamp_ns",), "ego poses")["timestamp_ns"]
+        without = np.setdiff1d(stamps, poses)
+        if len(without):
+            report.missing.append(f"{log / av2.POSES}: no pose at {len(without)} sweep time(s), first {without[0]}")
+        if (log / av2.ANNOTATIONS).is_file():
+            labelled = read_columns(log / av2.ANNOTATIONS, ("timestamp_ns",), "annotations")["timestamp_ns"]
+            off = int(np.count_nonzero(~np.isin(labelled, stamps)))
+            if off:
+                report.notes.append(f"{log / av2.ANNOTATIONS}: {off} annotation(s) at a time without a sweep "
+                                    "(counted and left out by the conversion)")
+    except DataError as exc:
+        report.missing.append(str(exc))
 
 
 def check_layout(root: str | Path) -> LayoutReport:
