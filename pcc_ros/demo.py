@@ -254,7 +254,7 @@ def demo(opts: DemoConfig) -> dict:
     """The demo as ``opts`` says: SynthCars, then real KITTI; writes ``demo.json`` and the PNGs, returns the results."""
     if opts.kitti is not None and not (Path(opts.kitti) / "training").is_dir():  # named: an error, not half a demo
         raise DataError(f"{opts.kitti}: no KITTI tracking data here (no {Path(opts.kitti) / 'training'}) — pass "
-                        "--kitti the folder holding training/velodyne/0000")
+                        "--kitti the folder holding training/velodyne/0000", hint=download_hint(("KITTI tracking",)))
     config, _ = load_config(None, with_filter=True, backend=opts.backend, checkpoint=opts.checkpoint)
     get_backend(config.backend)  # a misspelt --backend / --baselines is said before SynthCars is generated
     backend_names(opts.baselines, "--baselines", empty_ok=True)  # "": none
