@@ -94,7 +94,7 @@ def test_every_category_maps_and_the_class_map_string_is_the_table():
 
 def test_convert_in_the_recorded_ego_frame_round_trips(av2_log, tmp_path):
     bag = tmp_path / "ego"
-    assert main(["convert", "av2", str(av2_log.root), "--out", str(bag)]) == 0
+    assert main(["convert", "av2", str(av2_log.root), "--frame", "ego_vehicle", "--out", str(bag)]) == 0
     _check_bag(bag, av2_log, "ego_vehicle")
     kept = sum(len(f.ground_truth) for f in read_frames(bag))
     assert kept == av2_log.annotation_count - av2_log.off_sweep_annotations  # every annotation on a sweep
@@ -103,7 +103,7 @@ def test_convert_in_the_recorded_ego_frame_round_trips(av2_log, tmp_path):
 def test_convert_in_the_up_lidar_frame_through_the_calibration(av2_log, tmp_path, caplog):
     bag = tmp_path / "up"
     caplog.set_level("INFO")
-    assert main(["convert", "av2", str(av2_log.root), "--frame", "up_lidar", "--storage", "sqlite3",
+    assert main(["convert", "av2", str(av2_log.root), "--storage", "sqlite3",  # up_lidar: the default frame
                  "--first", "1", "--frames", "2", "--out", str(bag)]) == 0
     _check_bag(bag, av2_log, "up_lidar", first=1)
     # every annotation accounted for: 8 converted, 8 on the other sweeps, 1 at a stamp without a sweep

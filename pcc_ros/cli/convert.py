@@ -7,7 +7,7 @@ Examples::
     pcc convert kitti-object data/kitti_object --out bags/kitti_object --storage sqlite3
     pcc convert nuscenes data/nuscenes --version v1.0-mini --scene scene-0061 --out bags/scene-0061
     pcc convert synth data/synthcars --sequence 0003 --out bags/synth_0003
-    pcc convert av2 data/av2/val/LOG_ID --frame up_lidar --out bags/av2_log
+    pcc convert av2 data/av2/val/LOG_ID --out bags/av2_log     # /points in up_lidar (--frame ego_vehicle: as recorded)
     pcc convert av2 data/av2/val/LOG_A data/av2/val/LOG_B --out bags/av2   # bags/av2/LOG_A, bags/av2/LOG_B
 """
 
@@ -18,7 +18,7 @@ import logging
 from itertools import islice
 from pathlib import Path
 
-from pcc_ros.data.av2 import EGO_FRAME, Av2Log, log_dirs
+from pcc_ros.data.av2 import DEFAULT_FRAME, EGO_FRAME, Av2Log, log_dirs
 from pcc_ros.data.bag_writer import check_output_bag, write_bag
 from pcc_ros.data.kitti import KittiObject, KittiTracking
 from pcc_ros.data.nuscenes import NuScenes
@@ -40,9 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p = sub.add_parser(name, help=text, description=text)
         if name == "av2":
             p.add_argument("src", type=Path, nargs="+", help="log directories (or a split directory of logs)")
-            p.add_argument("--frame", default=EGO_FRAME,
-                           help=f"frame of /points: {EGO_FRAME} (as recorded, default) or a sensor of the "
-                           "calibration, e.g. up_lidar")
+            p.add_argument("--frame", default=DEFAULT_FRAME,
+                           help=f"frame of /points: a sensor of the calibration ({DEFAULT_FRAME}, the default: the "
+                           f"scan frame's origin is then the viewpoint, as the nodes assume) or {EGO_FRAME} "
+                           "(the points as recorded)")
             p.add_argument("--no-labels", action="store_true",
                            help="read no annotations.feather (test-split logs have none): no /ground_truth")
         else:

@@ -12,8 +12,8 @@ and a split directory (``train/``, ``val/``, ``test/``) holds logs. One
 :class:`pcc_ros.types.Sample` per sweep, in time order:
 
 - points: AV2 stores each sweep (both stacked 32-beam LiDARs) in the ``ego_vehicle`` frame;
-  with ``frame="ego_vehicle"`` they are kept as recorded, with a sensor name (``up_lidar``,
-  ``down_lidar``) they are moved by ``inv(egovehicle_SE3_sensor)``. Fields ``x y z
+  with ``frame="ego_vehicle"`` they are kept as recorded, with a sensor name (``up_lidar``, the
+  default, or ``down_lidar``) the whole sweep is moved by ``inv(egovehicle_SE3_sensor)``. Fields ``x y z
   intensity ring time``: ``ring`` is ``laser_number`` (0-31 up, 32-63 down), ``time`` is
   ``offset_ns`` in seconds (float32, as the Velodyne ROS driver's per-point time);
 - ground truth: every annotation whose ``timestamp_ns`` is a sweep's, the cuboid centre
@@ -51,6 +51,10 @@ log = logging.getLogger(__name__)
 
 EGO_FRAME = "ego_vehicle"
 CITY_FRAME = "city"
+#: The default frame of the points: the upper LiDAR, because everything downstream takes the scan
+#: frame's origin for the viewpoint (crop distances, the filter's free-space evidence); the ego
+#: frame's origin is on the ground below the rear axle.
+DEFAULT_FRAME = "up_lidar"
 FIELDS = ("x", "y", "z", "intensity", "ring", "time")
 LIDAR_DIR = Path("sensors") / "lidar"
 ANNOTATIONS = Path("annotations.feather")
@@ -143,13 +147,13 @@ def log_dirs(path: str | Path) -> list[Path]:
 
 
 class Av2Log:
-    """One AV2 sensor-dataset log; ``frame`` = ``ego_vehicle`` or a sensor of the calibration;
+    """One AV2 sensor-dataset log; ``frame`` = a sensor of the calibration (``up_lidar``) or ``ego_vehicle``;
     ``labels=False`` reads no annotations (frames without ground truth).
 
     ``counts`` accumulates, over passes, the annotations placed on sweeps and those left out
     (at a stamp with no sweep, invalid geometry)."""
 
-    def __init__(self, root: str | Path, frame: str = EGO_FRAME, labels: bool = True) -> None:
+    def __init__(self, root: str | Path, frame: str = DEFAULT_FRAME, labels: bool = True) -> None:
         self.root = Path(root)
         self.labels = labels  # False: no ground truth read (the test split's logs have no annotations.feather)
         if not is_log(self.root):

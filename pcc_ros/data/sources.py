@@ -85,7 +85,7 @@ def open_frames(
     version: str | None = None,
 ) -> Iterator[Sample]:
     """Frames from a bag, KITTI tracking (``sequence`` or every sequence), KITTI object, nuScenes or
-    Argoverse 2 (``sequence`` = a log id of a split directory, or every log; the ``ego_vehicle`` frame).
+    Argoverse 2 (``sequence`` = a log id of a split directory, or every log; points in ``up_lidar``).
 
     ``detections_dir`` adds detector results to KITTI frames (bags carry their own);
     ``version`` picks the nuScenes table version (default: the only ``v1.0-*`` present).
