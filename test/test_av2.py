@@ -112,9 +112,13 @@ def test_convert_in_the_up_lidar_frame_through_the_calibration(av2_log, tmp_path
     assert "1 annotations at a stamp without a sweep" in caplog.text
 
 
-def test_unknown_frame_names_the_sensors(av2_log, tmp_path, caplog):
+def test_unknown_or_tilted_frame_is_refused_naming_the_sensors(av2_log, tmp_path, caplog):
     assert main(["convert", "av2", str(av2_log.root), "--frame", "lidar_top", "--out", str(tmp_path / "x")]) == 1
     assert "no sensor 'lidar_top'" in caplog.text and "up_lidar" in caplog.text
+    # the fixture's down_lidar is mounted upside down and a camera looks along its z: no yaw-only boxes there
+    for sensor, degrees in (("down_lidar", "180"), ("ring_front_center", "90")):
+        assert main(["convert", "av2", str(av2_log.root), "--frame", sensor, "--out", str(tmp_path / "x")]) == 1
+        assert f"sensor '{sensor}' is tilted {degrees} deg" in caplog.text
     assert not (tmp_path / "x").exists()
 
 

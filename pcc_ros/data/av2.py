@@ -55,6 +55,10 @@ CITY_FRAME = "city"
 #: frame's origin for the viewpoint (crop distances, the filter's free-space evidence); the ego
 #: frame's origin is on the ground below the rear axle.
 DEFAULT_FRAME = "up_lidar"
+#: Largest angle (rad) between a chosen frame's +z and the ego vehicle's up axis: boxes are
+#: yaw-only about +z, so a tilted or upside-down sensor frame (a camera, a flipped LiDAR) cannot
+#: carry them.
+MAX_FRAME_TILT = 0.35
 FIELDS = ("x", "y", "z", "intensity", "ring", "time")
 LIDAR_DIR = Path("sensors") / "lidar"
 ANNOTATIONS = Path("annotations.feather")
@@ -197,7 +201,13 @@ class Av2Log:
         if self.frame not in self.calibration:
             raise DataError(f"{self.root / CALIBRATION}: no sensor {self.frame!r} "
                             f"(have {', '.join(sorted(self.calibration))}; or use {EGO_FRAME})")
-        return self.calibration[self.frame]
+        mount = self.calibration[self.frame]
+        tilt = float(np.arccos(np.clip(mount[2, 2], -1.0, 1.0)))
+        if tilt > MAX_FRAME_TILT:
+            raise DataError(f"{self.root / CALIBRATION}: sensor {self.frame!r} is tilted {np.degrees(tilt):.0f} deg "
+                            "from the vehicle's up axis; boxes are yaw-only about +z",
+                            hint=f"use an upright frame: {DEFAULT_FRAME} or {EGO_FRAME}")
+        return mount
 
     def pose_at(self, stamp: int) -> np.ndarray:
         """``city <- ego`` at exactly ``stamp`` (AV2 records a pose at every sweep time)."""
