@@ -226,16 +226,16 @@ class Av2Log:
                             hint="a test-split log has none: convert it with --no-labels (no /ground_truth)")
         a = read_columns(path, ANNOTATION_COLUMNS, "annotations", text=("track_uuid", "category"))
         n = len(a["timestamp_ns"])
-        finite_pose = np.ones(n, dtype=bool)
         q = np.stack([np.asarray(a[k], dtype=np.float64) for k in ("qw", "qx", "qy", "qz")], axis=-1).reshape(n, 4)
-        finite_pose &= np.isfinite(q).all(axis=1) & (np.linalg.norm(q, axis=1) > 1e-9)
+        finite_pose = np.isfinite(q).all(axis=1) & (np.linalg.norm(q, axis=1) > 1e-9)
         rotation = quaternion_to_matrix(xyzw_from_wxyz(np.where(finite_pose[:, None], q, [1.0, 0, 0, 0])))
         centre = np.stack([np.asarray(a[k], dtype=np.float64) for k in ("tx_m", "ty_m", "tz_m")], axis=-1)
         centre = centre.reshape(n, 3) @ ego_to_frame[:3, :3].T + ego_to_frame[:3, 3]
         rotation = ego_to_frame[:3, :3] @ rotation
         yaw = np.where(finite_pose, np.arctan2(rotation[:, 1, 0], rotation[:, 0, 0]), np.nan)
         size = np.stack([np.asarray(a[k], dtype=np.float64) for k in ("length_m", "width_m", "height_m")], axis=-1)
-        labels = np.array([category_to_label(c) for c in a["category"]], dtype=object).reshape(n)
+        names, which = np.unique(a["category"].astype(str), return_inverse=True)  # a few dozen names, not n
+        labels = np.array([category_to_label(c) for c in names], dtype=object)[which.reshape(n)]
         boxes = Boxes(centre, size.reshape(n, 3), yaw, labels, np.ones(n),
                       np.array([str(u) for u in a["track_uuid"]], dtype=object).reshape(n))
         valid = boxes.valid_mask()
