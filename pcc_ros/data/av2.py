@@ -53,7 +53,7 @@ EGO_FRAME = "ego_vehicle"
 CITY_FRAME = "city"
 #: The default frame of the points: the upper LiDAR, because everything downstream takes the scan
 #: frame's origin for the viewpoint (crop distances, the filter's free-space evidence); the ego
-#: frame's origin is on the ground below the rear axle.
+#: frame's origin is at the rear axle, below the sensors.
 DEFAULT_FRAME = "up_lidar"
 #: Largest angle (rad) between a chosen frame's +z and the ego vehicle's up axis: boxes are
 #: yaw-only about +z, so a tilted or upside-down sensor frame (a camera, a flipped LiDAR) cannot
