@@ -589,7 +589,7 @@ class TorchCompleter(Completer):
             self.model.to(dtype)  # a checkpoint loaded later is cast by load_state_dict
             self.model.register_forward_pre_hook(_cast_floating_inputs(dtype))
         self.model.eval()
-        self._inference_path = "auto"
+        self._inference_path, self._warmed_up = "auto", False
         self.inference_path = inference_path  # resolved, stored on the layers, compiled loops warmed up
         #: What the weights were trained on, their metrics ... (from a loaded checkpoint).
         self.checkpoint_config: dict[str, Any] | None = None
@@ -605,8 +605,9 @@ class TorchCompleter(Completer):
 
         resolved = resolve_path(path, self.device.type, self.half_precision)
         set_inference_path(self.model, resolved)
-        if resolved in COMPILED_PATHS and resolved != self._inference_path:
+        if resolved in COMPILED_PATHS and not self._warmed_up:
             warm_up_kernels(self.model)  # the compiled CPU loops its layers run, before the first batch
+            self._warmed_up = True
         self._inference_path = resolved
 
     @classmethod

@@ -26,18 +26,12 @@ Used on CPU float32 inference by a completer whose inference path allows it
 (:func:`pcc_ros.jit.compiled`; :func:`warm_up` at model load).
 
 BLAS threads: the kernels are called from each worker thread with one BLAS thread each
-(parallelism comes from the completer's ``workers``): a multi-threaded OpenBLAS call waits for
-its helper threads, and on a machine whose other core is busy that wait costs more than the
-product (measured: 6 against 140 GFLOP/s at 1024 x 128 @ 128 x 256 with the other core
-loaded). :func:`_load_blas` therefore loads SciPy's BLAS with ``OPENBLAS_NUM_THREADS=1``
-unless the user set a count, or SciPy's BLAS was loaded before this module (then its own
-count stands).
+(parallelism comes from the completer's ``workers``): ``import pcc_ros`` sets
+``OPENBLAS_NUM_THREADS=1`` unless the user set a count (why: :mod:`pcc_ros`).
 """
 
 from __future__ import annotations
 
-import os
-import sys
 from typing import NamedTuple
 
 import numpy as np
@@ -47,19 +41,12 @@ from pcc_ros.jit import compiled
 
 
 def _load_blas() -> bool:
-    """Load SciPy's BLAS (what numba's ``np.dot`` calls) single-threaded (see the module doc);
-    False where SciPy or its BLAS is missing: the completers then run the torch-operator path."""
-    if "scipy.linalg.cython_blas" in sys.modules:
-        return True
-    given = os.environ.get("OPENBLAS_NUM_THREADS")
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # OpenBLAS reads it once, when it loads
+    """Load SciPy's BLAS (what numba's ``np.dot`` calls); False where SciPy or its BLAS is
+    missing: the completers then run the torch-operator path."""
     try:
         import scipy.linalg.cython_blas  # noqa: F401
     except ImportError:
         return False
-    finally:
-        if given is None:  # not inherited by child processes
-            os.environ.pop("OPENBLAS_NUM_THREADS", None)
     return True
 
 
