@@ -166,3 +166,22 @@ def test_cuda_refuses_the_compiled_path_and_runs_beside_a_cpu_completer():
     for got, want in zip((results["cpu"], results["gpu"]), expected):
         for a, b in zip(got, want):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("given, expected", [(None, "1 1"), ("3", "3 ")])
+def test_import_pcc_ros_loads_blas_single_threaded_unless_told(given, expected):
+    """OpenBLAS reads OPENBLAS_NUM_THREADS once, when it loads: after ``import pcc_ros`` numpy's
+    and SciPy's BLAS (the compiled loops' products) start no helper threads; a count the user
+    gave is kept."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    code = ("import os, pcc_ros, numpy, scipy.linalg.cython_blas; "
+            "one = len(os.listdir('/proc/self/task')) == 1 if os.path.isdir('/proc/self/task') else 1; "
+            "print(os.environ['OPENBLAS_NUM_THREADS'], int(one) if os.environ['OPENBLAS_NUM_THREADS'] == '1' else '')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.stdout.strip() == expected.strip(), out.stderr
