@@ -10,7 +10,7 @@ the chunk's rows while they are in cache (bias, ReLU, max-pooling, broadcast add
 output layer with its residual), with no Python between them.
 
 The network is defined once, by the torch modules (``layers.PCNEncoder``,
-``layers.FoldingDecoder``, ``pointpncnet.PointPnCNetNet``): each derives the weights its
+``layers.FoldingDecoder``, ``pointpncnet_network.PointPnCNetNet``): each derives the weights its
 kernel reads as one of the named structures below (``kernel_weights()``), the same parameters
 with the same folded constants as the modules' chunked operator path; float rounding differs
 in the last bits (``pcc bench complete`` and the tests compare the paths).
@@ -107,7 +107,7 @@ class DecoderWeights(NamedTuple):
 
 class NetworkWeights(NamedTuple):
     """PointPnCNet's network for :func:`pointpncnet_infer`
-    (``pointpncnet.PointPnCNetNet.kernel_weights``)."""
+    (``pointpncnet_network.PointPnCNetNet.kernel_weights``)."""
 
     global_encoder: EncoderWeights
     local_encoder: EncoderWeights
