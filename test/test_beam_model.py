@@ -169,3 +169,24 @@ def test_pipeline_reads_the_ring_field_and_organized_rows_of_a_cloud():
     pipeline.process_messages(create_cloud(rows, ["x", "y", "z"], "lidar", 0),
                               detection_array_from_boxes(boxes, "lidar", 0))
     assert pipeline.beam_model.model.rings == 32
+
+
+def test_pcc_synth_sensor_is_stored_and_read_back(tmp_path):
+    """``pcc synth --sensor`` simulates that layout and says so in meta.json; the filter reads
+    the same table from the scans it wrote."""
+    import json
+
+    from pcc_ros.cli.main import main
+
+    out = tmp_path / "synth"
+    assert main(["synth", "--out", str(out), "--sequences", "1", "--frames", "1", "--seed", "3",
+                 "--sensor", "vlp16"]) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["parameters"]["sensor"]["layout"] == "vlp16"
+    scan = np.fromfile(out / "training" / "velodyne" / "0000" / "000000.bin", np.float32).reshape(-1, 4)
+    found = estimate_sensor(scan)
+    table = np.asarray(SENSOR_PRESETS["vlp16"].elevations_deg)
+    assert found.rings >= 12  # the beams seen beyond MIN_RANGE (the steepest meet the ground nearer)
+    assert np.abs(np.asarray(found.elevations_deg)[:, None] - table).min(axis=1).max() < 1e-3
+    assert found.azimuth_resolution_deg == pytest.approx(0.2, rel=0.01)
+    assert main(["synth", "--out", str(tmp_path / "x"), "--frames", "1", "--sensor", "vlp16", "--low-res"]) == 1
