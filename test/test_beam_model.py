@@ -96,6 +96,16 @@ def test_real_nuscenes_ring_field_gives_the_hdl32(shared_data):
     assert found.rings == 32
     np.testing.assert_allclose(found.elevations_deg, hdl32.elevations_deg, atol=0.4)  # the unit's calibration
     assert found.azimuth_resolution_deg == pytest.approx(hdl32.azimuth_resolution_deg, rel=0.03)
+    # without the ring field: the lasers' offsets smear each beam over several histogram
+    # spikes; the returns per firing set the count back: beams x columns between -18 and 0 deg
+    alone = estimate_sensor(scan[:, :3])
+    assert _density(alone, -18.0) == pytest.approx(_density(hdl32, -18.0), rel=0.2)  # measured: +15 %
+
+
+def _density(model: SensorModel, low: float = -20.0) -> float:
+    """Beams between ``low`` and 0 deg (where cars are seen) times columns per revolution."""
+    e = np.asarray(model.elevations_deg)
+    return ((e > low) & (e < 0)).sum() / model.azimuth_resolution_deg
 
 
 def test_real_kitti_scan_without_ring_is_close_to_the_hdl64(shared_data):
@@ -103,14 +113,10 @@ def test_real_kitti_scan_without_ring_is_close_to_the_hdl64(shared_data):
                        np.float32).reshape(-1, 4)
     found = estimate_sensor(scan)
     hdl64 = SENSOR_PRESETS["hdl64"]
-    assert abs(found.rings - hdl64.rings) <= 4
+    assert 56 <= found.rings <= 66  # the steepest beams meet the ground within MIN_RANGE
     assert found.azimuth_resolution_deg == pytest.approx(hdl64.azimuth_resolution_deg, rel=0.05)
     # beams x columns between -20 and 0 deg (where cars are seen), within 10 % of the datasheet's
-    def density(model: SensorModel) -> float:
-        e = np.asarray(model.elevations_deg)
-        return ((e > -20) & (e < 0)).sum() / model.azimuth_resolution_deg
-
-    assert density(found) == pytest.approx(density(hdl64), rel=0.1)
+    assert _density(found) == pytest.approx(_density(hdl64), rel=0.1)
 
 
 def test_no_beam_structure_falls_back_and_an_estimate_is_kept_then_rechecked(caplog):
