@@ -50,10 +50,14 @@ def default_config() -> Path:
 
 
 class LabelledFrame:
-    """One scan with labelled ground truth and detections (LiDAR frame, KITTI attributes)."""
+    """One scan with labelled ground truth and detections (LiDAR frame, KITTI attributes);
+    ``rings``: the scan's ring field when its source has one (nuScenes, AV2), for the filter's
+    beam model (``sensor: auto``)."""
 
-    def __init__(self, name: str, points: np.ndarray, gt: FrameBoxes, dt: FrameBoxes, dontcare: np.ndarray):
+    def __init__(self, name: str, points: np.ndarray, gt: FrameBoxes, dt: FrameBoxes, dontcare: np.ndarray,
+                 rings: np.ndarray | None = None):
         self.name, self.points, self.gt, self.dt, self.dontcare = name, points, gt, dt, dontcare
+        self.rings = rings
 
 
 def _rows_to_frameboxes(rows, calib: Calibration, name: str) -> tuple[FrameBoxes, np.ndarray]:
@@ -208,7 +212,7 @@ def run_filter(frames: list[LabelledFrame], pipeline, progress: bool = True) -> 
     """The pipeline's per-detection outputs for every frame (status, p_false, terms, points in box)."""
     out = []
     for frame in tqdm(frames, desc="filter", unit="frame", disable=not progress):
-        result = pipeline.process(frame.points, frame.dt.boxes, frame_id="velodyne")
+        result = pipeline.process(frame.points, frame.dt.boxes, frame_id="velodyne", rings=frame.rings)
         counts = np.array([len(i) for i in points_in_boxes(frame.points, frame.dt.boxes)], dtype=np.int64)
         out.append(
             {

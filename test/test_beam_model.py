@@ -17,6 +17,7 @@ from pcc_ros.pipeline.beam_model import (
     MIN_RANGE,
     BeamModel,
     estimate_sensor,
+    ring_column,
     same_layout,
     sensor_for,
 )
@@ -88,10 +89,11 @@ def test_estimate_matches_the_simulated_layout(layout):
 
 
 def test_real_nuscenes_ring_field_gives_the_hdl32(shared_data):
-    from pcc_ros.data.nuscenes import read_pcd_bin
+    from pcc_ros.data.nuscenes import FIELDS, read_pcd_bin
 
     scan = read_pcd_bin(next((shared_data / "nuscenes_mini" / "samples" / "LIDAR_TOP").glob("*.pcd.bin")))
-    found = estimate_sensor(scan[:, :3], scan[:, 4])
+    assert ring_column(scan[:, :4], FIELDS[:4]) is None
+    found = estimate_sensor(scan[:, :3], ring_column(scan, FIELDS))
     hdl32 = SENSOR_PRESETS["hdl32"]
     assert found.rings == 32
     np.testing.assert_allclose(found.elevations_deg, hdl32.elevations_deg, atol=0.4)  # the unit's calibration

@@ -355,6 +355,13 @@ class BeamModel:
             self.model = found
 
 
+def ring_column(points: np.ndarray, fields) -> np.ndarray | None:
+    """The ``ring`` column of ``points`` whose columns are named ``fields`` (a
+    :class:`~pcc_ros.types.Sample`'s), or None when it has none."""
+    fields = tuple(fields)
+    return np.asarray(points)[:, fields.index("ring")] if "ring" in fields else None
+
+
 def sensor_for(name: str, points: np.ndarray, rings: np.ndarray | None = None) -> SensorModel:
     """A one-frame beam model (offline callers without a :class:`BeamModel`): the named preset,
     or for ``auto`` the frame's estimate (the :data:`FALLBACK` preset when it shows none)."""
