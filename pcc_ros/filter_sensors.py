@@ -37,6 +37,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pcc_ros.detection_eval import auc, detection_truth, load_kitti, operating_curve, removed_at
+from pcc_ros.errors import ConfigError
 from pcc_ros.filter_calibration import fit_logistic, predict, threshold_for
 from pcc_ros.pipeline.filter import TERMS, term_matrix
 
@@ -76,15 +77,22 @@ def synth_dataset(root: Path, layout: str, seed: int, sequences: int, frames: in
     from pcc_ros.data.synthetic.lidar import Sensor
 
     out = Path(root) / f"{layout}_s{seed}"
-    generate(out, sequences, frames, seed, sensor=Sensor(layout=layout), test_fraction=0.0)
+    if "layout" in Sensor.__dataclass_fields__:
+        sensor = Sensor(layout=layout)
+    elif layout == "hdl64":
+        sensor = Sensor()  # the simulator's only layout before the beam-layout table
+    else:
+        raise ConfigError(f"the LiDAR simulator has no beam layout {layout!r}")
+    generate(out, sequences, frames, seed, sensor=sensor, test_fraction=0.0)
     return out
 
 
-def measuring_pipeline(filter_backend: str, device: str = "cpu"):
-    """The node's pipeline set to measure every term of every box (no completion of its own)."""
+def measuring_pipeline(filter_backend: str, shape: bool = True, device: str = "cpu"):
+    """The node's pipeline set to measure every term of every box (no completion of its own);
+    ``shape``: also the mismatch against ``filter_backend``'s completion (else NaN, read as 0)."""
     from pcc_ros.detection_eval import build_pipeline
 
-    pipeline = build_pipeline(None, {"backend": "input", "device": device, "w_mismatch": 1.0,
+    pipeline = build_pipeline(None, {"backend": "input", "device": device, "w_mismatch": 1.0 if shape else 0.0,
                                      "filter_backend": filter_backend})
     pipeline.config = replace(pipeline.config, max_instances=100_000)
     return pipeline

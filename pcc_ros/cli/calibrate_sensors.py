@@ -50,7 +50,7 @@ def run_sensors(args: argparse.Namespace) -> int:
     else:
         raise ConfigError("give --real (labelled frames), --sim-sensors, or --sensor NAME (simulation only)")
     terms = _terms(args.terms, SENSOR_TERMS)
-    pipeline = measuring_pipeline(args.filter_backend)
+    pipeline = measuring_pipeline(args.filter_backend, shape="mismatch" in terms)
     parts = []
     for layout in sensors:
         root = synth_dataset(args.sim_root, layout, args.sim_seed, args.sim_sequences, args.sim_frames)
