@@ -20,9 +20,13 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.files import write_json, write_text
 from pcc_ros.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
 from pcc_ros.filter_sensors import DEFAULT_SENSORS, SENSOR_TERMS
+from pcc_ros.pipeline.config import CHOICES
 from pcc_ros.pipeline.filter import TERMS, FilterConfig
 
 log = logging.getLogger(__name__)
+
+
+SENSOR_CHOICES = CHOICES["sensor"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -49,7 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt-classes", default="Car,Van", help="labels that make a real detection true (Car,Van)")
     parser.add_argument("--score-mapping", choices=("identity", "sigmoid"), default="sigmoid",
                         help="how the real detector's scores read (sigmoid: logits, PointRCNN)")
-    parser.add_argument("--sensor", default="hdl64", help="sensor model preset (hdl64 | hdl32)")
+    parser.add_argument("--sensor", default="auto", choices=SENSOR_CHOICES,
+                        help="beam model: auto (estimated from each scan, the default) or a preset")
     parser.add_argument("--max-lost", type=float, default=0.01, help="true detections the threshold may lose (0.01)")
     parser.add_argument("--l2", type=float, default=1e-2, help="ridge penalty on standardised weights (0.01)")
     parser.add_argument("--folds", type=int, default=5, help="leave-frames-out folds over the real frames (5; 0: none)")
@@ -62,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--preset", choices=tuple(PRESETS), default="kitti",
         help="what --out is for: kitti (the fitted sensor model; writes score_mapping: identity, the shipped "
-        "files' convention: run a logit detector with score_mapping:=sigmoid) | nuscenes (HDL-32E sensor model, "
+        "files' convention: run a logit detector with score_mapping:=sigmoid) | nuscenes (sensor auto, "
         "probability scores; the same physics weights: no real nuScenes detections to fit on)",
     )
     parser.add_argument("--json", type=Path, help="write weights, data sizes and the cross-validated figures here")

@@ -33,6 +33,7 @@ import yaml
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.msg.detections import DetectionLimits
 from pcc_ros.paths import resource_dir
+from pcc_ros.pipeline.beam_model import AUTO
 from pcc_ros.pipeline.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
 from pcc_ros.types import class_mask
 
@@ -314,7 +315,9 @@ DESCRIPTIONS = {
     "w_mismatch": "evidence rule: weight of the shape-mismatch score (0 unless calibrated with a car-constrained "
     "backend)",
     "reject_threshold": "evidence rule: detections whose probability of being false exceeds this are rejected",
-    "sensor": "evidence rule: LiDAR beam model for the expected returns (hdl64 = KITTI, hdl32 = nuScenes)",
+    "sensor": "evidence rule: LiDAR beam model for the expected returns: auto (estimated from the scans, from the "
+              "ring field when there is one; docs/filter.md) or a preset (hdl64 = KITTI, hdl32 = nuScenes, vlp16, "
+              "vlp32c, vlp32c_x2, os1_64, os1_128, pandar64)",
     "filter_backend": "completion backend of the mismatch term ('' = the pipeline's backend)",
     "match_threshold": "shape-mismatch score above which a low-score detection is rejected",
     "detection_threshold": "detections scoring at least this (after score_mapping) are always kept",
@@ -363,7 +366,7 @@ RANGES: dict[str, tuple[float, float]] = {
 CHOICES: dict[str, tuple[str, ...]] = {
     "score_mapping": SCORE_MAPPINGS,
     "rule": RULES,
-    "sensor": tuple(SENSOR_PRESETS),
+    "sensor": (AUTO, *SENSOR_PRESETS),
     "qos.points.reliability": RELIABILITIES,
     "qos.detections.reliability": RELIABILITIES,
     "qos.outputs.reliability": RELIABILITIES,

@@ -32,10 +32,11 @@ from pcc_ros.msg.detections import (
     marker_array_from_boxes,
     transform_detections,
 )
-from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
+from pcc_ros.msg.pointcloud2 import RING_FIELD, create_cloud, point_field_names, read_xyz
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
 from pcc_ros.msg.transforms import same_frame
 from pcc_ros.msg.typestore import new_message
+from pcc_ros.pipeline.beam_model import BeamModel
 from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.evidence import warm_up
 from pcc_ros.pipeline.filter import (
@@ -49,6 +50,9 @@ from pcc_ros.pipeline.filter import (
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
+
+#: An organized cloud of at most this many rows is read as one row per beam (Ouster's layout).
+MAX_ORGANIZED_RINGS = 256
 
 #: Layout of the published completed cloud (28 bytes a point): ``instance`` = index of the
 #: detection in its array (-1 for raw scan points), ``source`` = :data:`SOURCE_OBSERVED` (a
@@ -158,6 +162,8 @@ class Pipeline:
         self.completer = completer
         if config.filter.rule == "evidence":
             warm_up()  # the filter's compiled kernels, before the first frame
+        #: the filter's beam model: a preset, or estimated from the scans (sensor: auto)
+        self.beam_model = BeamModel(config.filter.sensor)
         # The filter's own completion backend for its shape-mismatch term (a car-constrained
         # one such as TraPCC or AML); "" or the pipeline's backend: reuse its completions.
         self.filter_completer = None
@@ -174,8 +180,11 @@ class Pipeline:
 
     # ------------------------------------------------------------------ core
 
-    def process(self, points: np.ndarray, detections: Boxes, stamp_ns: int = 0, frame_id: str = "") -> FrameResult:
-        """Run one frame. ``points``: ``(N, >=3)`` finite scan points; ``detections``: valid boxes."""
+    def process(self, points: np.ndarray, detections: Boxes, stamp_ns: int = 0, frame_id: str = "",
+                rings: np.ndarray | None = None) -> FrameResult:
+        """Run one frame. ``points``: ``(N, >=3)`` finite scan points; ``detections``: valid boxes;
+        ``rings``: the scan's ring field (one value per point) when it has one, read by the beam
+        model's estimate (``sensor: auto``; :meth:`BeamModel.due` says when it is wanted)."""
         cfg = self.config
         timings: dict[str, float] = {}
         n = len(detections)
@@ -241,9 +250,10 @@ class Pipeline:
             if not len(points) and len(candidates):  # no finite return at all: no evidence either way
                 judged_idx = candidates[:0]
                 self._empty_scan(stamp_ns, skipped, len(candidates))
+            sensor = self.beam_model.for_frame(points, rings)
             if len(judged_idx):
                 part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
-                                    workers=filter_threads(cfg))
+                                    workers=filter_threads(cfg), sensor=sensor)
                 terms = {k: np.full(n, np.nan) for k in part}
                 for k, v in part.items():
                     terms[k][judged_idx] = v
@@ -338,6 +348,23 @@ class Pipeline:
                             outside, float(boxes.score[(boxes.score < 0) | (boxes.score > 1)][0]),
                             self.scores_outside_unit)
 
+    def _read_scan(self, cloud_msg) -> tuple[np.ndarray, np.ndarray | None]:
+        """The scan's finite points and, on a frame the beam model estimates from, each point's
+        ring: the ``ring`` field (Velodyne, Ouster, Hesai drivers), else the row of an organized
+        cloud (one row per beam); None otherwise."""
+        if self.config.filter.rule != "evidence" or not self.beam_model.due():
+            return read_xyz(cloud_msg), None
+        if RING_FIELD in point_field_names(cloud_msg):
+            both = read_xyz(cloud_msg, (RING_FIELD,))
+            return np.ascontiguousarray(both[:, :3]), both[:, 3]
+        points = read_xyz(cloud_msg)
+        height = int(cloud_msg.height)
+        if 1 < height <= MAX_ORGANIZED_RINGS:
+            every = read_xyz(cloud_msg, skip_nonfinite=False)
+            finite = np.isfinite(every).all(axis=1)
+            return points, np.repeat(np.arange(height, dtype=np.float32), int(cloud_msg.width))[finite]
+        return points, None
+
     def process_messages(
         self, cloud_msg, detections_msg, transform=None, with_originals: bool = True
     ) -> tuple[FrameResult, list | None]:
@@ -365,7 +392,7 @@ class Pipeline:
                 "transform them first (the nodes do it with tf2)"
             )
         tic = time.perf_counter()
-        points = read_xyz(cloud_msg)
+        points, rings = self._read_scan(cloud_msg)
         boxes, valid = decode_detection_array(
             detections_msg, skip_invalid=True, limits=self.config.detection_limits(), transform=transform
         )
@@ -379,7 +406,7 @@ class Pipeline:
                 originals = transform_detections(originals, transform, cloud_frame)
         decode_ms = _ms(tic)
         result = self.process(
-            points, boxes, stamp_to_ns(cloud_msg.header.stamp), str(cloud_msg.header.frame_id)
+            points, boxes, stamp_to_ns(cloud_msg.header.stamp), str(cloud_msg.header.frame_id), rings
         )
         result.timings_ms = {"decode_ms": decode_ms, **result.timings_ms}
         _count(result.skipped, "invalid detection", int((~valid).sum()))

@@ -21,51 +21,13 @@ from functools import lru_cache
 
 import numpy as np
 
-from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.errors import DataError
+from pcc_ros.geometry.beams import SENSOR_PRESETS, SensorModel
 from pcc_ros.geometry.boxes import box_corners, round_down_to, round_up_to
 from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.geometry.segments import positions_in_runs
 from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
-
-
-@dataclass(frozen=True)
-class SensorModel:
-    """A spinning LiDAR's beam geometry: ``upper_rings`` beams evenly spread from
-    ``elevation_max_deg`` down to ``split_deg[0]``, the other ``rings - upper_rings`` from
-    ``split_deg[1]`` down to ``elevation_min_deg`` (one block when ``upper_rings`` is 0), one
-    return every ``azimuth_resolution_deg``.
-
-    Presets (datasheets): Velodyne HDL-64E as mounted on KITTI's car (two laser blocks,
-    +2.0 .. -8.33 deg and -8.83 .. -24.9 deg, 2083 columns at 10 Hz = 0.1728 deg) and the
-    HDL-32E of nuScenes (32 beams +10.67 .. -30.67 deg, 1084 columns at 20 Hz = 0.33 deg).
-    """
-
-    rings: int = 64
-    elevation_min_deg: float = -24.9
-    elevation_max_deg: float = 2.0
-    azimuth_resolution_deg: float = 0.1728
-    upper_rings: int = 32
-    split_deg: tuple[float, float] = (-8.33, -8.83)
-
-    def __post_init__(self) -> None:
-        if (
-            self.rings < 2
-            or self.azimuth_resolution_deg <= 0
-            or self.elevation_max_deg <= self.elevation_min_deg
-            or not 0 <= self.upper_rings < self.rings
-        ):
-            raise ConfigError(f"bad sensor model {self}")
-
-    def ring_elevations(self) -> np.ndarray:
-        """Ascending beam elevations, radians."""
-        if self.upper_rings == 0:
-            degrees = np.linspace(self.elevation_min_deg, self.elevation_max_deg, self.rings)
-        else:
-            upper = np.linspace(self.split_deg[0], self.elevation_max_deg, self.upper_rings)
-            lower = np.linspace(self.elevation_min_deg, self.split_deg[1], self.rings - self.upper_rings)
-            degrees = np.r_[lower, upper]
-        return np.deg2rad(np.sort(degrees))
 
 
 @lru_cache(maxsize=16)
@@ -78,11 +40,6 @@ def _ring_table(sensor: SensorModel) -> tuple[np.ndarray, np.ndarray, np.ndarray
         values.flags.writeable = False
     return table
 
-
-SENSOR_PRESETS = {
-    "hdl64": SensorModel(64, -24.9, 2.0, 0.1728, 32, (-8.33, -8.83)),
-    "hdl32": SensorModel(32, -30.67, 10.67, 0.33, 0, (0.0, 0.0)),
-}
 
 #: The solid core of a car body inside its box, as fractions of the box (length, width) and of
 #: its height from the bottom: below the windows, above the gap under the chassis. Rays that
@@ -395,7 +352,7 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     sensor model's expected returns are measured on a second thread while this one follows the
     rays (numpy and the kernels release the GIL); the values are the same either way.
     """
-    sensor = sensor or SensorModel()
+    sensor = sensor or SENSOR_PRESETS["hdl64"]
     n = len(boxes)
     zero = np.zeros(n)
     if n == 0:

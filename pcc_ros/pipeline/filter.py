@@ -47,6 +47,7 @@ import numpy as np
 from pcc_ros.errors import ConfigError
 from pcc_ros.metrics.chamfer import nearest_distances_batch
 from pcc_ros.msg.typestore import from_template, new_message
+from pcc_ros.pipeline.beam_model import AUTO, sensor_for
 from pcc_ros.pipeline.evidence import (  # noqa: F401  (re-exported: the filter's public names)
     CORE_FRACTION,
     CORE_Z,
@@ -78,7 +79,7 @@ class FilterConfig:
     w_score: float = -0.9236
     w_mismatch: float = 0.0
     reject_threshold: float = 0.6131
-    sensor: str = "hdl64"
+    sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
     match_threshold: float = 0.3
@@ -94,8 +95,8 @@ class FilterConfig:
             raise ConfigError(f"score_mapping must be one of {SCORE_MAPPINGS}, got {self.score_mapping!r}")
         if self.rule not in RULES:
             raise ConfigError(f"rule must be one of {RULES}, got {self.rule!r}")
-        if self.sensor not in SENSOR_PRESETS:
-            raise ConfigError(f"sensor must be one of {sorted(SENSOR_PRESETS)}, got {self.sensor!r}")
+        if self.sensor != AUTO and self.sensor not in SENSOR_PRESETS:
+            raise ConfigError(f"sensor must be {AUTO!r} or one of {sorted(SENSOR_PRESETS)}, got {self.sensor!r}")
         if not (self.mcd_scale > 0 and self.contour_scale > 0 and self.grid_cells > 1):
             raise ConfigError("mcd_scale, contour_scale must be > 0 and grid_cells > 1")
         if not 0.0 < self.reject_threshold < 1.0:
@@ -243,11 +244,16 @@ def false_probability(terms: dict[str, np.ndarray], config: FilterConfig) -> np.
 
 
 def filter_terms(
-    points: np.ndarray, boxes: Boxes, config: FilterConfig, mismatch: np.ndarray | None = None, workers: int = 1
+    points: np.ndarray, boxes: Boxes, config: FilterConfig, mismatch: np.ndarray | None = None, workers: int = 1,
+    sensor: SensorModel | None = None, rings: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Every term of the evidence rule for ``boxes`` in ``points`` (plus the raw counts);
-    ``workers``: CPU threads measuring them (:func:`evidence`)."""
-    ev = evidence(points, boxes, SENSOR_PRESETS[config.sensor], workers=workers)
+    ``workers``: CPU threads measuring them (:func:`evidence`). ``sensor``: the beam model (a
+    pipeline passes its :class:`~pcc_ros.pipeline.beam_model.BeamModel`'s); without one, the
+    configured preset, or for ``sensor: auto`` this scan's own estimate (``rings``: its ring
+    field, when it has one)."""
+    sensor = sensor or sensor_for(config.sensor, points, rings)
+    ev = evidence(points, boxes, sensor, workers=workers)
     out = ev.as_dict()
     out["score"] = score_logit(boxes.score, config.score_mapping)
     out["mismatch"] = np.full(len(boxes), np.nan) if mismatch is None else np.asarray(mismatch, dtype=np.float64)

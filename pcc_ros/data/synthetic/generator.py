@@ -105,7 +105,8 @@ def expected_points(boxes: Boxes, sensor: Sensor) -> np.ndarray:
     beta = np.arctan2(boxes.center[:, 1], boxes.center[:, 0]) - boxes.yaw
     area = boxes.size[:, 2] * (boxes.size[:, 0] * np.abs(np.sin(beta)) + boxes.size[:, 1] * np.abs(np.cos(beta)))
     d_az = np.deg2rad(360.0 / len(sensor.azimuths))
-    d_el = np.deg2rad((sensor.elevation_top - sensor.elevation_bottom) / (sensor.beams - 1))
+    table = sensor.model.elevations_deg
+    d_el = np.deg2rad((table[-1] - table[0]) / (len(table) - 1))
     return area / (r**2 * d_az * d_el) * (1 - sensor.dropout)
 
 
