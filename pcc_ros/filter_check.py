@@ -101,9 +101,10 @@ def _free_ground_boxes(points: np.ndarray, gt: Boxes, count: int, score: float, 
     return boxes[np.array(chosen, dtype=np.int64)]
 
 
-def judge(pipeline, points: np.ndarray, boxes: Boxes) -> dict[str, np.ndarray]:
-    """The pipeline's decision on ``boxes``: p_false, status, terms and the points in each box."""
-    result = pipeline.process(points, boxes, frame_id="lidar")
+def judge(pipeline, points: np.ndarray, boxes: Boxes, rings: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The pipeline's decision on ``boxes``: p_false, status, terms and the points in each box
+    (``rings``: the scan's ring field, read by ``sensor: auto``'s beam model)."""
+    result = pipeline.process(points, boxes, frame_id="lidar", rings=rings)
     n = len(boxes)
     counts = np.array([len(i) for i in points_in_boxes(points[:, :3], boxes)], dtype=np.int64)
     return {
@@ -129,7 +130,8 @@ def nuscenes_check(root: str | Path, pipeline, score: float = 0.7, ground_boxes:
         points = np.asarray(sample.points, dtype=np.float32)
         boxes, group, is_true = constructed_boxes(points, sample.ground_truth, sample.extras["category"], score,
                                                   ground_boxes, seed + k)
-        judged = judge(pipeline, points, boxes)
+        rings = points[:, list(sample.fields).index("ring")] if "ring" in sample.fields else None
+        judged = judge(pipeline, points, boxes, rings)
         for key, value in (("p_false", judged["p_false"]), ("points", judged["points"]), ("is_true", is_true),
                            ("group", group), ("status", judged["status"]), ("returns", judged["points"]),
                            ("range", np.linalg.norm(boxes.center[:, :2], axis=1)),
@@ -140,7 +142,7 @@ def nuscenes_check(root: str | Path, pipeline, score: float = 0.7, ground_boxes:
             terms.setdefault(t, []).append(v)
         for s in scores:
             other = Boxes(boxes.center, boxes.size, boxes.yaw, boxes.label, np.full(len(boxes), s))
-            by_score[s].append(judge(pipeline, points, other)["status"])
+            by_score[s].append(judge(pipeline, points, other, rings)["status"])
         frames.append({"sample": sample.extras["sample_token"], "points": len(points), "boxes": len(boxes),
                        "points_xy": points[:, :2], "boxes_obj": boxes, "is_true": is_true})
     if not frames:
