@@ -99,9 +99,15 @@ def measuring_pipeline(filter_backend: str, shape: bool = True, device: str = "c
 
 
 def _measure(pipeline, sensor: str, frames, truth_of, kind_of, group_of, label: str) -> Rows:
+    """Rows of ``frames``, the beam model ``sensor`` (``auto``: estimated from the scans as the node
+    does, afresh for every sequence: a new sequence may be another sensor)."""
+    from pcc_ros.pipeline.beam_model import BeamModel
+
     pipeline.config = replace(pipeline.config, filter=replace(pipeline.config.filter, sensor=sensor))
-    parts = []
+    parts, last = [], None
     for f in tqdm(frames, desc=f"rows {label}", unit="frame"):
+        if group_of(f) != last:
+            pipeline.beam_model, last = BeamModel(sensor), group_of(f)
         keep = truth_of(f) >= 0
         boxes = f.dt.boxes[keep]
         if not len(boxes):
@@ -115,8 +121,9 @@ def _measure(pipeline, sensor: str, frames, truth_of, kind_of, group_of, label: 
     return Rows.concatenate(parts)
 
 
-def synth_rows(pipeline, root: Path, layout: str) -> Rows:
-    """Rows of every frame of a SynthCars root (truth and kind from its ``.kind`` files)."""
+def synth_rows(pipeline, root: Path, layout: str, sensor: str = "auto") -> Rows:
+    """Rows of every frame of a SynthCars root simulated with ``layout`` (truth and kind from its
+    ``.kind`` files), measured with the beam model ``sensor``."""
     split = root / "training" / "velodyne"
     frames = []
     for seq in sorted(p.name for p in split.iterdir() if p.is_dir()):
@@ -125,7 +132,7 @@ def synth_rows(pipeline, root: Path, layout: str) -> Rows:
     def kinds(f):
         return f.kinds if f.kinds is not None else np.full(len(f.dt.boxes), "true", dtype=object)
 
-    return _measure(pipeline, layout, frames, lambda f: (kinds(f) == "true").astype(np.int64), kinds,
+    return _measure(pipeline, sensor, frames, lambda f: (kinds(f) == "true").astype(np.int64), kinds,
                     lambda f: f"{layout}:{f.name.split('/')[0]}", layout)
 
 

@@ -52,9 +52,10 @@ def run_sensors(args: argparse.Namespace) -> int:
     terms = _terms(args.terms, SENSOR_TERMS)
     pipeline = measuring_pipeline(args.filter_backend, shape="mismatch" in terms)
     parts = []
+    single = len(sensors) == 1 and args.real is None  # --sensor X: that sensor's own beam model
     for layout in sensors:
         root = synth_dataset(args.sim_root, layout, args.sim_seed, args.sim_sequences, args.sim_frames)
-        parts.append(synth_rows(pipeline, root, layout))
+        parts.append(synth_rows(pipeline, root, layout, layout if single else "auto"))
     if args.real is not None:
         if args.real_detections is None:
             raise ConfigError("--real needs --real-detections (the real detector's results)")
@@ -64,7 +65,7 @@ def run_sensors(args: argparse.Namespace) -> int:
                                                                    score_mapping=args.score_mapping))
         classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
         frames = load_kitti(args.real, args.real_detections, args.real_sequence, parse_frames(args.real_frames))
-        parts.append(real_rows(pipeline, frames, "hdl64" if args.sensor == "auto" else args.sensor, classes))
+        parts.append(real_rows(pipeline, frames, args.sensor, classes))
     rows = Rows.concatenate(parts)
     result = calibrate_sensors(rows, terms, args.max_lost, args.l2)
     print("rows:", json.dumps(result["rows"]))
