@@ -49,6 +49,15 @@ DEFAULT_SENSORS = ("hdl64", "vlp16", "vlp32c", "os1_64")
 SENSOR_TERMS = ("density", "free_space", "ground_gap", "mismatch")
 
 
+def parse_terms(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:
+    """``--terms``: comma-separated names of :data:`TERMS` (``default`` when empty)."""
+    terms = tuple(t.strip() for t in (text or ",".join(default)).split(",") if t.strip())
+    unknown = set(terms) - set(TERMS)
+    if unknown or not terms:
+        raise ConfigError(f"--terms: unknown {sorted(unknown)} (have {', '.join(TERMS)})")
+    return terms
+
+
 @dataclass
 class Rows:
     """One row per detection: features over :data:`TERMS`, label (1 = false), kind, sensor,

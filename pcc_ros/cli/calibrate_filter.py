@@ -19,7 +19,7 @@ from pcc_ros.detection_eval import default_config, load_kitti, parse_frames
 from pcc_ros.errors import ConfigError
 from pcc_ros.files import write_json, write_text
 from pcc_ros.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
-from pcc_ros.filter_sensors import DEFAULT_SENSORS, SENSOR_TERMS
+from pcc_ros.filter_sensors import DEFAULT_SENSORS, SENSOR_TERMS, parse_terms
 from pcc_ros.pipeline.config import CHOICES
 from pcc_ros.pipeline.filter import TERMS, FilterConfig
 
@@ -81,14 +81,6 @@ def _synth_frames(root: Path, per_sequence: int):
     return frames
 
 
-def _terms(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:
-    terms = tuple(t.strip() for t in (text or ",".join(default)).split(",") if t.strip())
-    unknown = set(terms) - set(TERMS)
-    if unknown or not terms:
-        raise ConfigError(f"--terms: unknown {sorted(unknown)} (have {', '.join(TERMS)})")
-    return terms
-
-
 def run(args: argparse.Namespace) -> int:
     if args.sim_sensors or args.real is None:
         from pcc_ros.cli.calibrate_sensors import run_sensors
@@ -105,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     obj = []
     if args.object:
         obj = load_kitti(args.object, None)  # labelled cars become the true detections
-    terms = _terms(args.terms, FIT_TERMS)
+    terms = parse_terms(args.terms, FIT_TERMS)
     result = calibrate(real, synth, obj, config, args.seed, gt_classes, max_lost=args.max_lost, l2=args.l2,
                        terms=terms)
     table = result["table"]

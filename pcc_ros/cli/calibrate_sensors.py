@@ -24,6 +24,7 @@ from pcc_ros.filter_sensors import (
     Rows,
     calibrate_sensors,
     measuring_pipeline,
+    parse_terms,
     real_rows,
     synth_dataset,
     synth_rows,
@@ -41,15 +42,13 @@ def _line(name: str, fig: dict[str, Any]) -> str:
 
 
 def run_sensors(args: argparse.Namespace) -> int:
-    from pcc_ros.cli.calibrate_filter import _terms
-
     if args.sim_sensors:
         sensors = tuple(s.strip() for s in args.sim_sensors.split(",") if s.strip())
     elif args.sensor and args.sensor != "auto":
         sensors = (args.sensor,)  # the labelled-frame-free path: simulation of that sensor only
     else:
         raise ConfigError("give --real (labelled frames), --sim-sensors, or --sensor NAME (simulation only)")
-    terms = _terms(args.terms, SENSOR_TERMS)
+    terms = parse_terms(args.terms, SENSOR_TERMS)
     pipeline = measuring_pipeline(args.filter_backend, shape="mismatch" in terms)
     parts = []
     single = len(sensors) == 1 and args.real is None  # --sensor X: that sensor's own beam model
