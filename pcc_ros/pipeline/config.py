@@ -314,6 +314,9 @@ DESCRIPTIONS = {
     "w_score": "evidence rule: weight of the detector score as a logit (after score_mapping)",
     "w_mismatch": "evidence rule: weight of the shape-mismatch score (0 unless calibrated with a car-constrained "
     "backend)",
+    "mismatch_mean": "evidence rule: the value a missing shape-mismatch term takes (a detection not completed: past "
+                     "max_instances, under min_points): its mean over the calibration detections, the term "
+                     "marginalised to first order (pcc calibrate-filter)",
     "reject_threshold": "evidence rule: detections whose probability of being false exceeds this are rejected",
     "sensor": "evidence rule: LiDAR beam model for the expected returns: auto (estimated from the scans, from the "
               "ring field when there is one; docs/filter.md) or a preset (hdl64 = KITTI, hdl32 = nuScenes, vlp16, "
@@ -350,6 +353,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "match_threshold": (0.0, 1.0),
     "detection_threshold": (0.0, 1.0),
     "reject_threshold": (1e-6, 1.0 - 1e-6),
+    "mismatch_mean": (0.0, 1.0),
     "mcd_scale": (1e-6, 10.0),
     "contour_scale": (1e-6, 10.0),
     "grid_cells": (2, 256),

@@ -44,6 +44,7 @@ from pcc_ros.pipeline.filter import (
     false_probability,
     filter_terms,
     map_scores,
+    mark_unjudged,
     mismatch_scores,
     reject_mask,
 )
@@ -91,9 +92,15 @@ class FrameResult:
     """Everything one frame produces, in the scan's frame ``frame_id``.
 
     Per-detection arrays have one row per input detection (after invalid boxes were
-    dropped, see ``skipped``): ``status`` is ``"kept"``, ``"rejected"`` or ``"skipped"``
-    (another class, too few points, over the per-frame cap or work bound — skipped detections
-    pass the filter untouched), ``mismatch`` is NaN where no shape was judged.
+    dropped, see ``skipped``): ``status`` is ``"kept"`` or ``"rejected"`` (judged),
+    ``"unjudged"`` (a configured class the filter could not judge: a scan without a finite
+    point, the trapcc rule without a completion; published as kept, with the
+    ``pcc_filter_unjudged`` marker) or ``"skipped"`` (another class: passes untouched);
+    ``mismatch`` is NaN where no shape was completed. ``skipped`` counts per reason what the
+    completion left out (another class, too few points, past ``max_instances`` or the work
+    bound); the evidence rule judges every detection of a configured class all the same.
+    ``unjudged_originals``: the detection messages whose box failed the checks (NaN pose,
+    non-positive size, the limits), republished with the marker.
     """
 
     stamp_ns: int
@@ -127,6 +134,7 @@ class FrameResult:
     #: terms behind it (``pcc_ros.pipeline.filter.TERMS`` plus raw counts), one value per detection.
     filter_score: np.ndarray | None = None
     filter_terms: dict[str, np.ndarray] = field(default_factory=dict)
+    unjudged_originals: list = field(default_factory=list)
 
     @property
     def keep(self) -> np.ndarray:
@@ -244,12 +252,14 @@ class Pipeline:
             mismatch[selected] = mismatch_scores(crops, shapes, cfg.filter)
         threshold = cfg.detection_thresholds(detections.label)
         if cfg.filter.rule == "evidence":
-            # Every processed box is judged, sparse or not (min_points does not apply); boxes
-            # over max_instances or the work bound stay skipped (the terms cost per ray and box).
-            judged_idx = candidates
-            if not len(points) and len(candidates):  # no finite return at all: no evidence either way
-                judged_idx = candidates[:0]
-                self._empty_scan(stamp_ns, skipped, len(candidates))
+            # Every detection of a configured class is judged, sparse or not (min_points does not
+            # apply), completed or not: max_instances and the work bound limit the completion,
+            # not the scan evidence; a missing shape term is marginalised (filter.term_matrix).
+            judged_idx = np.flatnonzero(wanted)
+            if not len(points) and len(judged_idx):  # no finite return at all: no evidence either way
+                status[judged_idx] = "unjudged"
+                self._empty_scan(stamp_ns, skipped, len(judged_idx))
+                judged_idx = judged_idx[:0]
             sensor = self.beam_model.for_frame(points, rings)
             if len(judged_idx):
                 part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
@@ -264,6 +274,7 @@ class Pipeline:
             judged = np.isfinite(mismatch) & bool(len(points))
             if not len(points) and len(candidates):
                 self._empty_scan(stamp_ns, skipped, len(candidates))
+            status[wanted & ~judged] = "unjudged"  # no completion to compare: kept, marked
             rejected = np.zeros(n, dtype=bool)
             for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
                 group = threshold == value
@@ -399,16 +410,19 @@ class Pipeline:
         if self.config.class_map:  # detector ids -> names, before classes / class_thresholds match
             boxes = replace(boxes, label=self.config.map_labels(boxes.label))
         self._check_score_range(boxes)
-        originals = None
+        originals, invalid = None, []
         if with_originals:
             originals = [d for d, ok in zip(detections_msg.detections, valid) if ok]
+            invalid = [d for d, ok in zip(detections_msg.detections, valid) if not ok]
             if transform is not None:
                 originals = transform_detections(originals, transform, cloud_frame)
+                invalid = transform_detections(invalid, transform, cloud_frame)
         decode_ms = _ms(tic)
         result = self.process(
             points, boxes, stamp_to_ns(cloud_msg.header.stamp), str(cloud_msg.header.frame_id), rings
         )
         result.timings_ms = {"decode_ms": decode_ms, **result.timings_ms}
+        result.unjudged_originals = invalid
         _count(result.skipped, "invalid detection", int((~valid).sum()))
         return result, originals
 
@@ -499,9 +513,11 @@ def build_outputs(
         if original_detections is not None:
             header = detections_header or make_header(result.frame_id, result.stamp_ns, classes)
             chosen = [d for d, m in zip(original_detections, mask) if m]
+            annotated = annotate_detections(chosen, result, np.flatnonzero(mask), classes)
+            if topic == "detections_filtered" and result.unjudged_originals:  # boxes failing the checks
+                annotated += mark_unjudged(result.unjudged_originals, classes)
             outputs[topic] = new_message(
-                "vision_msgs/msg/Detection3DArray", classes, header=header,
-                detections=annotate_detections(chosen, result, np.flatnonzero(mask), classes),
+                "vision_msgs/msg/Detection3DArray", classes, header=header, detections=annotated,
             )
         else:
             array = detection_array_from_boxes(result.detections[mask], result.frame_id, result.stamp_ns, classes)
