@@ -123,9 +123,10 @@ def _measure(pipeline, sensor: str, frames, truth_of, kind_of, group_of, label: 
             continue
         result = pipeline.process(f.points, boxes)
         terms = {t: result.filter_terms.get(t, np.full(len(boxes), np.nan)) for t in TERMS}
-        terms["mismatch"] = result.mismatch
         n = len(boxes)
-        parts.append(Rows(term_matrix(terms), truth_of(f)[keep] == 0, kind_of(f)[keep],
+        x = term_matrix(terms)
+        x[:, TERMS.index("mismatch")] = result.mismatch  # NaN where no shape was completed: filled at the fit
+        parts.append(Rows(x, truth_of(f)[keep] == 0, kind_of(f)[keep],
                           np.full(n, label, dtype=object), np.full(n, group_of(f), dtype=object)))
     return Rows.concatenate(parts)
 
@@ -157,17 +158,33 @@ def real_rows(pipeline, frames, sensor: str, gt_classes, block: int = 4) -> Rows
 # ----------------------------------------------------------------------------- fit and judge
 
 
-def fit_rows(rows: Rows, terms: tuple[str, ...], max_lost: float, l2: float) -> tuple[float, np.ndarray, float]:
-    """(bias, weights over TERMS, threshold); every sensor's rows (and the real ones) weigh the same."""
+_MISMATCH = TERMS.index("mismatch")
+
+
+def filled(x: np.ndarray, mismatch_mean: float) -> np.ndarray:
+    """``x`` with a missing mismatch (NaN: no shape completed) read as ``mismatch_mean``, as the
+    rule reads it (:func:`pcc_ros.pipeline.filter.term_matrix`)."""
+    out = x.copy()
+    out[:, _MISMATCH] = np.where(np.isfinite(out[:, _MISMATCH]), out[:, _MISMATCH], mismatch_mean)
+    return out
+
+
+def fit_rows(rows: Rows, terms: tuple[str, ...], max_lost: float, l2: float
+             ) -> tuple[float, np.ndarray, float, float]:
+    """(bias, weights over TERMS, threshold, mismatch_mean); every sensor's rows (and the real
+    ones) weigh the same; ``mismatch_mean``: the mean measured mismatch of these rows."""
+    measured = rows.x[:, _MISMATCH][np.isfinite(rows.x[:, _MISMATCH])]
+    mean = float(measured.mean()) if len(measured) and "mismatch" in terms else 0.0
+    x = filled(rows.x, mean)
     cols = [TERMS.index(t) for t in terms]
     weight = np.ones(len(rows.false))
     for s in np.unique(rows.sensor):
         sel = rows.sensor == s
         weight[sel] = len(rows.false) / (sel.sum() * len(np.unique(rows.sensor)))
-    bias, w = fit_logistic(rows.x[:, cols], rows.false, weight, l2)
+    bias, w = fit_logistic(x[:, cols], rows.false, weight, l2)
     weights = np.zeros(len(TERMS))
     weights[cols] = w
-    return bias, weights, threshold_for(predict(bias, weights, rows.x), rows.false, max_lost)
+    return bias, weights, threshold_for(predict(bias, weights, x), rows.false, max_lost), mean
 
 
 def figures(p: np.ndarray, rows: Rows, reject: np.ndarray) -> dict[str, Any]:
@@ -198,8 +215,8 @@ def leave_one_out(rows: Rows, by: np.ndarray, terms, max_lost: float, l2: float,
         train = ~test
         if rows.false[train].all() or not rows.false[train].any():
             continue
-        bias, weights, threshold = fit_rows(rows.subset(train), terms, max_lost, l2)
-        p[test] = predict(bias, weights, rows.x[test])
+        bias, weights, threshold, mean = fit_rows(rows.subset(train), terms, max_lost, l2)
+        p[test] = predict(bias, weights, filled(rows.x[test], mean))
         reject[test] = p[test] > threshold
         folds[str(g)] = {"threshold": threshold, "weights": dict(zip(TERMS, np.round(weights, 4).tolist())),
                          **figures(p[test], rows.subset(test), reject[test])}
@@ -209,11 +226,13 @@ def leave_one_out(rows: Rows, by: np.ndarray, terms, max_lost: float, l2: float,
 
 def calibrate_sensors(rows: Rows, terms: tuple[str, ...], max_lost: float = 0.01, l2: float = 1e-2) -> dict[str, Any]:
     """The fit on every row, the cross-validation by sensor and by sequence, the ablation."""
-    bias, weights, threshold = fit_rows(rows, terms, max_lost, l2)
-    p = predict(bias, weights, rows.x)
+    bias, weights, threshold, mean = fit_rows(rows, terms, max_lost, l2)
+    x = filled(rows.x, mean)
+    p = predict(bias, weights, x)
     sim = rows.sensor != "real"
     out: dict[str, Any] = {
         "terms": list(terms), "bias": bias, "weights": dict(zip(TERMS, weights.tolist())), "threshold": threshold,
+        "mismatch_mean": mean,
         "rows": {str(s): {"true": int((~rows.false[rows.sensor == s]).sum()),
                           "false": int(rows.false[rows.sensor == s].sum())} for s in np.unique(rows.sensor)},
         "in_sample": figures(p, rows, p > threshold),
@@ -240,20 +259,22 @@ def calibrate_sensors(rows: Rows, terms: tuple[str, ...], max_lost: float = 0.01
             "confusion_auc_without": cv["per_kind"].get("confusion", {}).get("auc_vs_true", float("nan")),
         }
     out["ablation"] = ablation
-    out["mismatch"] = mismatch_report(rows, out)
+    if "mismatch" in terms:
+        out["mismatch"] = mismatch_report(rows, out)
     return out
 
 
 def mismatch_report(rows: Rows, result: dict[str, Any]) -> dict[str, Any]:
     """What the shape term brings: its weight, its own AUC on confusions vs true cars, and the
     held-out AUC on confusions with and without it."""
-    m = rows.x[:, TERMS.index("mismatch")]
+    m = rows.x[:, _MISMATCH]
     true, conf = ~rows.false, rows.kind == "confusion"
-    sel = true | conf
+    sel = (true | conf) & np.isfinite(m)
     full = result["cv_by_sequence"]["pooled"]["per_kind"].get("confusion", {}).get("auc_vs_true", float("nan"))
     without = result["ablation"].get("mismatch", {}).get("confusion_auc_without", float("nan"))
     return {"weight": result["weights"]["mismatch"],
             "auc_alone_confusion_vs_true": auc(m[sel], true[sel]) if conf.any() else float("nan"),
-            "auc_alone_all_false_vs_true": auc(m, true),
+            "auc_alone_all_false_vs_true": auc(m[np.isfinite(m)], true[np.isfinite(m)]),
+            "measured_share": float(np.isfinite(m).mean()),
             "confusion_auc_held_out_with": full, "confusion_auc_held_out_without": without,
             "confusion_auc_contribution": full - without}

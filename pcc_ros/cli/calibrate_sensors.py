@@ -79,17 +79,21 @@ def run_sensors(args: argparse.Namespace) -> int:
     for t, a in result["ablation"].items():
         print(f"without {t}: held-out AUC {a['auc_without']:.3f} ({a['auc_change']:+.3f} for the term), removed at "
               f"<= 2 % lost {a['removed_at_0.02_without']:.1%} ({a['removed_at_0.02_change']:+.1%})")
-    m = result["mismatch"]
-    print(f"mismatch: weight {m['weight']:+.4f}; alone, AUC confusions vs true cars "
-          f"{m['auc_alone_confusion_vs_true']:.3f}"
-          f" (all false {m['auc_alone_all_false_vs_true']:.3f}); held-out AUC on confusions with / without it "
-          f"{m['confusion_auc_held_out_with']:.3f} / {m['confusion_auc_held_out_without']:.3f}")
+    m = result.get("mismatch")
+    if m is None:
+        print("mismatch: not among the fitted terms (weight 0)")
+    else:
+        print(f"mismatch: weight {m['weight']:+.4f}; alone, AUC confusions vs true cars "
+              f"{m['auc_alone_confusion_vs_true']:.3f}"
+              f" (all false {m['auc_alone_all_false_vs_true']:.3f}); held-out AUC on confusions with / without it "
+              f"{m['confusion_auc_held_out_with']:.3f} / {m['confusion_auc_held_out_without']:.3f}")
     sensor_value = "auto" if len(sensors) > 1 or args.real is not None else sensors[0]
     if args.out:
         weights = np.array([result["weights"][t] for t in TERMS])
         values: dict[str, Any] = {"sensor": sensor_value, "score_mapping": "identity"}
         if weights[TERMS.index("mismatch")] != 0:
             values["filter_backend"] = args.filter_backend
+        values["mismatch_mean"] = round(float(result["mismatch_mean"]), 4)
         real = f" --real {args.real} --real-detections {args.real_detections}" if args.real else ""
         header = (f"# calibrated: pcc calibrate-filter --sim-sensors {','.join(sensors)} --sim-seed {args.sim_seed}"
                   f" --sim-sequences {args.sim_sequences} --sim-frames {args.sim_frames}"
