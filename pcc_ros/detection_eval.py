@@ -29,7 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pcc_ros.data.kitti import read_velodyne, split_dir
-from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
+from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_ab3dmot_lines, parse_label_lines
 from pcc_ros.data.synthetic.writer import KIND_SUFFIX, read_kinds
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
@@ -51,11 +51,14 @@ def default_config() -> Path:
 
 
 class LabelledFrame:
-    """One scan with labelled ground truth and detections (LiDAR frame, KITTI attributes)."""
+    """One scan with labelled ground truth and detections (LiDAR frame, KITTI attributes);
+    ``rings``: the scan's ring field when its source has one (nuScenes, AV2), for the filter's
+    beam model (``sensor: auto``)."""
 
     def __init__(self, name: str, points: np.ndarray, gt: FrameBoxes, dt: FrameBoxes, dontcare: np.ndarray,
-                 kinds: np.ndarray | None = None):
+                 rings: np.ndarray | None = None, kinds: np.ndarray | None = None):
         self.name, self.points, self.gt, self.dt, self.dontcare = name, points, gt, dt, dontcare
+        self.rings = rings
         #: SynthCars' label of each detection ("true" or a false-positive kind), None for other data.
         self.kinds = kinds
 
@@ -81,7 +84,8 @@ def load_kitti(
     """Frames of a KITTI tracking sequence (``label_02``) or of the object set (``label_2``).
 
     ``root`` may hold ``training/`` or be the split directory. Detection files: KITTI object
-    lines with a score column, ``DETECTIONS/FFFFFF.txt`` or ``DETECTIONS/SSSS/FFFFFF.txt``.
+    lines with a score column, ``DETECTIONS/FFFFFF.txt`` or ``DETECTIONS/SSSS/FFFFFF.txt``; or
+    AB3DMOT's one file per tracking sequence, ``DETECTIONS/SSSS.txt``.
     A frame without a detection file reads as no detections (counted, logged).
     """
     split = split_dir(Path(root), "training")
@@ -102,13 +106,20 @@ def load_kitti(
         label_path = split / "label_02" / f"{sequence}.txt"
         rows = parse_label_lines(_read_lines(label_path), tracking=True, source=str(label_path))
         det_dir = None if det_root is None else det_root / sequence if (det_root / sequence).is_dir() else det_root
+        per_sequence = None  # AB3DMOT's published layout: one comma-separated file per sequence
+        if det_dir is det_root and det_root is not None and (det_root / f"{sequence}.txt").is_file():
+            path = det_root / f"{sequence}.txt"
+            per_sequence = parse_ab3dmot_lines(_read_lines(path), source=str(path))
         for scan in sorted((split / "velodyne" / sequence).glob("*.bin"))[frames]:
             index = int(scan.stem)
             gt, dontcare = _rows_to_frameboxes(rows[rows.frame == index], calib, f"{sequence}/{scan.stem}")
-            dt, found = _read_detections(None if det_dir is None else det_dir / f"{scan.stem}.txt", calib)
+            if per_sequence is not None:  # a frame without a line has no detections
+                dt, found = _rows_to_frameboxes(per_sequence[per_sequence.frame == index], calib, scan.stem)[0], True
+            else:
+                dt, found = _read_detections(None if det_dir is None else det_dir / f"{scan.stem}.txt", calib)
             missing += not found and det_dir is not None
             kinds = _read_kinds(None if det_dir is None else det_dir / f"{scan.stem}.txt", len(dt.boxes))
-            out.append(LabelledFrame(f"{sequence}/{scan.stem}", read_velodyne(scan), gt, dt, dontcare, kinds))
+            out.append(LabelledFrame(f"{sequence}/{scan.stem}", read_velodyne(scan), gt, dt, dontcare, kinds=kinds))
     elif (split / "label_2").is_dir():
         for scan in sorted((split / "velodyne").glob("*.bin"))[frames]:
             calib = Calibration.read(split / "calib" / f"{scan.stem}.txt")
@@ -118,7 +129,7 @@ def load_kitti(
             dt, found = _read_detections(None if det_root is None else det_root / f"{scan.stem}.txt", calib)
             missing += not found and det_root is not None
             kinds = _read_kinds(None if det_root is None else det_root / f"{scan.stem}.txt", len(dt.boxes))
-            out.append(LabelledFrame(scan.stem, read_velodyne(scan), gt, dt, dontcare, kinds))
+            out.append(LabelledFrame(scan.stem, read_velodyne(scan), gt, dt, dontcare, kinds=kinds))
     else:
         raise DataError(f"{split}: neither label_02/ (tracking) nor label_2/ (object) found")
     if missing:
@@ -248,7 +259,7 @@ def run_filter(frames: list[LabelledFrame], pipeline, progress: bool = True) -> 
     """The pipeline's per-detection outputs for every frame (status, p_false, terms, points in box)."""
     out = []
     for frame in tqdm(frames, desc="filter", unit="frame", disable=not progress):
-        result = pipeline.process(frame.points, frame.dt.boxes, frame_id="velodyne")
+        result = pipeline.process(frame.points, frame.dt.boxes, frame_id="velodyne", rings=frame.rings)
         counts = np.array([len(i) for i in points_in_boxes(frame.points, frame.dt.boxes)], dtype=np.int64)
         out.append(
             {

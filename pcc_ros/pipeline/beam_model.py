@@ -61,6 +61,11 @@ OFFSET_MAX = 0.3
 OFFSET_STEP = 0.02
 #: Returns of one band the offset search looks at, at most (an even subsample).
 OFFSET_SAMPLE = 4000
+#: A band whose returns light at least this share of the columns, and holding more than
+#: SPLIT_FACTOR times as many peaks as returns per lit column, has its beams counted from the
+#: returns instead (:func:`_split_checked`).
+LIT_SHARE = 0.5
+SPLIT_FACTOR = 1.25
 #: Share of the returns that must lie within a beam's spike for the scan to have beam structure.
 MIN_STRUCTURE = 0.5
 #: Gaps in azimuth over this many times the median gap are missing returns, not the step.
@@ -204,6 +209,35 @@ def _peak_table(el: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     return medians[beams], np.where(near, rank[nearest], -1)
 
 
+def _split_checked(elevations: np.ndarray, el: np.ndarray, az: np.ndarray, step: float) -> np.ndarray:
+    """The peak table with each lit band's beam count checked against the returns per firing.
+
+    A laser fires once per column, so a band of elevation its beams light all round (the
+    ground) holds about (its beams) returns per column that has any. Where the histogram
+    found clearly more peaks in such a band (a real laser's offsets from the origin smear its
+    elevation with range into several spikes), the band's beams are that count instead, at
+    equal-share quantiles of its returns. Exact data never has more peaks than returns per
+    column, so its table is left as found."""
+    columns = max(1, round(360.0 / step))
+    band = np.floor(el / BAND_DEG).astype(np.int64)
+    column = np.floor((az + 180.0) / step).astype(np.int64) % columns
+    keep = np.ones(len(elevations), dtype=bool)
+    extra: list[np.ndarray] = []
+    table_band = np.floor(elevations / BAND_DEG).astype(np.int64)
+    for value in np.unique(table_band):  # a dozen bands
+        mine = band == value
+        lit = np.unique(column[mine])
+        if len(lit) < LIT_SHARE * columns:
+            continue
+        per_column = mine.sum() / len(lit)
+        found = int((table_band == value).sum())
+        if found > SPLIT_FACTOR * per_column + 0.5:
+            beams = max(1, round(per_column))
+            keep &= table_band != value
+            extra.append(np.quantile(el[mine], (np.arange(beams) + 0.5) / beams))
+    return np.sort(np.concatenate([elevations[keep], *extra]))
+
+
 def _azimuth_step(az: np.ndarray, beam: np.ndarray) -> float | None:
     """Mean gap in azimuth between consecutive returns of one beam (missing returns' gaps left out)."""
     mine = beam >= 0
@@ -234,17 +268,21 @@ def estimate_sensor(points: np.ndarray, rings: np.ndarray | None = None, min_ran
         el, az, use, _ = _angles(points, min(min_range, RING_MIN_RANGE))
         if len(el) >= MIN_POINTS:
             table = _ring_table(el, rings[use])
-    if table is None:
+    ringless = table is None
+    if ringless:
         el, az, use, xyz = _angles(points, min_range)
         if len(el) < MIN_POINTS:
             return None
-        table = _peak_table(_offset_corrected(el, xyz))
+        el = _offset_corrected(el, xyz)
+        table = _peak_table(el)
     if table is None:
         return None
     elevations, beam = table
     step = _azimuth_step(az, beam)
     if step is None or not 0.0 < step <= 45.0:
         return None
+    if ringless:
+        elevations = _split_checked(elevations, el, az, step)
     return SensorModel(tuple(elevations), step, name)
 
 
@@ -315,6 +353,13 @@ class BeamModel:
                 log.warning("sensor auto: the beam model drifted at frame %d: was %s, now %s; re-adopted (%d such "
                             "re-adoptions)", self.frames, self.model.describe(), found.describe(), self.drifts)
             self.model = found
+
+
+def ring_column(points: np.ndarray, fields) -> np.ndarray | None:
+    """The ``ring`` column of ``points`` whose columns are named ``fields`` (a
+    :class:`~pcc_ros.types.Sample`'s), or None when it has none."""
+    fields = tuple(fields)
+    return np.asarray(points)[:, fields.index("ring")] if "ring" in fields else None
 
 
 def sensor_for(name: str, points: np.ndarray, rings: np.ndarray | None = None) -> SensorModel:

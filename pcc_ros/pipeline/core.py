@@ -52,6 +52,11 @@ from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
 
+#: The filter's scan evidence is measured for every box of a configured class (max_instances
+#: bounds the completion only) while their crop work bounds sum to at most this many times
+#: ``max_crop_work``; past it the lowest-score boxes pass unjudged, marked and counted.
+EVIDENCE_WORK_FACTOR = 10
+
 #: An organized cloud of at most this many rows is read as one row per beam (Ouster's layout).
 MAX_ORGANIZED_RINGS = 256
 
@@ -205,6 +210,7 @@ class Pipeline:
         wanted = class_mask(detections.label, cfg.classes)  # other classes pass the filter untouched
         _count(skipped, "other class", int((~wanted).sum()))
         candidates = np.flatnonzero(wanted)
+        dropped = candidates[:0]
         if len(candidates) > cfg.max_instances:
             order = np.argsort(-detections.score[candidates], kind="stable")
             dropped = candidates[order[cfg.max_instances :]]
@@ -215,6 +221,8 @@ class Pipeline:
         # max_crop_work the lowest-score boxes are skipped (counted), so one hostile frame
         # (hundreds of huge boxes over a dense scan) cannot stall a node or exhaust memory.
         crop_index, canonical, fits, work = _bounded_crop(points, detections[candidates], cfg)
+        box_work = np.zeros(n)  # the (point, box) work bound of every box of a configured class
+        box_work[candidates] = work
         if fits is not None:
             _count(skipped, "over max_crop_work", int((~fits).sum()))
             log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
@@ -260,6 +268,8 @@ class Pipeline:
                 status[judged_idx] = "unjudged"
                 self._empty_scan(stamp_ns, skipped, len(judged_idx))
                 judged_idx = judged_idx[:0]
+            judged_idx = self._evidence_budget(points, detections, judged_idx, dropped, box_work, status, skipped,
+                                               stamp_ns)
             sensor = self.beam_model.for_frame(points, rings)
             if len(judged_idx):
                 part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
@@ -333,6 +343,27 @@ class Pipeline:
         )
 
     # ------------------------------------------------------------------ messages
+
+    def _evidence_budget(self, points, detections: Boxes, judged_idx, dropped, box_work, status, skipped,
+                         stamp_ns: int) -> np.ndarray:
+        """The boxes the evidence measures: all of ``judged_idx`` unless their work bounds (the
+        crop's, measured for the boxes past max_instances too) sum past
+        :data:`EVIDENCE_WORK_FACTOR` x ``max_crop_work``; then the highest-scoring that fit, the
+        rest marked unjudged (counted, logged): a hostile frame of huge boxes stays bounded."""
+        cfg = self.config
+        if len(dropped) and len(points):
+            box_work[dropped] = BoxCandidates(points, detections[dropped], cfg.box_margin,
+                                              cfg.ground_margin).pairs_per_box
+        fits = crop_budget(box_work[judged_idx], detections[judged_idx], EVIDENCE_WORK_FACTOR * cfg.max_crop_work)
+        if fits is None:
+            return judged_idx
+        over = judged_idx[~fits]
+        status[over] = "unjudged"
+        _count(skipped, "unjudged over evidence work", len(over))
+        log.warning("frame %d: about %d point-box pairs in %d boxes exceed %d x max_crop_work; the %d lowest-score "
+                    "boxes pass unjudged (marked)", stamp_ns, int(box_work[judged_idx].sum()), len(judged_idx),
+                    EVIDENCE_WORK_FACTOR, len(over))
+        return judged_idx[fits]
 
     def _empty_scan(self, stamp_ns: int, skipped: dict[str, int], n: int) -> None:
         """A scan without a finite point (a driver starting up, a blocked sensor, an organized
