@@ -74,16 +74,16 @@ class FilterConfig:
     # `pcc calibrate-filter --sim-sensors ...` into config/detection_filter.yaml (a test keeps the
     # two equal; docs/filter.md has the command): scan evidence only, no score term (an unknown
     # detector's score scale is unknown; the score must not reject a real car on its own).
-    w_bias: float = -2.0013
-    w_density: float = -0.785
-    w_free_space: float = 0.5434
-    w_ground_gap: float = 1.6797
+    w_bias: float = -2.2617
+    w_density: float = -0.8223
+    w_free_space: float = 0.5306
+    w_ground_gap: float = 2.6898
     w_score: float = 0.0
     w_mismatch: float = 0.0
     # the value a missing mismatch term takes (a detection whose shape was not completed): its
     # mean over the calibration detections, the first-order marginalisation of the term
     mismatch_mean: float = 0.0
-    reject_threshold: float = 0.5528
+    reject_threshold: float = 0.5998
     sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
