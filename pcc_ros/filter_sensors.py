@@ -86,13 +86,7 @@ def synth_dataset(root: Path, layout: str, seed: int, sequences: int, frames: in
     from pcc_ros.data.synthetic.lidar import Sensor
 
     out = Path(root) / f"{layout}_s{seed}"
-    if "layout" in Sensor.__dataclass_fields__:
-        sensor = Sensor(layout=layout)
-    elif layout == "hdl64":
-        sensor = Sensor()  # the simulator's only layout before the beam-layout table
-    else:
-        raise ConfigError(f"the LiDAR simulator has no beam layout {layout!r}")
-    generate(out, sequences, frames, seed, sensor=sensor, test_fraction=0.0)
+    generate(out, sequences, frames, seed, sensor=Sensor(layout=layout), test_fraction=0.0)
     return out
 
 

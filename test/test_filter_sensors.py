@@ -14,7 +14,7 @@ from pcc_ros.pipeline.filter import TERMS
 
 
 def test_sensor_path_needs_no_labelled_frames_and_reproduces(tmp_path):
-    args = ["calibrate-filter", "--sensor", "hdl64", "--sim-root", str(tmp_path / "sim"), "--sim-sequences", "2",
+    args = ["calibrate-filter", "--sensor", "vlp16", "--sim-root", str(tmp_path / "sim"), "--sim-sequences", "2",
             "--sim-frames", "2", "--terms", "density,free_space,ground_gap", "--max-lost", "0.05"]
     assert main([*args, "--out", str(tmp_path / "a.yaml"), "--json", str(tmp_path / "a.json")]) == 0
     assert main([*args, "--out", str(tmp_path / "b.yaml")]) == 0  # the cached set, the same fit
@@ -23,10 +23,10 @@ def test_sensor_path_needs_no_labelled_frames_and_reproduces(tmp_path):
 
     assert body("a.yaml") == body("b.yaml")
     config = PipelineConfig.from_yaml(tmp_path / "a.yaml")
-    assert config.filter.sensor == "hdl64" and config.filter.w_score == 0.0 and config.filter.w_mismatch == 0.0
+    assert config.filter.sensor == "vlp16" and config.filter.w_score == 0.0 and config.filter.w_mismatch == 0.0
     report = json.loads((tmp_path / "a.json").read_text())
-    assert report["sensors"] == ["hdl64"] and set(report["ablation"]) == {"density", "free_space", "ground_gap"}
-    assert report["rows"]["hdl64"]["false"] > 0 and len(report["cv_by_sequence"]["folds"]) == 2
+    assert report["sensors"] == ["vlp16"] and set(report["ablation"]) == {"density", "free_space", "ground_gap"}
+    assert report["rows"]["vlp16"]["false"] > 0 and len(report["cv_by_sequence"]["folds"]) == 2
     assert abs(report["weights"]["density"] - config.filter.w_density) < 1e-4
 
 
