@@ -70,18 +70,20 @@ _VIEWS = ((0, 2), (1, 2), (0, 1))  # side (x-z), front (y-z), top (x-y)
 @dataclass(frozen=True)
 class FilterConfig:
     rule: str = "evidence"
-    # evidence rule: logistic weights. Defaults = the KITTI preset written by `pcc calibrate-filter`
-    # into config/detection_filter.yaml (a test keeps the two equal; docs/filter.md has the command).
-    w_bias: float = 1.3016
-    w_density: float = -0.4338
-    w_free_space: float = 0.3253
-    w_ground_gap: float = 2.3514
-    w_score: float = -0.9236
+    # evidence rule: logistic weights. Defaults = the sensor- and detector-agnostic rule written by
+    # `pcc calibrate-filter --sim-sensors ...` into config/detection_filter.yaml (a test keeps the
+    # two equal; docs/filter.md has the command): scan evidence only, no score term (an unknown
+    # detector's score scale is unknown; the score must not reject a real car on its own).
+    w_bias: float = -2.2617
+    w_density: float = -0.8223
+    w_free_space: float = 0.5306
+    w_ground_gap: float = 2.6898
+    w_score: float = 0.0
     w_mismatch: float = 0.0
     # the value a missing mismatch term takes (a detection whose shape was not completed): its
     # mean over the calibration detections, the first-order marginalisation of the term
     mismatch_mean: float = 0.0
-    reject_threshold: float = 0.6131
+    reject_threshold: float = 0.5998
     sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
