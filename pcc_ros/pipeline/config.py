@@ -66,6 +66,11 @@ class PipelineConfig:
     max_box_range: float = 1000.0
     max_box_tilt: float = 0.35
     max_crop_work: int = 100_000
+    #: track-level completion (pipeline/track_memory.py): complete each car from its crops of the last
+    #: track_max_age seconds, same Detection3D.id or, without ids, the nearest box within track_gate metres
+    track_memory: bool = False
+    track_max_age: float = 1.0
+    track_gate: float = 2.0
     filter: FilterConfig = field(default_factory=FilterConfig)
 
     def __post_init__(self) -> None:
@@ -305,6 +310,10 @@ DESCRIPTIONS = {
     "max_box_tilt": "radians of roll / pitch a box may have (dropped, yaw kept); more tilted boxes are skipped",
     "max_crop_work": "per-frame bound on (point, box) pairs, about the points under all box footprints; "
     "lowest-score boxes beyond it are skipped and counted",
+    "track_memory": "complete each car from its accumulated crops of the last track_max_age seconds (same "
+    "Detection3D.id, or the nearest box within track_gate metres when ids are empty); off: each frame alone",
+    "track_max_age": "track_memory: seconds a car's past crops are kept (an id unseen this long is freed)",
+    "track_gate": "track_memory without ids: metres a box centre may move between frames and stay the same car",
     "rule": "filter rule: evidence (calibrated scan evidence, docs/filter.md) | trapcc (shape mismatch + score gate)",
     "w_bias": "evidence rule: logistic bias (pcc calibrate-filter)",
     "w_density": "evidence rule: weight of log((returns in box + 1) / (returns a car would give + 1))",
@@ -344,6 +353,8 @@ RANGES: dict[str, tuple[float, float]] = {
     "batch_size": (1, 4096),
     "workers": (1, 64),
     "decode_density": (1, 8),
+    "track_max_age": (0.01, 60.0),
+    "track_gate": (0.01, 50.0),
     "match_threshold": (0.0, 1.0),
     "detection_threshold": (0.0, 1.0),
     "reject_threshold": (1e-6, 1.0 - 1e-6),

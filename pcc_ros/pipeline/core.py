@@ -46,6 +46,7 @@ from pcc_ros.pipeline.filter import (
     mismatch_scores,
     reject_mask,
 )
+from pcc_ros.pipeline.track_memory import TrackMemory
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
@@ -164,6 +165,8 @@ class Pipeline:
         name = config.filter.filter_backend
         if config.filter.uses_mismatch and name and name != config.backend:
             self.filter_completer = load_completer(name, None, device=config.device)
+        #: each car's recent crops in its box frame (track_memory; None: every frame alone)
+        self.track_memory = TrackMemory(config.track_max_age, config.track_gate) if config.track_memory else None
 
     @staticmethod
     def _runtime_options(config: PipelineConfig) -> dict[str, Any]:
@@ -222,7 +225,11 @@ class Pipeline:
         if getattr(self.completer, "uses_context", False) and crops:
             context = SceneContext.from_frame(detections[selected], crops)
         sizes = detections.size[selected]
-        completions = self.completer.complete(crops, context, sizes=sizes) if crops else []
+        inputs = crops
+        if self.track_memory is not None:  # the car's accumulated crops (causal); the filter still reads this frame's
+            inputs = self.track_memory.update(detections[selected], crops, stamp_ns)
+            timings["track_memory_ms"] = _ms(tic)
+        completions = self.completer.complete(inputs, context, sizes=sizes) if crops else []
         timings["complete_ms"] = _ms(tic)
 
         tic = time.perf_counter()
