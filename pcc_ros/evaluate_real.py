@@ -24,6 +24,7 @@ Example::
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,7 @@ from pcc_ros.metrics.realdata import REAL_METRICS, draw_three_views, mean_rows, 
 from pcc_ros.models import available, backend_names, get_backend, load_completer
 from pcc_ros.models.base import SceneContext
 from pcc_ros.pipeline.core import PipelineConfig
+from pcc_ros.pipeline.track_memory import TrackMemory
 from pcc_ros.tables import metric_cell, print_table
 from pcc_ros.types import Boxes, class_mask
 
@@ -227,7 +229,7 @@ GENERATED_SUFFIX = "/generated"
 def evaluate_real(
     instances: list[dict[str, Any]], backends: list[str], checkpoints: dict[str, Path], device: str = "cpu",
     batch_size: int = 32, progress: bool = True, keep_input: bool = True, decode_density: int | None = None,
-    strict: bool = False,
+    strict: bool = False, accumulated: list[np.ndarray] | None = None,
 ) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
     """Complete every instance with every backend (batched, with the boxes' sizes) and score it.
 
@@ -239,7 +241,10 @@ def evaluate_real(
     ``NAME``. Backends that read scene context (TraPCC) get the other evaluated cars of the
     frame as neighbours. ``decode_density``: the learned backends' (default: the node's).
     A backend that does not load (no or a damaged checkpoint) is skipped with a warning, or
-    with ``strict`` (the backends and checkpoints the user named) raises."""
+    with ``strict`` (the backends and checkpoints the user named) raises. ``accumulated``: one
+    cloud per instance to complete instead of its crop (track-level completion,
+    :func:`track_memory_inputs`); the published rows are still this frame's crop plus the
+    generated points."""
     results: dict[str, Any] = {}
     completions: dict[str, list[np.ndarray]] = {}
     partials = [i["partial"] for i in instances]
@@ -261,16 +266,22 @@ def evaluate_real(
         contexts = scene_contexts(instances) if getattr(completer, "uses_context", False) else None
         keep = keep_input and cls.learned
         outs: list[np.ndarray] = []
+        inputs = partials if accumulated is None else accumulated
+        tic = time.perf_counter()
         for start in tqdm(range(0, len(partials), 64), desc=f"complete {name}", disable=not progress, leave=False):
             chunk = None if contexts is None else contexts[start : start + 64]
-            outs.extend(completer.complete(partials[start : start + 64], chunk, sizes=sizes[start : start + 64],
-                                           keep_input=keep))
+            outs.extend(completer.complete(inputs[start : start + 64], chunk, sizes=sizes[start : start + 64],
+                                           keep_input=keep and accumulated is None))
+        seconds = time.perf_counter() - tic
+        if keep and accumulated is not None:  # published: this frame's crop, then what the accumulated cloud gave
+            outs = [np.concatenate([p, o]) for p, o in zip(partials, outs)]
         variants = {name: outs}
         if keep:  # the contract of keep_input: the partial first, then the generated points
             variants[name + GENERATED_SUFFIX] = [o[len(p):] for o, p in zip(outs, partials)]
         for row, clouds in variants.items():
             rows = score_rows(instances, clouds)
-            results[row] = {**_bands(instances, rows), "learned": bool(cls.learned)}
+            results[row] = {**_bands(instances, rows), "learned": bool(cls.learned),
+                            "completion_ms_per_instance": 1e3 * seconds / max(len(instances), 1)}
             if cls.learned:
                 ck = getattr(completer, "checkpoint_config", None) or {}
                 results[row]["checkpoint"] = str(checkpoints.get(name, "shipped default"))
@@ -282,6 +293,41 @@ def evaluate_real(
             completions[row] = clouds
     results[REFERENCE_ROW] = {**_bands(instances, ref_rows), "learned": False}
     return results, completions
+
+
+def track_memory_inputs(instances: list[dict[str, Any]], association: str = "ids", max_age_s: float | None = None,
+                        gate_m: float | None = None, frame_period_s: float = 0.1) -> tuple[list[np.ndarray], float]:
+    """Each instance's accumulated canonical cloud as ``completion_node`` with ``track_memory`` builds it
+    (:class:`~pcc_ros.pipeline.track_memory.TrackMemory`, the node's ``track_max_age`` / ``track_gate``
+    unless given), feeding the frames in order at ``frame_period_s`` (KITTI: 10 Hz); causal: only a
+    track's earlier frames. ``association``: ``ids`` (the labels' track ids, a tracker's stable
+    ``Detection3D.id``) or ``nearest`` (ids left empty: nearest box centre within the gate).
+    Returns the clouds and the memory's mean cost per frame in milliseconds."""
+    if association not in ("ids", "nearest"):
+        raise ConfigError(f"--real-track-memory must be ids or nearest, got {association!r}")
+    cfg = PipelineConfig()
+    memory = TrackMemory(cfg.track_max_age if max_age_s is None else max_age_s,
+                         cfg.track_gate if gate_m is None else gate_m)
+    out: list[np.ndarray] = [np.zeros((0, 3), np.float32)] * len(instances)
+    frames: dict[tuple[str, int], list[int]] = {}
+    for i, inst in enumerate(instances):
+        frames.setdefault((inst["frame_key"].rsplit(":", 1)[0], inst["frame"]), []).append(i)
+    seconds, sequence = 0.0, None
+    for (seq, frame), members in sorted(frames.items()):  # tens of frames, in order
+        if seq != sequence:  # another recording: nothing carries over
+            memory.clear()
+            sequence = seq
+        boxes = Boxes(np.stack([instances[i]["center"] for i in members]),
+                      np.stack([instances[i]["size"] for i in members]),
+                      np.array([instances[i]["yaw"] for i in members]),
+                      np.array([instances[i]["label"] for i in members], dtype=object), np.ones(len(members)),
+                      np.array([instances[i]["track"] if association == "ids" else "" for i in members], dtype=object))
+        tic = time.perf_counter()
+        clouds = memory.update(boxes, [instances[i]["partial"] for i in members], int(frame * frame_period_s * 1e9))
+        seconds += time.perf_counter() - tic
+        for i, cloud in zip(members, clouds):
+            out[i] = cloud
+    return out, 1e3 * seconds / max(len(frames), 1)
 
 
 def score_rows(instances: list[dict[str, Any]], clouds: list[np.ndarray]) -> list[dict[str, float]]:
@@ -430,6 +476,7 @@ class RealEvalConfig:
     table: Path | None = None  # the summary as a Markdown table (the README's real-data table)
     plot_backends: str | None = None  # comma-separated completion columns of the PNG (None: every backend)
     examples: int = 4
+    track_memory: str | None = None  # ids | nearest: complete each car from its accumulated crops (causal)
 
 
 def run_real(opts: RealEvalConfig) -> int:
@@ -459,9 +506,15 @@ def run_real(opts: RealEvalConfig) -> int:
     log.info("evaluating %d real instance(s) of %d track(s)", len(instances),
              len({i["key"].split("@")[0] for i in instances}))
     device = "cpu" if opts.device == "auto" else opts.device
+    accumulated, memory_ms = None, None
+    if opts.track_memory:
+        accumulated, memory_ms = track_memory_inputs(instances, opts.track_memory)
+        log.info("track memory (%s): %.0f input points per instance on average (%.0f in the crops), %.3f ms per frame",
+                 opts.track_memory, np.mean([len(a) for a in accumulated]),
+                 np.mean([len(i["partial"]) for i in instances]), memory_ms)
     results, completions = evaluate_real(instances, backends, checkpoints, device, opts.batch_size,
                                          keep_input=opts.keep_input, decode_density=opts.decode_density,
-                                         strict=bool(opts.backends))
+                                         strict=bool(opts.backends), accumulated=accumulated)
     print_real_tables(results)
     verdict = criteria(results)
     summary = summary_rows(results)
@@ -481,6 +534,10 @@ def run_real(opts: RealEvalConfig) -> int:
            "boxes": "labels of matched detections" if opts.matched_labels else boxes,
            "input_crop": {"box_margin": margin, "ground_margin": ground_margin},
            "backends": results, "criteria": verdict, "summary": summary}
+    if accumulated is not None:
+        out["track_memory"] = {"association": opts.track_memory, "ms_per_frame": memory_ms,
+                               "input_points_mean": float(np.mean([len(a) for a in accumulated])),
+                               "crop_points_mean": float(np.mean([len(i["partial"]) for i in instances]))}
     if opts.table:
         opts.table.parent.mkdir(parents=True, exist_ok=True)
         opts.table.write_text(summary_markdown(summary))

@@ -34,7 +34,7 @@ def test_a_moving_car_accumulates_in_its_own_box_frame():
         seen.append(part)
         expected = np.concatenate(seen)
         assert len(out) == len(expected)
-        np.testing.assert_allclose(np.sort(out, axis=0), np.sort(expected, axis=0), atol=1e-5)  # same place, every frame
+        np.testing.assert_allclose(np.sort(out, axis=0), np.sort(expected, axis=0), atol=1e-5)  # same place
     # a longer box of the same id (a detector's size noise): the stored metres keep their size
     out = memory.update(_boxes([[20.0, 3, -0.8]], ["7"], length=5.0), [np.zeros((3, 3), np.float32)],
                         4 * SECOND // 10)[0]
@@ -103,3 +103,22 @@ def test_pipeline_completes_from_the_accumulated_crops():
         counts.append(len(b.completions[0]))
         assert "track_memory_ms" in b.timings_ms and len(b.crops[0]) == 60  # the filter reads this frame's crop
     assert counts == [60, 120, 180]
+
+
+def test_real_evaluation_feeds_the_frames_in_order_and_causally():
+    from pcc_ros.errors import ConfigError
+    from pcc_ros.evaluate_real import track_memory_inputs
+
+    def inst(frame: int, track: str, x: float, n: int) -> dict:
+        return {"frame_key": f"src:0000:{frame}", "frame": frame, "track": track, "center": np.array([x, 0.0, 0.0]),
+                "size": np.array([4.0, 1.8, 1.5]), "yaw": 0.0, "label": "Car",
+                "partial": np.full((n, 3), frame / 100, np.float32)}
+
+    # given out of order: frame 2 first; two cars 10 m apart
+    instances = [inst(2, "a", 10.5, 3), inst(0, "a", 10.0, 1), inst(1, "a", 10.2, 2), inst(1, "b", 20.0, 5)]
+    for association in ("ids", "nearest"):
+        clouds, ms = track_memory_inputs(instances, association)
+        assert [len(c) for c in clouds] == [3 + 1 + 2, 1, 2 + 1, 5] and ms >= 0
+        np.testing.assert_allclose(clouds[0][:3], instances[0]["partial"])  # this frame's crop first
+    with pytest.raises(ConfigError):
+        track_memory_inputs(instances, "tracker")

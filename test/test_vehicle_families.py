@@ -76,5 +76,5 @@ def test_families_of_a_synthcars_root(tmp_path):
     (tmp_path / "meta.json").write_text(json.dumps(meta))
     assert load_families(tmp_path) == {("0000", "3"): "van", ("0000", "4"): "sedan"}
     (tmp_path / "meta.json").write_text("{")
-    with pytest.raises(DataError, match="meta.json"):
+    with pytest.raises(DataError, match=r"meta\.json"):
         load_families(tmp_path)
