@@ -72,6 +72,8 @@ def test_families_of_a_synthcars_root(tmp_path):
     from pcc_ros.data.synthetic import load_families
 
     assert load_families(tmp_path) == {}
+    (tmp_path / "meta.json").write_text(json.dumps({"splits": {"train": ["0000"]}}))
+    assert load_families(tmp_path) == {}  # no tracks recorded: no families
     meta = {"sequences": {"0000": {"tracks": {"3": {"name": "van"}, "4": {"name": "sedan"}}}}}
     (tmp_path / "meta.json").write_text(json.dumps(meta))
     assert load_families(tmp_path) == {("0000", "3"): "van", ("0000", "4"): "sedan"}
