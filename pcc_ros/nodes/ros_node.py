@@ -23,6 +23,8 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
+from rclpy.clock import JumpThreshold
+from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -101,6 +103,12 @@ class RclpyRuntime:
 
     def resolve_topic(self, topic: str) -> str:
         return self.node.resolve_topic_name(topic)
+
+    def on_clock_jump(self, callback) -> None:
+        """rcl's jump handler: called from the ``/clock`` callback that moved the clock back."""
+        threshold = JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1_000_000),
+                                  on_clock_change=True)
+        self._jump_handler = self.node.get_clock().create_jump_callback(threshold, post_callback=lambda _: callback())
 
     def reset_transforms(self) -> None:
         if self.tf is not None:

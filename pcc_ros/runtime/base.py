@@ -83,6 +83,11 @@ class Runtime(Protocol):
         when unknown (the node core holds the frame for ``tf_timeout``, then drops and counts it)."""
         ...
 
+    def on_clock_jump(self, callback: Callable[[], None]) -> None:
+        """Call ``callback`` right after the node's clock jumps back (``/clock`` under ``use_sim_time``),
+        before the messages of the new timeline are handed to the node."""
+        ...
+
     def reset_transforms(self) -> None:
         """Forget the dynamic transforms (``/tf``), keep the static ones: the clock jumped back."""
         ...

@@ -64,6 +64,7 @@ class LocalGraph:
     _subs: dict[str, list[_Subscription]] = field(default_factory=lambda: defaultdict(list))
     _types: dict[str, str] = field(default_factory=dict)
     _publishers: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    _jump_callbacks: list[Callable[[], None]] = field(default_factory=list)
     _timers: list[_Timer] = field(default_factory=list)
     transforms: TransformBuffer = field(default_factory=TransformBuffer)
     _sim_ns: int = 0
@@ -93,9 +94,13 @@ class LocalGraph:
         if not self.simulated:
             raise RuntimeError("jump_to needs LocalGraph(simulated=True)")
         with self._lock:
+            back = int(stamp_ns) < self._sim_ns
             self._sim_ns = int(stamp_ns)
             for timer in self._timers:
                 timer.next_ns = self._sim_ns + timer.period_ns
+            callbacks = list(self._jump_callbacks) if back else []
+        for callback in callbacks:
+            callback()
 
     def set_transform(self, target: str, source: str, transform: Transform) -> None:
         """Static transform ``source`` -> ``target``, i.e. the edge ``target <- source`` (what
@@ -187,6 +192,10 @@ class LocalRuntime:
 
     def lookup_transform(self, target: str, source: str, stamp_ns: int) -> Transform | None:
         return self.graph.transforms.lookup(target, source, stamp_ns)
+
+    def on_clock_jump(self, callback: Callable[[], None]) -> None:
+        with self.graph._lock:
+            self.graph._jump_callbacks.append(callback)
 
     def reset_transforms(self) -> None:
         self.graph.transforms.clear_dynamic()

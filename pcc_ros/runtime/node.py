@@ -248,6 +248,9 @@ class NodeCore:
         if threaded:
             self._worker = threading.Thread(target=self._work, name=f"{node_name}_worker", daemon=True)
             self._worker.start()
+        on_jump = getattr(runtime, "on_clock_jump", None)
+        if on_jump is not None:  # the jump seen as /clock moves, before the new timeline's messages
+            on_jump(self._watch_clock)
         self._warn_without_tf()
         freeze_long_lived()  # the loaded backend and the node's objects: no full collection walks them per frame
         self.log.info(
