@@ -27,7 +27,8 @@ from pcc_ros.runtime.tf import TF_MESSAGE, TF_QOS, TransformListener
 from pcc_ros.runtime.tfwait import TransformWait
 from pcc_ros.types import Boxes
 
-CLOUD, DETS, DIAG = "sensor_msgs/msg/PointCloud2", "vision_msgs/msg/Detection3DArray", "diagnostic_msgs/msg/DiagnosticArray"
+CLOUD, DETS = "sensor_msgs/msg/PointCloud2", "vision_msgs/msg/Detection3DArray"
+DIAG = "diagnostic_msgs/msg/DiagnosticArray"
 S = 1_000_000_000
 
 
@@ -79,7 +80,8 @@ def completion_node(graph, **params) -> tuple[NodeCore, list, list]:
 
 def publishers(graph):
     driver = LocalRuntime(graph, "driver")
-    return driver.create_publisher("/points", CLOUD, SENSOR_DATA), driver.create_publisher("/detections", DETS, RELIABLE)
+    return (driver.create_publisher("/points", CLOUD, SENSOR_DATA),
+            driver.create_publisher("/detections", DETS, RELIABLE))
 
 
 def wait_until(predicate, timeout: float = 5.0) -> bool:
@@ -110,8 +112,8 @@ def test_a_frame_waits_for_its_transform_and_lands_in_the_right_place():
         time.sleep(0.1)
         assert not completed  # held, not processed in the wrong frame
         # localisation catches up: samples around the stamp (interpolated, as tf2 does)
-        for k in (-1, 1):
-            graph.transforms.set_transform("odom", "velodyne", odom_from_velodyne(stamp + k * S // 20), stamp + k * S // 20)
+        for sample in (stamp - S // 20, stamp + S // 20):
+            graph.transforms.set_transform("odom", "velodyne", odom_from_velodyne(sample), sample)
         assert wait_until(lambda: len(completed) == 1)
         assert_in_the_cars_boxes(completed[0])
         values = core.diagnostics_values()
@@ -171,8 +173,8 @@ def test_a_clock_jump_back_resets_pairing_queues_and_tf_and_serves_the_new_timel
     pub_cloud, pub_dets = publishers(graph)
     graph.advance_to(10 * S)
     first = odom_from_velodyne(10 * S)
-    for k in range(-2, 3):
-        graph.transforms.set_transform("odom", "velodyne", odom_from_velodyne(10 * S + k * S // 10), 10 * S + k * S // 10)
+    for sample in (10 * S + k * S // 10 for k in range(-2, 3)):
+        graph.transforms.set_transform("odom", "velodyne", odom_from_velodyne(sample), sample)
     cloud, dets = pair_in_odom(10 * S, first)
     pub_cloud.publish(cloud)
     pub_dets.publish(dets)
