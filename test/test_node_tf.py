@@ -276,3 +276,19 @@ def test_warnings_name_the_resolved_topic_and_blame_qos_only_where_it_can_be_the
     assert "best_effort" not in text
     level, message, _ = status(core)
     assert level == 1 and "no scan on '/car1/lidar/points'" in message
+
+
+def test_a_street_over_max_crop_work_every_frame_is_logged_at_a_rate_not_every_frame(caplog):
+    """A 128-beam scan of a busy street (260k points, 40 cars) exceeds the shipped max_crop_work in
+    every frame (``pcc bench scale``): counted each frame, said for the 1st and every 100th, not 20
+    lines a second."""
+    from pcc_ros.pipeline.core import Pipeline, PipelineConfig
+
+    pipeline = Pipeline(PipelineConfig(backend="mirror", max_crop_work=500))
+    cloud, dets = pair_in_odom(S, Transform((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+    dets.header.frame_id = "velodyne"
+    with caplog.at_level(logging.WARNING, logger="pcc_ros.pipeline.core"):
+        skipped = [pipeline.process_messages(cloud, dets)[0].skipped.get("over max_crop_work", 0) for _ in range(12)]
+    assert all(n >= 1 for n in skipped)
+    lines = [r.getMessage() for r in caplog.records if "exceed max_crop_work" in r.getMessage()]
+    assert len(lines) == 1 and "(1 such frames so far)" in lines[0]
