@@ -42,7 +42,8 @@ bench: setup
 	@mkdir -p benchmarks/results
 	@for name in $$($(PY) -c 'from benchmarks import available; print(" ".join(available()))'); do \
 	  echo "== pcc bench $$name"; \
-	  $(VENV)/bin/pcc bench $$name --json benchmarks/results/$$name.json || exit 1; \
+	  $(VENV)/bin/pcc bench $$name --json benchmarks/results/$$name.json $$([ $$name = soak ] && echo --minutes 5) \
+	    || exit 1; \
 	done
 
 lint: setup

@@ -194,6 +194,7 @@ class NodeCore:
         self._clock_ns: int | None = None  # the node clock as last seen (a jump back resets the node)
         self.last_missing_transform = ""  # the last transform a dropped frame lacked (diagnostics' reason)
         self._tf_gap = False  # frames were dropped since the last frame whose transforms resolved
+        self.tf_recoveries = 0
         self.health = Health()
         self.parameter_changes = 0
         self._parameter_lock = threading.Lock()
@@ -495,7 +496,9 @@ class NodeCore:
                 return None
         if self._tf_gap and (transforms.detections is not None or transforms.output is not None):
             self._tf_gap = False
-            self.log.info(f"transforms arrive again ({self.no_transform} frame(s) dropped without one so far)")
+            self.tf_recoveries += 1  # tf that flaps: said at the 1st, 10th, 100th ... recovery
+            if worth_logging(self.tf_recoveries):
+                self.log.info(f"transforms arrive again ({self.no_transform} frame(s) dropped without one so far)")
         result, originals = pipeline.process_messages(cloud, detections, transform=transforms.detections,
                                                       with_originals=self._republishes_detections)
         header = cloud.header
@@ -547,9 +550,10 @@ class NodeCore:
         self._tf_gap = True
         self.last_missing_transform = missing
         self._failed(f"no transform {missing}")
-        if missing in self._no_transform_logged and not worth_logging(self.no_transform):
+        if missing not in self._no_transform_logged and len(self._no_transform_logged) < 64:  # hostile ids: bounded
+            self._no_transform_logged.add(missing)
+        elif not worth_logging(self.no_transform):
             return
-        self._no_transform_logged.add(missing)
         source = getattr(getattr(self.runtime, "tf", None), "name", "the runtime's transforms")
         wait = f"within tf_timeout {self.tf_wait.timeout_s:g} s" if self.threaded else "(offline: nothing more comes)"
         self.log.warning(
