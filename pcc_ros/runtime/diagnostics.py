@@ -53,8 +53,8 @@ class Health:
 
     def recent(self, now_ns: int, counters: dict[str, int]) -> dict[str, int]:
         """Growth of each counter since the oldest tick within the window (only those that grew)."""
-        if self._ticks and now_ns < self._ticks[-1][0]:  # the clock jumped back: a new timeline
-            self._ticks.clear()
+        if self._ticks and now_ns < self._ticks[-1][0]:  # the clock jumped back: the window restarts here,
+            self._ticks = deque([(now_ns, self._ticks[-1][1])])  # from the counters as they were
         while self._ticks and now_ns - self._ticks[0][0] > self.window_ns:
             self._ticks.popleft()
         base = self._ticks[0][1] if self._ticks else {}
@@ -190,3 +190,23 @@ def report_other_classes(log: Any, mode: str, labels: np.ndarray, classes, seen:
             f"detections of class(es) {names} are not in classes {list(classes)}: {effect} (counted as "
             "skipped_other_class on /diagnostics; add a class to classes to include it)"
         )
+
+
+def unpaired_message(stats: Any, slop_ns: int, silent_hint) -> str:
+    """The warning for messages the pairer dropped unpaired (:class:`~pcc_ros.runtime.pairing.SyncStats`),
+    with why the last found no partner: the nearest stamp the other stream sent, or (none arrived
+    at all) ``silent_hint()`` about the silent input."""
+    what, other = ("scan", "detections") if stats.last_drop_left else ("detections", "scan")
+    gap = stats.last_drop_gap_ns
+    if gap < 0:
+        near = f"no {other} has arrived at all: {silent_hint()}"
+    elif gap > slop_ns:
+        near = f"the nearest {other} stamp seen lately was {gap / 1e6:.0f} ms away"
+    else:  # its partner arrived, but paired with a closer message or after a newer pair
+        near = f"a {other} stamp {gap / 1e6:.0f} ms away had paired with another message or came out of order"
+    total = stats.dropped_clouds + stats.dropped_detections
+    return (f"{total} messages dropped unpaired so far ({stats.dropped_clouds} scans, {stats.dropped_detections} "
+            f"detection arrays; dropped_clouds / dropped_detections on /diagnostics): the last, {what} stamped "
+            f"{stats.last_drop_stamp_ns / 1e9:.3f}, found no {other} within sync_slop {slop_ns / 1e9:g} s; {near}. "
+            "A detector must copy the scan's header stamp (if it restamps, raise sync_slop); scans lost on the "
+            "way: docs/nodes.md 'Large clouds'.")

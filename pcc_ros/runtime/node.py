@@ -29,7 +29,6 @@ from pcc_ros.geometry.transforms import transform_boxes
 from pcc_ros.lograte import worth_logging
 from pcc_ros.msg.detections import transform_detections
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
-from pcc_ros.msg.transforms import frame_name, same_frame
 from pcc_ros.pipeline.config import (
     BACKEND_PARAMETERS,
     check_value,
@@ -41,10 +40,17 @@ from pcc_ros.pipeline.config import (
 from pcc_ros.pipeline.core import DETECTION_OUTPUTS, MARKER_OUTPUTS, FrameResult, Pipeline, build_outputs
 from pcc_ros.pipeline.filter import decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
-from pcc_ros.runtime.diagnostics import Health, node_status, node_values, report_other_classes, silent_topic_hint
+from pcc_ros.runtime.diagnostics import (
+    Health,
+    node_status,
+    node_values,
+    report_other_classes,
+    silent_topic_hint,
+    unpaired_message,
+)
 from pcc_ros.runtime.heap import freeze_long_lived
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
-from pcc_ros.runtime.tfwait import POLL_S, TransformWait
+from pcc_ros.runtime.tfwait import POLL_S, FrameTransforms, TransformWait, frame_transforms
 
 MODES = ("completion", "filter")
 
@@ -65,14 +71,6 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 #: A clock that moves back by more than this is a jump (a looped bag, a reset simulator).
 JUMP_BACK_NS = 1_000_000
 
-
-@dataclass(frozen=True)
-class FrameTransforms:
-    """The transforms one frame needs, looked up before it is processed (``None``: not needed)."""
-
-    detections: Any = None  # scan frame <- detections' frame, at the detections' stamp
-    output: Any = None  # output_frame <- scan frame, at the scan's stamp
-    output_frame: str = ""
 
 #: The logger of the node whose work runs here now (:func:`working_for`; a context variable, so per
 #: thread): a line the package's modules log meanwhile (the pipeline, the message decoders, a backend
@@ -192,6 +190,7 @@ class NodeCore:
         self.tf_wait = TransformWait(float(values["tf_timeout"]))
         self.time_jumps = 0
         self._clock_ns: int | None = None  # the node clock as last seen (a jump back resets the node)
+        self._clock_lock = threading.Lock()
         self.last_missing_transform = ""  # the last transform a dropped frame lacked (diagnostics' reason)
         self._tf_gap = False  # frames were dropped since the last frame whose transforms resolved
         self.tf_recoveries = 0
@@ -335,10 +334,11 @@ class NodeCore:
     def _watch_clock(self) -> int:
         """The node clock now; a jump back (under ``use_sim_time``: a looped bag, a reset simulator)
         resets the node to serve the new timeline."""
-        now = self.runtime.now_ns()
-        last, self._clock_ns = self._clock_ns, now
-        if last is not None and now < last - JUMP_BACK_NS:
-            self._jumped_back(last, now)
+        with self._clock_lock:  # callbacks and the timer may run on different threads: read in order
+            now = self.runtime.now_ns()
+            last, self._clock_ns = self._clock_ns, now
+            if last is not None and now < last - JUMP_BACK_NS:
+                self._jumped_back(last, now)
         return now
 
     def _jumped_back(self, last_ns: int, now_ns: int) -> None:
@@ -414,24 +414,9 @@ class NodeCore:
         self._drops_seen = total
         if not due:
             return
-        what, other = ("scan", "detections") if stats.last_drop_left else ("detections", "scan")
-        gap = stats.last_drop_gap_ns
-        if gap < 0:
-            name = "detections" if stats.last_drop_left else "points"
-            qos = f"qos.{name}.reliability"
-            near = f"no {other} has arrived at all: " + silent_topic_hint(
-                self.runtime, self.resolved[name], qos, self.parameters[qos])
-        elif gap > self.pairer.slop_ns:
-            near = f"the nearest {other} stamp seen lately was {gap / 1e6:.0f} ms away"
-        else:  # its partner arrived, but paired with a closer message or after a newer pair
-            near = f"a {other} stamp {gap / 1e6:.0f} ms away had paired with another message or came out of order"
-        self.log.warning(
-            f"{total} messages dropped unpaired so far ({stats.dropped_clouds} scans, {stats.dropped_detections} "
-            f"detection arrays; dropped_clouds / dropped_detections on /diagnostics): the last, {what} stamped "
-            f"{stats.last_drop_stamp_ns / 1e9:.3f}, found no {other} within sync_slop "
-            f"{self.pairer.slop_ns / 1e9:g} s; {near}. A detector must copy the scan's header stamp (if it "
-            "restamps, raise sync_slop); scans lost on the way: docs/nodes.md 'Large clouds'."
-        )
+        name = "detections" if stats.last_drop_left else "points"  # the input that sent nothing to pair with
+        self.log.warning(unpaired_message(stats, self.pairer.slop_ns, lambda: silent_topic_hint(
+            self.runtime, self.resolved[name], f"qos.{name}.reliability", self.parameters[f"qos.{name}.reliability"])))
 
     def _wanted_outputs(self) -> list[str]:
         """The outputs to build this frame: every data output, and a marker array only while
@@ -461,7 +446,7 @@ class NodeCore:
         """The transforms ``pair`` needs, or ``(None, what is missing)``; a message too malformed to
         say goes on to :meth:`process`, whose error names it."""
         try:
-            return self.frame_transforms(*pair, self.output_frame)
+            return frame_transforms(self.runtime, *pair, self.output_frame)
         except Exception:
             return FrameTransforms(output_frame=self.output_frame), ""
 
@@ -490,7 +475,7 @@ class NodeCore:
         tic = time.perf_counter()
         pipeline = self.pipeline  # one consistent set per frame
         if transforms is None:
-            transforms, missing = self.frame_transforms(cloud, detections, self.output_frame)
+            transforms, missing = frame_transforms(self.runtime, cloud, detections, self.output_frame)
             if transforms is None:
                 self._dropped_without_transform(missing)
                 return None
@@ -525,24 +510,6 @@ class NodeCore:
         if self.on_result is not None:
             self.on_result(result, cloud, detections)
         return outputs
-
-    def frame_transforms(self, cloud, detections, output_frame: str) -> tuple[FrameTransforms | None, str]:
-        """The transforms a pair needs (detections in another frame than the scan: moved once, after
-        decoding; an ``output_frame``), or ``(None, "'a' -> 'b'")`` naming the first one unknown now."""
-        # tf2 in ROS 2 refuses frame ids with a leading '/' (ROS 1 drivers, converted bags): stripped
-        source, scan = str(detections.header.frame_id), str(cloud.header.frame_id)
-        to_scan = to_output = None
-        if source and not same_frame(source, scan):
-            to_scan = self.runtime.lookup_transform(frame_name(scan), frame_name(source),
-                                                    stamp_to_ns(detections.header.stamp))
-            if to_scan is None:
-                return None, f"'{source}' -> '{scan}'"
-        if output_frame and not same_frame(output_frame, scan):
-            to_output = self.runtime.lookup_transform(frame_name(output_frame), frame_name(scan),
-                                                      stamp_to_ns(cloud.header.stamp))
-            if to_output is None:
-                return None, f"'{scan}' -> '{output_frame}'"
-        return FrameTransforms(to_scan, to_output, output_frame), ""
 
     def _dropped_without_transform(self, missing: str) -> None:
         """Count a frame dropped for want of a transform; log the 1st, 10th, 100th ... and each new pair of frames."""

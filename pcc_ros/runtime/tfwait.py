@@ -19,10 +19,41 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from pcc_ros.msg.stamps import stamp_to_ns
+from pcc_ros.msg.transforms import frame_name, same_frame
+
 #: Frames held at most (at 20 Hz, 0.4 s of scans; each holds its cloud, ~2-4 MB).
 CAPACITY = 8
 #: The worker's poll period while frames wait (a lookup in a dict per held frame).
 POLL_S = 0.01
+
+
+@dataclass(frozen=True)
+class FrameTransforms:
+    """The transforms one frame needs, looked up before it is processed (``None``: not needed)."""
+
+    detections: Any = None  # scan frame <- detections' frame, at the detections' stamp
+    output: Any = None  # output_frame <- scan frame, at the scan's stamp
+    output_frame: str = ""
+
+
+def frame_transforms(runtime: Any, cloud, detections, output_frame: str) -> tuple[FrameTransforms | None, str]:
+    """The transforms a pair needs from ``runtime`` (detections in another frame than the scan: moved
+    once, after decoding; an ``output_frame``), or ``(None, "'a' -> 'b'")`` naming the first one
+    unknown now."""
+    # tf2 in ROS 2 refuses frame ids with a leading '/' (ROS 1 drivers, converted bags): stripped
+    source, scan = str(detections.header.frame_id), str(cloud.header.frame_id)
+    to_scan = to_output = None
+    if source and not same_frame(source, scan):
+        to_scan = runtime.lookup_transform(frame_name(scan), frame_name(source), stamp_to_ns(detections.header.stamp))
+        if to_scan is None:
+            return None, f"'{source}' -> '{scan}'"
+    if output_frame and not same_frame(output_frame, scan):
+        to_output = runtime.lookup_transform(frame_name(output_frame), frame_name(scan),
+                                             stamp_to_ns(cloud.header.stamp))
+        if to_output is None:
+            return None, f"'{scan}' -> '{output_frame}'"
+    return FrameTransforms(to_scan, to_output, output_frame), ""
 
 
 @dataclass
