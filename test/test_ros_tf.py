@@ -250,3 +250,47 @@ def test_a_looped_bag_under_sim_time_resets_and_serves_the_new_timeline():
 def _status(core) -> tuple[int, str]:
     status = core.diagnostics_message().status[0]
     return ord(status.level) if isinstance(status.level, bytes) else int(status.level), status.message
+
+
+def test_a_bag_looped_by_pcc_play_with_clock_is_served_loop_after_loop(tmp_path):
+    """``pcc play BAG --loop --clock`` (an independent process) replays a bag with ``/tf``,
+    ``/tf_static`` and detections in ``odom`` to a node under ``use_sim_time``: each new loop moves
+    ``/clock`` back; the node resets and answers every loop, every car in its box."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from test_replay_tf import STAMPS, messages
+    from test_replay_tf import scene as replay_scene
+
+    from pcc_ros.data.bag_writer import atomic_bag
+    from pcc_ros.geometry.boxes import points_in_boxes
+    from pcc_ros.msg.pointcloud2 import read_xyz
+
+    bag = tmp_path / "loop"
+    with atomic_bag(bag) as writer:
+        for time_ns, topic, msgtype, msg in messages():
+            writer.write(topic, msgtype, msg, time_ns)
+    with live({"tf_timeout": 1.0, "use_sim_time": True}) as g:
+        play = subprocess.Popen(
+            [sys.executable, "-m", "pcc_ros.cli", "play", str(bag), "--loop", "--clock", "--wait-subscribers", "1",
+             "--wait-topics", "/points", "/detections", "/tf", "--delay", "1"],
+            env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}, stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        try:
+            assert g.wait_for(lambda: g.core.time_jumps >= 2 and len(g.completed) >= 3 * len(STAMPS), 60), (
+                g.core.diagnostics_values())
+        finally:
+            play.send_signal(signal.SIGINT)
+            out = play.communicate(timeout=30)[0]
+        values = g.core.diagnostics_values()
+    assert play.returncode == 0, out
+    assert int(values["frames_without_transform"]) == 0, values
+    boxes_of = {stamp: replay_scene(k)[1] for k, stamp in enumerate(STAMPS)}
+    for msg in g.completed:
+        cloud = read_xyz(msg, ["instance"])
+        boxes = boxes_of[_stamp(msg)]
+        for i in np.unique(cloud[:, 3].astype(int)):
+            pts = cloud[cloud[:, 3] == i, :3]
+            assert len(points_in_boxes(pts, boxes[np.array([i])], margin=0.2)[0]) >= 0.95 * len(pts)
