@@ -5,8 +5,9 @@ for a topic nobody publishes on, sends whoever reads it the wrong way. So:
 
 * :class:`Health` raises the level to WARN while a counter that means lost work moved within
   the last :data:`WINDOW_NS` of node time (frames dropped for a missing transform, failed
-  frames, invalid or capped boxes, detections left unjudged by an empty scan, a clock that
-  jumped back), with the reason and the count in the status message; back to OK once it stops.
+  frames, invalid or capped boxes, detections the filter could not judge, a scan without a
+  point, a clock that jumped back), with the reason and the count in the status message; back
+  to OK once it stops.
   Skips that are the configuration working as meant (other classes, cars with too few points)
   are reported as values only.
 * :func:`silent_topic_hint` names the resolved topic (after remapping), says when nobody
@@ -37,9 +38,11 @@ WARN_REASONS = {
     "frames_without_transform": "{n} frame(s) dropped: no transform {missing} within tf_timeout",
     "failed_frames_other": "{n} frame(s) failed ({first})",
     "skipped_invalid_detection": "{n} invalid detection(s) skipped",
-    "skipped_over_max_instances": "{n} detection(s) over max_instances {passed}",
-    "skipped_over_max_crop_work": "{n} detection(s) over max_crop_work {passed}",
-    "skipped_empty_scan": "{n} detection(s) {passed}: scan without a finite point",
+    "skipped_over_max_instances": "{n} detection(s) over max_instances not completed",
+    "skipped_over_max_crop_work": "{n} detection(s) over max_crop_work not completed",
+    "skipped_unjudged_over_evidence_work": "{n} detection(s) over the evidence work bound unjudged",
+    "detections_unjudged": "{n} detection(s) could not be judged",
+    "skipped_empty_scan": "{n} detection(s) of a scan without a finite point",
     "time_jumps_back": "clock jumped back {n} time(s): pairing, queues and tf reset",
 }
 
@@ -132,7 +135,7 @@ def node_values(core: Any) -> dict[str, str]:
         "latency_p95_ms": f"{np.percentile(latency, 95):.1f}",
     }
     if core.mode == "filter":
-        for k in ("kept", "rejected", "skipped"):
+        for k in core.decisions:
             values[f"detections_{k}"] = core.decisions[k]
             values[f"last_frame_{k}"] = core.last_decisions[k]
     return {k: str(v) for k, v in values.items()}
@@ -146,12 +149,11 @@ def node_status(core: Any):
     if core.scans_stalled and now - (core.last_detections_ns or now) > core.scan_timeout_ns:
         core.scans_stalled = False
     values = node_values(core)
-    counters = {k: int(v) for k, v in values.items()
-                if k.startswith("skipped_") or k in ("frames_without_transform", "time_jumps_back")}
+    counters = {k: int(v) for k, v in values.items() if k.startswith("skipped_") or k in (
+        "frames_without_transform", "time_jumps_back", "detections_unjudged")}
     counters["failed_frames_other"] = core.failures - core.no_transform
     grown = core.health.recent(now, counters)
-    context = {"missing": core.last_missing_transform or "?", "first": core.first_failure or "?",
-               "passed": "not completed" if core.mode == "completion" else "passed on unjudged"}
+    context = {"missing": core.last_missing_transform or "?", "first": core.first_failure or "?"}
     stalled = (f"detections arrive but no scan on '{core.resolved['points']}' for more than "
                f"{core.scan_timeout_ns / 1e9:g} s") if core.scans_stalled else ""
     level, message = status_level_and_message(core.frames, grown, context, stalled)

@@ -38,7 +38,7 @@ from pcc_ros.pipeline.config import (
     unknown_parameters,
 )
 from pcc_ros.pipeline.core import DETECTION_OUTPUTS, MARKER_OUTPUTS, FrameResult, Pipeline, build_outputs
-from pcc_ros.pipeline.filter import decision_counts
+from pcc_ros.pipeline.filter import DECISIONS, decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.diagnostics import (
     Health,
@@ -210,7 +210,7 @@ class NodeCore:
         if self.scan_timeout_ns <= 0:
             raise ConfigError(f"scan_timeout must be > 0, not {values['scan_timeout']}")
         self._no_transform_logged: set[str] = set()
-        self.decisions = {"kept": 0, "rejected": 0, "skipped": 0}  # filter mode: totals
+        self.decisions = dict.fromkeys(DECISIONS, 0)  # filter mode: totals
         #: detections skipped per reason ("other class", "invalid detection", ...), all frames
         self.skipped_totals: dict[str, int] = {}
         self._other_classes: set[str] = set()  # class ids outside `classes` already reported
@@ -496,7 +496,7 @@ class NodeCore:
             self.publishers[name].publish(msg)
         self.frames += 1
         if self.mode == "filter":
-            self.last_decisions = decision_counts(result.status)
+            self.last_decisions = decision_counts(result.status, result.skipped.get("invalid detection", 0))
             for k, v in self.last_decisions.items():
                 self.decisions[k] += v
         self.latency_ms.append((time.perf_counter() - tic) * 1e3)
@@ -533,7 +533,8 @@ class NodeCore:
         matrix = tf.matrix()
         points = (result.completed_points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]).astype(np.float32)
         moved = replace(
-            result, frame_id=frame, detections=transform_boxes(result.detections, matrix), completed_points=points
+            result, frame_id=frame, detections=transform_boxes(result.detections, matrix), completed_points=points,
+            unjudged_originals=transform_detections(result.unjudged_originals, tf, frame),
         )
         return moved, None if originals is None else transform_detections(originals, tf, frame)
 
