@@ -143,6 +143,7 @@ NODE_DEFAULTS: dict[str, Any] = {
     "qos.outputs.reliability": "reliable",
     "qos.outputs.depth": 10,
     "scan_timeout": 1.0,
+    "tf_timeout": 0.5,
 }
 #: Parameters every ROS node has, or rclpy adds itself; never reported as unknown.
 ROS_OWN_PARAMETERS = ("use_sim_time", "start_type_description_service")
@@ -348,6 +349,8 @@ DESCRIPTIONS = {
     "qos.outputs.reliability": "every output publisher: reliable or best_effort",
     "qos.outputs.depth": "every output publisher: keep-last history depth",
     "scan_timeout": "seconds without a scan while detections arrive before /diagnostics warns (scans lost?)",
+    "tf_timeout": "seconds a frame waits for a transform it needs (tf lagging); then it is dropped and counted "
+                  "(0: dropped at once)",
 }
 
 #: Inclusive numeric ranges (the rclpy host declares them as Integer/FloatingPointRange).
@@ -372,6 +375,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "sync_slop": (0.0, 10.0),
     "queue_size": (1, 1000),
     "scan_timeout": (0.01, 3600.0),
+    "tf_timeout": (0.0, 10.0),
     "qos.points.depth": (1, 1000),
     "qos.detections.depth": (1, 1000),
     "qos.outputs.depth": (1, 1000),

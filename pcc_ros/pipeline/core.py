@@ -169,6 +169,7 @@ class Pipeline:
         #: frames so far whose scan had no finite point / scores outside [0, 1] (each logged at 1, 101, ...)
         self.empty_scans = 0
         self.scores_outside_unit = 0
+        self.crop_work_frames = 0  # frames whose boxes exceeded max_crop_work
         if completer is None:
             completer = load_completer(
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
@@ -228,9 +229,11 @@ class Pipeline:
         box_work[candidates] = work
         if fits is not None:
             _count(skipped, "over max_crop_work", int((~fits).sum()))
-            log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
-                        "lowest-score boxes", stamp_ns, int(work.sum()), len(candidates), cfg.max_crop_work,
-                        int((~fits).sum()))
+            self.crop_work_frames += 1  # a dense sensor on a busy street can meet it every frame: not every line
+            if worth_logging(self.crop_work_frames, every=100):
+                log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
+                            "lowest-score boxes (%d such frames so far)", stamp_ns, int(work.sum()), len(candidates),
+                            cfg.max_crop_work, int((~fits).sum()), self.crop_work_frames)
             candidates = candidates[fits]
         counts = np.array([len(c) for c in canonical], dtype=np.int64)
         num_points[candidates] = counts
