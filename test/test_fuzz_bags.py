@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fuzz_support import assert_named_failure, assert_no_internal_error, flip, run_cli, small_frames
+from conftest import assert_named_failure, assert_no_internal_error, run_cli
+from fuzz_support import flip, small_frames
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from rosbags.rosbag2 import Writer
