@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import assert_named_failure, run_cli
 
 from pcc_ros.data.gt_pools import (
     PoolConfig,
@@ -428,7 +429,7 @@ def test_gt_free_metrics_on_known_clouds():
 
 
 @pytest.mark.slow
-def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys):
+def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys, caplog):
     import json
 
     from pcc_ros.cli.main import main
@@ -450,7 +451,8 @@ def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["step"] == 5
     loaded = load_completer("trapcc", out / "trapcc.safetensors", device="cpu")
     assert loaded.complete([np.random.default_rng(0).normal(size=(40, 3)) * 0.2])[0].shape == (256, 3)
-    assert main([*argv, "--iterations", "2", "--no-inpainting"]) == 1  # PointPnCNet's ablation: refused
+    assert_named_failure(*run_cli([*argv, "--iterations", "2", "--no-inpainting"], caplog),
+                         "--no-inpainting is PointPnCNet's ablation", "--option scene_graph=none")
     # the generic --real-data / --real-share flags reach TraPCC's own mixing (and its pools)
     mixed = tmp_path / "mixed"
     argv_mixed = [a if a != str(out) else str(mixed) for a in argv]
