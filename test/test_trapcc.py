@@ -478,11 +478,21 @@ def test_fast_evenness_matches_the_instances_definition():
 
 
 def test_half_precision_with_neighbours():
+    """half_precision on the CPU runs the network in bfloat16 (its weights are bfloat16) with the
+    scene-graph neighbours: the same weights give float32 outputs that differ from the full
+    precision run's by bfloat16 rounding only."""
     torch.manual_seed(0)
     net = create("trapcc", device="cpu", half_precision=True, **TINY)
+    torch.manual_seed(0)
+    full = create("trapcc", device="cpu", **TINY)
+    assert {p.dtype for p in net.model.parameters()} == {torch.bfloat16}
+    assert {p.dtype for p in full.model.parameters()} == {torch.float32}
     clouds, contexts = _frame_contexts()
-    out = net.complete(clouds, contexts)
+    out, ref = net.complete(clouds, contexts), full.complete(clouds, contexts)
     assert all(o.dtype == np.float32 and np.isfinite(o).all() for o in out)
+    diff = np.concatenate([np.abs(o - r).ravel() for o, r in zip(out, ref)])
+    scale = np.concatenate([np.abs(r).ravel() for r in ref]).mean()
+    assert diff.max() > 0 and np.median(diff) < 0.05 * scale, (np.median(diff), scale)  # rounded, not another net
 
 
 def test_shipped_weights_record_their_training_data():
