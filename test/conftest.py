@@ -137,6 +137,41 @@ def assert_no_internal_error(rc: int, text: str) -> None:
         assert "ERROR pcc: " in text, text
 
 
+#: The generated SynthCars data every clone has: 2 sequences (train 0000, test 0001) x 4 frames,
+#: 16-beam sensor (``pcc synth --low-res``), a few seconds to make.
+SYNTH_ARGS = ["--sequences", "2", "--frames", "4", "--low-res", "--seed", "0"]
+SYNTH_SEQUENCE = "0001"
+
+
+@pytest.fixture(scope="session")
+def synthcars(tmp_path_factory) -> Path:
+    """A SynthCars dataset made by ``pcc synth`` (:data:`SYNTH_ARGS`): scans, labels, detections
+    and complete shapes generated at test time (open3d's ray caster), so the tests that need real
+    frames' shape of data (nodes, tools, commands) run in every clone."""
+    root = tmp_path_factory.mktemp("synthcars") / "synthcars"
+    assert pcc_main(["synth", "--out", str(root), *SYNTH_ARGS]) == 0
+    return root
+
+
+@pytest.fixture(scope="session")
+def synth_frames(synthcars) -> list[Sample]:
+    """The frames of :data:`SYNTH_SEQUENCE` with their simulated detections (x y z intensity)."""
+    from pcc_ros.data.kitti import KittiTracking
+
+    frames = list(KittiTracking(synthcars / "training").frames(
+        SYNTH_SEQUENCE, detections_dir=synthcars / "detections" / "synthetic"))
+    assert len(frames) == 4 and all(len(f.points) > 1000 and len(f.detections) for f in frames)
+    return frames
+
+
+@pytest.fixture(scope="session")
+def synth_bag(synthcars, tmp_path_factory) -> Path:
+    """:data:`SYNTH_SEQUENCE` as a rosbag2 (``pcc convert synth``): /points, /detections, ground truth."""
+    bag = tmp_path_factory.mktemp("synth_bag") / "synth"
+    assert pcc_main(["convert", "synth", str(synthcars), "--sequence", SYNTH_SEQUENCE, "--out", str(bag)]) == 0
+    return bag
+
+
 @pytest.fixture(scope="session")
 def tiny_cache(tmp_path_factory) -> Path:
     """A SynthCars-like instance cache: 2 sequences (train ``0000`` / test ``0001``) x 3 frames

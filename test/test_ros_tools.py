@@ -1,10 +1,11 @@
 """``pcc play`` -> the nodes -> this test's subscriber, all real rclpy processes; ``pcc echo``.
 
-A 3-frame real-KITTI bag is played by ``pcc play`` (rclpy, the recorded CDR bytes as they
-are); ``completion_node`` and ``detection_filter_node`` run as processes with the ``mirror``
-backend; what arrives must be byte-identical to what ``pcc replay`` records for the same
-bag (offline == online). A malformed PointCloud2 on the wire is logged and skipped and the
-node keeps serving. Every process is stopped (SIGINT, then SIGKILL) in a ``finally``.
+A 4-frame SynthCars bag generated at test time (conftest's ``synth_bag``: every clone has it)
+and, where ../shared/data is laid, a 3-frame real-KITTI bag are played by ``pcc play``
+(rclpy, the recorded CDR bytes as they are); ``completion_node`` and ``detection_filter_node``
+run as processes with the ``mirror`` backend; what arrives must be byte-identical to what
+``pcc replay`` records for the same bag (offline == online). A malformed PointCloud2 on the
+wire is logged and skipped and the node keeps serving. Every process is stopped (SIGINT, then SIGKILL) in a ``finally``.
 """
 
 from __future__ import annotations
@@ -58,8 +59,27 @@ def _stamp_of(raw: bytes, msgtype: str) -> int:
 
 
 @pytest.fixture(scope="module")
-def graph(tmp_path_factory, shared_data):
-    """The bag, replay references, the two node processes and an rclpy probe (raw subscriptions)."""
+def kitti_bag3(tmp_path_factory, shared_data) -> Path:
+    """The first 3 frames of KITTI tracking 0000 with their PointRCNN detections, as a bag."""
+    bag = tmp_path_factory.mktemp("ros_tools_kitti") / "kitti3"
+    kitti = shared_data / "kitti_tracking"
+    assert pcc(["convert", "kitti-tracking", str(kitti), "--sequence", "0000", "--first", "0", "--frames", "3",
+                "--detections", str(kitti / "detections" / "pointrcnn"), "--out", str(bag)]) == 0
+    return bag
+
+
+def _replay_references(bag: Path, tmp: Path) -> dict[str, dict[int, object]]:
+    """What ``pcc replay`` records for ``bag`` with the nodes' backend: the online outputs' reference."""
+    assert pcc(["replay", str(bag), "--out", str(tmp / "ref_c"), "--backend", "mirror", "--no-copy-inputs"]) == 0
+    assert pcc(["replay", str(bag), "--out", str(tmp / "ref_f"), "--backend", "mirror", "--filter",
+                "--no-copy-inputs"]) == 0
+    return {"completed": _read_topic(tmp / "ref_c", "/completed"),
+            "detections_filtered": _read_topic(tmp / "ref_f", "/detections_filtered")}
+
+
+@pytest.fixture(scope="module")
+def graph(tmp_path_factory, synth_bag):
+    """The two node processes and an rclpy probe (raw subscriptions); the generated bag."""
     rclpy = require_rclpy()
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -68,15 +88,6 @@ def graph(tmp_path_factory, shared_data):
     from pcc_ros.nodes.ros_node import rclpy_classes
 
     tmp = tmp_path_factory.mktemp("ros_tools")
-    bag = tmp / "kitti3"
-    kitti = shared_data / "kitti_tracking"
-    assert pcc(["convert", "kitti-tracking", str(kitti), "--sequence", "0000", "--first", "0", "--frames", "3",
-                "--detections", str(kitti / "detections" / "pointrcnn"), "--out", str(bag)]) == 0
-    assert pcc(["replay", str(bag), "--out", str(tmp / "ref_c"), "--backend", "mirror", "--no-copy-inputs"]) == 0
-    assert pcc(["replay", str(bag), "--out", str(tmp / "ref_f"), "--backend", "mirror", "--filter",
-                "--no-copy-inputs"]) == 0
-    reference = {"completed": _read_topic(tmp / "ref_c", "/completed"),
-                 "detections_filtered": _read_topic(tmp / "ref_f", "/detections_filtered")}
 
     procs: dict[str, subprocess.Popen] = {}
     logs = {}
@@ -110,8 +121,7 @@ def graph(tmp_path_factory, shared_data):
         ready = _wait(lambda: all(probe.count_publishers(f"/{n}") == 1 for n in OUTPUTS)
                       and probe.count_subscribers("/points") == 2, 180)
         assert ready, {n: p.read_text()[-2000:] for n, p in logs.items()}
-        yield {"bag": bag, "probe": probe, "got": got, "lock": lock, "reference": reference, "logs": logs,
-               "procs": procs}
+        yield {"bag": synth_bag, "probe": probe, "got": got, "lock": lock, "logs": logs, "procs": procs}
     finally:
         for proc in procs.values():
             if proc.poll() is None:
@@ -129,20 +139,25 @@ def graph(tmp_path_factory, shared_data):
         assert proc.returncode == 0, (name, logs[name].read_text()[-2000:])
 
 
-def test_play_through_the_nodes_matches_replay(graph):
-    got, reference = graph["got"], graph["reference"]
+@pytest.mark.parametrize("source", ["synth", "kitti"])
+def test_play_through_the_nodes_matches_replay(graph, source, request, tmp_path):
+    """Generated frames in every clone; the real KITTI frames where ../shared/data is laid."""
+    bag = graph["bag"] if source == "synth" else request.getfixturevalue("kitti_bag3")
+    n = len(_read_topic(bag, "/points"))
+    reference = _replay_references(bag, tmp_path)
+    got = graph["got"]
     with graph["lock"]:
         for values in got.values():
             values.clear()
     play = subprocess.run(
-        [*PCC, "play", str(graph["bag"]), "--rate", "0.5", "--wait-subscribers", "2",
+        [*PCC, "play", str(bag), "--rate", "0.5", "--wait-subscribers", "2",
          "--wait-topics", "/points", "/detections", "--wait-timeout", "60", "--delay", "1.0"],
         capture_output=True, text=True, timeout=180,
     )
     assert play.returncode == 0, play.stderr
-    assert "/points: 3 messages" in play.stdout and "/detections: 3 messages" in play.stdout
-    assert {k: len(v) for k, v in reference.items()} == {"completed": 3, "detections_filtered": 3}
-    arrived = _wait(lambda: all(len(got[k]) >= 3 for k in OUTPUTS), 60)
+    assert f"/points: {n} messages" in play.stdout and f"/detections: {n} messages" in play.stdout
+    assert {k: len(v) for k, v in reference.items()} == {"completed": n, "detections_filtered": n}
+    arrived = _wait(lambda: all(len(got[k]) >= n for k in OUTPUTS), 60)
     assert arrived, {k: len(v) for k, v in got.items()}
     store = get_typestore()
     for name, msgtype in OUTPUTS.items():
@@ -179,7 +194,7 @@ def test_malformed_cloud_on_the_wire_is_logged_skipped_and_the_node_keeps_servin
         cloud, det = copy.deepcopy(cloud0), copy.deepcopy(det0)
         cloud.header.stamp = det.header.stamp = ns_to_stamp(stamp_ns)
         if truncate:
-            cloud.data = np.asarray(cloud.data)[:1000]  # width / row_step claim 123k points, data holds 62
+            cloud.data = np.asarray(cloud.data)[:1000]  # width / row_step claim thousands of points, data 62
         pub_cloud.publish(bytes(store.serialize_cdr(cloud, "sensor_msgs/msg/PointCloud2")))
         pub_dets.publish(bytes(store.serialize_cdr(det, "vision_msgs/msg/Detection3DArray")))
 
@@ -259,5 +274,6 @@ def test_play_names_a_damaged_bag_and_skips_undecodable_messages(graph, tmp_path
     writer.close()
     run = subprocess.run([*PCC, "play", str(bad), "--rate", "20"], capture_output=True, text=True, timeout=120, env=env)
     assert run.returncode == 0, run.stderr
-    assert "/points: 2 messages (1 undecodable, not played)" in run.stdout, run.stdout
+    n = len(_read_topic(graph["bag"], "/points"))
+    assert f"/points: {n - 1} messages (1 undecodable, not played)" in run.stdout, run.stdout
     assert "undecodable" in run.stderr and "Traceback" not in run.stderr
