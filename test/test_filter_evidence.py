@@ -127,7 +127,12 @@ def test_shipped_filter_rejects_the_empty_box_and_keeps_the_car():
         assert (false_probability(terms, config)[0] > config.reject_threshold) == false
 
 
-def test_defaults_are_the_shipped_calibration():
+def test_filter_config_defaults_equal_the_shipped_yaml():
+    """Two copies that must agree: FilterConfig's defaults (what ``pcc replay`` and the library
+    use) and config/detection_filter.yaml (what the node loads). This says nothing of the weights'
+    worth: that is measured against independent baselines on labelled real frames
+    (test_filter_calibration.py: the shipped threshold against points-in-box and the detector
+    score) and, for a fit, by calibrate-filter's leave-frames-out folds."""
     from pathlib import Path
 
     from pcc_ros.pipeline.config import read_parameters

@@ -43,6 +43,14 @@ def test_train_validate_checkpoint_and_resume(tiny_cache, tmp_path, capsys, capl
     assert config["training"]["selected_by"] == "val_cd_l1"
     assert config["training"]["recipe"]["drop_prob"] == 0.2
     assert config["metrics"]["val_cd_l1"] == best["val_cd_l1"]
+    # Not only what the run wrote about itself: the weights in the file, scored again on the same
+    # validation instances, give the recorded figure (the file holds the weights that scored it).
+    from pcc_ros.data.instances import InstanceCache
+    from pcc_ros.train import validate, validation_instances
+
+    instances, _ = validation_instances(InstanceCache.load(tiny_cache), "test", 6, 0)
+    rescored = validate(load_completer("pointpncnet", out / "pointpncnet.safetensors", device="cpu"), instances, 0)
+    assert rescored["val_cd_l1"] == pytest.approx(best["val_cd_l1"], rel=1e-4)
     assert config["training"]["machine"]["cpu_count"] >= 1 and config["training"]["real_data"]["share"] == 0.0
     last = load_config(out / "pointpncnet_last.json")
     assert last["training"]["steps"] == 4 and last["metrics"]["val_cd_l1"] == vals[-1]["val_cd_l1"]
