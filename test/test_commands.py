@@ -29,6 +29,7 @@ ELSEWHERE = {
     "play": "test_ros_tools.py::test_play_through_the_nodes_matches_replay",
     "echo": "test_ros_tools.py::test_echo_finds_the_type_on_the_graph_and_prints_filtered_detections",
     "demo": "test_demo.py::test_demo_runs_end_to_end",
+    "check-data": "test_check_data.py::test_cli_reports_and_exit_status",
 }
 #: command -> the test here that runs it to success.
 HERE = {
