@@ -211,9 +211,8 @@ def test_synth_layout_uses_its_detections(shared_data, tmp_path):
 
 @pytest.mark.slow
 def test_synthcars_output_converts(tmp_path):
-    synthetic = pytest.importorskip("pcc_ros.data.synthetic")
-    if not hasattr(synthetic, "generate"):
-        pytest.skip("SynthCars generator not available yet")
+    from pcc_ros.data import synthetic
+
     synthetic.generate(tmp_path / "synth", sequences=1, frames=2, seed=0)
     seq = KittiTracking(tmp_path / "synth").sequences()[0]
     assert main(["convert", "synth", str(tmp_path / "synth"), "--sequence", seq, "--out", str(tmp_path / "bag")]) == 0
