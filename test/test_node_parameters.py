@@ -390,6 +390,19 @@ def test_qos_parameters_reach_the_real_rclpy_graph():
                 rclpy.spin_once(probe, timeout_sec=0.1)
             assert seen(topic, kind) == expected, (topic, seen(topic, kind))
             assert own[topic].depth == values[f"qos.{key}.depth"] and own[topic].reliability == expected[0], topic
+        # The DDS rule the in-process graph copies, here for real: a best-effort scan publisher (a
+        # LiDAR driver's QoS) never matches the reliable scan subscription; a reliable one does.
+        from rclpy.qos import QoSProfile, qos_profile_sensor_data
+        from sensor_msgs.msg import PointCloud2
+
+        best_effort = probe.create_publisher(PointCloud2, "/points", qos_profile_sensor_data)
+        reliable = probe.create_publisher(PointCloud2, "/points", QoSProfile(depth=5,
+                                                                             reliability=ReliabilityPolicy.RELIABLE))
+        for _ in range(50):
+            if reliable.get_subscription_count() == 1:
+                break
+            rclpy.spin_once(probe, timeout_sec=0.1)
+        assert (reliable.get_subscription_count(), best_effort.get_subscription_count()) == (1, 0)
     finally:
         for n in (probe, node):
             if n is not None:
