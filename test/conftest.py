@@ -1,6 +1,8 @@
 """Shared fixtures and checks: the real sample data beside the repository (``shared_data``: a
-reported skip in a clone without it, a failure in CI); an isolated ROS 2 graph; one tiny instance
-cache (``tiny_cache``) for the eval and train command tests; the one check of a named failure
+reported skip in a clone without it, a failure in CI); SynthCars data generated at test time
+(``synthcars``, ``synth_frames``, ``synth_bag``: what the node, tool and command tests run on in
+every clone); an isolated ROS 2 graph; one tiny instance cache (``tiny_cache``) for the eval and
+train command tests; the one check of a named failure
 (:func:`assert_named_failure`); the hypothesis profile (``ci``: one fixed seed, its database of
 found examples kept in ``test/data/hypothesis``)."""
 
@@ -73,8 +75,8 @@ def _seed_text(config) -> str:
 
 
 def pytest_report_header(config) -> list[str]:
-    data = "present" if SHARED_DATA.is_dir() else "ABSENT: the real-data tests skip" + (" (fail: CI=true)" if in_ci()
-                                                                                         else "")
+    absent = "ABSENT: the real-data tests " + ("fail (CI=true)" if in_ci() else "skip (listed in the summary)")
+    data = "present" if SHARED_DATA.is_dir() else absent
     return [f"hypothesis: {_seed_text(config)}", f"../shared/data: {data}"]
 
 
