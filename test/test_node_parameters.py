@@ -178,7 +178,7 @@ CASES: dict[str, Case] = {
     "qos.detections.depth": Case("completion", 1),
     "qos.outputs.reliability": Case("completion", "best_effort", check=_nothing_received),  # the probe: reliable
     "qos.outputs.depth": Case("completion", 1),
-    "scan_timeout": Case("completion", 0.05),  # special: detections without scans counted
+    "scan_timeout": Case("completion", 0.25),  # special: detections without scans counted
 }
 
 
@@ -305,7 +305,8 @@ def test_each_parameter_changes_the_node(name, tiny_checkpoints, caplog):
                 core.graph.advance_to(STAMP + k * 100_000_000)
                 core.pub_dets.publish(_messages(STAMP + k * 100_000_000)[1])
             counts.append(core.core.detections_without_scans)
-        assert counts == [0, 5], counts  # 100 to 500 ms after the last scan: past 0.05 s, not past 1 s
+        assert counts == [0, 3], counts  # 300 to 500 ms after the last scan: past 0.25 s, not past 1 s
+        # (a timeout below the detections' own period could never tell a stall from an idle publisher)
         return
     if name == "queue_size":
         answered = []
