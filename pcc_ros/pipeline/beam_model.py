@@ -60,7 +60,7 @@ BAND_DEG = 4.0
 OFFSET_MAX = 0.3
 OFFSET_STEP = 0.02
 #: Returns of one band the offset search looks at, at most (an even subsample).
-OFFSET_SAMPLE = 4000
+OFFSET_SAMPLE = 2000
 #: A band whose returns light at least this share of the columns, and holding more than
 #: SPLIT_FACTOR times as many peaks as returns per lit column, has its beams counted from the
 #: returns instead (:func:`_split_checked`).
@@ -101,37 +101,38 @@ def _elevation(xyz: np.ndarray, offset: float) -> np.ndarray:
     return np.degrees(np.arcsin(np.clip(z / np.maximum(r, 1e-9), -1.0, 1.0)))
 
 
-def _sharpness(el: np.ndarray) -> float:
-    """Concentration of elevations in BIN_DEG bins (sum of squared counts): larger = sharper beams."""
-    counts = np.bincount(np.floor((el - el.min()) / BIN_DEG).astype(np.int64)).astype(np.float64)
-    return float(counts @ counts)
-
-
 def _offset_corrected(el: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     """Elevations with each BAND_DEG band's best vertical laser offset taken out (module doc);
-    a band keeps offset 0 unless another is sharper (exact data stays exact)."""
+    a band keeps offset 0 unless another is sharper (exact data stays exact). The sharpness of
+    an offset is the concentration of the band's elevations in BIN_DEG bins (sum of squared
+    counts), all offsets of a band in one histogram."""
     out = el.copy()
     band = np.floor(el / BAND_DEG).astype(np.int64)
-    offsets = np.arange(-OFFSET_MAX, OFFSET_MAX + OFFSET_STEP / 2, OFFSET_STEP)
+    offsets = np.r_[0.0, np.arange(-OFFSET_MAX, OFFSET_MAX + OFFSET_STEP / 2, OFFSET_STEP)]
     order = np.argsort(band, kind="stable")
     edges = np.flatnonzero(np.diff(band[order])) + 1
     for mine in np.split(order, edges):  # a dozen bands
         if len(mine) < 4 * MIN_BEAM_POINTS:
             continue
-        sample = mine[:: max(1, len(mine) // OFFSET_SAMPLE)]
-        best, score = 0.0, _sharpness(el[sample])
-        for h in offsets:  # ~30 offsets
-            s = _sharpness(_elevation(xyz[sample], h))
-            if s > score:
-                best, score = float(h), s
+        sample = xyz[mine[:: max(1, len(mine) // OFFSET_SAMPLE)]]
+        z = sample[:, 2][None, :] - offsets[:, None]  # (offsets, points)
+        d2 = sample[:, 0] ** 2 + sample[:, 1] ** 2
+        e = np.degrees(np.arctan2(z, np.sqrt(d2)[None, :]))
+        cells = np.floor((e - e.min()) / BIN_DEG).astype(np.int64)
+        width = int(cells.max()) + 1
+        counts = np.bincount((cells + np.arange(len(offsets))[:, None] * width).ravel(),
+                             minlength=len(offsets) * width).reshape(len(offsets), width).astype(np.float64)
+        sharpness = np.einsum("ij,ij->i", counts, counts)
+        best = int(np.argmax(sharpness))  # the first maximum: offset 0 on ties
         if best:
-            out[mine] = _elevation(xyz[mine], best)
+            out[mine] = _elevation(xyz[mine], float(offsets[best]))
     return out
 
 
 def _group_medians(values: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per group: the (lower) median of ``values`` and the count (one lexsort, no loop)."""
-    order = np.lexsort((values, group))
+    """Per group: the (lower) median of ``values`` (degrees, within +-90) and the count (one
+    sort of group x 1000 + value, no loop)."""
+    order = np.argsort(group * 1000.0 + values)
     counts = np.bincount(group, minlength=n_groups)
     starts = np.cumsum(counts) - counts
     mid = starts + np.maximum(counts - 1, 0) // 2
@@ -226,10 +227,10 @@ def _split_checked(elevations: np.ndarray, el: np.ndarray, az: np.ndarray, step:
     table_band = np.floor(elevations / BAND_DEG).astype(np.int64)
     for value in np.unique(table_band):  # a dozen bands
         mine = band == value
-        lit = np.unique(column[mine])
-        if len(lit) < LIT_SHARE * columns:
+        lit = np.count_nonzero(np.bincount(column[mine], minlength=columns))
+        if lit < LIT_SHARE * columns:
             continue
-        per_column = mine.sum() / len(lit)
+        per_column = mine.sum() / lit
         found = int((table_band == value).sum())
         if found > SPLIT_FACTOR * per_column + 0.5:
             beams = max(1, round(per_column))
@@ -242,7 +243,7 @@ def _azimuth_step(az: np.ndarray, beam: np.ndarray) -> float | None:
     """Mean gap in azimuth between consecutive returns of one beam (missing returns' gaps left out)."""
     mine = beam >= 0
     a, b = az[mine], beam[mine]
-    order = np.lexsort((a, b))
+    order = np.argsort(b * 1000.0 + a)  # by beam, then azimuth (degrees within +-180)
     a, b = a[order], b[order]
     d = np.diff(a)[np.diff(b) == 0]
     positive = d[d > 1e-4]
