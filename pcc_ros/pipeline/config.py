@@ -34,6 +34,7 @@ from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.msg.detections import DetectionLimits
 from pcc_ros.paths import resource_dir
 from pcc_ros.pipeline.beam_model import AUTO
+from pcc_ros.pipeline.evidence_profile import PROFILE_TERM_DOCS
 from pcc_ros.pipeline.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
 from pcc_ros.types import class_mask
 
@@ -324,6 +325,7 @@ DESCRIPTIONS = {
     "w_score": "evidence rule: weight of the detector score as a logit (after score_mapping)",
     "w_mismatch": "evidence rule: weight of the shape-mismatch score (0 unless calibrated with a car-constrained "
     "backend)",
+    **{f"w_{t}": f"evidence rule: weight of {text}" for t, text in PROFILE_TERM_DOCS.items()},
     "mismatch_mean": "evidence rule: the value a missing shape-mismatch term takes (a detection not completed: past "
                      "max_instances, under min_points): its mean over the calibration detections, the term "
                      "marginalised to first order (pcc calibrate-filter)",
