@@ -53,6 +53,8 @@ setup(
             "pcc = pcc_ros.cli.main:main",
             "completion_node = pcc_ros.nodes.completion_node:main",
             "detection_filter_node = pcc_ros.nodes.detection_filter_node:main",
+            "completion_node_managed = pcc_ros.nodes.completion_node:main_managed",
+            "detection_filter_node_managed = pcc_ros.nodes.detection_filter_node:main_managed",
         ],
     },
 )

@@ -137,6 +137,13 @@ class FrameResult:
         return self.detections[~self.keep]
 
 
+def needs_completion(config: PipelineConfig, completes: bool = True, filters: bool = True) -> bool:
+    """Whether a pipeline that publishes completions (``completes``) and / or filter decisions
+    (``filters``) runs the completion network: for its completions, or for a filter rule that
+    scores the shape (TraPCC, or a nonzero ``w_mismatch``)."""
+    return completes or (filters and config.filter.uses_mismatch)
+
+
 class Pipeline:
     """Completion and shape-mismatch filtering of one frame at a time.
 
@@ -144,25 +151,32 @@ class Pipeline:
         config: the parameters.
         completer: a ready backend; by default loaded from ``config.backend`` /
             ``config.checkpoint`` (the shipped default checkpoint when empty).
+        completes: run the completion stage. ``False`` (a filter node whose rule gives the shape
+            no weight): no backend is loaded (``completer`` is None) and no network runs; a
+            rule that scores the shape completes whatever this says (:func:`needs_completion`).
+        filters: run the filter stage (``False``: a completion node; every detection stays
+            ``skipped``, i.e. not judged).
     """
 
-    def __init__(self, config: PipelineConfig, completer=None) -> None:
+    def __init__(self, config: PipelineConfig, completer=None, completes: bool = True, filters: bool = True) -> None:
         self.config = config
+        self.filters = filters
+        self.completes = needs_completion(config, completes, filters)
         #: frames so far whose scan had no finite point / scores outside [0, 1] (each logged at 1, 101, ...)
         self.empty_scans = 0
         self.scores_outside_unit = 0
-        if completer is None:
+        if completer is None and self.completes:
             completer = load_completer(
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
             )
-        self.completer = completer
-        if config.filter.rule == "evidence":
+        self.completer = completer if self.completes else None
+        if filters and config.filter.rule == "evidence":
             warm_up()  # the filter's compiled kernels, before the first frame
         # The filter's own completion backend for its shape-mismatch term (a car-constrained
         # one such as TraPCC or AML); "" or the pipeline's backend: reuse its completions.
         self.filter_completer = None
         name = config.filter.filter_backend
-        if config.filter.uses_mismatch and name and name != config.backend:
+        if filters and config.filter.uses_mismatch and name and name != config.backend:
             self.filter_completer = load_completer(name, None, device=config.device)
 
     @staticmethod
@@ -222,47 +236,22 @@ class Pipeline:
         if getattr(self.completer, "uses_context", False) and crops:
             context = SceneContext.from_frame(detections[selected], crops)
         sizes = detections.size[selected]
-        completions = self.completer.complete(crops, context, sizes=sizes) if crops else []
-        timings["complete_ms"] = _ms(tic)
+        completions = []
+        if self.completes:
+            completions = self.completer.complete(crops, context, sizes=sizes) if crops else []
+            timings["complete_ms"] = _ms(tic)
+        else:  # nothing completed: no crop stands for a completion (crops, completions, completed_index agree)
+            crops, selected = [], selected[:0]
 
         tic = time.perf_counter()
         filter_score = np.full(n, np.nan)
         terms: dict[str, np.ndarray] = {}
-        if crops and cfg.filter.uses_mismatch:
-            shapes = completions
-            if self.filter_completer is not None:
-                shapes = self.filter_completer.complete(crops, context, sizes=sizes)
-            mismatch[selected] = mismatch_scores(crops, shapes, cfg.filter)
         threshold = cfg.detection_thresholds(detections.label)
-        if cfg.filter.rule == "evidence":
-            # Every processed box is judged, sparse or not (min_points does not apply); boxes
-            # over max_instances or the work bound stay skipped (the terms cost per ray and box).
-            judged_idx = candidates
-            if not len(points) and len(candidates):  # no finite return at all: no evidence either way
-                judged_idx = candidates[:0]
-                self._empty_scan(stamp_ns, skipped, len(candidates))
-            if len(judged_idx):
-                part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
-                                    workers=filter_threads(cfg))
-                terms = {k: np.full(n, np.nan) for k in part}
-                for k, v in part.items():
-                    terms[k][judged_idx] = v
-                filter_score[judged_idx] = false_probability(part, cfg.filter)
-                reject = filter_score[judged_idx] > cfg.filter.reject_threshold
-                status[judged_idx] = np.where(reject, "rejected", "kept")
-        else:
-            judged = np.isfinite(mismatch) & bool(len(points))
-            if not len(points) and len(candidates):
-                self._empty_scan(stamp_ns, skipped, len(candidates))
-            rejected = np.zeros(n, dtype=bool)
-            for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
-                group = threshold == value
-                rejected[group] = reject_mask(
-                    mismatch[group], detections.score[group], replace(cfg.filter, detection_threshold=float(value))
-                )
-            status[judged] = np.where(rejected[judged], "rejected", "kept")
+        if self.filters:
+            terms = self._judge(points, detections, candidates, selected, crops, completions, context, sizes,
+                                threshold, mismatch, status, filter_score, skipped, stamp_ns)
+            timings["filter_ms"] = _ms(tic)
         probability = map_scores(detections.score, cfg.filter.score_mapping)
-        timings["filter_ms"] = _ms(tic)
 
         tic = time.perf_counter()
         sensor = [
@@ -310,6 +299,47 @@ class Pipeline:
             filter_score=filter_score,
             filter_terms=terms,
         )
+
+    def _judge(self, points, detections: Boxes, candidates, selected, crops, completions, context, sizes,
+               threshold, mismatch, status, filter_score, skipped, stamp_ns) -> dict[str, np.ndarray]:
+        """The filter stage: ``mismatch``, ``status`` and ``filter_score`` filled in place; returns
+        the evidence rule's terms (one value per detection)."""
+        cfg = self.config
+        n = len(detections)
+        terms: dict[str, np.ndarray] = {}
+        if crops and cfg.filter.uses_mismatch:
+            shapes = completions
+            if self.filter_completer is not None:
+                shapes = self.filter_completer.complete(crops, context, sizes=sizes)
+            mismatch[selected] = mismatch_scores(crops, shapes, cfg.filter)
+        if cfg.filter.rule == "evidence":
+            # Every processed box is judged, sparse or not (min_points does not apply); boxes
+            # over max_instances or the work bound stay skipped (the terms cost per ray and box).
+            judged_idx = candidates
+            if not len(points) and len(candidates):  # no finite return at all: no evidence either way
+                judged_idx = candidates[:0]
+                self._empty_scan(stamp_ns, skipped, len(candidates))
+            if len(judged_idx):
+                part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
+                                    workers=filter_threads(cfg))
+                terms = {k: np.full(n, np.nan) for k in part}
+                for k, v in part.items():
+                    terms[k][judged_idx] = v
+                filter_score[judged_idx] = false_probability(part, cfg.filter)
+                reject = filter_score[judged_idx] > cfg.filter.reject_threshold
+                status[judged_idx] = np.where(reject, "rejected", "kept")
+        else:
+            judged = np.isfinite(mismatch) & bool(len(points))
+            if not len(points) and len(candidates):
+                self._empty_scan(stamp_ns, skipped, len(candidates))
+            rejected = np.zeros(n, dtype=bool)
+            for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
+                group = threshold == value
+                rejected[group] = reject_mask(
+                    mismatch[group], detections.score[group], replace(cfg.filter, detection_threshold=float(value))
+                )
+            status[judged] = np.where(rejected[judged], "rejected", "kept")
+        return terms
 
     # ------------------------------------------------------------------ messages
 
