@@ -8,13 +8,14 @@ on a 2-core machine against well under a second of loading).
 Where the cache lives (:func:`cache_root`): ``$PCC_KERNEL_CACHE`` when set, else the user's
 cache (``$NUMBA_CACHE_DIR/pcc_ros``, ``$XDG_CACHE_HOME/pcc_ros/kernels`` or
 ``~/.cache/pcc_ros/kernels``), else a folder in the temporary directory. Its layout is relative to
-the package, one folder per version of a module's source (``pcc_ros/pipeline/evidence_kernels-<hash>``:
-two checkouts or installs share what they have in common and never overwrite each other's
-entries), and numba keys every entry by the CPU and numba's version, so a cache compiled at build time (``setup.py`` compiles the shipped
-nodes' kernels into ``pcc_ros/_kernel_cache``: :mod:`pcc_ros.runtime.kernel_cache`) is valid
-wherever the package is installed on the same machine. A fresh process copies that shipped cache
-into its writable one (a few MB, milliseconds), so a read-only install prefix starts in seconds
-too; an entry that does not fit (another CPU, another numba) is compiled and written there.
+the package, one folder per version of a module's source
+(``pcc_ros/pipeline/evidence_kernels-<hash>``: two checkouts or installs share what they have in
+common and never overwrite each other's entries), and numba keys every entry by the CPU and
+numba's version, so a cache compiled at build time (``setup.py`` compiles the shipped nodes'
+kernels into ``pcc_ros/_kernel_cache``: :mod:`pcc_ros.runtime.kernel_cache`) is valid wherever
+the package is installed on the same machine. A fresh process copies that shipped cache into
+its writable one (a few MB, milliseconds), so a read-only install prefix starts in seconds too;
+an entry that does not fit (another CPU, another numba) is compiled and written there.
 
 Where no cache folder can be written at all, numba raises at decoration ("cannot cache function
 ...: no locator available"): the kernel is then compiled without a cache, in every process, and a
