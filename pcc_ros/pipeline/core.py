@@ -24,7 +24,7 @@ from pcc_ros.geometry.boxes import BoxCandidates, canonical_crops
 from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.lograte import worth_logging
 from pcc_ros.models.base import SceneContext
-from pcc_ros.models.registry import get_backend, load_completer
+from pcc_ros.models.registry import check_backend_name, get_backend, load_completer
 from pcc_ros.msg.detections import (
     box_edge_points,
     decode_detection_array,
@@ -170,6 +170,8 @@ class Pipeline:
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
             )
         self.completer = completer if self.completes else None
+        if not self.completes:
+            check_backend_name(config.backend)  # not loaded, but a misspelt name is still refused
         if filters and config.filter.rule == "evidence":
             warm_up()  # the filter's compiled kernels, before the first frame
         # The filter's own completion backend for its shape-mismatch term (a car-constrained
