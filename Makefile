@@ -11,7 +11,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.pcc_ros-installed
 OUT    ?= out
 
-.PHONY: setup system-deps ros test test-fast demo bench lint clean
+.PHONY: setup system-deps ros test test-fast test-numpy1 demo bench lint clean
 
 setup: system-deps $(STAMP) ros
 
@@ -35,6 +35,20 @@ test: setup
 test-fast: setup
 	$(PY) -m pytest -m "not slow"
 
+# numpy 1.26 (apt's Jazzy on Ubuntu 24.04 builds its message extensions against it): a second venv
+# whose own numpy 1.26.4 comes before the project venv's packages (the same pins, which all accept
+# numpy >= 1.26; the ROS wheels built against numpy 2 run on 1.x), then the tests of the code that
+# handles arrays: messages, geometry, the compiled kernels, the pipeline, the node core.
+NUMPY1 := .venv-numpy1
+NUMPY1_TESTS ?= test/test_msg_pointcloud2.py test/test_msg_detections.py test/test_geometry_boxes.py \
+	test/test_filter_evidence.py test/test_pipeline.py test/test_node_core.py test/test_lifecycle.py
+test-numpy1: setup
+	@test -x $(NUMPY1)/bin/python || $(PY) -m venv --without-pip $(NUMPY1)
+	$(PY) -m pip --python $(NUMPY1)/bin/python install --disable-pip-version-check -q numpy==1.26.4
+	$(NUMPY1)/bin/python scripts/overlay_venv.py $(VENV)
+	$(NUMPY1)/bin/python -c "import numpy; assert numpy.__version__ == '1.26.4', numpy.__version__; print('numpy', numpy.__version__)"
+	$(NUMPY1)/bin/python -m pytest -q $(NUMPY1_TESTS)
+
 demo: setup
 	$(VENV)/bin/pcc demo --out $(OUT)/demo
 
@@ -49,4 +63,4 @@ lint: setup
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(NUMPY1) build *.egg-info .pytest_cache .ruff_cache

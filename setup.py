@@ -61,7 +61,7 @@ setup(
     # here lower bounds only, so colcon/rosdep installs are not over-constrained — except
     # torch, pinned exactly: the version the tests, shipped checkpoint and benchmarks use.
     install_requires=[
-        "numpy>=1.24",
+        "numpy>=1.26,<3",  # apt's Jazzy (Ubuntu 24.04) has numpy 1.26: a ROS workspace keeps it
         "torch==2.13.0",
         "rosbags>=0.10",
         "mcap>=1.1",
