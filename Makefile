@@ -18,9 +18,20 @@ setup: system-deps $(STAMP) ros
 system-deps:
 	@bash scripts/setup_system.sh
 
+# With a ROS 2 environment sourced (ROS_DISTRO), the venv sees the system's packages and keeps its
+# numpy (apt's Jazzy on Ubuntu 24.04: 1.26, which its message extensions are built against):
+# requirements.txt without its numpy pin, constrained to the numpy already there.
 $(STAMP): requirements.txt setup.py
-	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --disable-pip-version-check -q -r requirements.txt
+	@test -x $(PY) || $(PYTHON) -m venv $(if $(ROS_DISTRO),--system-site-packages) $(VENV)
+	@if [ -n "$(ROS_DISTRO)" ] && $(PY) -c "import numpy" 2>/dev/null; then \
+	  $(PY) -c 'import numpy; print("numpy==" + numpy.__version__)' > $(VENV)/numpy-constraint.txt; \
+	  echo "ROS_DISTRO=$(ROS_DISTRO): keeping the system's $$(cat $(VENV)/numpy-constraint.txt)"; \
+	  grep -v '^numpy==' requirements.txt > $(VENV)/requirements-keep-numpy.txt; \
+	  $(PY) -m pip install --disable-pip-version-check -q -r $(VENV)/requirements-keep-numpy.txt \
+	    -c $(VENV)/numpy-constraint.txt; \
+	else \
+	  $(PY) -m pip install --disable-pip-version-check -q -r requirements.txt; \
+	fi
 	$(PY) -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
 	@touch $@
 
