@@ -11,8 +11,9 @@ entry point with the shipped YAML, as a user would:
 
 For each start: seconds from the process start to the node's subscriptions on the graph (seen
 by an independent rclpy participant in this process: its publishers match the node's
-``points`` and ``detections`` readers), and then real KITTI tracking frames (``../shared/data``,
-full scans with their PointRCNN detections) played at 10 Hz from that moment: how many the node
+``points`` and ``detections`` readers), the CPU seconds the node used until then (user + system,
+from ``/proc``: what the start costs whatever else loads the machine), and then real KITTI
+tracking frames (``../shared/data``, full scans with their PointRCNN detections) played at 10 Hz from that moment: how many the node
 answered, and the first answer's latency. ``--unbuilt`` also installs without the build-time
 kernels (``PCC_BUILD_KERNELS=0``) and times its cold start: what every start cost before.
 """
@@ -120,6 +121,16 @@ class Probe:
         self.node.destroy_node()
 
 
+def process_cpu_seconds(pid: int) -> float | None:
+    """CPU seconds (user + system, all threads) a process has used so far: its start-up's cost
+    independent of what else loads the machine (on an idle machine, about its wall time)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return round((int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), 2)
+
+
 def start_once(node: str, prefix: Path, env: dict, wrapper: list[str], messages, timeout: float, rclpy) -> dict:
     """One start of ``node``: seconds to live subscriptions, frames answered, first answer latency."""
     import importlib
@@ -139,6 +150,7 @@ def start_once(node: str, prefix: Path, env: dict, wrapper: list[str], messages,
                 raise SystemExit(f"{node} did not come up:\n{log.read()[-3000:]}")
             time.sleep(0.01)
         live = time.perf_counter() - tic
+        cpu = process_cpu_seconds(proc.pid)
         sent = {}
         start = time.perf_counter()
         for i, (stamp, cloud, dets) in enumerate(messages):
@@ -152,7 +164,8 @@ def start_once(node: str, prefix: Path, env: dict, wrapper: list[str], messages,
         with probe.lock:
             answered = {s: t for s, t in probe.answers.items() if s in sent}
         first = messages[0][0]
-        result = {"subscriptions_live_s": round(live, 2), "answered": len(answered), "frames": len(messages),
+        result = {"subscriptions_live_s": round(live, 2), "cpu_s_to_live": cpu, "answered": len(answered),
+                  "frames": len(messages),
                   "first_frame_answered": first in answered,
                   "first_answer_latency_ms": round((answered[first] - sent[first]) * 1e3, 1) if first in answered
                   else None}
@@ -208,6 +221,7 @@ def run(args: argparse.Namespace) -> dict:
                     results[f"{label}/{node}/{start}"] = r
                     rows.append({"install": label, "node": node, "start": start,
                                  "subscriptions live (s)": f"{r['subscriptions_live_s']:.2f}",
+                                 "CPU s to live": r["cpu_s_to_live"],
                                  "answered": f"{r['answered']}/{r['frames']}",
                                  "first frame": "yes" if r["first_frame_answered"] else "NO",
                                  "first answer (ms)": r["first_answer_latency_ms"]})
