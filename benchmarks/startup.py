@@ -13,9 +13,10 @@ For each start: seconds from the process start to the node's subscriptions on th
 by an independent rclpy participant in this process: its publishers match the node's
 ``points`` and ``detections`` readers), the CPU seconds the node used until then (user + system,
 from ``/proc``: what the start costs whatever else loads the machine), and then real KITTI
-tracking frames (``../shared/data``, full scans with their PointRCNN detections) played at 10 Hz from that moment: how many the node
-answered, and the first answer's latency. ``--unbuilt`` also installs without the build-time
-kernels (``PCC_BUILD_KERNELS=0``) and times its cold start: what every start cost before.
+tracking frames (``../shared/data``, full scans with their PointRCNN detections) played at
+10 Hz from that moment: how many the node answered, and the first answer's latency.
+``--unbuilt`` also installs without the build-time kernels (``PCC_BUILD_KERNELS=0``) and times
+its cold start: what every start cost before.
 """
 
 from __future__ import annotations
