@@ -75,6 +75,7 @@ setup(
         "scikit-image>=0.22",
         "numba>=0.61",
         "pyyaml>=6",
+        "pyarrow>=14",  # Argoverse 2 feather tables (imported only when one is read)
     ],
     zip_safe=False,  # weights and configs are found through __file__
     maintainer="pcc_ros maintainers",

@@ -22,6 +22,7 @@ from pcc_ros import files
 from pcc_ros.data.bag import read_frames
 from pcc_ros.data.bag_writer import write_bag
 from pcc_ros.data.kitti import KittiTracking
+from pcc_ros.data.layouts import download_hint
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import box_corners, iou_bev
 from pcc_ros.geometry.canonical import to_canonical
@@ -173,7 +174,8 @@ def run_synthcars(opts: DemoConfig, config) -> dict:
 def run_kitti(opts: DemoConfig, config) -> dict | None:
     root = opts.kitti or shared_data_dir() / "kitti_tracking"
     if not (root / "training").is_dir():
-        log.warning("no KITTI tracking data at %s: real-data part skipped (pass --kitti ROOT)", root)
+        log.warning("no KITTI tracking data at %s: real-data part skipped (pass --kitti ROOT; %s)", root,
+                    download_hint(("KITTI tracking",)))
         return None
     detections = root / "detections" / "pointrcnn"
     bag = opts.out / "kitti_0000"
@@ -252,7 +254,7 @@ def demo(opts: DemoConfig) -> dict:
     """The demo as ``opts`` says: SynthCars, then real KITTI; writes ``demo.json`` and the PNGs, returns the results."""
     if opts.kitti is not None and not (Path(opts.kitti) / "training").is_dir():  # named: an error, not half a demo
         raise DataError(f"{opts.kitti}: no KITTI tracking data here (no {Path(opts.kitti) / 'training'}) — pass "
-                        "--kitti the folder holding training/velodyne/0000")
+                        "--kitti the folder holding training/velodyne/0000", hint=download_hint(("KITTI tracking",)))
     config, _ = load_config(None, with_filter=True, backend=opts.backend, checkpoint=opts.checkpoint)
     get_backend(config.backend)  # a misspelt --backend / --baselines is said before SynthCars is generated
     backend_names(opts.baselines, "--baselines", empty_ok=True)  # "": none

@@ -29,7 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pcc_ros.data.kitti import read_velodyne, split_dir
-from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
+from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_ab3dmot_lines, parse_label_lines
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.metrics.detection import DIFFICULTIES, NEIGHBOURS, FrameBoxes, ap_table
@@ -77,7 +77,8 @@ def load_kitti(
     """Frames of a KITTI tracking sequence (``label_02``) or of the object set (``label_2``).
 
     ``root`` may hold ``training/`` or be the split directory. Detection files: KITTI object
-    lines with a score column, ``DETECTIONS/FFFFFF.txt`` or ``DETECTIONS/SSSS/FFFFFF.txt``.
+    lines with a score column, ``DETECTIONS/FFFFFF.txt`` or ``DETECTIONS/SSSS/FFFFFF.txt``; or
+    AB3DMOT's one file per tracking sequence, ``DETECTIONS/SSSS.txt``.
     A frame without a detection file reads as no detections (counted, logged).
     """
     split = split_dir(Path(root), "training")
@@ -98,10 +99,17 @@ def load_kitti(
         label_path = split / "label_02" / f"{sequence}.txt"
         rows = parse_label_lines(_read_lines(label_path), tracking=True, source=str(label_path))
         det_dir = None if det_root is None else det_root / sequence if (det_root / sequence).is_dir() else det_root
+        per_sequence = None  # AB3DMOT's published layout: one comma-separated file per sequence
+        if det_dir is det_root and det_root is not None and (det_root / f"{sequence}.txt").is_file():
+            path = det_root / f"{sequence}.txt"
+            per_sequence = parse_ab3dmot_lines(_read_lines(path), source=str(path))
         for scan in sorted((split / "velodyne" / sequence).glob("*.bin"))[frames]:
             index = int(scan.stem)
             gt, dontcare = _rows_to_frameboxes(rows[rows.frame == index], calib, f"{sequence}/{scan.stem}")
-            dt, found = _read_detections(None if det_dir is None else det_dir / f"{scan.stem}.txt", calib)
+            if per_sequence is not None:  # a frame without a line has no detections
+                dt, found = _rows_to_frameboxes(per_sequence[per_sequence.frame == index], calib, scan.stem)[0], True
+            else:
+                dt, found = _read_detections(None if det_dir is None else det_dir / f"{scan.stem}.txt", calib)
             missing += not found and det_dir is not None
             out.append(LabelledFrame(f"{sequence}/{scan.stem}", read_velodyne(scan), gt, dt, dontcare))
     elif (split / "label_2").is_dir():

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from pcc_ros.data.layouts import download_hint
 from pcc_ros.data.sources import open_frames
 from pcc_ros.data.track_aggregate import collect_tracks
 from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
@@ -100,7 +101,8 @@ def real_instances(
     report: dict[str, Any] = {}
     for source in sources:
         if not source.exists():
-            raise DataError(f"{source}: real dataset not found (pass --real-sources)")
+            raise DataError(f"{source}: real dataset not found (pass --real-sources: KITTI tracking / object, "
+                            "nuScenes or Argoverse 2 roots)", hint=download_hint())
         skipped: Counter = Counter()
         frames = list(open_frames(source, detections_dir=detections_dir) if detections_dir else open_frames(source))
         tracks = collect_tracks(frames, classes=classes, skipped=skipped)
@@ -345,7 +347,7 @@ def pick_examples(instances: list[dict[str, Any]], count: int) -> list[int]:
 class RealEvalConfig:
     """What ``pcc eval --real`` is told; the command builds it from its ``--real-*`` flags."""
 
-    sources: list[Path]  # KITTI tracking / object or nuScenes roots
+    sources: list[Path]  # KITTI tracking / object, nuScenes roots or Argoverse 2 logs / split dirs
     backends: str | None = None  # comma-separated; None: every available backend
     checkpoints: dict[str, Path] = field(default_factory=dict)  # backend -> checkpoint (default: shipped)
     voxel: float = 0.03  # reference voxel size, metres

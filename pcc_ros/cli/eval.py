@@ -19,12 +19,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, help="instance cache written by `pcc extract` (not with --real)")
     parser.add_argument(
         "--real", action="store_true",
-        help="real-data evaluation: KITTI tracking / nuScenes frames with labels, each track's crops aggregated "
-        "as its partial ground truth (see pcc_ros/metrics/realdata.py)",
+        help="real-data evaluation: KITTI tracking / nuScenes / Argoverse 2 frames with labels, each track's crops "
+        "aggregated as its partial ground truth (see pcc_ros/metrics/realdata.py)",
     )
     parser.add_argument(
         "--real-sources", default="../shared/data/kitti_tracking,../shared/data/nuscenes_mini",
-        help="--real: comma-separated KITTI tracking / object or nuScenes roots (default: the shared samples)",
+        help="--real: comma-separated KITTI tracking / object, nuScenes roots or Argoverse 2 logs / split dirs "
+        "(default: the shared samples of a development checkout; docs/datasets.md 'Getting real data')",
     )
     parser.add_argument("--real-voxel", type=float, default=0.03, help="--real: reference voxel size, metres")
     parser.add_argument(

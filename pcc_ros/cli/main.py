@@ -25,7 +25,8 @@ from pcc_ros.errors import PccError
 # name -> (module, one-line help). Keep sorted by workflow order.
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("pcc_ros.cli.synth", "generate a SynthCars LiDAR dataset (KITTI tracking layout)"),
-    "convert": ("pcc_ros.cli.convert", "convert KITTI / nuScenes / SynthCars to a ROS 2 bag"),
+    "check-data": ("pcc_ros.cli.check_data", "which dataset layout a folder holds and what it lacks"),
+    "convert": ("pcc_ros.cli.convert", "convert KITTI / nuScenes / Argoverse 2 / SynthCars to a ROS 2 bag"),
     "info": ("pcc_ros.cli.info", "summarise a ROS 2 bag"),
     "extract": ("pcc_ros.cli.extract", "extract canonical car instances from bags or datasets"),
     "train": ("pcc_ros.cli.train", "train a completion backend self-supervised"),

@@ -49,14 +49,14 @@ from rosbags.rosbag2 import ReaderError
 from rosbags.typesys.base import TypesysError
 
 from pcc_ros.data.bag_writer import (
-    BASE_FRAME,
+    BASE_FRAMES,
     DETECTIONS_TOPIC,
     FRAMES_KEY,
     GROUND_TRUTH_TOPIC,
-    ODOM_FRAME,
     POINTS_TOPIC,
     TF_STATIC_TOPIC,
     TF_TOPIC,
+    WORLD_FRAMES,
 )
 from pcc_ros.errors import BagError, DataError, PccError
 from pcc_ros.msg.detections import decode_detection_array
@@ -420,9 +420,17 @@ def _frame(group: _Group, stamp: int, tf: TransformBuffer, sequence: str, index:
         raise DataError(f"{path}: frame at stamp {stamp}: {exc}") from exc
     extras: dict = {}
     mount = tf.static_edge(frame_id)
-    if mount is not None and mount[0] == BASE_FRAME:
+    if mount is not None and mount[0] in BASE_FRAMES:
         extras["sensor_to_base"] = mount[1].matrix()
-    pose = tf.lookup(ODOM_FRAME, frame_id, stamp)
+        extras["base_frame"] = mount[0]
+    elif frame_id in BASE_FRAMES:
+        extras["base_frame"] = frame_id
+    pose = None
+    for world in WORLD_FRAMES:  # the first world frame the scan's frame reaches at its stamp
+        pose = tf.lookup(world, frame_id, stamp)
+        if pose is not None:
+            extras["world_frame"] = world
+            break
     return Sample(
         stamp_ns=stamp,
         frame_id=frame_id,

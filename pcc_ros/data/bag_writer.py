@@ -12,6 +12,9 @@ One frame becomes, all stamped with the frame's ``stamp_ns`` (header stamp and b
   ``/tf_static`` ``base_link -> <sensor frame>`` (transient-local, as robot_state_publisher
   offers it, so ``ros2 bag play`` latches it), written at the start and again whenever
   the mounting changes. Without ``extras["sensor_to_base"]`` base_link is the sensor itself.
+  A source with its own frame names sets ``extras["world_frame"]`` / ``extras["base_frame"]``
+  (Argoverse 2: ``city -> ego_vehicle``) and may add the other sensors' mountings as
+  ``extras["static_edges"]`` (``(parent, child, parent <- child)``), published with the scan's.
 
 Boxes without 3D extent (KITTI ``DontCare`` rows: size -1, position -1000) cannot be a
 ``BoundingBox3D``; they are left out of ``/ground_truth`` and counted in the log, never
@@ -63,6 +66,10 @@ TF_TOPIC = "/tf"
 TF_STATIC_TOPIC = "/tf_static"
 ODOM_FRAME = "odom"
 BASE_FRAME = "base_link"
+#: Frames a pose is read against, in order (:func:`pcc_ros.data.bag.read_frames`): the package's
+#: ``odom``, Argoverse 2's ``city``, REP 105's ``map``; and the vehicle frames a mounting hangs from.
+WORLD_FRAMES = (ODOM_FRAME, "city", "map")
+BASE_FRAMES = (BASE_FRAME, "ego_vehicle")
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 #: Suffixes of rosbag2 storage files: an output named so is refused (a bag is the folder around one).
 BAG_FILE_SUFFIXES = (".mcap", ".db3")
@@ -167,7 +174,7 @@ def _boxes_3d(boxes: Boxes) -> tuple[Boxes, int]:
 def write_frames(bag: BagWriter, frames: Iterable[Sample], runs: _FrameRuns, summary: BagSummary) -> None:
     """Write every frame's messages (see the module docstring) and fill ``summary``."""
     last_stamp: int | None = None
-    static: tuple[str, bytes] | None = None
+    static: tuple | None = None
     for frame in frames:
         stamp = int(frame.stamp_ns)
         if last_stamp is not None and stamp <= last_stamp:
@@ -189,16 +196,21 @@ def write_frames(bag: BagWriter, frames: Iterable[Sample], runs: _FrameRuns, sum
             msg = detection_array_from_boxes(kept, frame.frame_id, stamp)
             bag.write(topic, "vision_msgs/msg/Detection3DArray", msg, stamp)
         sensor_to_base = frame.extras.get("sensor_to_base")
-        if frame.pose is not None or sensor_to_base is not None:
+        others = list(frame.extras.get("static_edges", ()))
+        if frame.pose is not None or sensor_to_base is not None or others:
+            world = str(frame.extras.get("world_frame", ODOM_FRAME))
+            base = str(frame.extras.get("base_frame", BASE_FRAME))
             mount = np.eye(4) if sensor_to_base is None else np.asarray(sensor_to_base, dtype=np.float64)
-            key = (frame.frame_id, np.round(mount, 12).tobytes())
-            if key != static:
+            edges = [] if frame.frame_id == base else [(base, frame.frame_id, mount)]
+            edges += [(str(p), str(c), np.asarray(m, dtype=np.float64)) for p, c, m in others if c != frame.frame_id]
+            key = tuple((p, c, np.round(m, 12).tobytes()) for p, c, m in edges)
+            if key != static and edges:
                 static = key
-                msg = tf_message([(BASE_FRAME, frame.frame_id, mount)], stamp)
+                msg = tf_message(edges, stamp)
                 bag.write(TF_STATIC_TOPIC, "tf2_msgs/msg/TFMessage", msg, stamp, qos=TF_STATIC_QOS)
             if frame.pose is not None:
-                odom_from_base = np.asarray(frame.pose, dtype=np.float64) @ np.linalg.inv(mount)
-                bag.write(TF_TOPIC, "tf2_msgs/msg/TFMessage", tf_message([(ODOM_FRAME, BASE_FRAME, odom_from_base)],
+                world_from_base = np.asarray(frame.pose, dtype=np.float64) @ np.linalg.inv(mount)
+                bag.write(TF_TOPIC, "tf2_msgs/msg/TFMessage", tf_message([(world, base, world_from_base)],
                                                                           stamp), stamp)
         runs.add(frame.sequence, frame.index)
         summary.frames += 1

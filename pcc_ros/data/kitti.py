@@ -13,7 +13,9 @@ directory itself):
   ...), ``calib/SSSS.txt``, optional ``oxts/SSSS.txt`` (one OXTS line per frame).
 - object: ``velodyne/FFFFFF.bin``, ``label_2/FFFFFF.txt``, ``calib/FFFFFF.txt``.
 - detector results: one KITTI object-format file per frame with a 16th score column
-  (what OpenPCDet / AB3DMOT write), ``DIR/FFFFFF.txt`` or, for tracking, ``DIR/SSSS/FFFFFF.txt``.
+  (what OpenPCDet writes), ``DIR/FFFFFF.txt`` or, for tracking, ``DIR/SSSS/FFFFFF.txt``; for
+  tracking also AB3DMOT's one comma-separated file per sequence, ``DIR/SSSS.txt``
+  (:func:`~pcc_ros.data.kitti_format.parse_ab3dmot_lines`).
 
 Stamps: KITTI tracking has no per-scan timestamps. If a raw-style timestamp file exists
 (``oxts/SSSS/timestamps.txt``, ``oxts/SSSS.timestamps.txt`` or
@@ -40,7 +42,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines, read_text_lines
+from pcc_ros.data.kitti_format import (
+    Calibration,
+    camera_to_lidar_boxes,
+    parse_ab3dmot_lines,
+    parse_label_lines,
+    read_text_lines,
+)
 from pcc_ros.errors import DataError
 from pcc_ros.types import Boxes, Sample
 
@@ -257,7 +265,8 @@ class KittiTracking:
         labels = self.labels(sequence, calib)
         poses = self.poses(sequence, calib)
         stamps = self.stamps(sequence, indices)
-        det_dir = _detections_dir(detections_dir, sequence)
+        per_sequence = self._ab3dmot_detections(detections_dir, sequence, calib)
+        det_dir = None if per_sequence is not None else _detections_dir(detections_dir, sequence)
         if poses is not None and len(indices) and indices.max() >= len(poses):
             raise DataError(f"{self.root / 'oxts' / f'{sequence}.txt'}: {len(poses)} records, frame {indices.max()}")
         sensor_to_base = None if calib.Tr_imu_to_velo is None else np.linalg.inv(_h(calib.Tr_imu_to_velo))
@@ -270,7 +279,8 @@ class KittiTracking:
                 frame_id=FRAME_ID,
                 points=read_velodyne(scan),
                 fields=FIELDS,
-                detections=self._detections(det_dir, scan.stem, calib),
+                detections=(per_sequence.get(index, Boxes.empty()) if per_sequence is not None
+                            else self._detections(det_dir, scan.stem, calib)),
                 ground_truth=None if labels is None else labels.get(index, Boxes.empty()),
                 pose=None if poses is None else poses[index],
                 sequence=sequence,
@@ -278,6 +288,21 @@ class KittiTracking:
                 extras=extras,
             )
         self._report(sequence, before)
+
+    @staticmethod
+    def _ab3dmot_detections(detections_dir: str | Path | None, sequence: str,
+                            calib: Calibration) -> dict[int, Boxes] | None:
+        """Detections per frame index from AB3DMOT's one file per sequence, ``DIR/SSSS.txt`` (what its
+        repository publishes for PointRCNN; a frame without a line has no detections), or None when
+        ``DIR`` has no such file (per-frame files ``DIR[/SSSS]/FFFFFF.txt`` then)."""
+        if detections_dir is None or (Path(detections_dir) / sequence).is_dir():
+            return None
+        path = Path(detections_dir) / f"{sequence}.txt"
+        if not path.is_file():
+            return None
+        rows = parse_ab3dmot_lines(_read_lines(path), source=str(path))
+        boxes = camera_to_lidar_boxes(rows, calib)
+        return {int(f): boxes[rows.frame == f] for f in np.unique(rows.frame)}
 
     def _detections(self, det_dir: Path | None, stem: str, calib: Calibration) -> Boxes | None:
         if det_dir is None:

@@ -216,6 +216,36 @@ def parse_label_lines(lines: list[str], tracking: bool, source: str = "<labels>"
     )
 
 
+#: AB3DMOT's type ids in its KITTI detection files (``data/KITTI/detection/pointrcnn_*``).
+AB3DMOT_TYPES = {"1": "Pedestrian", "2": "Car", "3": "Cyclist"}
+
+
+def parse_ab3dmot_lines(lines: list[str], source: str = "<detections>") -> LabelRows:
+    """AB3DMOT's per-sequence detection file (comma-separated ``frame, type id, x1, y1, x2, y2,
+    score, h, w, l, x, y, z, rot_y, alpha``, the PointRCNN results its repository publishes) as
+    label rows with ``frame`` set: each line is rewritten as a KITTI object line with a score
+    column and parsed by :func:`parse_label_lines`, so both formats share one set of checks and
+    an error names the file's own line."""
+    frames, kitti_lines = [], []
+    for lineno, line in enumerate(lines, 1):
+        parts = [p.strip() for p in line.split(",")] if line.strip() else []
+        if not parts:
+            kitti_lines.append("")  # keeps the line numbers of the errors the file's own
+            continue
+        if len(parts) != 15:
+            raise DataError(f"{source}:{lineno}: expected 15 comma-separated AB3DMOT columns (frame, type, 2D box, "
+                            f"score, h w l x y z rot_y, alpha), got {len(parts)}")
+        try:
+            frames.append(int(parts[0]))
+            kind = AB3DMOT_TYPES.get(str(int(float(parts[1]))), parts[1])
+        except ValueError as exc:
+            raise DataError(f"{source}:{lineno}: non-numeric frame or type ({exc})") from exc
+        kitti_lines.append(" ".join([kind, "0", "0", parts[14], *parts[2:6], *parts[7:14], parts[6]]))
+    rows = parse_label_lines(kitti_lines, tracking=False, source=source)
+    rows.frame = np.array(frames, dtype=np.int64)
+    return rows
+
+
 def camera_to_lidar_boxes(rows: LabelRows, calib: Calibration) -> Boxes:
     """Camera-frame label rows -> LiDAR-frame :class:`Boxes` (geometric centre, yaw about +z)."""
     n = len(rows)
