@@ -66,7 +66,8 @@ from pcc_ros.models.base import (
     cache_origin,
     resample_cloud,
 )
-from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP, masked_mean, nearest, weighted_chamfer
+from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, SharedMLP
+from pcc_ros.models.losses import masked_mean, nearest, weighted_chamfer
 from pcc_ros.models.registry import register
 
 log = logging.getLogger(__name__)
