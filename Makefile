@@ -2,7 +2,7 @@
 #   make demo   set everything up, then run the end-to-end demo
 #   make test   set everything up, then run the whole test suite
 # Set-up is idempotent: the venv is (re)built only when requirements.txt or setup.py change;
-# scripts/setup_ros.sh adds ROS 2 Jazzy (PyPI wheels + vision_msgs built once) unless a ROS 2
+# scripts/setup_ros.sh adds ROS 2 Jazzy (PyPI wheels + vision_msgs, tf2_msgs built once) unless a ROS 2
 # Jazzy environment is sourced, and keeps its own stamps.
 
 PYTHON ?= python3
@@ -67,7 +67,8 @@ bench: setup
 	@mkdir -p benchmarks/results
 	@for name in $$($(PY) -c 'from benchmarks import available; print(" ".join(available()))'); do \
 	  echo "== pcc bench $$name"; \
-	  $(VENV)/bin/pcc bench $$name --json benchmarks/results/$$name.json || exit 1; \
+	  $(VENV)/bin/pcc bench $$name --json benchmarks/results/$$name.json $$([ $$name = soak ] && echo --minutes 5) \
+	    || exit 1; \
 	done
 
 lint: setup

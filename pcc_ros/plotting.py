@@ -1,4 +1,4 @@
-"""Matplotlib helpers shared by the PNGs the tools write (``pcc demo``, SynthCars previews).
+"""Matplotlib helpers shared by the PNGs the tools write (``pcc demo``, SynthCars previews, ``pcc eval``).
 
 :func:`label_boxes` puts one text label beside each box of a bird's-eye view so that no label
 sits inside a box (on top of that car's points, where a label in the box's colour vanishes),
@@ -9,6 +9,8 @@ overlapping detections still get every label, readable.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -90,3 +92,62 @@ def label_boxes(ax, corners: np.ndarray, texts: Sequence[str | None], colors: Se
         placed.append(extent)
         artists.append(artist)
     return artists
+
+
+def plot_examples(
+    path: Path,
+    instances: Sequence[Any],
+    completions: dict[str, Any],
+    reference: str,
+    picks: Sequence[int],
+    max_draw: int = 2048,
+) -> None:
+    """A PNG grid: one row per example instance, columns input / each backend / reference.
+
+    ``instances``: :class:`pcc_ros.evaluate.EvalInstance` (``partial``, ``reference``, ``key``,
+    ``distance``, ``num_points``). ``picks`` are instance indices (``evaluate.example_indices``
+    spreads them over the distance range so near and far cars both appear);
+    ``completions[name][i]`` is backend ``name``'s completion of instance ``i`` (a list or a
+    dict). Clouds are drawn in 3D in the canonical frame from the same viewpoint.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    count = len(picks)
+    if count == 0:
+        raise ValueError("plot_examples: no instances to draw")
+    names = [n for n in completions if n != "input"]  # the partial column already shows it
+    columns = ["partial input", *names, "ground truth" if reference == "ground_truth" else "aggregated reference"]
+    fig = plt.figure(figsize=(2.6 * len(columns), 2.4 * count))
+    rng = np.random.default_rng(0)
+    for row, idx in enumerate(picks):
+        inst = instances[idx]
+        clouds = [inst.partial, *(completions[n][idx] for n in names), inst.reference]
+        for col, (title, cloud) in enumerate(zip(columns, clouds)):
+            ax = fig.add_subplot(count, len(columns), row * len(columns) + col + 1, projection="3d")
+            if len(cloud) > max_draw:
+                cloud = cloud[rng.choice(len(cloud), max_draw, replace=False)]
+            colour = "tab:red" if col == 0 else ("tab:green" if col == len(columns) - 1 else "tab:blue")
+            ax.scatter(cloud[:, 0], cloud[:, 1], cloud[:, 2], s=1.0, c=colour, depthshade=False, linewidths=0)
+            ax.set_xlim(-0.6, 0.6)
+            ax.set_ylim(-0.6, 0.6)
+            ax.set_zlim(-0.6, 0.6)
+            ax.set_box_aspect((1, 1, 1))
+            ax.view_init(elev=40, azim=-50)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_zticks([])
+            if row == 0:
+                ax.set_title(title, fontsize=9)
+            if col == 0:
+                ax.text2D(
+                    0.0, 0.0, f"{inst.key}\n{inst.distance:.0f} m, {inst.num_points} pts", transform=ax.transAxes,
+                    fontsize=7,
+                )
+    fig.suptitle("canonical frame (x forward, y left, z up; box length = 1)", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -422,10 +422,10 @@ def test_output_frame_moves_every_output_through_the_transform(graph):
 
 def test_output_frame_without_tf_says_so_once_and_counts_skipped_frames(graph, caplog):
     runtime = LocalRuntime(graph, "filter_node")
-    runtime.has_tf = False  # what the rclpy host reports when tf2_ros is not installed
+    runtime.has_tf = False  # what the rclpy host reports with neither tf2_ros nor tf2_msgs installed
     with caplog.at_level(logging.ERROR, logger="pcc_ros.filter_node"):
         core = NodeCore(runtime, "filter_node", "filter", {"backend": "mirror", "output_frame": "map"}, threaded=False)
-    assert sum("needs tf2_ros" in r.message for r in caplog.records) == 1
+    assert sum("needs transforms" in r.message for r in caplog.records) == 1
     driver = LocalRuntime(graph, "driver")
     for k in (1, 2):
         cloud, dets = _messages(k * 1_000_000_000)
@@ -513,7 +513,7 @@ def test_detections_without_scans_are_counted_and_reported(graph, caplog):
     assert core.scans == 1 and core.detection_arrays == 21
     assert core.detections_without_scans == 15  # those more than 0.5 s after the last scan
     assert core.scans_stalled
-    assert sum("no scan on 'points'" in r.getMessage() for r in caplog.records) == 1  # warned once
+    assert sum("no scan on '/points'" in r.getMessage() for r in caplog.records) == 1  # warned once
     status = diags[-1].status[0]  # published at 3.0 s by the 1 Hz timer
     assert int(status.level) == 1 and "no scan" in status.message
     values = core.diagnostics_values()
@@ -603,7 +603,7 @@ def test_a_threaded_node_collects_a_reloaded_backend_between_frames(graph):
     core = _node(LocalGraph(), "completion", threaded=True)
     started, release = threading.Event(), threading.Event()
 
-    def frame_on_the_old_backend(cloud, dets):
+    def frame_on_the_old_backend(cloud, dets, transforms=None):
         held = core.pipeline  # what process() holds during a frame
         started.set()
         release.wait(5)

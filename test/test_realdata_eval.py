@@ -110,6 +110,10 @@ def test_pcc_eval_real_on_kitti(shared_data, tmp_path, capsys):
     assert mirror["lateral_offset"] == pytest.approx(0.0, abs=1e-6)  # symmetric by construction
     assert inp["lateral_offset"] > 0.1
     assert mirror["points_max"] > inp["points_max"]
+    assert 0 < mirror["consistency"] < inp["consistency"] and mirror["consistency_pairs"] >= 30
+    assert mirror["far_completeness"] < inp["far_completeness"]
+    summary = {r["backend"]: r for r in result["summary"]}
+    assert summary["mirror"]["generated_gain_vs_mirror"] == 0.0 and summary["input"]["lateral_balance"] > 0.1
     assert out_png.stat().st_size > 10_000
 
 

@@ -24,16 +24,17 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
+from rclpy.clock import JumpThreshold
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
-from rclpy.time import Time
 from rclpy.utilities import remove_ros_args
 
 from pcc_ros.errors import ConfigError, PccError
+from pcc_ros.nodes.tf_listener import transform_source
 from pcc_ros.pipeline.config import ParameterSpec, parameter_table, read_parameters
 from pcc_ros.runtime.base import QoS, Transform
 from pcc_ros.runtime.node import DIAGNOSTICS_TOPIC, INPUTS, NodeCore, node_at_work, unknown_parameters
@@ -123,19 +124,13 @@ class RclpyRuntime:
 
     def __init__(self, node: Node) -> None:
         self.node = node
-        self._tf_buffer = None
         self._tf_missing_logged = False
-        try:
-            from tf2_ros import Buffer, TransformListener
-        except ImportError:  # the ROS 2 Jazzy PyPI wheels do not ship tf2_ros
-            return
-        self._tf_buffer = Buffer()
-        self._tf_listener = TransformListener(self._tf_buffer, node)
+        self.tf = transform_source(node, self)  # tf2_ros, else the package's /tf listener
 
     @property
     def has_tf(self) -> bool:
-        """True where tf2_ros is installed (a ROS 2 install; not the PyPI wheels)."""
-        return self._tf_buffer is not None
+        """True where transforms can be looked up (tf2_ros, or tf2_msgs for the package's listener)."""
+        return self.tf is not None
 
     def create_publisher(self, topic, msgtype, qos):
         with qos_override_errors():
@@ -156,26 +151,34 @@ class RclpyRuntime:
     def get_logger(self):
         return self.node.get_logger()
 
+    def count_publishers(self, topic: str) -> int:
+        return self.node.count_publishers(topic)
+
+    def resolve_topic(self, topic: str) -> str:
+        return self.node.resolve_topic_name(topic)
+
+    def on_clock_jump(self, callback) -> None:
+        """rcl's jump handler: called from the ``/clock`` callback that moved the clock back."""
+        threshold = JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1_000_000),
+                                  on_clock_change=True)
+        self._jump_handler = self.node.get_clock().create_jump_callback(threshold, post_callback=lambda _: callback())
+
+    def reset_transforms(self) -> None:
+        if self.tf is not None:
+            self.tf.clear()
+
     def lookup_transform(self, target: str, source: str, stamp_ns: int) -> Transform | None:
-        if self._tf_buffer is None:
+        if self.tf is None:
             if not self._tf_missing_logged:  # said once; the node core counts every skipped frame
                 self._tf_missing_logged = True
                 self.node.get_logger().warning(
-                    f"tf2_ros is not installed (the ROS 2 Jazzy wheels do not ship it): no transform "
-                    f"'{source}' -> '{target}'; frames that need one (detections in another frame than the "
-                    "scan, or an output_frame) are skipped and counted (diagnostics: frames_without_transform). "
-                    "Publish detections in the scan frame, or run on a ROS 2 Jazzy install."
+                    f"neither tf2_ros nor tf2_msgs is installed: no transform '{source}' -> '{target}'; frames "
+                    "that need one (detections in another frame than the scan, or an output_frame) are skipped "
+                    "and counted (diagnostics: frames_without_transform). Run `make setup` (builds tf2_msgs "
+                    "into the venv) or use a ROS 2 Jazzy install."
                 )
             return None
-        try:
-            tf = self._tf_buffer.lookup_transform(
-                target, source, Time(nanoseconds=stamp_ns), timeout=Duration(seconds=0.05)
-            )
-        except Exception as exc:  # tf2 raises several unrelated exception types
-            self.node.get_logger().warning(f"tf2: {exc}")
-            return None
-        t, q = tf.transform.translation, tf.transform.rotation
-        return Transform((t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
+        return self.tf.lookup(target, source, stamp_ns)
 
 
 class RclpyLogHandler(logging.Handler):

@@ -48,6 +48,7 @@ from pcc_ros.pipeline.filter import (
     mismatch_scores,
     reject_mask,
 )
+from pcc_ros.pipeline.track_memory import TrackMemory
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
@@ -181,6 +182,7 @@ class Pipeline:
         #: frames so far whose scan had no finite point / scores outside [0, 1] (each logged at 1, 101, ...)
         self.empty_scans = 0
         self.scores_outside_unit = 0
+        self.crop_work_frames = 0  # frames whose boxes exceeded max_crop_work
         if completer is None and self.completes:
             completer = load_completer(
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
@@ -198,6 +200,8 @@ class Pipeline:
         name = config.filter.filter_backend
         if filters and config.filter.uses_mismatch and name and name != config.backend:
             self.filter_completer = load_completer(name, None, device=config.device)
+        #: each car's recent crops in its box frame (track_memory; None: every frame alone)
+        self.track_memory = TrackMemory(config.track_max_age, config.track_gate) if config.track_memory else None
 
     @staticmethod
     def _runtime_options(config: PipelineConfig) -> dict[str, Any]:
@@ -240,9 +244,11 @@ class Pipeline:
         box_work[candidates] = work
         if fits is not None:
             _count(skipped, "over max_crop_work", int((~fits).sum()))
-            log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
-                        "lowest-score boxes", stamp_ns, int(work.sum()), len(candidates), cfg.max_crop_work,
-                        int((~fits).sum()))
+            self.crop_work_frames += 1  # a dense sensor on a busy street can meet it every frame: not every line
+            if worth_logging(self.crop_work_frames, every=100):
+                log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
+                            "lowest-score boxes (%d such frames so far)", stamp_ns, int(work.sum()), len(candidates),
+                            cfg.max_crop_work, int((~fits).sum()), self.crop_work_frames)
             candidates = candidates[fits]
         counts = np.array([len(c) for c in canonical], dtype=np.int64)
         num_points[candidates] = counts
@@ -264,7 +270,11 @@ class Pipeline:
         sizes = detections.size[selected]
         completions = []
         if self.completes:
-            completions = self.completer.complete(crops, context, sizes=sizes) if crops else []
+            inputs = crops
+            if self.track_memory is not None:  # the car's accumulated crops (causal); the filter reads this frame's
+                inputs = self.track_memory.update(detections[selected], crops, stamp_ns)
+                timings["track_memory_ms"] = _ms(tic)
+            completions = self.completer.complete(inputs, context, sizes=sizes) if crops else []
             timings["complete_ms"] = _ms(tic)
         else:  # nothing completed: no crop stands for a completion (crops, completions, completed_index agree)
             crops, selected = [], selected[:0]
