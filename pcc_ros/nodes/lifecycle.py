@@ -43,8 +43,13 @@ class LifecycleRuntime(RclpyRuntime):
     entity it creates remembered, so ``deactivate`` destroys what ``activate`` made."""
 
     def __init__(self, node: LifecycleNode) -> None:
+        #: what the runtime's own parts made while it was built (the /tf listener's subscriptions):
+        #: they live from configure to cleanup
+        self.lasting: list = []
+        self.entities: list = self.lasting
         super().__init__(node)
-        self.entities: list = []
+        #: what the node core made when it started serving: activate to deactivate
+        self.entities = []
 
     def create_publisher(self, topic, msgtype, qos):
         with qos_override_errors():
@@ -64,17 +69,22 @@ class LifecycleRuntime(RclpyRuntime):
         self.entities.append(timer)
         return timer
 
-    def destroy_entities(self) -> None:
-        """Destroy every publisher, subscription and timer made since the last call."""
+    def destroy_entities(self, lasting: bool = False) -> None:
+        """Destroy every publisher, subscription and timer the node core made since the last call
+        (``lasting``: and the runtime's own, at cleanup)."""
         node = self.node
-        for entity in reversed(self.entities):
+        for entity in reversed([*self.entities, *(self.lasting if lasting else [])]):
             if entity in node._managed_entities:
                 node.destroy_lifecycle_publisher(entity)
             elif hasattr(entity, "timer_period_ns"):
                 node.destroy_timer(entity)
+            elif hasattr(entity, "publish"):
+                node.destroy_publisher(entity)
             else:
                 node.destroy_subscription(entity)
         self.entities = []
+        if lasting:
+            self.lasting = []
 
 
 class ManagedPipelineNode(LifecycleNode):
@@ -100,8 +110,11 @@ class ManagedPipelineNode(LifecycleNode):
             self.runtime = LifecycleRuntime(self)
             core = NodeCore(self.runtime, self.get_name(), self.mode, checked_values(self), connect=False)
             check_qos_overrides(self, core)
-        except PccError as exc:
-            self.get_logger().error(f"configure failed: {exc}")
+        except Exception as exc:  # a bad parameter (PccError), or anything else: said, and the node stays unconfigured
+            reason = str(exc) if isinstance(exc, PccError) else f"{type(exc).__name__}: {exc}"
+            self.get_logger().error(f"configure failed: {reason}")
+            if self.runtime is not None:
+                self.runtime.destroy_entities(lasting=True)
             self.runtime = None
             return TransitionCallbackReturn.FAILURE
         self.core = core
@@ -146,6 +159,8 @@ class ManagedPipelineNode(LifecycleNode):
     def _unload(self) -> None:
         """Drop the node core and its pipeline; the collection frees the backend's memory now."""
         self.core = None
+        if self.runtime is not None:
+            self.runtime.destroy_entities(lasting=True)
         self.runtime = None
         freeze_long_lived()  # unfreezes, collects (the dropped backend with it), freezes what is left
 
