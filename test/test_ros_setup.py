@@ -123,3 +123,24 @@ def test_setup_defers_to_a_sourced_ros_install_and_refuses_another_distro():
     humble = subprocess.run(script, cwd=REPO, env={**os.environ, "ROS_DISTRO": "humble"},
                             capture_output=True, text=True, timeout=120)
     assert humble.returncode == 1 and "ROS_DISTRO=humble" in humble.stderr and "Jazzy" in humble.stderr
+
+
+@pytest.mark.ros
+def test_every_topic_type_hashes_as_the_installed_ros_packages_describe_it():
+    """Every message type on the nodes' topics: the project's type store (which writes the bags
+    and decodes the wire) gives the RIHS01 hash that rosidl computed for the installed ROS 2
+    package (its share/<package>/msg/<Type>.json), not a value pasted into the test."""
+    require_rclpy()
+    from ament_index_python.packages import get_package_share_directory
+
+    from pcc_ros.msg.typestore import type_hash
+    from pcc_ros.runtime.node import INPUTS, OUTPUTS
+
+    types = {*INPUTS.values(), *(t for mode in OUTPUTS.values() for t in mode.values()),
+             "diagnostic_msgs/msg/DiagnosticArray"}
+    assert len(types) >= 4
+    for name in sorted(types):
+        package, _, message = name.split("/")
+        description = json.loads((Path(get_package_share_directory(package)) / "msg" / f"{message}.json").read_text())
+        hashes = {h["type_name"]: h["hash_string"] for h in description["type_hashes"]}
+        assert hashes[name] == type_hash(name), name
