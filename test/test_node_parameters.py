@@ -3,16 +3,20 @@
 One case per row of the parameter table (:func:`pcc_ros.pipeline.config.parameter_table`): a
 new parameter without a case here fails :func:`test_every_parameter_has_a_case`. Each case
 starts a :class:`~pcc_ros.runtime.node.NodeCore` on the in-process graph and sends it one
-frame, then sends the same frame to a node whose parameter was changed the way the rclpy host
-changes it (``set_parameters``; a read-only one by starting the node with it): what it published (its output
+frame (two for the track memory's parameters: the second is looked at), then sends the same
+frames to a node whose parameter was changed the way the rclpy host changes it
+(``set_parameters``; a read-only one by starting the node with it): what it published (its output
 messages, byte for byte, and its counters) must differ, and where the effect has a direction
-it is checked too. The QoS parameters are also read back from the real rclpy graph.
+it is checked too. A filter weight must move each detection's published log-odds of being false
+by exactly the weight's change times the detection's published term, and some term must not be 0.
+The QoS parameters are also read back from the real rclpy graph.
 """
 
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -25,6 +29,7 @@ from pcc_ros.msg.detections import detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.msg.typestore import get_typestore
 from pcc_ros.pipeline.config import parameter_table
+from pcc_ros.pipeline.filter import SCORE_CLASS_ID, TERM_CLASS_PREFIX, TERMS
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, QoS, Transform
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
 from pcc_ros.runtime.node import OUTPUTS, NodeCore
@@ -35,26 +40,39 @@ DETS = "vision_msgs/msg/Detection3DArray"
 STAMP = 1_000_000_000
 DET_LAG = 10_000_000  # detections 10 ms after their scan: paired within the default sync_slop (50 ms)
 
-def _scene(rng: np.random.Generator) -> tuple[np.ndarray, Boxes]:
+def _scene(rng: np.random.Generator, pole: bool = False, duplicate: bool = False) -> tuple[np.ndarray, Boxes]:
     """Two cars (400 and 300 returns in their boxes, car a's on its right half only, as a sensor
-    beside it sees it; a few just beside car a), an empty box, ground."""
+    beside it sees it; a few just beside car a), an empty box c, ground. ``pole``: a 4 m pole
+    (0.2 m square) stands in box c, its returns rising over the box top; ``duplicate``: a lower
+    scored box d, 1 m along from car a's, most of its footprint covered by a's."""
     car1 = rng.uniform([-2, -0.85, -0.7], [2, 0.0, 0.7], size=(400, 3)) + np.array([10, 0, -0.8])
     car2 = rng.uniform([-2, -0.8, -0.7], [2, 0.8, 0.7], size=(300, 3)) + np.array([6, 5, -0.8])
     beside = rng.uniform([-2, -1.3, -0.7], [2, -0.95, 0.7], size=(60, 3)) + np.array([10, 0, -0.8])
     ground = rng.uniform([0, -10, -1.7], [30, 10, -1.6], size=(500, 3))
-    points = np.concatenate([car1, car2, beside, ground]).astype(np.float32)
+    parts = [car1, car2, beside, ground]
+    if pole:
+        parts.append(rng.uniform([19.9, -6.1, -1.6], [20.1, -5.9, 2.4], size=(200, 3)))
     boxes = Boxes([[10, 0, -0.8], [6, 5, -0.8], [20, -6, -0.8]], [[4.2, 1.8, 1.5], [4.2, 1.7, 1.5], [4.0, 1.7, 1.5]],
                   [0.0, 0.1, 0.0], ["Car", "Car", "Car"], [0.9, 0.8, 0.2], ["a", "b", "c"])
-    return points, boxes
+    if duplicate:
+        boxes = Boxes(np.vstack([boxes.center, [11, 0, -0.8]]), np.vstack([boxes.size, [4.2, 1.8, 1.5]]),
+                      np.append(boxes.yaw, 0.0), [*boxes.label, "Car"], np.append(boxes.score, 0.5),
+                      [*boxes.track_id, "d"])
+    return np.concatenate(parts).astype(np.float32), boxes
 
 
-def _messages(stamp_ns: int, tilt: float = 0.0):
-    points, boxes = _scene(np.random.default_rng(0))
-    cloud = create_cloud(points, ["x", "y", "z"], "velodyne", stamp_ns)
+def _messages(stamp_ns: int, case: Case | None = None, shift: float = 0.0):
+    """The scene's scan and detections at ``stamp_ns`` as ``case`` asks (everything ``shift``
+    metres further along x; no ids when ``case.ids`` is off)."""
+    case = case or Case("completion", None)
+    points, boxes = _scene(np.random.default_rng(0), case.pole, case.duplicate)
+    cloud = create_cloud(points + np.float32([shift, 0, 0]), ["x", "y", "z"], "velodyne", stamp_ns)
+    boxes = Boxes(boxes.center + np.array([shift, 0.0, 0.0]), boxes.size, boxes.yaw, boxes.label, boxes.score,
+                  boxes.track_id if case.ids else None)
     dets = detection_array_from_boxes(boxes, "velodyne", stamp_ns + DET_LAG)
-    if tilt:  # box "a" rolled by ``tilt`` (a detector's 3D box that is not upright)
+    if case.tilt:  # box "a" rolled by ``tilt`` (a detector's 3D box that is not upright)
         q = dets.detections[0].bbox.center.orientation
-        q.x, q.w = float(np.sin(tilt / 2)), float(np.cos(tilt / 2))
+        q.x, q.w = float(np.sin(case.tilt / 2)), float(np.cos(case.tilt / 2))
     return cloud, dets
 
 
@@ -74,6 +92,10 @@ class Case:
     detections_qos: QoS = RELIABLE
     check: Any = None
     learned: bool = False  # the base backend is the tiny TraPCC checkpoint
+    ids: bool = True  # the detections carry their track ids
+    pole: bool = False  # see _scene
+    duplicate: bool = False  # see _scene
+    second: tuple[float, float] | None = None  # a second frame (seconds later, metres along x): the one looked at
 
 
 def _completed(obs) -> np.ndarray:
@@ -158,6 +180,12 @@ CASES: dict[str, Case] = {
     "reject_threshold": Case("filter", 1e-6, base={"backend": "input"}, check=_all_rejected),
     "sensor": Case("filter", "hdl32", base={"backend": "input"}),
     # past max_instances boxes b and c are not completed: their mismatch term reads mismatch_mean
+    "w_above": Case("filter", 0.0, base={"backend": "input"}, pole=True),  # the pole's returns over box c
+    "w_fill": Case("filter", 3.0, base={"backend": "input"}),
+    "w_spill": Case("filter", 3.0, base={"backend": "input"}),  # the returns beside car a
+    "w_overlap": Case("filter", 0.0, base={"backend": "input"}, duplicate=True),  # box d on car a's
+    "w_depth": Case("filter", 0.0, base={"backend": "input"}),  # returns deep in the boxes, not on a face
+    "w_top": Case("filter", 3.0, base={"backend": "input"}),
     "mismatch_mean": Case("filter", 1.0, base={"backend": "input", "w_mismatch": 3.0, "max_instances": 1}),
     "filter_backend": Case("filter", "densify", base={"backend": "input", "w_mismatch": 3.0}),
     "match_threshold": Case("filter", 1.0, base=TRAPCC_RULE, check=_none_rejected),
@@ -179,6 +207,15 @@ CASES: dict[str, Case] = {
     "qos.outputs.reliability": Case("completion", "best_effort", check=_nothing_received),  # the probe: reliable
     "qos.outputs.depth": Case("completion", 1),
     "scan_timeout": Case("completion", 0.25),  # special: detections without scans counted
+    # special: a frame whose transform arrives late is held, or dropped at once (the unchanged node
+    # holds it 5 s, not the default 0.5 s, which a loaded test machine could overrun)
+    "tf_timeout": Case("completion", 0.0, base={"tf_timeout": 5.0}),
+    # two frames 0.1 s apart: the second completes each car from both frames' crops (the mirror reflects them all)
+    "track_memory": Case("completion", True, second=(0.1, 0.0), check=_more_points),
+    "track_max_age": Case("completion", 0.05, base={"track_memory": True}, second=(0.1, 0.0), check=_fewer_points),
+    # no ids: the cars, 1 m further in the second frame, are the same cars within the 2 m gate only
+    "track_gate": Case("completion", 0.5, base={"track_memory": True}, ids=False, second=(0.1, 1.0),
+                       check=_fewer_points),
 }
 
 
@@ -223,11 +260,11 @@ class Observed:
 class Harness:
     """A node core on the in-process graph, its driver and a reliable probe of every output."""
 
-    def __init__(self, mode: str, params: dict[str, Any], case: Case) -> None:
+    def __init__(self, mode: str, params: dict[str, Any], case: Case, threaded: bool = False) -> None:
         self.graph = LocalGraph(simulated=True)
         self.graph.set_transform("base_link", "velodyne", Transform((1.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0)))
         self.case = case
-        self.core = NodeCore(LocalRuntime(self.graph, f"{mode}_node"), f"{mode}_node", mode, params, threaded=False)
+        self.core = NodeCore(LocalRuntime(self.graph, f"{mode}_node"), f"{mode}_node", mode, params, threaded=threaded)
         self.got: dict[str, list] = {name: [] for name in OUTPUTS[mode]}
         probe = LocalRuntime(self.graph, "probe")
         for name, msgtype in OUTPUTS[mode].items():
@@ -248,13 +285,21 @@ class Harness:
 
             model.register_forward_hook(hook)
 
-    def frame(self, stamp_ns: int) -> Observed:
+    def frames(self, stamp_ns: int) -> Observed:
+        """The case's frame(s) from ``stamp_ns``: what the last one made the node publish."""
+        observed = self.frame(stamp_ns)
+        if self.case.second is not None:
+            later, shift = self.case.second
+            observed = self.frame(stamp_ns + int(later * 1e9), shift)
+        return observed
+
+    def frame(self, stamp_ns: int, shift: float = 0.0) -> Observed:
         self._instrument()
         for values in self.got.values():
             values.clear()
         frames = self.core.frames
         self.graph.advance_to(stamp_ns)
-        cloud, dets = _messages(stamp_ns, self.case.tilt)
+        cloud, dets = _messages(stamp_ns, self.case, shift)
         self.pub_cloud.publish(cloud)
         self.pub_dets.publish(dets)
         wire = {name: [_wire(m, OUTPUTS[self.core.mode][name]) for m in msgs] for name, msgs in self.got.items()}
@@ -267,9 +312,9 @@ _BASELINES: dict[tuple, Observed] = {}
 
 def _baseline(case: Case, base: dict[str, Any]) -> Observed:
     """The frame through the unchanged node (one run per distinct starting point)."""
-    key = (case.mode, repr(sorted(base.items())), case.tilt, case.detections_qos, case.learned)
+    key = (repr(sorted(base.items())), repr(replace(case, value=None, base={}, check=None)))
     if key not in _BASELINES:
-        _BASELINES[key] = Harness(case.mode, base, case).frame(STAMP)
+        _BASELINES[key] = Harness(case.mode, base, case).frames(STAMP)
     return _BASELINES[key]
 
 
@@ -319,6 +364,10 @@ def test_each_parameter_changes_the_node(name, tiny_checkpoints, caplog):
             answered.append(core.core.frames)
         assert answered == [1, 0], answered
         return
+    if name == "tf_timeout":
+        assert _late_transform(case, {**base, "output_frame": "odom"}, value) == (0, 1, 0)  # dropped at once
+        assert _late_transform(case, {**base, "output_frame": "odom"}, None) == (1, 0, 1)  # held, then answered
+        return
     if name.startswith("qos.") and name.endswith(".depth"):
         topic = name.split(".")[1]
         core = Harness(case.mode, {**base, name: value}, case)
@@ -337,7 +386,7 @@ def test_each_parameter_changes_the_node(name, tiny_checkpoints, caplog):
         node = Harness(case.mode, base, case)
         result = node.core.set_parameters({name: value})
         assert result.successful, result.reason
-    after = node.frame(STAMP)
+    after = node.frames(STAMP)
     assert before.frames == 1, f"{name}: the unchanged node answered no frame"
 
     if name == "batch_size":  # same completions, one network call per box instead of one per frame
@@ -353,8 +402,56 @@ def test_each_parameter_changes_the_node(name, tiny_checkpoints, caplog):
         assert after.messages["completed"][0].header.frame_id == "base_link"
         assert {m.header.frame_id for m in after.messages["completed_markers"][0].markers} == {"base_link"}
     assert after.wire != before.wire, f"{name}: changing it changed nothing the node published"
+    if name.startswith("w_") and name[2:] in TERMS:
+        _log_odds_moved(name[2:], value - base.get(name, spec.default), before, after)
     if case.check is not None:
         case.check(before, after)
+
+
+def _filter_hypotheses(obs: Observed) -> dict[str, dict[str, float]]:
+    """Each published detection's filter hypotheses (class id -> score), by detection id."""
+    return {d.id: {r.hypothesis.class_id: r.hypothesis.score for r in d.results}
+            for name in ("detections_filtered", "detections_rejected") for msg in obs.messages[name][-1:]
+            for d in msg.detections}
+
+
+def _log_odds_moved(term: str, change: float, before: Observed, after: Observed) -> None:
+    """Each detection's log-odds of being false moved by ``change`` times its published ``term``
+    (the logistic rule), and the term is not 0 for some detection (the case's scene gives it a value)."""
+    b, a = _filter_hypotheses(before), _filter_hypotheses(after)
+    assert set(b) == set(a) and b, (sorted(b), sorted(a))
+    values = {i: b[i].get(TERM_CLASS_PREFIX + term, 0.0) for i in b}
+    assert any(abs(v) > 1e-3 for v in values.values()), f"{term} is 0 for every detection: {values}"
+    for i, v in values.items():
+        moved = float(np.diff([np.log(h[SCORE_CLASS_ID] / (1 - h[SCORE_CLASS_ID])) for h in (b[i], a[i])])[0])
+        assert moved == pytest.approx(change * v, abs=1e-6), (i, term, v, moved)
+
+
+def _late_transform(case: Case, base: dict[str, Any], timeout: float | None) -> tuple[int, int, int]:
+    """(frames answered, frames dropped without a transform, clouds published) by a threaded node
+    (``tf_timeout`` changed to ``timeout`` unless None) sent a frame whose transform to
+    ``output_frame`` arrives only once the node has held or dropped the frame."""
+    node = Harness(case.mode, base, case, threaded=True)
+    try:
+        if timeout is not None:
+            assert node.core.set_parameters({"tf_timeout": timeout}).successful
+        node.graph.advance_to(STAMP)
+        cloud, dets = _messages(STAMP)
+        node.pub_cloud.publish(cloud)
+        node.pub_dets.publish(dets)
+        assert _wait_until(lambda: len(node.core.tf_wait) or node.core.no_transform)
+        node.graph.set_transform("odom", "velodyne", Transform((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+        _wait_until(lambda: node.core.frames, timeout_s=1.0)
+        return node.core.frames, node.core.no_transform, len(node.got["completed"])
+    finally:
+        node.core.shutdown()
+
+
+def _wait_until(predicate, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return bool(predicate())
 
 
 def test_qos_parameters_reach_the_real_rclpy_graph():
