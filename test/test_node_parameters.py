@@ -365,8 +365,9 @@ def test_each_parameter_changes_the_node(name, tiny_checkpoints, caplog):
         assert answered == [1, 0], answered
         return
     if name == "tf_timeout":
-        assert _late_transform(case, {**base, "output_frame": "odom"}, value) == (0, 1, 0)  # dropped at once
-        assert _late_transform(case, {**base, "output_frame": "odom"}, None) == (1, 0, 1)  # held, then answered
+        assert _late_transform(case, {**base, "output_frame": "odom"}, value) == (0, 1, 0, 0)  # dropped at once
+        # held (still, half a second on), then answered once the transform came
+        assert _late_transform(case, {**base, "output_frame": "odom"}, None) == (1, 0, 1, 1)
         return
     if name.startswith("qos.") and name.endswith(".depth"):
         topic = name.split(".")[1]
@@ -427,10 +428,10 @@ def _log_odds_moved(term: str, change: float, before: Observed, after: Observed)
         assert moved == pytest.approx(change * v, abs=1e-6), (i, term, v, moved)
 
 
-def _late_transform(case: Case, base: dict[str, Any], timeout: float | None) -> tuple[int, int, int]:
-    """(frames answered, frames dropped without a transform, clouds published) by a threaded node
-    (``tf_timeout`` changed to ``timeout`` unless None) sent a frame whose transform to
-    ``output_frame`` arrives only once the node has held or dropped the frame."""
+def _late_transform(case: Case, base: dict[str, Any], timeout: float | None) -> tuple[int, int, int, int]:
+    """(frames answered, frames dropped without a transform, clouds published, frames released
+    after waiting) by a threaded node (``tf_timeout`` changed to ``timeout`` unless None) sent a
+    frame whose transform to ``output_frame`` arrives half a second later or once it was dropped."""
     node = Harness(case.mode, base, case, threaded=True)
     try:
         if timeout is not None:
@@ -439,10 +440,11 @@ def _late_transform(case: Case, base: dict[str, Any], timeout: float | None) -> 
         cloud, dets = _messages(STAMP)
         node.pub_cloud.publish(cloud)
         node.pub_dets.publish(dets)
-        assert _wait_until(lambda: len(node.core.tf_wait) or node.core.no_transform)
+        _wait_until(lambda: node.core.no_transform, timeout_s=0.5)
+        assert node.core.frames == 0
         node.graph.set_transform("odom", "velodyne", Transform((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
         _wait_until(lambda: node.core.frames, timeout_s=1.0)
-        return node.core.frames, node.core.no_transform, len(node.got["completed"])
+        return node.core.frames, node.core.no_transform, len(node.got["completed"]), node.core.tf_wait.released_late
     finally:
         node.core.shutdown()
 
