@@ -179,13 +179,13 @@ CASES: dict[str, Case] = {
     "w_mismatch": Case("filter", 3.0, base={"backend": "input"}),
     "reject_threshold": Case("filter", 1e-6, base={"backend": "input"}, check=_all_rejected),
     "sensor": Case("filter", "hdl32", base={"backend": "input"}),
-    # past max_instances boxes b and c are not completed: their mismatch term reads mismatch_mean
     "w_above": Case("filter", 0.0, base={"backend": "input"}, pole=True),  # the pole's returns over box c
     "w_fill": Case("filter", 3.0, base={"backend": "input"}),
     "w_spill": Case("filter", 3.0, base={"backend": "input"}),  # the returns beside car a
     "w_overlap": Case("filter", 0.0, base={"backend": "input"}, duplicate=True),  # box d on car a's
     "w_depth": Case("filter", 0.0, base={"backend": "input"}),  # returns deep in the boxes, not on a face
     "w_top": Case("filter", 3.0, base={"backend": "input"}),
+    # past max_instances boxes b and c are not completed: their mismatch term reads mismatch_mean
     "mismatch_mean": Case("filter", 1.0, base={"backend": "input", "w_mismatch": 3.0, "max_instances": 1}),
     "filter_backend": Case("filter", "densify", base={"backend": "input", "w_mismatch": 3.0}),
     "match_threshold": Case("filter", 1.0, base=TRAPCC_RULE, check=_none_rejected),
