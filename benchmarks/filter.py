@@ -9,7 +9,9 @@ was at 93cd59e (``benchmarks._reference.evidence``), timed call by call, interle
 a warm-up (min / median / max of ``--repeat`` calls each), ours also with ``workers=2`` (the
 ground and the expected returns on a second thread, as the pipeline runs it with ``workers`` >= 2).
 Every output (raw counts, expected returns, ground heights, the derived terms), of both thread
-settings, is checked bit-identical first. The profile terms
+settings, is checked bit-identical first, with 93cd59e's fixed ground reach on both sides
+(``reach=GROUND_REACH``: the timed comparison) and with the reach the pipeline uses (the beam
+model's, :func:`pcc_ros.pipeline.evidence.ground_reach`) on both sides. The profile terms
 (:func:`pcc_ros.pipeline.evidence_profile.profile_terms`, newer than 93cd59e) are timed beside
 them (``profile_ms``; the pipeline's filter costs ``beams_ms + profile_ms``). The machine's load
 average is recorded before and after. Last, the thread grain: the same numpy work on one thread
@@ -112,14 +114,15 @@ def run(args: argparse.Namespace) -> dict:
     fixed = GROUND_REACH  # 93cd59e's ground reach: the outputs compared bit for bit
     rows = []
     for scan, points, boxes in _frames(args):
-        reference = reference_evidence(points, boxes, sensor).as_dict()
+        check_equal(evidence(points, boxes, sensor).as_dict(), reference_evidence(points, boxes, sensor).as_dict())
+        reference = reference_evidence(points, boxes, sensor, reach=fixed).as_dict()
         check_equal(evidence(points, boxes, sensor, reach=fixed).as_dict(), reference)
         check_equal(evidence(points, boxes, sensor, workers=2, reach=fixed).as_dict(), reference)
         times = interleaved({"ours": lambda p=points, b=boxes: evidence(p, b, sensor, reach=fixed),
                              "ours_2": lambda p=points, b=boxes: evidence(p, b, sensor, workers=2, reach=fixed),
                              "ours_beams": lambda p=points, b=boxes: evidence(p, b, sensor),
                              "profile": lambda p=points, b=boxes: profile_terms(p, b, sensor),
-                             "93cd59e": lambda p=points, b=boxes: reference_evidence(p, b, sensor)},
+                             "93cd59e": lambda p=points, b=boxes: reference_evidence(p, b, sensor, reach=fixed)},
                             repeat=args.repeat, warmup=3)
         ours, two, ref = (summary_ms(times[k]) for k in ("ours", "ours_2", "93cd59e"))
         beams, profile = summary_ms(times["ours_beams"]), summary_ms(times["profile"])

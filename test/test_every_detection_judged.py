@@ -13,6 +13,7 @@ from pcc_ros.msg.detections import detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud
 from pcc_ros.pipeline.filter import (
     SCORE_CLASS_ID,
+    TERMS,
     UNJUDGED_CLASS_ID,
     FilterConfig,
     false_probability,
@@ -92,7 +93,7 @@ def test_three_hundred_boxes_every_car_scored_or_marked_and_counted():
 def test_a_missing_shape_term_is_marginalised_to_its_calibration_mean():
     terms = {"density": np.zeros(2), "free_space": np.zeros(2), "ground_gap": np.zeros(2), "score": np.zeros(2),
              "mismatch": np.array([0.8, np.nan])}
-    np.testing.assert_array_equal(term_matrix(terms, 0.4)[:, -1], [0.8, 0.4])
+    np.testing.assert_array_equal(term_matrix(terms, 0.4)[:, TERMS.index("mismatch")], [0.8, 0.4])
     config = FilterConfig(w_mismatch=2.0, mismatch_mean=0.4, w_bias=0.0)
     missing = false_probability({**terms, "mismatch": np.array([np.nan, 0.4])}, config)
     assert missing[0] == missing[1] == 1.0 / (1.0 + np.exp(-0.8))
