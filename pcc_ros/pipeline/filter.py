@@ -43,6 +43,7 @@ makes the conversion explicit.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,6 +69,7 @@ from pcc_ros.types import Boxes
 
 SCORE_MAPPINGS = ("identity", "sigmoid")
 RULES = ("evidence", "trapcc")
+_log = logging.getLogger(__name__)
 _VIEWS = ((0, 2), (1, 2), (0, 1))  # side (x-z), front (y-z), top (x-y)
 
 
@@ -237,6 +239,30 @@ def reject_mask(mismatch: np.ndarray, detection_scores: np.ndarray, config: Filt
 
 #: The evidence terms, in the order of the logistic weights (:attr:`FilterConfig.weights`).
 TERMS = ("density", "free_space", "ground_gap", "score", "mismatch", *PROFILE_TERMS)
+
+#: The term weights of the evidence rule: one calibrated whole (:func:`whole_rule`).
+RULE_WEIGHTS = tuple(f"w_{t}" for t in TERMS)
+
+
+def whole_rule(given) -> dict[str, float]:
+    """The term weights a parameter set leaves out, at 0, when it names some of them.
+
+    A calibrated rule is a whole: its weights were fitted together, and a term it never saw
+    must not join it with the shipped rule's weight (a file written before a term existed
+    would otherwise get that term, fitted beside other weights, added on top of its own rule).
+    So a parameter set (a file and the overrides on it) that names any ``w_<term>`` gives
+    every term it does not name weight 0, said in one INFO line; one that names none keeps the
+    shipped rule whole. ``w_bias``, ``reject_threshold`` and ``mismatch_mean`` keep their
+    defaults when missing (a file of an older rule has them too). A parameter changed on a
+    running node changes that weight only (the rest of its rule stays)."""
+    named = [w for w in RULE_WEIGHTS if w in given]
+    missing = [w for w in RULE_WEIGHTS if w not in given]
+    if not named or not missing:
+        return {}
+    _log.info("the parameters name the filter weights %s but not %s: those are 0 (a calibrated rule is a "
+              "whole; pcc calibrate-filter writes every weight)", ", ".join(named), ", ".join(missing))
+    return dict.fromkeys(missing, 0.0)
+
 
 # The measurements themselves (rays, expected returns, local ground) live in
 # pcc_ros.pipeline.evidence; imported above and re-exported here.

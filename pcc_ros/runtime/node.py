@@ -172,10 +172,11 @@ class NodeCore:
             raise ConfigError(f"unknown node output(s) {unknown}; known: {sorted(every)}")
         self.runtime, self.node_name, self.mode = runtime, node_name, mode
         self.log = runtime.get_logger()
-        values = node_parameters(parameters)
+        with working_for(self.log):  # the parameters' and a backend's load lines are this node's
+            values = node_parameters(parameters)
         self.parameters = values
         config = pipeline_config(values)
-        with working_for(self.log):  # a backend's load lines are this node's
+        with working_for(self.log):
             self.pipeline = pipeline or Pipeline(config)  # a missing/corrupt checkpoint fails here, loudly
         self.output_frame = str(values["output_frame"])
         self.pairer: StampPairer = StampPairer(
