@@ -326,4 +326,7 @@ def colcon_style_install(prefix: Path, work: Path) -> subprocess.CompletedProces
         "install", "--prefix", str(prefix), "--single-version-externally-managed",
         "--record", str(work / "record.txt"),
     ]
-    return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    # PCC_BUILD_KERNELS=0: the build's kernel compilation (~40 s) is left out; the installed nodes
+    # find the kernels in the user's cache, keyed by the modules' content (pcc_ros.jit)
+    env = {**os.environ, "PCC_BUILD_KERNELS": "0"}
+    return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env)

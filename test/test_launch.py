@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 LAUNCH_FILE = REPO / "launch" / "perception.launch.py"
 EXPECTED_ARGUMENTS = {
     "params_file", "namespace", "points", "detections", "outputs", "backend", "device", "score_mapping",
-    "use_sim_time", "rviz",
+    "use_sim_time", "rviz", "managed", "autostart",
 }
 
 
@@ -52,6 +52,7 @@ def _stand_ins(share: Path) -> dict[str, types.ModuleType]:
     modules["launch.actions"].DeclareLaunchArgument = type("DeclareLaunchArgument", (_Recorded,), {})
     modules["launch.actions"].OpaqueFunction = _OpaqueFunction
     modules["launch_ros.actions"].Node = type("Node", (_Recorded,), {})
+    modules["launch_ros.actions"].LifecycleNode = type("LifecycleNode", (_Recorded,), {})
 
     def get_package_share_directory(package):
         assert package == "pcc_ros"
@@ -80,7 +81,8 @@ def recorded_launch(monkeypatch, tmp_path):
         values = {name: kw["default_value"] for name, kw in declared.items()}
         values.update(arguments)
         context = types.SimpleNamespace(launch_configurations=values)
-        return [node.kwargs for function in opaque for node in function.execute(context)]
+        return [{**node.kwargs, "action": type(node).__name__}
+                for function in opaque for node in function.execute(context)]
 
     run.declared = declared
     return run
@@ -104,6 +106,7 @@ def test_every_argument_the_file_declares_is_documented(recorded_launch):
 def test_defaults_ask_for_both_nodes_with_the_shipped_parameter_files(recorded_launch):
     processes = recorded_launch()
     assert [p["executable"] for p in processes] == ["completion_node", "detection_filter_node"]
+    assert {p.pop("action") for p in processes} == {"Node"}
     assert {p["executable"] for p in processes} <= _console_scripts()
     for process in processes:
         params_file, overrides = process["parameters"]
@@ -138,6 +141,23 @@ def test_arguments_reach_the_recorded_node_actions(recorded_launch, tmp_path):
         for topic in (*OUTPUTS["completion"], *OUTPUTS["filter"]):
             assert remaps[topic] == f"/perception/pcc/{topic}"
     assert read_parameters(params, "completion_node") == {"min_points": 7}
+
+
+@pytest.mark.parametrize("autostart", ["true", "false"])
+def test_managed_argument_asks_for_the_lifecycle_nodes(recorded_launch, autostart):
+    """``managed:=true``: launch_ros' LifecycleNode with the managed entry points (console scripts
+    of setup.py), the same parameters and remappings, autostart as asked."""
+    plain = recorded_launch(points="/velodyne_points")
+    processes = recorded_launch(points="/velodyne_points", managed="true", autostart=autostart)
+    assert [p["action"] for p in processes] == ["LifecycleNode", "LifecycleNode"]
+    assert [p["executable"] for p in processes] == ["completion_node_managed", "detection_filter_node_managed"]
+    assert {p["executable"] for p in processes} <= _console_scripts()
+    for process, same in zip(processes, plain):
+        assert process.pop("autostart") is (autostart == "true")
+        assert {k: v for k, v in process.items() if k not in ("executable", "action")} == {
+            k: v for k, v in same.items() if k not in ("executable", "action")}
+    with pytest.raises(ValueError, match="managed"):
+        recorded_launch(managed="maybe")
 
 
 def test_rviz_argument_asks_for_rviz_with_the_shipped_config(recorded_launch):

@@ -49,7 +49,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.metrics.chamfer import nearest_distances_batch
 from pcc_ros.msg.typestore import from_template, new_message
 from pcc_ros.pipeline.beam_model import AUTO, sensor_for
 from pcc_ros.pipeline.evidence import (  # noqa: F401  (re-exported: the filter's public names)
@@ -200,6 +199,10 @@ def mcd(partials: list[np.ndarray], completions: list[np.ndarray]) -> np.ndarray
     out = np.full(len(partials), np.inf)
     ok = [k for k, (p, c) in enumerate(zip(partials, completions)) if len(p) and len(c)]
     if ok:
+        # imported here: the metrics package pulls in scipy.spatial / scipy.optimize (about half a
+        # second of a node's start-up), and only the shape-mismatch term needs it
+        from pcc_ros.metrics.chamfer import nearest_distances_batch
+
         distances = nearest_distances_batch([partials[k] for k in ok], [completions[k] for k in ok])
         out[ok] = [float(np.mean(d**2)) for d in distances]
     return out

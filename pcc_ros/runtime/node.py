@@ -37,7 +37,14 @@ from pcc_ros.pipeline.config import (
     pipeline_config,
     unknown_parameters,
 )
-from pcc_ros.pipeline.core import DETECTION_OUTPUTS, MARKER_OUTPUTS, FrameResult, Pipeline, build_outputs
+from pcc_ros.pipeline.core import (
+    DETECTION_OUTPUTS,
+    MARKER_OUTPUTS,
+    FrameResult,
+    Pipeline,
+    build_outputs,
+    needs_completion,
+)
 from pcc_ros.pipeline.filter import DECISIONS, decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.diagnostics import (
@@ -119,6 +126,14 @@ def output_names(mode: str, with_completion: bool = False) -> list[str]:
     return names
 
 
+def pipeline_stages(names) -> dict[str, bool]:
+    """The pipeline stages a node publishing ``names`` runs (:class:`Pipeline`'s ``completes`` /
+    ``filters``): each node computes what its outputs need, no more (the filter rule may still
+    ask for the completions: :func:`~pcc_ros.pipeline.core.needs_completion`)."""
+    return {"completes": any(n in OUTPUTS["completion"] for n in names),
+            "filters": any(n in OUTPUTS["filter"] for n in names)}
+
+
 def qos_of(values: dict[str, Any], topic: str) -> QoS:
     """The :class:`QoS` of ``points``, ``detections`` or ``outputs`` from the node parameters."""
     return QoS(
@@ -151,6 +166,9 @@ class NodeCore:
         on_result: called as ``on_result(result, cloud, detections)`` after each published
             frame (``detections`` as received, ``result`` in the scan frame): replay's summary,
             the demo and evaluation read the frames through it.
+        connect: create the publishers, subscriptions, timer and worker now (a plain node);
+            ``False`` loads and checks only, and :meth:`connect` serves later (a managed node's
+            ``configure``, then ``activate``).
     """
 
     def __init__(
@@ -164,6 +182,7 @@ class NodeCore:
         remap: dict[str, str] | None = None,
         outputs: list[str] | None = None,
         on_result=None,
+        connect: bool = True,
     ) -> None:
         names = output_names(mode) if outputs is None else list(outputs)
         every = {**OUTPUTS["completion"], **OUTPUTS["filter"]}
@@ -176,8 +195,10 @@ class NodeCore:
             values = node_parameters(parameters)
         self.parameters = values
         config = pipeline_config(values)
-        with working_for(self.log):
-            self.pipeline = pipeline or Pipeline(config)  # a missing/corrupt checkpoint fails here, loudly
+        #: the stages the outputs need (a filter node whose rule gives the shape no weight runs no network)
+        self.stages = pipeline_stages(names)
+        with working_for(self.log):  # a backend's load lines are this node's
+            self.pipeline = pipeline or Pipeline(config, **self.stages)  # a missing/corrupt checkpoint fails here
         self.output_frame = str(values["output_frame"])
         self.pairer: StampPairer = StampPairer(
             slop_ns=int(float(values["sync_slop"]) * 1e9), queue_size=int(values["queue_size"])
@@ -225,6 +246,24 @@ class NodeCore:
         #: Publishes detection messages: the pipeline keeps (and moves) the received ones for them.
         self._republishes_detections = any(name in DETECTION_OUTPUTS for name in names)
 
+        self.publishers: dict[str, Any] = {}
+        self.pub_diagnostics = None
+        self.threaded = threaded
+        self._running = False
+        self._refreeze = threading.Event()  # set by a backend reload, served by the worker
+        self._worker = None
+        on_jump = getattr(runtime, "on_clock_jump", None)
+        if on_jump is not None:  # the jump seen as /clock moves, before the new timeline's messages
+            on_jump(self._watch_clock)
+        self._warn_without_tf()
+        freeze_long_lived()  # the loaded backend and the node's objects: no full collection walks them per frame
+        if connect:
+            self.connect()
+
+    def connect(self) -> None:
+        """Serve: create the output publishers, the input subscriptions, the diagnostics timer
+        and the worker (a managed node's ``activate``; a plain node's start)."""
+        runtime, values = self.runtime, self.parameters
         self.publishers = {
             name: runtime.create_publisher(self.topics[name], msgtype, qos_of(values, "outputs"))
             for name, msgtype in self.outputs.items()
@@ -241,21 +280,15 @@ class NodeCore:
         #: The inputs' names as the graph knows them (remapped, in the namespace): what warnings name.
         self.resolved = {name: str(getattr(sub, "topic_name", "") or self.topics[name]) for name, sub in subs.items()}
         runtime.create_timer(1.0, self.publish_diagnostics)
-
-        self.threaded = threaded
-        self._running = threaded
-        self._refreeze = threading.Event()  # set by a backend reload, served by the worker
-        self._worker = None
-        if threaded:
-            self._worker = threading.Thread(target=self._work, name=f"{node_name}_worker", daemon=True)
+        self._running = self.threaded
+        if self.threaded:
+            self.slot = LatestSlot(self.pairer.stats)
+            self._worker = threading.Thread(target=self._work, name=f"{self.node_name}_worker", daemon=True)
             self._worker.start()
-        on_jump = getattr(runtime, "on_clock_jump", None)
-        if on_jump is not None:  # the jump seen as /clock moves, before the new timeline's messages
-            on_jump(self._watch_clock)
-        self._warn_without_tf()
-        freeze_long_lived()  # the loaded backend and the node's objects: no full collection walks them per frame
+        config = self.pipeline.config
         self.log.info(
-            f"{mode} node ready: backend={config.backend} classes={list(config.classes)} device={config.device}"
+            f"{self.mode} node ready: backend={config.backend if self.pipeline.completes else '(none: no completion)'} "
+            f"classes={list(config.classes)} device={config.device}"
             + (f" output_frame={self.output_frame}" if self.output_frame else "")
         )
 
@@ -299,11 +332,10 @@ class NodeCore:
                 values = {**self.parameters, **changed}
                 config = pipeline_config(values)
                 old = self.pipeline
-                reload = any(
-                    n in changed for n in BACKEND_PARAMETERS
-                ) or not isinstance(old, Pipeline)
+                reload = (any(n in changed for n in BACKEND_PARAMETERS) or not isinstance(old, Pipeline)
+                          or (needs_completion(config, **self.stages) and old.completer is None))
                 with working_for(self.log):
-                    pipeline = Pipeline(config) if reload else Pipeline(config, completer=old.completer)
+                    pipeline = Pipeline(config, completer=None if reload else old.completer, **self.stages)
             except PccError as exc:
                 self.log.warning(f"parameter change refused: {exc}")
                 return SetResult(False, str(exc))
@@ -494,7 +526,10 @@ class NodeCore:
         outputs = build_outputs(result, originals, self.runtime.classes, detections_header=header,
                                 names=self._wanted_outputs())
         for name, msg in outputs.items():
-            self.publishers[name].publish(msg)
+            publisher = self.publishers.get(name)
+            if publisher is None:  # stopped serving (deactivated) while this frame ran
+                return None
+            publisher.publish(msg)
         self.frames += 1
         if self.mode == "filter":
             self.last_decisions = decision_counts(result.status, result.skipped.get("invalid detection", 0))
@@ -551,16 +586,24 @@ class NodeCore:
         return node_status(self)
 
     def publish_diagnostics(self) -> None:
+        publisher = self.pub_diagnostics
+        if publisher is None:  # not serving
+            return
         try:
             self._watch_clock()
-            self.pub_diagnostics.publish(self.diagnostics_message())
+            publisher.publish(self.diagnostics_message())
         except Exception as exc:  # diagnostics must never take the node down
             self.log.error(f"diagnostics failed: {type(exc).__name__}: {exc}")
 
     def shutdown(self) -> None:
-        """Stop the worker (pending pair dropped); the runtime closes its own entities."""
+        """Stop serving: the worker ends (a pending pair is dropped) and nothing is published any
+        more; the backend stays loaded (a managed node's ``deactivate``: :meth:`connect` serves
+        again). The runtime closes its own entities."""
         self._running = False
         self.slot.close()
         if self._worker is not None:
             self._worker.join(timeout=2.0)
+            self._worker = None
+        self.publishers = {}
+        self.pub_diagnostics = None
 
