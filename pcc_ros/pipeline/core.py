@@ -200,8 +200,7 @@ class Pipeline:
         name = config.filter.filter_backend
         if filters and config.filter.uses_mismatch and name and name != config.backend:
             self.filter_completer = load_completer(name, None, device=config.device)
-        #: measure every filter term, weighted or not (the evaluation and calibration tools:
-        #: they report terms the rule gives weight 0); False (a node): only the weighted ones
+        #: measure every filter term (the evaluation and calibration tools); False: the weighted ones
         self.all_terms = False
         #: each car's recent crops in its box frame (track_memory; None: every frame alone)
         self.track_memory = TrackMemory(config.track_max_age, config.track_gate) if config.track_memory else None
