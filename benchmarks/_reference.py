@@ -25,6 +25,7 @@ from pcc_ros.pipeline.evidence import (
     Evidence,
     SensorModel,
     _derive,
+    ground_reach,
 )
 from pcc_ros.types import Boxes
 
@@ -56,7 +57,8 @@ def original_geometry() -> Iterator[None]:
 
     saved = (pipeline_module._bounded_crop, filter_module.evidence)
     pipeline_module._bounded_crop = bounded_crop
-    filter_module.evidence = lambda points, boxes, sensor=None, workers=1: evidence(points, boxes, sensor)  # 1 thread
+    # one thread; 93cd59e measured everything (the filter keeps what its rule weights)
+    filter_module.evidence = lambda points, boxes, sensor=None, workers=1, **_measured: evidence(points, boxes, sensor)
     try:
         yield
     finally:
@@ -363,7 +365,8 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     return out
 
 
-def _local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH, quantile: float = 0.05) -> np.ndarray:
+def _local_ground(points: np.ndarray, boxes: Boxes, reach: float | np.ndarray = GROUND_REACH,
+                  quantile: float = 0.05) -> np.ndarray:
     """Ground height around each box: the ``quantile`` of the z of the returns within ``reach``
     metres of its footprint and from 3 m below to 1 m above its bottom (NaN when there are none)."""
     n = len(boxes)
@@ -371,7 +374,7 @@ def _local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH,
         return np.zeros(0)
     bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
     centre = np.c_[boxes.center[:, :2], bottom - 1.0]
-    wide = Boxes(centre, np.c_[boxes.size[:, :2] + 2 * reach, np.full(n, 4.0)], boxes.yaw)
+    wide = Boxes(centre, np.c_[boxes.size[:, :2] + 2 * np.reshape(reach, (-1, 1)), np.full(n, 4.0)], boxes.yaw)
     z = np.asarray(points)[:, 2]
     out = np.full(n, np.nan)
     for b, idx in enumerate(points_in_boxes(points, wide)):  # one partial sort per box (boxes, not points)
@@ -381,8 +384,15 @@ def _local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH,
     return out
 
 
-def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None) -> Evidence:
+def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None,
+             reach: float | np.ndarray | None = None) -> Evidence:
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
+
+    ``reach``: metres around each footprint the local ground looks. Default: the shipped
+    filter's (:func:`pcc_ros.pipeline.evidence.ground_reach`, widened by the beam model's ring
+    spacing), not 93cd59e's fixed ``GROUND_REACH``: the comparisons measure 93cd59e's
+    algorithm computing the same quantity as the shipped code, so its outputs are checked
+    bit for bit against the shipped filter's.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
     Vectorised over (ray, box) pairs: one pass over the scan, no loop over points or boxes.
@@ -426,7 +436,7 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     n_in, n_occ, n_stop = count(inside), count(occluded), count(stop)
     n_pass, n_rays = count(passed), np.bincount(pair_box, minlength=n).astype(np.float64)
     expected = _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged)
-    ground = _local_ground(xyz, boxes)
+    ground = _local_ground(xyz, boxes, ground_reach(boxes, sensor) if reach is None else reach)
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
         _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),

@@ -18,7 +18,11 @@ markers; without one it skips them).
 
    * ``original`` -- today's pipeline: the network's original path
      (the completer's ``reference`` inference path) and the crop, work estimate and evidence
-     measurements of main at 93cd59e (``benchmarks._reference.original_geometry``);
+     measurements of main at 93cd59e (``benchmarks._reference.original_geometry``), computing
+     what the shipped filter computes: the local ground over the beam model's reach
+     (``pcc_ros.pipeline.evidence.ground_reach``, newer than 93cd59e's fixed 3 m) and the
+     profile terms (the shipped pass on both sides: they have no 93cd59e counterpart), so the
+     outputs compare bit for bit and the ratio times the algorithms, not different semantics;
    * ``orig_net`` -- the network's original path only, everything else fast (the
      conservative reference: the geometry gains count for both sides);
    * ``fast`` -- the pipeline as it ships.

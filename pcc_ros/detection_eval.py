@@ -498,4 +498,6 @@ def build_pipeline(config_path: Path | None, overrides: dict[str, Any]):
         config = replace(config, filter=replace(config.filter, **filt))
     if main:
         config = replace(config, **main)
-    return Pipeline(config)
+    pipeline = Pipeline(config)
+    pipeline.all_terms = True  # the checks and calibration report every term, weighted or not
+    return pipeline

@@ -116,3 +116,60 @@ def test_a_file_is_parsed_once_and_an_override_does_not_hide_its_bad_value(tmp_p
     monkeypatch.setattr(yaml, "safe_load", lambda text: parses.append(text) or yaml.load(text, yaml.SafeLoader))
     values = load_parameters(path, backend="mirror")  # no completion_node block: the file's first block
     assert values["min_points"] == 7 and values["backend"] == "mirror" and len(parses) == 1
+
+
+def test_a_partial_rule_gives_the_weights_it_does_not_name_weight_0(tmp_path, caplog):
+    """A file written before the profile terms (its own calibrated weights, none of theirs)
+    does not inherit the shipped weights of those terms: they are 0, said in one INFO line."""
+    old_rule = ("w_bias: -3.0\nw_density: -1.2\nw_free_space: 0.4\nw_ground_gap: 2.0\nw_score: 0.0\n"
+                "w_mismatch: 0.0\nreject_threshold: 0.6\n")
+    path = tmp_path / "old.yaml"
+    path.write_text("/**/detection_filter_node:\n  ros__parameters:\n    backend: input\n"
+                    + "".join(f"    {line}\n" for line in old_rule.splitlines()))
+    with caplog.at_level("INFO", logger="pcc_ros.pipeline.filter"):
+        config = PipelineConfig.from_yaml(path).filter
+    assert (config.w_bias, config.w_density, config.w_ground_gap, config.reject_threshold) == (-3.0, -1.2, 2.0, 0.6)
+    assert all(getattr(config, f"w_{t}") == 0.0 for t in ("above", "fill", "spill", "overlap", "depth", "top"))
+    lines = [r.getMessage() for r in caplog.records if "calibrated rule is a whole" in r.getMessage()]
+    missing = lines[0].split(" but not ")[1] if len(lines) == 1 else ""
+    assert "w_above" in missing and "w_overlap" in missing and "w_density" not in missing
+    # an override naming a weight on top of the file names the same rule (the file's, plus it)
+    tweaked = pipeline_config(load_parameters(path, True, w_depth=2.0)).filter
+    assert (tweaked.w_depth, tweaked.w_density, tweaked.w_overlap) == (2.0, -1.2, 0.0)
+
+
+def test_the_shipped_rule_is_whole_and_kept_whole(caplog):
+    """The shipped file names every weight: nothing is zeroed, nothing logged; a parameter set
+    that names no weight keeps the shipped rule; an override of one weight on the shipped file
+    changes that weight only."""
+    from pcc_ros.pipeline.filter import RULE_WEIGHTS, FilterConfig
+
+    shipped = (CONFIG / CONFIG_FILES["filter"]).read_text()
+    assert all(f"    {w}:" in shipped for w in RULE_WEIGHTS)  # calibrate-filter wrote every one
+    with caplog.at_level("INFO", logger="pcc_ros.pipeline.filter"):
+        config, _ = load_config(None, with_filter=True)
+        tweaked, _ = load_config(None, with_filter=True, w_score=0.5)
+        plain = pipeline_config(node_parameters({"backend": "input"}))
+    assert not [r for r in caplog.records if "calibrated rule is a whole" in r.getMessage()]
+    assert config.filter.weighted_terms == FilterConfig().weighted_terms and config.filter.w_overlap != 0.0
+    assert tweaked.filter.w_score == 0.5 and tweaked.filter.w_overlap == config.filter.w_overlap
+    assert plain.filter.weights.tolist() == FilterConfig().weights.tolist()
+
+
+def test_calibrate_filter_writes_every_weight(tmp_path):
+    """pcc calibrate-filter's YAML names every term weight, those it fitted at 0 too."""
+    import numpy as np
+
+    from pcc_ros.filter_calibration import preset_yaml
+    from pcc_ros.pipeline.filter import RULE_WEIGHTS, TERMS
+
+    base = tmp_path / "base.yaml"
+    base.write_text("/**/detection_filter_node:\n  ros__parameters:\n    backend: input\n")
+    weights = np.zeros(len(TERMS))
+    weights[TERMS.index("density")] = -1.0
+    text = preset_yaml(base, -2.0, weights, 0.7, {}, "# calibrated: test\n")
+    path = tmp_path / "out.yaml"
+    path.write_text(text)
+    assert all(f"{w}:" in text for w in RULE_WEIGHTS)
+    config = PipelineConfig.from_yaml(path).filter
+    assert config.weighted_terms == ("density",) and config.w_bias == -2.0

@@ -178,7 +178,9 @@ def test_node_publishes_scores_terms_markers_and_counts():
     for det, false in ((kept[0], False), (rejected[0], True)):
         ids = [r.hypothesis.class_id for r in det.results]
         assert ids[0] == "Car" and ids[1] == "pcc_filter_score"
-        assert {"pcc_filter/density", "pcc_filter/free_space", "pcc_filter/ground_gap", "pcc_filter/score"} <= set(ids)
+        # the terms the shipped rule weighs; one it gives weight 0 is not measured, not published
+        assert {f"pcc_filter/{t}" for t in FilterConfig().weighted_terms} <= set(ids)
+        assert "pcc_filter/density" in ids and "pcc_filter/score" not in ids
         p = det.results[1].hypothesis.score
         assert (p > FilterConfig().reject_threshold) == false
     decoded = boxes_from_detection_array(got["kept"][0])

@@ -194,9 +194,9 @@ def test_filter_measures_on_as_many_threads_as_the_completion(monkeypatch, worke
     calls = []
     measure = filter_module.evidence
 
-    def spy(points, boxes, sensor=None, workers=1):
+    def spy(points, boxes, sensor=None, workers=1, **measured):
         calls.append(workers)
-        return measure(points, boxes, sensor, workers=workers)
+        return measure(points, boxes, sensor, workers=workers, **measured)
 
     monkeypatch.setattr(filter_module, "evidence", spy)
     points, boxes = make_frame()

@@ -38,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--score", type=float, default=0.7, help="--nuscenes: every box's detector score (0.7)")
     parser.add_argument("--ground-boxes", type=int, default=30, help="--nuscenes: free-ground boxes per frame (30)")
     parser.add_argument("--seed", type=int, default=0, help="--nuscenes: seed of the free-ground boxes (0)")
+    parser.add_argument("--nms-iou", type=float, default=0.2,
+                        help="--nuscenes: a false box overlapping a kept one above this BEV IoU is dropped, as a "
+                        "detector's NMS would (0.2; 1: keep every box)")
     parser.add_argument("--detections", type=Path, help="detector results (default: ROOT/detections/synthetic)")
     parser.add_argument("--sequence", help="tracking sequence (needed when the root holds several)")
     parser.add_argument("--frames", help="START:STOP slice of the scans (default: all)")
@@ -58,9 +61,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _nuscenes(args: argparse.Namespace, pipeline) -> int:
     from pcc_ros.filter_check import check_json, nuscenes_check, plot_check, print_check
 
-    result = nuscenes_check(args.nuscenes, pipeline, args.score, args.ground_boxes, args.seed, args.max_lost)
+    result = nuscenes_check(args.nuscenes, pipeline, args.score, args.ground_boxes, args.seed, args.max_lost,
+                            nms_iou=args.nms_iou)
     print_check(result)
-    title = f"{args.nuscenes}: filter vs points-in-box, every box at score {args.score:g}"
+    title = f"{args.nuscenes}: filter vs points-in-box, every box at score {args.score:g}, NMS IoU {args.nms_iou:g}"
     if args.plot:
         plot_check(result, args.plot, title)
         log.info("wrote %s", args.plot)

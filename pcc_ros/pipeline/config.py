@@ -35,7 +35,7 @@ from pcc_ros.msg.detections import DetectionLimits
 from pcc_ros.paths import resource_dir
 from pcc_ros.pipeline.beam_model import AUTO
 from pcc_ros.pipeline.evidence_profile import PROFILE_TERM_DOCS
-from pcc_ros.pipeline.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
+from pcc_ros.pipeline.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig, whole_rule
 from pcc_ros.types import class_mask
 
 
@@ -545,6 +545,7 @@ def node_parameters(values: dict[str, Any] | None = None, overrides: dict[str, A
     for layer in layers:
         merged.update({name: check_value(specs[name], value) for name, value in layer.items()})
     merged["classes"] = list(merged["classes"])
+    merged.update(whole_rule({name for layer in layers for name in layer}))
     return merged
 
 

@@ -200,6 +200,8 @@ class Pipeline:
         name = config.filter.filter_backend
         if filters and config.filter.uses_mismatch and name and name != config.backend:
             self.filter_completer = load_completer(name, None, device=config.device)
+        #: measure every filter term (the evaluation and calibration tools); False: the weighted ones
+        self.all_terms = False
         #: each car's recent crops in its box frame (track_memory; None: every frame alone)
         self.track_memory = TrackMemory(config.track_max_age, config.track_gate) if config.track_memory else None
 
@@ -303,7 +305,8 @@ class Pipeline:
                 sensor = self.beam_model.for_frame(points, rings)
                 if len(judged_idx):
                     part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
-                                        workers=filter_threads(cfg), sensor=sensor)
+                                        workers=filter_threads(cfg), sensor=sensor,
+                                        weighted_only=not self.all_terms)
                     terms = {k: np.full(n, np.nan) for k in part}
                     for k, v in part.items():
                         terms[k][judged_idx] = v

@@ -366,7 +366,8 @@ def _side_pool() -> ThreadPoolExecutor:
 
 
 def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1,
-             reach: float | np.ndarray | None = None) -> Evidence:
+             reach: float | np.ndarray | None = None, rays: bool = True, expected: bool = True,
+             ground: bool = True) -> Evidence:
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
@@ -376,6 +377,10 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     rays (numpy and the kernels release the GIL); the values are the same either way.
     ``reach``: metres around each footprint the local ground looks (default
     :func:`ground_reach` of the sensor model; ``GROUND_REACH`` is the fixed reach of 93cd59e).
+    ``rays`` / ``expected`` / ``ground`` False: that measurement is skipped (its raw values and
+    the terms that need them are NaN; the others are the same values): a rule whose weights
+    leave a term out does not pay for it (``rays``: n_in, n_stop, n_pass, n_occluded, n_rays;
+    ``density`` needs rays and expected, ``free_space`` rays, ``ground_gap`` ground).
     """
     sensor = sensor or SENSOR_PRESETS["hdl64"]
     n = len(boxes)
@@ -385,24 +390,28 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     if not boxes.valid_mask().all():
         boxes.validate()  # DataError naming the box
     x, y, z = _columns(points)
-    reach = ground_reach(boxes, sensor) if reach is None else reach
-    pool = _side_pool() if workers > 1 else None
+    nan = np.full(n, np.nan)
+    reach = ground_reach(boxes, sensor) if reach is None and ground else reach
+    # A second thread only when the work splits: the rays here, the rest there.
+    pool = _side_pool() if workers > 1 and rays and (ground or expected) else None
     # The side thread's jobs, in order: the ground (it needs only the scan and the boxes, so it
     # starts before the box-level setup below), then the expected returns; the two take about
     # as long as the rays do here.
     # (each in a copy of this thread's context: a line logged there is the calling node's)
     ground_job = pool.submit(contextvars.copy_context().run, _ground, x, y, z, boxes, reach, 0.05,
-                             _SCRATCH) if pool else None
-    window = angular_window(boxes)
-    table = _BoxTable(boxes)
+                             _SCRATCH) if pool and ground else None
+    window = angular_window(boxes) if rays or expected else None
+    table = _BoxTable(boxes) if rays or expected else None
     expected_job = pool.submit(contextvars.copy_context().run, _expected_beams, boxes, sensor, *window,
-                               table=table) if pool else None
-    n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
-    if pool:
-        ground, expected = ground_job.result(), expected_job.result()
+                               table=table) if pool and expected else None
+    if rays:
+        n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
     else:
-        ground = _ground(x, y, z, boxes, reach, 0.05, _SCRATCH)
-        expected = _expected_beams(boxes, sensor, *window, table=table)
+        n_in, n_occ, n_stop, n_pass, n_rays = nan, nan, nan, nan, nan
+    ground = (ground_job.result() if ground_job else _ground(x, y, z, boxes, reach, 0.05, _SCRATCH)) \
+        if ground else nan
+    expected = (expected_job.result() if expected_job else _expected_beams(boxes, sensor, *window, table=table)) \
+        if expected else nan
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
         _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),

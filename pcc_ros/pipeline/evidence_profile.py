@@ -27,6 +27,8 @@ shell and the reach above.
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 import numpy as np
 
 from pcc_ros.geometry.beams import SensorModel
@@ -72,7 +74,8 @@ def covered_share(boxes: Boxes) -> np.ndarray:
     return np.clip(share.max(axis=1), 0.0, 1.0)
 
 
-def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel) -> dict[str, np.ndarray]:
+def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
+                  measure: Collection[str] | None = None) -> dict[str, np.ndarray]:
     """``above``, ``fill``, ``spill``, ``overlap``, ``depth`` and ``top`` of every box (module
     docstring), plus the raw counts behind them (``n_body``, ``n_above``, ``n_shell``).
 
@@ -81,13 +84,23 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel) -> dict
     averaged with one prior return at 0.5 (no return: 0.5, undecided). A car fills its box: the
     rays stop at its faces; a pole, a pedestrian or a bollard in a car box stops them deep
     inside; a box shifted off its car holds the car's returns at its back. ``top``: the highest
-    body return over the box bottom, as a share of the box height (0 without one)."""
+    body return over the box bottom, as a share of the box height (0 without one).
+
+    ``measure``: the terms wanted (default all); only they are returned, with the same values.
+    ``overlap`` alone needs no pass over the scan; without ``spill`` the boxes grow sideways by
+    the face margin only, not by the shell (about half the candidate pairs of a car box)."""
+    wanted = set(PROFILE_TERMS if measure is None else measure) & set(PROFILE_TERMS)
     n = len(boxes)
     if n == 0:
         zero = np.zeros(0)
-        return {k: zero for k in (*PROFILE_TERMS, "n_body", "n_above", "n_shell")}
+        return {k: zero for k in (*sorted(wanted), "n_body", "n_above", "n_shell")}
+    out_terms: dict[str, np.ndarray] = {"overlap": covered_share(boxes)} if "overlap" in wanted else {}
+    if not wanted - {"overlap"}:
+        return out_terms
     centre, size = boxes.center.copy(), boxes.size.copy()
-    size[:, :2] += 2 * (SHELL + FACE_MARGIN)
+    # (without the shell, a 5 cm slack past the face margin: the kernel's body test of a point
+    # on that boundary must never depend on the rounding of the grown box's half size)
+    size[:, :2] += 2 * ((SHELL if "spill" in wanted else 0.05) + FACE_MARGIN)
     size[:, 2] += ABOVE_REACH
     centre[:, 2] += ABOVE_REACH / 2
     grown = Boxes(centre, size, boxes.yaw)
@@ -111,12 +124,15 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel) -> dict
     span = out[:, kernels.AZ_MAX] - out[:, kernels.AZ_MIN]
     fill = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
     top = np.where(has, (out[:, kernels.TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0)
-    return {
+    terms = {
         "above": n_above / (n_above + n_body + 1.0),
         "fill": fill,
         "spill": np.log((n_shell + 1.0) / (n_body + 1.0)),
-        "overlap": covered_share(boxes),
         "depth": (out[:, kernels.DEPTH_SUM] + 0.5) / (n_body + 1.0),
         "top": top,
-        "n_body": n_body, "n_above": n_above, "n_shell": n_shell,
     }
+    out_terms.update({k: v for k, v in terms.items() if k in wanted})
+    out_terms.update({"n_body": n_body, "n_above": n_above})
+    if "spill" in wanted:
+        out_terms["n_shell"] = n_shell
+    return out_terms

@@ -43,6 +43,7 @@ makes the conversion explicit.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +68,7 @@ from pcc_ros.types import Boxes
 
 SCORE_MAPPINGS = ("identity", "sigmoid")
 RULES = ("evidence", "trapcc")
+_log = logging.getLogger(__name__)
 _VIEWS = ((0, 2), (1, 2), (0, 1))  # side (x-z), front (y-z), top (x-y)
 
 
@@ -123,6 +125,11 @@ class FilterConfig:
     def weights(self) -> np.ndarray:
         """``(len(TERMS),)`` weights in :data:`TERMS` order."""
         return np.array([getattr(self, f"w_{t}") for t in TERMS], dtype=np.float64)
+
+    @property
+    def weighted_terms(self) -> tuple[str, ...]:
+        """The terms of :data:`TERMS` with a non-zero weight: those the evidence rule reads."""
+        return tuple(t for t, w in zip(TERMS, self.weights) if w != 0.0)
 
     @property
     def uses_mismatch(self) -> bool:
@@ -236,6 +243,30 @@ def reject_mask(mismatch: np.ndarray, detection_scores: np.ndarray, config: Filt
 #: The evidence terms, in the order of the logistic weights (:attr:`FilterConfig.weights`).
 TERMS = ("density", "free_space", "ground_gap", "score", "mismatch", *PROFILE_TERMS)
 
+#: The term weights of the evidence rule: one calibrated whole (:func:`whole_rule`).
+RULE_WEIGHTS = tuple(f"w_{t}" for t in TERMS)
+
+
+def whole_rule(given) -> dict[str, float]:
+    """The term weights a parameter set leaves out, at 0, when it names some of them.
+
+    A calibrated rule is a whole: its weights were fitted together, and a term it never saw
+    must not join it with the shipped rule's weight (a file written before a term existed
+    would otherwise get that term, fitted beside other weights, added on top of its own rule).
+    So a parameter set (a file and the overrides on it) that names any ``w_<term>`` gives
+    every term it does not name weight 0, said in one INFO line; one that names none keeps the
+    shipped rule whole. ``w_bias``, ``reject_threshold`` and ``mismatch_mean`` keep their
+    defaults when missing (a file of an older rule has them too). A parameter changed on a
+    running node changes that weight only (the rest of its rule stays)."""
+    named = [w for w in RULE_WEIGHTS if w in given]
+    missing = [w for w in RULE_WEIGHTS if w not in given]
+    if not named or not missing:
+        return {}
+    _log.info("the parameters name the filter weights %s but not %s: those are 0 (a calibrated rule is a "
+              "whole; pcc calibrate-filter writes every weight)", ", ".join(named), ", ".join(missing))
+    return dict.fromkeys(missing, 0.0)
+
+
 # The measurements themselves (rays, expected returns, local ground) live in
 # pcc_ros.pipeline.evidence; imported above and re-exported here.
 
@@ -269,21 +300,42 @@ def false_probability(terms: dict[str, np.ndarray], config: FilterConfig) -> np.
     return 1.0 / (1.0 + np.exp(-z))
 
 
+#: The raw measurements of :func:`evidence`, each with the pass that makes them (its flag).
+_EVIDENCE_KEYS = {"n_in": "rays", "n_stop": "rays", "n_pass": "rays", "n_occluded": "rays", "n_rays": "rays",
+                  "expected": "expected", "ground_z": "ground"}
+
+
 def filter_terms(
     points: np.ndarray, boxes: Boxes, config: FilterConfig, mismatch: np.ndarray | None = None, workers: int = 1,
-    sensor: SensorModel | None = None, rings: np.ndarray | None = None,
+    sensor: SensorModel | None = None, rings: np.ndarray | None = None, weighted_only: bool = False,
 ) -> dict[str, np.ndarray]:
     """Every term of the evidence rule for ``boxes`` in ``points`` (plus the raw counts);
     ``workers``: CPU threads measuring them (:func:`evidence`). ``sensor``: the beam model (a
     pipeline passes its :class:`~pcc_ros.pipeline.beam_model.BeamModel`'s); without one, the
     configured preset, or for ``sensor: auto`` this scan's own estimate (``rings``: its ring
-    field, when it has one)."""
+    field, when it has one).
+
+    ``weighted_only``: measure only the terms :attr:`FilterConfig.weighted_terms` names (the
+    others are absent from the result, which :func:`term_matrix` reads as 0: the probability
+    is the same, since their weight is 0), and the raw counts those need; a pass none of them
+    needs (the rays, the expected returns, the local ground, the profile pass) is not run.
+    Calibration and the evaluation tools measure every term (the default)."""
     sensor = sensor or sensor_for(config.sensor, points, rings)
-    ev = evidence(points, boxes, sensor, workers=workers)
-    out = ev.as_dict()
-    out.update(profile_terms(points, boxes, sensor))
-    out["score"] = score_logit(boxes.score, config.score_mapping)
-    out["mismatch"] = np.full(len(boxes), np.nan) if mismatch is None else np.asarray(mismatch, dtype=np.float64)
+    wanted = set(config.weighted_terms) if weighted_only else set(TERMS)
+    rays = bool(wanted & {"density", "free_space"})
+    out: dict[str, np.ndarray] = {}
+    measured = {"rays": rays, "expected": "density" in wanted, "ground": "ground_gap" in wanted}
+    if any(measured.values()):
+        ev = evidence(points, boxes, sensor, workers=workers, **measured)
+        keep = {k for k, needs in _EVIDENCE_KEYS.items() if measured[needs]} | (wanted & set(ev.terms))
+        out = {k: v for k, v in ev.as_dict().items() if k in keep}
+    profile = wanted & set(PROFILE_TERMS)
+    if profile:
+        out.update(profile_terms(points, boxes, sensor, measure=profile))
+    if "score" in wanted:
+        out["score"] = score_logit(boxes.score, config.score_mapping)
+    if "mismatch" in wanted or mismatch is not None:
+        out["mismatch"] = np.full(len(boxes), np.nan) if mismatch is None else np.asarray(mismatch, dtype=np.float64)
     return out
 
 

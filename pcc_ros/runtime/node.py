@@ -191,7 +191,8 @@ class NodeCore:
             raise ConfigError(f"unknown node output(s) {unknown}; known: {sorted(every)}")
         self.runtime, self.node_name, self.mode = runtime, node_name, mode
         self.log = runtime.get_logger()
-        values = node_parameters(parameters)
+        with working_for(self.log):  # the parameters' and a backend's load lines are this node's
+            values = node_parameters(parameters)
         self.parameters = values
         config = pipeline_config(values)
         #: the stages the outputs need (a filter node whose rule gives the shape no weight runs no network)
