@@ -418,10 +418,13 @@ def _filter_hypotheses(obs: Observed) -> dict[str, dict[str, float]]:
 
 def _log_odds_moved(term: str, change: float, before: Observed, after: Observed) -> None:
     """Each detection's log-odds of being false moved by ``change`` times its published ``term``
-    (the logistic rule), and the term is not 0 for some detection (the case's scene gives it a value)."""
+    (the logistic rule), and the term is not 0 for some detection (the case's scene gives it a value).
+    The filter measures, and publishes, only the terms its rule weighs: the term is read from the
+    node whose weight is not 0."""
     b, a = _filter_hypotheses(before), _filter_hypotheses(after)
     assert set(b) == set(a) and b, (sorted(b), sorted(a))
-    values = {i: b[i].get(TERM_CLASS_PREFIX + term, 0.0) for i in b}
+    key = TERM_CLASS_PREFIX + term
+    values = {i: b[i].get(key, a[i].get(key, 0.0)) for i in b}  # a term not published (NaN) reads 0
     assert any(abs(v) > 1e-3 for v in values.values()), f"{term} is 0 for every detection: {values}"
     for i, v in values.items():
         moved = float(np.diff([np.log(h[SCORE_CLASS_ID] / (1 - h[SCORE_CLASS_ID])) for h in (b[i], a[i])])[0])
