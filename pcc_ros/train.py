@@ -58,7 +58,7 @@ from tqdm import tqdm
 
 from pcc_ros.assignments import parse_assignments
 from pcc_ros.data import gt_pools
-from pcc_ros.data.instances import InstanceCache
+from pcc_ros.data.instance_cache import InstanceCache
 from pcc_ros.errors import CheckpointError, ConfigError, TrainingError
 from pcc_ros.evaluate import instances_from_cache, score_backend
 from pcc_ros.models.base import TrainingKit, select_device

@@ -245,7 +245,7 @@ class TrainingKit:
     declares a ``kit`` attribute; :meth:`require` names the recipe when it was not handed one.
     """
 
-    #: ``path -> instance cache`` (``data.instances.InstanceCache.load``).
+    #: ``path -> instance cache`` (``data.instance_cache.InstanceCache.load``).
     open_cache: Callable[[Any], Any]
     #: ``(cache, split, count, seed) -> (instances, reference)`` (``train.validation_instances``).
     validation_instances: Callable[[Any, str, int, int], tuple[list[Any], str]]
