@@ -308,12 +308,13 @@ def test_backend_table_names_every_registered_class_and_owns_recipes_and_presets
 
     package = Path(__file__).resolve().parents[1] / "pcc_ros" / "models"
     decorated = {}
-    for path in package.glob("*.py"):
+    for path in package.rglob("*.py"):  # backends may live in a subpackage (models/aml/)
+        module = ".".join(("pcc_ros", "models", *path.relative_to(package).with_suffix("").parts))
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.ClassDef):
                 for deco in node.decorator_list:
                     if isinstance(deco, ast.Call) and getattr(deco.func, "id", "") == "register":
-                        decorated[deco.args[0].value] = f"pcc_ros.models.{path.stem}:{node.name}"
+                        decorated[deco.args[0].value] = f"{module}:{node.name}"
     assert decorated == BACKENDS
     for name in BACKENDS:
         assert get_backend(name).name == name
