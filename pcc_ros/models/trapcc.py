@@ -438,8 +438,6 @@ class TraPCCRecipe(CacheRecipe):
             raise ConfigError(f"trapcc: real_share must be in [0, 1], got {self.options.real_share}")
         self.model = model
         self.data_summary_: dict[str, Any] = {}
-        #: caches and ground-truth pools come through :class:`TrainingKit` (set by ``pcc_ros.train``)
-        self.kit: TrainingKit | None = None
 
     def use_real_data(self, caches: list[str], share: float) -> None:
         """``pcc train --real-data CACHE --real-share S``: the same as ``--option real_data=[...]``."""
@@ -447,6 +445,11 @@ class TraPCCRecipe(CacheRecipe):
             raise ConfigError(f"trapcc: real_share must be in [0, 1], got {share}")
         self.options.real_data = [*self.options.real_data, *caches]
         self.options.real_share = float(share)
+
+    def mix_real_data(self, data: TrainData, min_points: int) -> tuple[TrainData, dict[str, Any]]:
+        """The real caches are already in ``data`` (and in the pools): :meth:`training_data` mixed them
+        at ``real_share`` of the samples; what it mixed is the data summary."""
+        return data, self.data_summary()
 
     def build_completer(self, device: str) -> TraPCC:
         return TraPCC(device=device, size=self.size, **self.model)

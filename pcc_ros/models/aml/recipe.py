@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -29,8 +30,8 @@ from pcc_ros.models.aml.prior import (
     validate_prior,
     whiten_latent,
 )
-from pcc_ros.models.base import TrainingKit
 from pcc_ros.models.checkpoint import load_checkpoint
+from pcc_ros.models.recipe import TrainingKit, TrainingRecipe
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +62,7 @@ class Observations:
         return len(self.clouds)
 
 
-class AMLRecipe:
+class AMLRecipe(TrainingRecipe):
     """``pcc train aml --stage prior|encoder`` (driven by :mod:`pcc_ros.train`).
 
     * ``prior``: ``--data`` is a SynthCars root; the VAE learns the voxelised complete shapes
@@ -74,6 +75,7 @@ class AMLRecipe:
       metrics of the encoder (``val_cd_l1``) on the validation split.
     """
 
+    name = "aml"
     default_lr = 1e-3
 
     def __init__(self, size: str = "default", stage: str = "prior", prior: str | None = None,
@@ -111,11 +113,8 @@ class AMLRecipe:
             raise ConfigError(f"aml: lambda_holdout must be in (0, 1), got {lambda_holdout}")
         self.select_metric = "val_loss" if stage == "prior" else "val_cd_l1"
         self.lambda_sweep: dict[str, Any] = {}
+        self.whitening: dict[str, Any] = {}
         self.completer: AML | None = None
-        self._source_root: Path | None = None
-        #: instance caches and the evaluation-metric validation come through :class:`TrainingKit`
-        #: (set by ``pcc_ros.train``); the prior stage needs none of it
-        self.kit: TrainingKit | None = None
 
     def describe(self) -> dict[str, Any]:
         return {"size": self.size, "stage": self.stage, "prior": self.prior, "lambdas": self.lambdas,
@@ -146,10 +145,10 @@ class AMLRecipe:
     # ---- data
 
     def open_data(self, path: Path) -> Any:
+        """Prior stage: the voxelised reference shapes of a SynthCars root; encoder stage: a cache."""
         if self.stage == "prior":
             return self._reference_shapes(Path(path))
-
-        return TrainingKit.require(self.kit, "aml").open_cache(path)
+        return super().open_data(path)
 
     def _reference_shapes(self, root: Path) -> ReferenceSet:
         """The voxelised reference set, read from / written to ``reference_cache`` when given."""
@@ -176,7 +175,7 @@ class AMLRecipe:
             return source.subset(np.flatnonzero(~val))
 
         clouds, origins, aspects, sources = [], [], [], {}
-        open_cache = TrainingKit.require(self.kit, "aml").open_cache if self.real else None
+        open_cache = TrainingKit.require(self.kit, self.name).open_cache if self.real else None
         caches = [(source, 1, split)] + [(open_cache(p), self.real_repeat, self.real_split) for p in self.real]
         for cache, repeat, which in caches:  # a handful of caches
             idx = cache.indices(which, min_points=min_points) if which != "all" else np.concatenate(
@@ -244,20 +243,18 @@ class AMLRecipe:
         return loss, {"loss": float(loss.detach()), "nll_per_voxel": float((nll / observed).mean().detach()),
                       "z_norm": float(z.detach().norm(dim=1).mean())}
 
-    # ---- validation and lambda selection (hooks of pcc_ros.train)
+    # ---- validation and lambda selection
 
     def validation_data(self, source: Any, split: str, count: int, seed: int) -> tuple[Any, str]:
         if self.stage == "prior":
             val = hash_split(source.keys, 0.1)
             return source.subset(np.flatnonzero(val)), "held-out reference shapes"
-
-        return TrainingKit.require(self.kit, "aml").validation_instances(source, split, count, seed)
+        return super().validation_data(source, split, count, seed)
 
     def validate(self, completer: AML, val_data: Any, seed: int) -> dict[str, float]:
         if self.stage == "prior":
             return validate_prior(completer, val_data, self.beta)
-
-        return TrainingKit.require(self.kit, "aml").validate(completer, val_data, seed)
+        return super().validate(completer, val_data, seed)
 
     def prepare(self, completer: AML, data: Any, val_data: Any, seed: int) -> None:
         """Encoder stage: choose lambda with the ML baseline on validation instances."""
@@ -269,7 +266,7 @@ class AMLRecipe:
             return
         real = None
         if self.real and self.lambda_real_weight > 0:
-            open_cache = TrainingKit.require(self.kit, "aml").open_cache
+            open_cache = TrainingKit.require(self.kit, self.name).open_cache
             real = real_crops([open_cache(p) for p in self.real], "all")
         self.lambda_sweep = select_lambda(completer, val_data[: self.lambda_instances], self.lambdas,
                                           self.lambda_steps, seed, real=real, real_weight=self.lambda_real_weight,
@@ -278,18 +275,27 @@ class AMLRecipe:
         log.info("aml: lambda %.3g chosen on %d validation instances: %s", completer.lam,
                  self.lambda_sweep["instances"], self.lambda_sweep["table"])
 
-    def finalize(self, completer: AML, data: Any) -> None:
-        """Prior stage, before the final save: whiten the latent space (:func:`whiten_latent`)."""
-        if self.stage == "prior":
-            self.whitening = whiten_latent(completer.model, data, float(completer.config["truncation"]))
-            log.info("aml: latent whitened on %d reference shapes: %s", len(data), self.whitening)
+    @contextlib.contextmanager
+    def saving(self, completer: AML, data: Any) -> Iterator[None]:
+        """Prior stage: the saved weights have a whitened latent space (:func:`whiten_latent`); training
+        continues with its own weights."""
+        if self.stage != "prior":
+            yield
+            return
+        current = {k: v.clone() for k, v in completer.model.state_dict().items()}
+        self.whitening = whiten_latent(completer.model, data, float(completer.config["truncation"]))
+        log.info("aml: latent whitened on %d reference shapes: %s", len(data), self.whitening)
+        try:
+            yield
+        finally:
+            completer.model.load_state_dict(current)
 
     def summary(self) -> dict[str, Any]:
         """Extra facts for the checkpoint (the lambda sweep, the latent whitening)."""
         out: dict[str, Any] = {}
         if self.lambda_sweep:
             out["lambda_selection"] = self.lambda_sweep
-        if getattr(self, "whitening", None):
+        if self.whitening:
             out["latent_whitening"] = self.whitening
         return out
 
