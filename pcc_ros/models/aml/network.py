@@ -30,7 +30,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "max_rays": 256,
         "stop": 1.0,
         # the grid's frame: "box" (the box is [-0.5, 0.5]^3: shapes take the box's width and
-        # height) or "canonical" (box length = 1, fixed y / z range; the first shipped weights)
+        # height) or "canonical" (box length = 1, fixed y / z range; what checkpoints without "frame" used)
         "frame": "box",
     },
 }
