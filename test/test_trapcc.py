@@ -21,13 +21,8 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.models import SceneContext, create, load_completer
 from pcc_ros.models.base import aspect_scales, median_box_aspect
-from pcc_ros.models.trapcc import (
-    TrainOptions,
-    TraPCCRecipe,
-    nearest_neighbours,
-    neighbour_geometry,
-    training_recipe,
-)
+from pcc_ros.models.trapcc import nearest_neighbours, neighbour_geometry
+from pcc_ros.models.trapcc_recipe import TrainOptions, TraPCCRecipe, training_recipe
 from pcc_ros.train import load_recipe, training_kit
 from pcc_ros.types import Boxes, Sample
 
