@@ -44,6 +44,7 @@ from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.metrics import METRICS, instance_metrics, to_metres, unit_label
 from pcc_ros.models import backend_names, get_backend, load_completer
 from pcc_ros.models.base import SceneContext
+from pcc_ros.plotting import canonical_grid
 from pcc_ros.tables import metric_cell, print_table
 
 log = logging.getLogger("pcc.eval")
@@ -365,47 +366,13 @@ def plot_examples(
     completion of instance ``i`` (a list or a dict). Clouds are drawn in 3D in the
     canonical frame from the same viewpoint.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    count = len(picks)
-    if count == 0:
+    if not picks:
         raise ValueError("plot_examples: no instances to draw")
     names = [n for n in completions if n != "input"]  # the partial column already shows it
     columns = ["partial input", *names, "ground truth" if reference == "ground_truth" else "aggregated reference"]
-    fig = plt.figure(figsize=(2.6 * len(columns), 2.4 * count))
-    rng = np.random.default_rng(0)
-    for row, idx in enumerate(picks):
-        inst = instances[idx]
-        clouds = [inst.partial, *(completions[n][idx] for n in names), inst.reference]
-        for col, (title, cloud) in enumerate(zip(columns, clouds)):
-            ax = fig.add_subplot(count, len(columns), row * len(columns) + col + 1, projection="3d")
-            if len(cloud) > max_draw:
-                cloud = cloud[rng.choice(len(cloud), max_draw, replace=False)]
-            colour = "tab:red" if col == 0 else ("tab:green" if col == len(columns) - 1 else "tab:blue")
-            ax.scatter(cloud[:, 0], cloud[:, 1], cloud[:, 2], s=1.0, c=colour, depthshade=False, linewidths=0)
-            ax.set_xlim(-0.6, 0.6)
-            ax.set_ylim(-0.6, 0.6)
-            ax.set_zlim(-0.6, 0.6)
-            ax.set_box_aspect((1, 1, 1))
-            ax.view_init(elev=40, azim=-50)
-            ax.set_xticks([])
-            ax.set_yticks([])
-            ax.set_zticks([])
-            if row == 0:
-                ax.set_title(title, fontsize=9)
-            if col == 0:
-                ax.text2D(
-                    0.0, 0.0, f"{inst.key}\n{inst.distance:.0f} m, {inst.num_points} pts", transform=ax.transAxes,
-                    fontsize=7,
-                )
-    fig.suptitle("canonical frame (x forward, y left, z up; box length = 1)", fontsize=9)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    rows = [(f"{instances[i].key}\n{instances[i].distance:.0f} m, {instances[i].num_points} pts",
+             [instances[i].partial, *(completions[n][i] for n in names), instances[i].reference]) for i in picks]
+    canonical_grid(path, columns, rows, "canonical frame (x forward, y left, z up; box length = 1)", max_draw)
 
 
 # --------------------------------------------------------------------------- command

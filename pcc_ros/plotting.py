@@ -1,4 +1,4 @@
-"""Matplotlib helpers shared by the PNGs the tools write (``pcc demo``, SynthCars previews).
+"""Matplotlib helpers shared by the PNGs the tools write (``pcc demo``, ``pcc eval``, SynthCars previews).
 
 :func:`label_boxes` puts one text label beside each box of a bird's-eye view so that no label
 sits inside a box (on top of that car's points, where a label in the box's colour vanishes),
@@ -9,6 +9,7 @@ overlapping detections still get every label, readable.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -90,3 +91,42 @@ def label_boxes(ax, corners: np.ndarray, texts: Sequence[str | None], colors: Se
         placed.append(extent)
         artists.append(artist)
     return artists
+
+
+def canonical_grid(path: Path, columns: Sequence[str], rows: Sequence[tuple[str, Sequence[np.ndarray]]], title: str,
+                   max_draw: int = 2048) -> None:
+    """A PNG grid of canonical clouds: one row per ``(label, clouds)``, one 3D panel per column, all
+    from the same viewpoint over the canonical box (so sizes compare across panels). The first
+    column is drawn red, the last green, the others blue; at most ``max_draw`` points per panel
+    (a seeded subset)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(2.6 * len(columns), 2.4 * len(rows)))
+    rng = np.random.default_rng(0)
+    for row, (label, clouds) in enumerate(rows):
+        for col, (name, cloud) in enumerate(zip(columns, clouds)):
+            ax = fig.add_subplot(len(rows), len(columns), row * len(columns) + col + 1, projection="3d")
+            if len(cloud) > max_draw:
+                cloud = cloud[rng.choice(len(cloud), max_draw, replace=False)]
+            colour = "tab:red" if col == 0 else ("tab:green" if col == len(columns) - 1 else "tab:blue")
+            ax.scatter(cloud[:, 0], cloud[:, 1], cloud[:, 2], s=1.0, c=colour, depthshade=False, linewidths=0)
+            ax.set_xlim(-0.6, 0.6)
+            ax.set_ylim(-0.6, 0.6)
+            ax.set_zlim(-0.6, 0.6)
+            ax.set_box_aspect((1, 1, 1))
+            ax.view_init(elev=40, azim=-50)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_zticks([])
+            if row == 0:
+                ax.set_title(name, fontsize=9)
+            if col == 0:
+                ax.text2D(0.0, 0.0, label, transform=ax.transAxes, fontsize=7)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
