@@ -325,6 +325,22 @@ def test_backend_table_names_every_registered_class_and_owns_recipes_and_presets
     assert type(load_recipe("aml_ml", "default", {})) is type(get_backend("aml").training_recipe())
 
 
+def test_the_launch_file_help_names_every_backend():
+    """``ros2 launch ... --show-args`` is where a user looks for the backends: it names the registry's."""
+    import ast
+    import re
+    from pathlib import Path
+
+    from pcc_ros.models import BACKENDS
+
+    launch = Path(__file__).resolve().parents[1] / "launch" / "perception.launch.py"
+    tree = ast.parse(launch.read_text(encoding="utf-8"))
+    arguments = next(ast.literal_eval(node.value) for node in tree.body
+                     if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", "") == "ARGUMENTS")
+    help_text = dict((name, text) for name, _, text in arguments)["backend"]
+    assert set(BACKENDS) <= set(re.findall(r"\w+", help_text)), help_text
+
+
 @pytest.mark.parametrize("name", ["pointpncnet", "trapcc", "aml", "aml_ml"])
 def test_presets_sizes_and_recipes_come_from_the_base_class(name):
     """A backend states its PRESETS and its recipe; models.base checks sizes, builds defaults, trains."""
