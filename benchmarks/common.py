@@ -2,13 +2,27 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
 from pcc_ros.tables import print_table  # noqa: F401  (the benchmarks import it from here)
+
+
+@contextlib.contextmanager
+def inference_path(completer, path: str) -> Iterator[None]:
+    """``completer`` on inference ``path`` (:mod:`pcc_ros.models.inference`) inside the block, its
+    own after: the alternatives a benchmark times on one completer and one set of weights (set
+    between calls, never while another thread runs it)."""
+    before = completer.inference_path
+    completer.inference_path = path
+    try:
+        yield
+    finally:
+        completer.inference_path = before
 
 
 def median_ms(fn: Callable[[], object], repeat: int = 30, warmup: int = 3) -> float:

@@ -6,7 +6,7 @@ is recorded):
 
 1. PointPnCNet ``default`` (shipped weights) at batch 32, at every ``--densities`` decode
    density (1: as trained, where the targets are defined; 2: ``completion_node``'s default,
-   4608 points): the original path (``pcc_ros.models.layers.reference_path``:
+   4608 points): the original path (the ``reference`` inference path, :mod:`pcc_ros.models.inference`:
    ``segment_reduce`` max-pooling, whole ``(P, C)`` intermediates, the ``(P, 8)`` octant
    mask) against the fast path, for every ``--threads`` setting (intra-op threads; ``2x1`` =
    two Python worker threads, one intra-op thread each, each completing half the batch:
@@ -64,7 +64,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import interleaved, load_average, print_table, summary_ms
+from benchmarks.common import inference_path, interleaved, load_average, print_table, summary_ms
 
 TARGET_SPEEDUP = 2.0
 TARGET_CEILING = 0.8
@@ -156,12 +156,10 @@ def run_with(setting: tuple[int, int], fn: Callable[[list], object], batch: list
         t.join()
 
 
-def linear_flops_by(parts: dict[str, Any], call: Callable[[], object]) -> dict[str, int]:
+def linear_flops_by(completer, parts: dict[str, Any], call: Callable[[], object]) -> dict[str, int]:
     """FLOPs of every ``nn.Linear`` call inside each of ``parts`` (name -> module) during ``call()``
     (2 * rows * in * out), on the original path: the network as defined."""
     import torch
-
-    from pcc_ros.models.layers import reference_path
 
     total = dict.fromkeys(parts, 0)
 
@@ -172,7 +170,7 @@ def linear_flops_by(parts: dict[str, Any], call: Callable[[], object]) -> dict[s
     handles = [lin.register_forward_hook(lambda m, i, o, name=name: hook(m, i, o, name))
                for name, part in parts.items() for lin in part.modules() if isinstance(lin, torch.nn.Linear)]
     try:
-        with reference_path():
+        with inference_path(completer, "reference"):
             call()
     finally:
         for h in handles:
@@ -180,9 +178,9 @@ def linear_flops_by(parts: dict[str, Any], call: Callable[[], object]) -> dict[s
     return total
 
 
-def linear_flops(model, call: Callable[[], object]) -> int:
+def linear_flops(completer, call: Callable[[], object]) -> int:
     """FLOPs of every ``nn.Linear`` call during ``call()`` (2 * rows * in * out), original path."""
-    return linear_flops_by({"model": model}, call)["model"]
+    return linear_flops_by(completer, {"model": completer.model}, call)["model"]
 
 
 def ceiling_calls(setting: tuple[int, int] = (1, 1)) -> dict[str, tuple[Callable[[], object], float]]:
@@ -266,7 +264,7 @@ def part_times(completer, batch: list, repeat: int) -> list[dict[str, Any]]:
     from pcc_ros.models.layers import FoldingDecoder, PCNEncoder
 
     parts = [(n, m) for n, m in completer.model.named_children() if isinstance(m, PCNEncoder | FoldingDecoder)]
-    flops = linear_flops_by(dict(parts), lambda: completer.complete(batch))
+    flops = linear_flops_by(completer, dict(parts), lambda: completer.complete(batch))
     spent: dict[str, list[float]] = {n: [] for n, _ in parts}
     start: dict[str, float] = {}
     handles = []
@@ -343,10 +341,8 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     """Section 5: the network against a replay of its own matrix products, one thread."""
     import torch
 
-    from pcc_ros.models.layers import compiled_kernels
-
     torch.set_num_threads(1)
-    with compiled_kernels(False):  # the same products as torch operators: the profiler records them
+    with inference_path(completer, "operators"):  # the same products as torch operators: the profiler records them
         shapes = recorded_matmuls(lambda: completer.complete(batch))
     replay = matmul_replay(shapes)
     alts: dict[str, Callable[[], object]] = {"network": lambda: completer.complete(batch), "matmul_replay": replay}
@@ -387,11 +383,11 @@ def time_breakdown(completer, batch: list, repeat: int, flops_per_batch: float) 
     out["network_of_ceiling_min"] = flops_per_batch / float(np.min(times["network"])) / 1e9 / ceiling_min
     out["replay_of_ceiling_min"] = replay_flops / float(np.min(times["matmul_replay"])) / 1e9 / ceiling_min
     out["outside_matmul_share_min"] = 1.0 - float(np.min(times["matmul_replay"])) / float(np.min(times["network"]))
-    with compiled_kernels(True, whole_networks=False):  # one compiled call has no parts to hook
+    with inference_path(completer, "compiled_layers"):  # one compiled call has no parts to hook
         out["parts"] = part_times(completer, batch, repeat)
     print_table("time per part of the network (1 thread, batch 32, fast path with the layers called one by one; "
                 "FLOP share of the nominal count)", out["parts"])
-    with compiled_kernels(False):  # the compiled loops are one opaque call to the profiler
+    with inference_path(completer, "operators"):  # the compiled loops are one opaque call to the profiler
         out["operators"] = op_profile(lambda: completer.complete(batch), repeat)
     print_table(f"the fast path's operators with the compiled loops off, by kind (torch.profiler, {repeat} batches; "
                 "ms per batch with the profiler's overhead, share of the profiled operator time)",
@@ -423,7 +419,6 @@ def run(args: argparse.Namespace) -> dict:
     import torch
 
     from pcc_ros.models import available, backend_names, default_checkpoint, get_backend, load_completer
-    from pcc_ros.models.layers import compiled_kernels, reference_path
     from pcc_ros.models.registry import create
 
     # named backends are checked now, not at section 4 after minutes of timing
@@ -445,15 +440,15 @@ def run(args: argparse.Namespace) -> dict:
     from pcc_ros.models.layers import set_decode_density
 
     def reference(setting: tuple[int, int], batch: list) -> None:
-        with reference_path():  # a process-wide switch: set it around the worker threads
+        with inference_path(completer, "reference"):
             run_with(setting, completer.complete, batch)
 
     def operators(setting: tuple[int, int], batch: list) -> None:
-        with compiled_kernels(False):  # the fast path as torch operators (the compiled loops off)
+        with inference_path(completer, "operators"):  # the fast path as torch operators
             run_with(setting, completer.complete, batch)
 
     def layer_by_layer(setting: tuple[int, int], batch: list) -> None:
-        with compiled_kernels(True, whole_networks=False):  # the layers' compiled loops, Python between them
+        with inference_path(completer, "compiled_layers"):  # the layers' compiled loops, Python between them
             run_with(setting, completer.complete, batch)
 
     settings = parse_threads(args.threads)
@@ -463,17 +458,17 @@ def run(args: argparse.Namespace) -> dict:
         set_decode_density(completer.model, density)
         torch.set_num_threads(1)
         fast_out = completer.complete(batch32)
-        with reference_path():
+        with inference_path(completer, "reference"):
             ref_out = completer.complete(batch32)
         max_diff = max(float(np.abs(a - b).max()) for a, b in zip(fast_out, ref_out))
         if max_diff > 1e-4:
             raise SystemExit(f"decode density {density}: fast and original network paths disagree: "
                              f"max |diff| {max_diff:.2e} (canonical)")
-        nominal = linear_flops(completer.model, lambda: completer.complete(batch32)) / len(batch32)
-        with compiled_kernels(False):  # the compiled loops run the same products: count them as operators
+        nominal = linear_flops(completer, lambda: completer.complete(batch32)) / len(batch32)
+        with inference_path(completer, "operators"):  # the compiled loops run the same products: count them here
             ops_out = completer.complete(batch32)
             executed = sum(2 * m * k * n for m, k, n in recorded_matmuls(lambda: completer.complete(batch32)))
-        with compiled_kernels(True, whole_networks=False):
+        with inference_path(completer, "compiled_layers"):
             layers_out = completer.complete(batch32)
         max_diff = max(max_diff, *(float(np.abs(a - b).max()) for out in (ops_out, layers_out)
                                    for a, b in zip(out, ref_out)))
@@ -532,9 +527,10 @@ def run(args: argparse.Namespace) -> dict:
          "fast_max_ms", "original_inst_s", "fast_inst_s", "speedup", "gflop_s", "mm_gflop_s", "of_ceiling",
          "of_ceiling_min"],
     )
-    print("fast_ops: the fast path with its compiled CPU loops off (pcc_ros.models.layers.compiled_kernels): the "
-          "same steps as torch operators; fast_layers: the loops on, the layers called one by one from Python (not "
-          "in PointPnCNet's single compiled call); of_ceiling: medians; of_ceiling_min: the fastest round of the "
+    print("fast_ops: the fast path as torch operators (inference_path operators): the same steps as the compiled "
+          "CPU loops; fast_layers: the loops, the layers called one by one from Python (inference_path "
+          "compiled_layers; not in PointPnCNet's single compiled call); of_ceiling: medians; of_ceiling_min: the "
+          "fastest round of the "
           "network against the fastest of the ceiling's matrix products")
     for density, c in counts.items():
         print(f"decode density {density} ({c['output_points']} points): {c['executed_flops_per_instance'] / 1e6:.1f} "

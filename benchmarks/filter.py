@@ -102,28 +102,32 @@ def thread_grain(repeat: int) -> list[dict]:
 
 def run(args: argparse.Namespace) -> dict:
     from benchmarks._reference import evidence as reference_evidence
-    from pcc_ros.pipeline.filter import SENSOR_PRESETS, evidence
+    from pcc_ros.pipeline.filter import GROUND_REACH, SENSOR_PRESETS, evidence
 
     load_before = load_average()
     sensor = SENSOR_PRESETS["hdl64"]
+    fixed = GROUND_REACH  # 93cd59e's ground reach: the outputs compared bit for bit
     rows = []
     for scan, points, boxes in _frames(args):
         reference = reference_evidence(points, boxes, sensor).as_dict()
-        check_equal(evidence(points, boxes, sensor).as_dict(), reference)
-        check_equal(evidence(points, boxes, sensor, workers=2).as_dict(), reference)
-        times = interleaved({"ours": lambda p=points, b=boxes: evidence(p, b, sensor),
-                             "ours_2": lambda p=points, b=boxes: evidence(p, b, sensor, workers=2),
+        check_equal(evidence(points, boxes, sensor, reach=fixed).as_dict(), reference)
+        check_equal(evidence(points, boxes, sensor, workers=2, reach=fixed).as_dict(), reference)
+        times = interleaved({"ours": lambda p=points, b=boxes: evidence(p, b, sensor, reach=fixed),
+                             "ours_2": lambda p=points, b=boxes: evidence(p, b, sensor, workers=2, reach=fixed),
+                             "ours_beams": lambda p=points, b=boxes: evidence(p, b, sensor),
                              "93cd59e": lambda p=points, b=boxes: reference_evidence(p, b, sensor)},
                             repeat=args.repeat, warmup=3)
         ours, two, ref = (summary_ms(times[k]) for k in ("ours", "ours_2", "93cd59e"))
+        beams = summary_ms(times["ours_beams"])
         rows.append({"scan": scan, "points": len(points), "boxes": len(boxes),
                      "ours_min": ours["min_ms"], "ours_ms": ours["median_ms"], "ours_max": ours["max_ms"],
-                     "ours2_min": two["min_ms"], "ours2_ms": two["median_ms"],
+                     "ours2_min": two["min_ms"], "ours2_ms": two["median_ms"], "beams_ms": beams["median_ms"],
                      "ref_min": ref["min_ms"], "ref_ms": ref["median_ms"], "ref_max": ref["max_ms"],
                      "speedup": ref["median_ms"] / ours["median_ms"], "outputs": "identical"})
     print_table(f"evidence filter measurements, ms ({args.repeat} interleaved calls each: min / median / max); "
                 "ours = one thread, ours2 = workers 2 (ground and expected returns on a second thread, as the "
-                "pipeline's workers >= 2); ref = main at 93cd59e", rows)
+                "pipeline's workers >= 2), both with 93cd59e's fixed ground reach; beams = one thread, the ground "
+                "reach the pipeline uses (widened with the beam model's ring spacing); ref = main at 93cd59e", rows)
     grain = thread_grain(args.grain_repeat) if args.grain_repeat > 0 else []
     if grain:
         print_table(f"thread grain: the same numpy work on one thread and split over two, ms ({args.grain_repeat} "

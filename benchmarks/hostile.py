@@ -75,9 +75,10 @@ def run(args: argparse.Namespace) -> dict:
             result, _ = pipe.process_messages(cloud, dets)
             seconds.append(time.perf_counter() - tic)
         peak = _peak_mb(lambda p=pipe: p.process_messages(cloud, dets))
-        completed = int((result.status != "skipped").sum())
+        judged = int(np.isin(result.status, ("kept", "rejected")).sum())
         row = {"pipeline": name, "s_per_frame": float(np.median(seconds)), "peak_alloc_mb": peak,
-               "boxes_processed": completed, "skipped": dict(result.skipped)}
+               "boxes_judged": judged, "boxes_completed": len(result.completed_index),
+               "boxes_unjudged": int((result.status == "unjudged").sum()), "skipped": dict(result.skipped)}
         rows.append({k: v for k, v in row.items() if k != "skipped"})
         results[name] = row
     results["load_after"] = load_average()

@@ -17,7 +17,7 @@ markers; without one it skips them).
    when that is 2 or more):
 
    * ``original`` -- today's pipeline: the network's original path
-     (``pcc_ros.models.layers.reference_path``) and the crop, work estimate and evidence
+     (the completer's ``reference`` inference path) and the crop, work estimate and evidence
      measurements of main at 93cd59e (``benchmarks._reference.original_geometry``);
    * ``orig_net`` -- the network's original path only, everything else fast (the
      conservative reference: the geometry gains count for both sides);
@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import load_average, print_table, summary_ms
+from benchmarks.common import inference_path, load_average, print_table, summary_ms
 from benchmarks.complete import parse_threads, thread_label
 
 STAGES = ("decode_ms", "crop_ms", "complete_ms", "filter_ms", "uncanonical_ms", "encode_ms")
@@ -74,21 +74,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 @contextlib.contextmanager
-def original_paths(geometry: bool = True) -> Iterator[None]:
+def original_paths(completer, geometry: bool = True) -> Iterator[None]:
     """Today's code paths, kept selectable for this comparison: the network's original path
-    and (``geometry``) the crop, work estimate and evidence measurements of main at 93cd59e."""
+    (``completer``'s ``reference`` inference path; a backend without one has no other) and
+    (``geometry``) the crop, work estimate and evidence measurements of main at 93cd59e."""
     from benchmarks._reference import original_geometry
-    from pcc_ros.models.layers import reference_path
 
-    with reference_path(), original_geometry() if geometry else contextlib.nullcontext():
+    network = inference_path(completer, "reference") if hasattr(completer, "inference_path") else \
+        contextlib.nullcontext()
+    with network, original_geometry() if geometry else contextlib.nullcontext():
         yield
 
 
-def _paths(name: str):
+def _paths(name: str, completer):
     """The context manager of one alternative of :data:`ALTERNATIVES`."""
     if name == "fast":
         return contextlib.nullcontext()
-    return original_paths(geometry=name == "original")
+    return original_paths(completer, geometry=name == "original")
 
 
 def base_frame(seed: int):
@@ -233,7 +235,7 @@ def run(args: argparse.Namespace) -> dict:
     torch.set_num_threads(1)
     outs = {}
     for name in ALTERNATIVES:
-        with _paths(name):
+        with _paths(name, pipeline.completer):
             outs[name] = one_frame(pipeline, cloud, dets, classes)[1]
     max_diff = max(check_equal(outs["fast"], outs[name]) for name in ALTERNATIVES[:-1])
     rows, headline = [], {}
@@ -247,7 +249,7 @@ def run(args: argparse.Namespace) -> dict:
         samples: dict[str, list[dict[str, float]]] = {name: [] for name in ALTERNATIVES}
         for i in range(args.repeat + 3):  # 3 warm-up frames each
             for name in ALTERNATIVES if i % 2 == 0 else ALTERNATIVES[::-1]:
-                with _paths(name):
+                with _paths(name, pipeline.completer):
                     stages = one_frame(pipeline, cloud, dets, classes)[0]
                 if i >= 3:
                     samples[name].append(stages)

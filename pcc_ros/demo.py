@@ -224,6 +224,8 @@ def plot_frame(result, frame, path: Path, title: str) -> None:
         (False, "rejected"): ("tab:red", "--", "false, rejected"),
         (True, "skipped"): ("0.35", ":", "not judged (skipped)"),
         (False, "skipped"): ("0.35", ":", "not judged (skipped)"),
+        (True, "unjudged"): ("goldenrod", ":", "could not be judged"),
+        (False, "unjudged"): ("goldenrod", ":", "could not be judged"),
     }
     corners = box_corners(result.detections)[:, [0, 1, 2, 3, 0], :2] if len(result.detections) else []
     # The number the filter decided on: p_false (evidence rule) or the mismatch (trapcc rule).

@@ -30,6 +30,7 @@ from tqdm import tqdm
 
 from pcc_ros.data.kitti import read_velodyne, split_dir
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_ab3dmot_lines, parse_label_lines
+from pcc_ros.data.synthetic.writer import KIND_SUFFIX, read_kinds
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.metrics.detection import DIFFICULTIES, NEIGHBOURS, FrameBoxes, ap_table
@@ -50,10 +51,16 @@ def default_config() -> Path:
 
 
 class LabelledFrame:
-    """One scan with labelled ground truth and detections (LiDAR frame, KITTI attributes)."""
+    """One scan with labelled ground truth and detections (LiDAR frame, KITTI attributes);
+    ``rings``: the scan's ring field when its source has one (nuScenes, AV2), for the filter's
+    beam model (``sensor: auto``)."""
 
-    def __init__(self, name: str, points: np.ndarray, gt: FrameBoxes, dt: FrameBoxes, dontcare: np.ndarray):
+    def __init__(self, name: str, points: np.ndarray, gt: FrameBoxes, dt: FrameBoxes, dontcare: np.ndarray,
+                 rings: np.ndarray | None = None, kinds: np.ndarray | None = None):
         self.name, self.points, self.gt, self.dt, self.dontcare = name, points, gt, dt, dontcare
+        self.rings = rings
+        #: SynthCars' label of each detection ("true" or a false-positive kind), None for other data.
+        self.kinds = kinds
 
 
 def _rows_to_frameboxes(rows, calib: Calibration, name: str) -> tuple[FrameBoxes, np.ndarray]:
@@ -111,7 +118,8 @@ def load_kitti(
             else:
                 dt, found = _read_detections(None if det_dir is None else det_dir / f"{scan.stem}.txt", calib)
             missing += not found and det_dir is not None
-            out.append(LabelledFrame(f"{sequence}/{scan.stem}", read_velodyne(scan), gt, dt, dontcare))
+            kinds = _read_kinds(None if det_dir is None else det_dir / f"{scan.stem}.txt", len(dt.boxes))
+            out.append(LabelledFrame(f"{sequence}/{scan.stem}", read_velodyne(scan), gt, dt, dontcare, kinds=kinds))
     elif (split / "label_2").is_dir():
         for scan in sorted((split / "velodyne").glob("*.bin"))[frames]:
             calib = Calibration.read(split / "calib" / f"{scan.stem}.txt")
@@ -120,7 +128,8 @@ def load_kitti(
             gt, dontcare = _rows_to_frameboxes(rows, calib, scan.stem)
             dt, found = _read_detections(None if det_root is None else det_root / f"{scan.stem}.txt", calib)
             missing += not found and det_root is not None
-            out.append(LabelledFrame(scan.stem, read_velodyne(scan), gt, dt, dontcare))
+            kinds = _read_kinds(None if det_root is None else det_root / f"{scan.stem}.txt", len(dt.boxes))
+            out.append(LabelledFrame(scan.stem, read_velodyne(scan), gt, dt, dontcare, kinds=kinds))
     else:
         raise DataError(f"{split}: neither label_02/ (tracking) nor label_2/ (object) found")
     if missing:
@@ -128,6 +137,14 @@ def load_kitti(
     if not out:
         raise DataError(f"{split}: no scans selected")
     return out
+
+
+def _read_kinds(path: Path | None, count: int) -> np.ndarray | None:
+    """SynthCars' per-detection kinds beside a detection file (``FFFFFF.kind``), if any."""
+    if path is None:
+        return None
+    read = read_kinds(path.with_suffix(KIND_SUFFIX), count)
+    return None if read is None else read[0]
 
 
 def _read_detections(path: Path | None, calib: Calibration) -> tuple[FrameBoxes, bool]:
@@ -201,6 +218,40 @@ def auc(false_score: np.ndarray, is_true: np.ndarray) -> float:
     return float(((f[:, None] > tr[None, :]).sum() + 0.5 * (f[:, None] == tr[None, :]).sum()) / (len(f) * len(tr)))
 
 
+def compare(p_false: np.ndarray, points: np.ndarray, is_true: np.ndarray, group: np.ndarray, status: np.ndarray,
+            max_lost: float) -> dict[str, Any]:
+    """The filter's and the points-in-box count's operating points and per-group removal.
+
+    ``at_loss``: the share of each false group each method removes at its best threshold that
+    loses at most ``max_lost`` of the true boxes (an oracle threshold for both, same loss
+    budget); ``configured``: what the filter's configured threshold removed and lost."""
+    methods = {"filter": p_false, "points-in-box": -points.astype(np.float64)}
+    out: dict[str, Any] = {"true": int(is_true.sum()), "false": int((~is_true).sum()), "methods": {}}
+    groups = sorted(set(group[~is_true]))
+    for name, s in methods.items():
+        curve = operating_curve(s, is_true)
+        removed, threshold = removed_at(curve, max_lost)
+        cut = s >= threshold
+        out["methods"][name] = {
+            f"false_removed_at_{max_lost:g}_lost": removed,
+            "threshold": threshold if name == "filter" else -threshold,
+            "auc_false_above_true": auc(s, is_true),
+            "per_group_removed": {g: float(cut[group == g].mean()) for g in groups},
+            "curve": curve,
+        }
+    rejected = status == "rejected"
+    out["configured"] = {
+        "false_removed": float(rejected[~is_true].mean()) if (~is_true).any() else float("nan"),
+        "true_lost": float(rejected[is_true].mean()) if is_true.any() else float("nan"),
+        "true_lost_count": int(rejected[is_true].sum()),
+        "per_group_removed": {g: float(rejected[group == g].mean()) for g in groups},
+        "per_group_count": {g: int((group == g).sum()) for g in groups},
+        "unjudged": int((~np.isin(status, ("kept", "rejected"))).sum()),
+    }
+    return out
+
+
+
 # ----------------------------------------------------------------------------- run
 
 
@@ -208,7 +259,7 @@ def run_filter(frames: list[LabelledFrame], pipeline, progress: bool = True) -> 
     """The pipeline's per-detection outputs for every frame (status, p_false, terms, points in box)."""
     out = []
     for frame in tqdm(frames, desc="filter", unit="frame", disable=not progress):
-        result = pipeline.process(frame.points, frame.dt.boxes, frame_id="velodyne")
+        result = pipeline.process(frame.points, frame.dt.boxes, frame_id="velodyne", rings=frame.rings)
         counts = np.array([len(i) for i in points_in_boxes(frame.points, frame.dt.boxes)], dtype=np.int64)
         out.append(
             {
@@ -261,6 +312,10 @@ def evaluate_detections(
             "threshold": threshold if name == "filter" else -threshold,
             "auc_false_above_true": auc(methods[name], is_true),
         }
+    per_kind = None
+    if frames and all(f.kinds is not None for f in frames):
+        kinds = np.concatenate([f.kinds for f in frames])[known]
+        per_kind = compare(filter_score[known], points[known], kinds == "true", kinds, status[known], max_lost)
     n_true, n_false = int(is_true.sum()), int((~is_true).sum())
     shipped = {
         "true_kept": int((~rejected[known] & is_true).sum()),
@@ -292,6 +347,7 @@ def evaluate_detections(
         "filter_config": {k: getattr(pipeline.config.filter, k) for k in pipeline.config.filter.__dataclass_fields__},
         "shipped_threshold": shipped,
         "operating_points": table,
+        "per_kind": None if per_kind is None else _without_curves(per_kind),
         "ap_before": ap_before,
         "ap_after": ap_after,
         "filter_ms_mean": float(np.mean(filter_ms)) if filter_ms else 0.0,
@@ -303,6 +359,29 @@ def evaluate_detections(
             "terms": _stack_terms([r["terms"] for r in results], known),
         },
     }
+
+
+def _without_curves(table: dict[str, Any]) -> dict[str, Any]:
+    """A :func:`compare` table without its curve arrays (for the JSON)."""
+    out = dict(table)
+    out["methods"] = {k: {kk: vv for kk, vv in v.items() if kk != "curve"} for k, v in table["methods"].items()}
+    return out
+
+
+def print_groups(table: dict[str, Any], what: str) -> None:
+    """The per-group removal of a :func:`compare` table as a Markdown table."""
+    max_key = next(k for k in next(iter(table["methods"].values())) if k.startswith("false_removed_at_"))
+    methods = table["methods"]
+    conf = table["configured"]
+    print(f"\n| {what} | boxes | filter, configured | filter at the loss budget | points-in-box at the same budget |")
+    print("| --- | --- | --- | --- | --- |")
+    for g, n in conf["per_group_count"].items():
+        print(f"| {g} | {n} | {conf['per_group_removed'][g]:.1%} | {methods['filter']['per_group_removed'][g]:.1%} | "
+              f"{methods['points-in-box']['per_group_removed'][g]:.1%} |")
+    print(f"| all false | {table['false']} | {conf['false_removed']:.1%} | {methods['filter'][max_key]:.1%} | "
+          f"{methods['points-in-box'][max_key]:.1%} |")
+    print(f"true lost at the configured threshold: {conf['true_lost_count']} / {table['true']} "
+          f"({conf['true_lost']:.1%}); {max_key.replace('_', ' ')} budget")
 
 
 def _stack_terms(terms: list[dict[str, np.ndarray]], known: np.ndarray) -> dict[str, np.ndarray]:
@@ -339,6 +418,8 @@ def print_report(results: dict[str, Any], title: str) -> None:
     for name, row in results["operating_points"].items():
         print(f"| {name} | {row[f'false_removed_at_{max_lost:g}_lost']:.1%} | {row['threshold']:.3g} | "
               f"{row['auc_false_above_true']:.3f} |")
+    if results.get("per_kind"):
+        print_groups(results["per_kind"], "false-positive kind (SynthCars labels)")
     s = results["shipped_threshold"]
     print(f"\nConfigured filter ({results['rule']} rule): removes {s['false_removed']}/{results['false']} false "
           f"({s['false_removed_share']:.1%}), loses {s['true_lost']}/{results['true']} true "

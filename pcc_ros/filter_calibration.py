@@ -387,5 +387,5 @@ def preset_yaml(base: Path, bias: float, weights: np.ndarray, threshold: float, 
 #: so weights fitted on logits hold for a detector that outputs sigmoid(logit).
 PRESETS: dict[str, dict[str, Any]] = {
     "kitti": {"score_mapping": "identity"},
-    "nuscenes": {"sensor": "hdl32", "score_mapping": "identity", "match_threshold": 0.4},
+    "nuscenes": {"sensor": "auto", "score_mapping": "identity", "match_threshold": 0.4},
 }

@@ -16,7 +16,8 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.msg.detections import detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.pipeline.config import PipelineConfig, parse_class_map
-from pcc_ros.pipeline.core import Pipeline
+from pcc_ros.pipeline.core import Pipeline, build_outputs
+from pcc_ros.pipeline.filter import UNJUDGED_CLASS_ID
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
 from pcc_ros.runtime.node import NodeCore
@@ -184,9 +185,11 @@ def test_an_empty_or_all_nan_scan_rejects_nothing(rule, caplog):
     with caplog.at_level(logging.WARNING):
         for cloud in (create_cloud(np.zeros((0, 3), np.float32), ["x", "y", "z"], "velodyne", 1_000_000_000),
                       create_cloud(nan_grid, ["x", "y", "z"], "velodyne", 1_000_000_000)):
-            result, _ = pipeline.process_messages(cloud, dets)
-            assert list(result.status) == ["skipped", "skipped"] and result.skipped == {"empty scan": 2}
+            result, originals = pipeline.process_messages(cloud, dets)
+            assert list(result.status) == ["unjudged", "unjudged"] and result.skipped == {"empty scan": 2}
             assert not result.rejected and not len(result.completed_points)
+            kept = build_outputs(result, originals)["detections_filtered"].detections
+            assert [h.hypothesis.class_id for d in kept for h in d.results][-1] == UNJUDGED_CLASS_ID
     assert sum("no finite point" in r.getMessage() for r in caplog.records) == 1  # then every 100th
 
 

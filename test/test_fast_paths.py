@@ -7,21 +7,45 @@ tests only pin the values.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
 import torch
 
-from pcc_ros.models import default_checkpoint, layers, load_completer
-from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, reference_path, segment_max, using_reference_path
+from pcc_ros.models import default_checkpoint, inference, layers, load_completer
+from pcc_ros.models.inference import set_inference_path
+from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, segment_max
 
 
-@pytest.fixture(autouse=True, params=[True, False], ids=["compiled", "operators"])
-def _compiled_loops(request):
-    """Every test here runs with the fast path's compiled CPU loops (pcc_ros.models.kernels) and
-    with the same steps as torch operators: both are fast paths of the layers."""
-    with layers.compiled_kernels(request.param):
-        yield request.param
+@pytest.fixture(autouse=True, params=[True, False], ids=["kernels", "no-kernels"])
+def _compiled_loops(request, monkeypatch):
+    """Every test here runs where the compiled CPU loops (pcc_ros.models.kernels) can run and
+    where they cannot (numba's BLAS missing: the capability check says no), so the default
+    ``auto`` path takes the compiled loops or the same steps as torch operators."""
+    if not request.param:
+        monkeypatch.setattr(inference, "kernels_available", lambda: False)
+    yield request.param and inference.kernels_available()
+
+
+@contextmanager
+def on_path(path: str, *models) -> Iterator[None]:
+    """``models`` (modules or completers) on inference ``path`` inside the block, on their own after."""
+    before = [m.inference_path for m in models]
+    for m in models:
+        if isinstance(m, torch.nn.Module):
+            set_inference_path(m, path)
+        else:
+            m.inference_path = path
+    try:
+        yield
+    finally:
+        for m, old in zip(models, before):
+            if isinstance(m, torch.nn.Module):
+                set_inference_path(m, old)
+            else:
+                m.inference_path = old
 
 
 def _packed(rng: np.random.Generator, sizes: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -40,10 +64,7 @@ def test_scatter_segment_max_is_bit_identical_to_segment_reduce(channels):
     ref = segment_max(feats, seg, len(sizes) + 1, method="segment_reduce")
     assert torch.equal(fast, ref)
     assert torch.equal(fast[1], torch.zeros(channels)) and torch.equal(fast[-1], torch.zeros(channels))
-    with reference_path():
-        assert using_reference_path()
-        assert torch.equal(segment_max(feats, seg, len(sizes) + 1), ref)
-    assert not using_reference_path()
+    assert torch.equal(segment_max(feats, seg, len(sizes) + 1), fast)  # the default: the scatter
     with pytest.raises(ValueError, match="unknown method"):
         segment_max(feats, seg, 3, method="bogus")
 
@@ -70,7 +91,7 @@ def test_chunked_encoder_equals_reference(monkeypatch, widths1, widths2):
     points, segment = _packed(np.random.default_rng(2), [3, 0, 20, 1, 9, 0])
     with torch.no_grad():
         fast = enc(points, segment, 7)
-        with reference_path():
+        with on_path("reference", enc):
             ref = enc(points, segment, 7)
     assert fast.shape == ref.shape == (7, widths2[-1])
     torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)
@@ -88,7 +109,7 @@ def test_training_path_is_differentiable_and_equals_reference():
     fast.sum().backward()
     fast_grad = [p.grad.clone() for p in enc.parameters()]
     enc.zero_grad()
-    with reference_path():
+    with on_path("reference", enc):
         ref = enc(points, segment, 3)
         ref.sum().backward()
     torch.testing.assert_close(fast, ref)
@@ -103,7 +124,7 @@ def test_chunked_folding_decoder_equals_reference(monkeypatch):
     code = torch.randn(3, 12)
     with torch.no_grad():
         coarse, fine = dec(code)
-        with reference_path():
+        with on_path("reference", dec):
             ref_coarse, ref_fine = dec(code)
     assert torch.equal(coarse, ref_coarse)
     torch.testing.assert_close(fine, ref_fine, rtol=1e-6, atol=1e-7)
@@ -115,13 +136,13 @@ def test_folding_decoder_writes_into_a_strided_output(monkeypatch):
     torch.manual_seed(0)
     dec = FoldingDecoder(12, [16], num_coarse=5, grid_size=2, fold_widths=[10, 10], grid_scale=0.05)
     code = torch.randn(6, 12)
-    with torch.no_grad(), reference_path():
+    with torch.no_grad(), on_path("reference", dec):
         _, ref = dec(code)  # (6, 20, 3)
     for per_row in (1, 2, 3):
         for fast in (True, False):
             big = torch.full((6 // per_row, 7 + per_row * 20, 3), 9.0)
             out = big[:, 7:]  # strided: the first 7 points of each row belong to someone else
-            with torch.no_grad(), reference_path(not fast):
+            with torch.no_grad(), on_path("auto" if fast else "reference", dec):
                 _, fine = dec(code, out)
             assert fine is out
             torch.testing.assert_close(out.reshape(6, 20, 3), ref, rtol=1e-6, atol=1e-7)
@@ -140,7 +161,7 @@ def test_encoder_folded_constants_follow_parameter_updates():
         for p in (enc.point_proj.weight, enc.mlp1.net[-1].bias, enc.segment_proj.weight):
             p.mul_(1.5)  # what an optimizer step or load_state_dict does: in place
             fast = enc(points, segment, 3)
-            with reference_path():
+            with on_path("reference", enc):
                 ref = enc(points, segment, 3)
             torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)
         assert not torch.allclose(fast, first)
@@ -159,7 +180,7 @@ def test_shipped_pointpncnet_fast_path_equals_reference_path():
         pts = rng.uniform(-1, 1, (n, 3)) * [0.5, 0.2, 0.15]
         clouds.append(pts.astype(np.float32))
     fast = completer.complete(clouds)
-    with reference_path():
+    with on_path("reference", completer):
         ref = completer.complete(clouds)
     assert len(fast) == len(ref) == len(clouds)
     for a, b in zip(fast, ref):
@@ -200,10 +221,10 @@ def test_multi_thread_chunking_equals_reference(monkeypatch):
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
-        assert layers._chunk_rows(3) == 12
+        assert layers._rows_for([8, 16, 32, 12]) == 12
         with torch.no_grad():
             fast = enc(points, segment, 4)
-            with reference_path():
+            with on_path("reference", enc):
                 ref = enc(points, segment, 4)
     finally:
         torch.set_num_threads(threads)
@@ -212,7 +233,7 @@ def test_multi_thread_chunking_equals_reference(monkeypatch):
 
 def test_octant_pairs_are_the_region_masks_memberships_grouped_by_instance_and_octant():
     """Points exactly on the planes and on the overlap bands' edges, empty clouds in the batch."""
-    from pcc_ros.models.pointpncnet import octant_pairs, region_masks
+    from pcc_ros.models.pointpncnet_network import octant_pairs, region_masks
 
     rng = np.random.default_rng(7)
     overlap = 0.005
@@ -253,7 +274,7 @@ def test_chunked_encoder_with_unsorted_segments_equals_reference(monkeypatch):
     perm = torch.from_numpy(np.random.default_rng(9).permutation(len(points)))
     with torch.no_grad():
         fast = enc(points[perm], segment[perm], 5)
-        with reference_path():
+        with on_path("reference", enc):
             ref = enc(points, segment, 5)
     torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-6)
 
@@ -269,7 +290,7 @@ def test_untrained_network_fast_path_equals_reference_path(backend):
     clouds = [(rng.uniform(-1, 1, (n, 3)) * [0.5, 0.2, 0.15]).astype(np.float32) for n in (3, 70, 9, 400, 1100)]
     clouds[1][:10, 1] = 0.0  # on a plane: in two octants
     fast = completer.complete(clouds)
-    with reference_path():
+    with on_path("reference", completer):
         ref = completer.complete(clouds)
     for a, b in zip(fast, ref):
         np.testing.assert_allclose(a, b, rtol=0, atol=2e-5)
@@ -292,8 +313,8 @@ def test_reused_buffers_never_leak_into_returned_values():
 
 
 def test_workspace_keeps_small_buffers_and_drops_big_ones(monkeypatch):
-    monkeypatch.setattr(layers, "WORKSPACE_KEEP_BYTES", 4096)
-    ws, owner, like = layers._Workspace(), torch.nn.Linear(1, 1), torch.zeros(1)
+    monkeypatch.setattr(inference, "WORKSPACE_KEEP_BYTES", 4096)
+    ws, owner, like = inference.Workspace(), torch.nn.Linear(1, 1), torch.zeros(1)
     a = ws.get(owner, "x", 10, 20, like)  # 800 bytes: kept
     assert a.shape == (10, 20) and ws.get(owner, "x", 5, 20, like).data_ptr() == a.data_ptr()
     assert ws.get(owner, "y", 10, 20, like).data_ptr() != a.data_ptr()  # another slot, another buffer
@@ -315,9 +336,10 @@ def _pointpncnet_batch(seed: int, sizes: tuple[int, ...]):
 
 def _run(net, packed, compiled: bool, whole: bool = True):
     """The network's outputs on ``packed``: its compiled loops on or off, with them ``whole`` in
-    one call or layer by layer (``layers.compiled_kernels``)."""
+    one call or layer by layer (the ``compiled`` / ``compiled_layers`` / ``operators`` paths)."""
     out = torch.empty(packed.batch_size, net.num_global_points + 8 * net.num_local_points, 3)
-    with layers.compiled_kernels(compiled, whole_networks=compiled and whole), torch.inference_mode():
+    path = ("compiled" if whole else "compiled_layers") if compiled else "operators"
+    with on_path(path, net), torch.inference_mode():
         y_global, y_local, present = net(packed.points, packed.segment, None, packed.batch_size, packed.pairs,
                                          out=out)
     return y_global.clone(), y_local.clone(), present.clone()
@@ -337,7 +359,7 @@ def test_pointpncnet_in_one_compiled_call_equals_the_layers_one_by_one(monkeypat
     infer = kernels.pointpncnet_infer
     monkeypatch.setattr(kernels, "pointpncnet_infer", lambda *args: calls.append(1) or infer(*args))
     whole = _run(completer.model, packed, _compiled_loops)
-    assert len(calls) == (1 if _compiled_loops and kernels.AVAILABLE else 0)
+    assert len(calls) == (1 if _compiled_loops and inference.kernels_available() else 0)
     one_by_one = _run(completer.model, packed, _compiled_loops, whole=False)
     assert len(calls) <= 1  # layer by layer never calls it
     for a, b in zip(whole, one_by_one):
@@ -346,14 +368,13 @@ def test_pointpncnet_in_one_compiled_call_equals_the_layers_one_by_one(monkeypat
 
 
 def test_pointpncnet_compiled_call_grows_its_work_memory_and_keeps_it(monkeypatch, _compiled_loops):
-    from pcc_ros.models import kernels
-    from pcc_ros.models.pointpncnet import SCRATCH
+    from pcc_ros.models.pointpncnet_network import SCRATCH
 
     monkeypatch.setattr(SCRATCH, "buffers", {})
     small_completer, small = _pointpncnet_batch(22, (30, 20))
     first = _run(small_completer.model, small, _compiled_loops)
     kept = SCRATCH.whole("network", np.float32)
-    if not (_compiled_loops and kernels.AVAILABLE):  # the layers ran one by one: no such memory
+    if not (_compiled_loops and inference.kernels_available()):  # the layers ran one by one: no such memory
         assert len(kept) == 0
         return
     assert len(kept) > 0

@@ -67,6 +67,7 @@ def test_eval_detections_on_real_kitti(shared_data, tmp_path, capsys):
     code = main([
         "eval", "detections", "--kitti", str(tracking), "--detections", str(tracking / "detections" / "pointrcnn"),
         "--gt-classes", "Car,Van", "--score-mapping", "sigmoid", "--backend", "input",
+        "--config", str(Path(__file__).resolve().parents[1] / "config" / "detection_filter_kitti.yaml"),
         "--json", str(out), "--plot", str(tmp_path / "eval.png"),
     ])
     assert code == 0
@@ -75,7 +76,7 @@ def test_eval_detections_on_real_kitti(shared_data, tmp_path, capsys):
     result = json.loads(out.read_text())
     ops = result["operating_points"]
     key = "false_removed_at_0.02_lost"
-    # The shipped configuration beats both trivial baselines at <= 2 % true lost, and AP does not drop.
+    # The KITTI + PointRCNN preset beats both trivial baselines at <= 2 % true lost, and AP does not drop.
     shipped = result["shipped_threshold"]
     assert shipped["true_lost_share"] <= 0.02
     assert shipped["false_removed_share"] > max(ops["points-in-box"][key], ops["detector score"][key])

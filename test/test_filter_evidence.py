@@ -226,14 +226,15 @@ def _brute_force_rays(scan: np.ndarray, boxes: Boxes) -> dict[str, np.ndarray]:
 
 def _brute_force_ground(scan: np.ndarray, boxes: Boxes) -> np.ndarray:
     """The local ground by its definition: the 5 % quantile of the z of the points that
-    geometry.boxes.points_in_boxes finds in the widened boxes."""
+    geometry.boxes.points_in_boxes finds in the boxes widened by the sensor's ground reach."""
     from pcc_ros.geometry.boxes import points_in_boxes
-    from pcc_ros.pipeline.evidence import GROUND_REACH
+    from pcc_ros.pipeline.evidence import ground_reach
 
     n = len(boxes)
+    reach = ground_reach(boxes, SENSOR)[:, None]
     bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
     wide = Boxes(np.c_[boxes.center[:, :2], bottom - 1.0],
-                 np.c_[boxes.size[:, :2] + 2 * GROUND_REACH, np.full(n, 4.0)], boxes.yaw)
+                 np.c_[boxes.size[:, :2] + 2 * reach, np.full(n, 4.0)], boxes.yaw)
     out = np.full(n, np.nan)
     for b, idx in enumerate(points_in_boxes(scan, wide)):
         if len(idx):
@@ -273,6 +274,22 @@ def test_ray_and_ground_indexes_equal_testing_every_point_against_every_box(dtyp
             np.testing.assert_array_equal(ev[key], value, err_msg=key)
         np.testing.assert_array_equal(ev["ground_z"], _brute_force_ground(scan, boxes))
         assert ev["n_rays"][5] == 0  # the box around the sensor is not judged
+
+
+def test_ground_reach_widens_with_the_ring_spacing_of_the_sensor():
+    """Near boxes and dense sensors keep the 3 m reach; a sparse sensor's rings meet the road
+    metres apart at range, so the reach grows to half that spacing (capped)."""
+    from pcc_ros.pipeline.evidence import GROUND_REACH, GROUND_REACH_MAX, ground_reach
+
+    d = np.array([8.0, 20.0, 30.0, 60.0])
+    boxes = Boxes(np.c_[d, np.zeros(4), np.full(4, -0.98)], np.tile([4.2, 1.8, 1.5], (4, 1)), np.zeros(4))
+    hdl64, vlp16 = ground_reach(boxes, SENSOR), ground_reach(boxes, SENSOR_PRESETS["vlp16"])
+    np.testing.assert_array_equal(hdl64[:3], GROUND_REACH)
+    assert GROUND_REACH < hdl64[3] < GROUND_REACH_MAX
+    # VLP-16 at 20 m: rings -3 and -5 deg seen from 1.73 m meet the road 33.0 and 19.8 m away
+    h = 1.73
+    assert vlp16[1] == pytest.approx((h / np.tan(np.deg2rad(3)) - h / np.tan(np.deg2rad(5))) / 2, rel=0.02)
+    assert vlp16[0] == GROUND_REACH and vlp16[3] == GROUND_REACH_MAX
 
 
 def test_expected_beams_equal_a_beam_by_beam_count():

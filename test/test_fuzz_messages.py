@@ -138,9 +138,16 @@ def test_work_bound_skips_lowest_scores_and_counts(caplog):
         result, _ = pipe.process_messages(dense, stamped(array_of(*dets)))
     over = result.skipped["over max_crop_work"]
     assert 150 < over <= 200 and "exceed max_crop_work 20000" in caplog.text
-    processed = result.status != "skipped"
-    if processed.any():  # the kept ones are the highest-scoring boxes
-        assert result.detections.score[processed].min() >= np.sort(result.detections.score)[-(200 - over)]
+    completed = result.completed_index
+    if len(completed):  # the completed ones are the highest-scoring boxes
+        assert result.detections.score[completed].min() >= np.sort(result.detections.score)[-(200 - over)]
+    # the scan evidence judges more (its bound is 10x the crop's), the rest marked unjudged
+    judged = np.isin(result.status, ("kept", "rejected"))
+    unjudged = result.status == "unjudged"
+    assert judged.sum() >= 200 - over and judged.sum() + unjudged.sum() == 200
+    assert unjudged.sum() == result.skipped.get("unjudged over evidence work", 0)
+    if unjudged.any():
+        assert result.detections.score[judged].min() >= result.detections.score[unjudged].max()
 
 
 @settings(max_examples=40, deadline=None)

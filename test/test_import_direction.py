@@ -14,7 +14,7 @@ Layers, lowest first — a module may import its own layer and the ones below, n
 4. ``pipeline/``: config (the parameter table), core, filter;
 5. ``runtime/``: the seam, the node logic, pairing, replay over a bag;
 6. the doors: ``nodes/``, ``cli/``, ``train``, ``evaluate``, ``evaluate_real``,
-   ``detection_eval``, ``filter_calibration``, ``demo``.
+   ``detection_eval``, ``filter_calibration``, ``filter_sensors``, ``filter_check``, ``demo``.
 
 Also: ``rclpy`` (and the rest of a ROS install: ``rclpy``, ``tf2_ros``, ``rosidl_runtime_py``)
 is imported only under ``pcc_ros/nodes/``, and nothing imports ``pcc_ros.cli``.
@@ -52,6 +52,8 @@ EXACT = {
     "pcc_ros.evaluate_real": 6,
     "pcc_ros.detection_eval": 6,
     "pcc_ros.filter_calibration": 6,  # pcc calibrate-filter
+    "pcc_ros.filter_sensors": 6,  # pcc calibrate-filter across simulated sensors
+    "pcc_ros.filter_check": 6,  # pcc eval detections --nuscenes: the cross-sensor check
     "pcc_ros.demo": 6,
 }
 PREFIXES = {

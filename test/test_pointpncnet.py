@@ -13,7 +13,8 @@ from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.geometry.partitions import octant_masks
 from pcc_ros.models import create, load_completer
 from pcc_ros.models.base import resample_cloud
-from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, segment_max, weighted_chamfer
+from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, segment_max
+from pcc_ros.models.losses import weighted_chamfer
 from pcc_ros.models.pointpncnet import (
     NUM_REGIONS,
     PRESETS,

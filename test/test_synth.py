@@ -12,13 +12,16 @@ import pytest
 from pcc_ros.data.kitti import KittiTracking
 from pcc_ros.data.kitti_format import Calibration, camera_to_lidar_boxes, parse_label_lines
 from pcc_ros.data.synthetic import generate, load_shape
-from pcc_ros.data.synthetic.detector import detect
+from pcc_ros.data.synthetic.detector import FALSE_KINDS, KINDS, DetectorParams, detect
+from pcc_ros.data.synthetic.furniture import BUILDERS
 from pcc_ros.data.synthetic.generator import SPLIT_CODES, build_sequence, seeded_rng, sensor_pose, simulate_frame
 from pcc_ros.data.synthetic.lidar import Sensor, build_scene, cast
 from pcc_ros.data.synthetic.mesh import is_closed_oriented
 from pcc_ros.data.synthetic.scene import KIND_VEHICLE
 from pcc_ros.data.synthetic.vehicles import FAMILIES, build_vehicle, canonical_shape
+from pcc_ros.data.synthetic.writer import KIND_SUFFIX, read_kinds
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.geometry.boxes import iou_bev
 from pcc_ros.types import Boxes
 
 SEED = 7
@@ -181,6 +184,10 @@ def test_layout_labels_round_trip_and_reader(dataset):
             res = simulate_frame(street, f, LOW, seeded_rng(SEED, SPLIT_CODES[split], int(seq), 2, f))
             assert frame.ground_truth.equals(res.gt, atol=2e-6)
             assert frame.detections.equals(res.detections, atol=2e-6)
+            kind_file = dataset / "detections" / "synthetic" / seq / f"{f:06d}{KIND_SUFFIX}"
+            kinds = read_kinds(kind_file, len(res.detections))
+            np.testing.assert_array_equal(kinds[0], res.detection_kind)
+            np.testing.assert_array_equal(kinds[1], res.detection_source)
             np.testing.assert_array_equal(frame.points, res.scan.points)
             # Pose from oxts (devkit convention) = ego motion since the first frame.
             origin0, yaw0 = sensor_pose(street, 0, LOW)
@@ -259,7 +266,9 @@ def test_detector_misses_sparse_cars_and_scores_false_ones_lower():
     found, true_scores, false_scores, errors = np.zeros(4), [], [], []
     runs = 400
     for _ in range(runs):  # one simulated frame per run
-        dets, true = detect(gt, levels, clutter, np.array([100, 100]), np.array([0.3, 0.3]), ground, -1.73, rng)
+        dets, kind, _ = detect(gt, levels, clutter, np.array([100, 100]), np.array([0.3, 0.3]), ground, -1.73, rng,
+                               DetectorParams(misplaced_probability=0.0, duplicate_probability=0.0, far_rate=0.0))
+        true = kind == "true"
         td = dets[true]
         nearest = np.argmin(np.linalg.norm(td.center[:, None, :2] - centre[None, :, :2], axis=2), axis=1)
         found[nearest] += 1
@@ -268,7 +277,7 @@ def test_detector_misses_sparse_cars_and_scores_false_ones_lower():
         false_scores.extend(dets.score[~true])
     rate = found / runs
     assert rate[0] == 0 and rate[1] < 0.4 and rate[2] > 0.8 and rate[3] > 0.97, rate
-    assert 0.3 * 2 * runs < len(false_scores) < 2.5 * runs  # clutter (0.3 each) + empty space (~0.6)
+    assert 0.3 * 2 * runs < len(false_scores) < 2.5 * runs  # clutter (0.3 each) + ghosts (~0.6)
     true_scores, false_scores = np.array(true_scores), np.array(false_scores)
     assert np.median(true_scores) > np.median(false_scores) + 0.2
     assert false_scores.max() > np.quantile(true_scores, 0.2)  # overlapping, not separable by a threshold
@@ -281,6 +290,56 @@ def test_scene_has_traffic_clutter_and_moving_tracks():
     for name in ("pole", "pedestrian", "building", "sidewalk"):
         assert name in kinds
     assert {"bush", "blob", "low_wall"} & set(kinds)
+    assert {"bollard", "sign", "bicycle", "fence"} & set(kinds)
     vehicles = [o for o in street.objects if o.kind == KIND_VEHICLE]
     assert any(o.moving for o in vehicles) and any(not o.moving for o in vehicles)
     assert len({o.track_id for o in vehicles}) == len(vehicles)
+
+
+@pytest.mark.parametrize("name", sorted(BUILDERS))
+def test_furniture_meshes_are_closed_with_real_proportions(name):
+    extents = {"bollard": ((0.15, 0.25), (0.8, 1.2)), "sign": ((0.6, 0.95), (2.0, 2.7)),
+               "bicycle": ((1.6, 1.9), (0.95, 1.15)), "fence": ((4.0, 12.1), (1.0, 1.85))}
+    mesh = BUILDERS[name](np.random.default_rng(3))
+    for c in range(mesh.n_components):
+        assert is_closed_oriented(*mesh.component_mesh(c)), (name, c)
+    size = mesh.vertices.max(0) - mesh.vertices.min(0)
+    (lo, hi), (zlo, zhi) = extents[name]
+    assert lo <= size[:2].max() <= hi and zlo <= size[2] <= zhi, size
+    assert mesh.vertices[:, 2].min() > -1e-9  # stands on z = 0
+
+
+def test_detector_produces_and_labels_every_false_positive_kind():
+    """Each of the four kinds appears, is labelled, and sits where its definition says."""
+    rng = np.random.default_rng(1)
+    centre = np.array([[10.0, -8, -0.9], [20, 0, -0.9], [30, 8, -0.9]])
+    gt = Boxes(centre, np.tile([4.0, 1.7, 1.5], (3, 1)), [0.3, -1.0, 2.0])
+    clutter = Boxes([[12.0, -20, -1.2], [25, 20, -1.2]], np.tile([0.2, 0.2, 1.0], (2, 1)), np.zeros(2))
+    r, a = rng.uniform(5, 75, 4000), rng.uniform(-np.pi, np.pi, 4000)
+    ground = np.c_[r * np.cos(a), r * np.sin(a), np.full(4000, -1.73)]
+    params = DetectorParams(misplaced_probability=0.2, duplicate_probability=0.2, far_rate=1.0, empty_space_rate=1.0)
+    seen: dict[str, list] = {k: [] for k in KINDS}
+    for _ in range(60):
+        dets, kind, source = detect(gt, np.array([300, 300, 300]), clutter, np.array([50, 50]), np.array([0.5, 0.5]),
+                                    ground, -1.73, rng, params, np.array(["bollard", "bicycle"], dtype=object))
+        assert len(kind) == len(source) == len(dets) and set(kind) <= set(KINDS)
+        assert np.all(dets.score[:-1] >= dets.score[1:])  # sorted by score, kinds kept aligned
+        for k in KINDS:
+            seen[k].append((dets[kind == k], source[kind == k]))
+    for k in KINDS:
+        assert sum(len(b) for b, _ in seen[k]) > 5, k
+    gt_iou = lambda b: iou_bev(b, gt).max(axis=1)  # noqa: E731
+    true = Boxes.concatenate([b for b, _ in seen["true"]])
+    assert np.median(gt_iou(true)) > 0.6
+    moved = Boxes.concatenate([b for b, _ in seen["misplaced"]])
+    assert (gt_iou(moved) < 0.3).all() and (gt_iou(moved) > 0.0).mean() > 0.5  # beside a real car
+    conf = Boxes.concatenate([b for b, _ in seen["confusion"]])
+    assert (np.linalg.norm(conf.center[:, None, :2] - clutter.center[None, :, :2], axis=2).min(1) < 1.5).all()
+    assert set(np.concatenate([s for _, s in seen["confusion"]])) <= {"bollard", "bicycle"}
+    ghost = Boxes.concatenate([b for b, _ in seen["ghost"]])
+    far = Boxes.concatenate([b for b, _ in seen["far"]])
+    g_range, f_range = np.linalg.norm(ghost.center[:, :2], axis=1), np.linalg.norm(far.center[:, :2], axis=1)
+    assert g_range.max() < 46 and f_range.min() > 44 and f_range.max() < 76
+    assert (ghost.center[:, 2] - ghost.size[:, 2] / 2 > -1.73 + 0.3).any()  # some float in empty space
+    for k in FALSE_KINDS:
+        assert all((s == "-").all() for _, s in seen[k]) or k == "confusion"

@@ -19,14 +19,32 @@ from pcc_ros.detection_eval import default_config, load_kitti, parse_frames
 from pcc_ros.errors import ConfigError
 from pcc_ros.files import write_json, write_text
 from pcc_ros.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
+from pcc_ros.filter_sensors import DEFAULT_SENSORS, SENSOR_TERMS, parse_terms
+from pcc_ros.pipeline.config import CHOICES
 from pcc_ros.pipeline.filter import TERMS, FilterConfig
 
 log = logging.getLogger(__name__)
 
 
+SENSOR_CHOICES = CHOICES["sensor"]
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--real", type=Path, required=True, help="labelled KITTI root with real detections")
-    parser.add_argument("--real-detections", type=Path, required=True, help="the real detector's results")
+    parser.add_argument("--real", type=Path, help="labelled KITTI root with real detections")
+    parser.add_argument("--real-detections", type=Path, help="the real detector's results (with --real)")
+    parser.add_argument(
+        "--sim-sensors",
+        help="fit ONE rule across SynthCars simulated with these beam layouts (comma-separated, e.g. "
+        f"{','.join(DEFAULT_SENSORS)}), plus --real if given; cross-validated by sensor and by sequence, with an "
+        "ablation. Without --real and without this flag, --sensor X calibrates for sensor X from simulation alone",
+    )
+    parser.add_argument("--sim-root", type=Path, default=Path("data/synthcars_sensors"),
+                        help="where the simulated sets are generated once and reused (data/synthcars_sensors)")
+    parser.add_argument("--sim-seed", type=int, default=11, help="seed of the simulated sets (11)")
+    parser.add_argument("--sim-sequences", type=int, default=2, help="SynthCars sequences per sensor (2)")
+    parser.add_argument("--sim-frames", type=int, default=6, help="frames per simulated sequence (6)")
+    parser.add_argument("--filter-backend", default="trapcc",
+                        help="car-constrained completion of the shape mismatch term (trapcc)")
     parser.add_argument("--real-sequence", help="tracking sequence(s) of --real, comma-separated")
     parser.add_argument("--real-frames", help="START:STOP of --real's scans")
     parser.add_argument("--synth", type=Path, help="SynthCars root (pcc synth) with detections/synthetic")
@@ -35,19 +53,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt-classes", default="Car,Van", help="labels that make a real detection true (Car,Van)")
     parser.add_argument("--score-mapping", choices=("identity", "sigmoid"), default="sigmoid",
                         help="how the real detector's scores read (sigmoid: logits, PointRCNN)")
-    parser.add_argument("--sensor", default="hdl64", help="sensor model preset (hdl64 | hdl32)")
+    parser.add_argument("--sensor", default="auto", choices=SENSOR_CHOICES,
+                        help="beam model: auto (estimated from each scan, the default) or a preset")
     parser.add_argument("--max-lost", type=float, default=0.01, help="true detections the threshold may lose (0.01)")
     parser.add_argument("--l2", type=float, default=1e-2, help="ridge penalty on standardised weights (0.01)")
     parser.add_argument("--folds", type=int, default=5, help="leave-frames-out folds over the real frames (5; 0: none)")
     parser.add_argument("--seed", type=int, default=0, help="simulator seed")
-    parser.add_argument("--terms", default=",".join(FIT_TERMS),
-                        help=f"terms to fit, comma-separated (default {','.join(FIT_TERMS)}; the rest get weight 0)")
+    parser.add_argument("--terms",
+                        help=f"terms to fit, comma-separated (default {','.join(FIT_TERMS)} with --real alone, "
+                        f"{','.join(SENSOR_TERMS)} across sensors; the rest get weight 0)")
     parser.add_argument("--base-config", type=Path, help="node YAML to start from (default: the shipped one)")
     parser.add_argument("--out", type=Path, help="write the calibrated node YAML here")
     parser.add_argument(
         "--preset", choices=tuple(PRESETS), default="kitti",
         help="what --out is for: kitti (the fitted sensor model; writes score_mapping: identity, the shipped "
-        "files' convention: run a logit detector with score_mapping:=sigmoid) | nuscenes (HDL-32E sensor model, "
+        "files' convention: run a logit detector with score_mapping:=sigmoid) | nuscenes (sensor auto, "
         "probability scores; the same physics weights: no real nuScenes detections to fit on)",
     )
     parser.add_argument("--json", type=Path, help="write weights, data sizes and the cross-validated figures here")
@@ -62,6 +82,12 @@ def _synth_frames(root: Path, per_sequence: int):
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.sim_sensors or args.real is None:
+        from pcc_ros.cli.calibrate_sensors import run_sensors
+
+        return run_sensors(args)
+    if args.real_detections is None:
+        raise ConfigError("--real needs --real-detections (the real detector's results)")
     config = FilterConfig(rule="evidence", score_mapping=args.score_mapping, sensor=args.sensor)
     gt_classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
     sequences = [q.strip() for q in args.real_sequence.split(",")] if args.real_sequence else [None]
@@ -71,10 +97,7 @@ def run(args: argparse.Namespace) -> int:
     obj = []
     if args.object:
         obj = load_kitti(args.object, None)  # labelled cars become the true detections
-    terms = tuple(t.strip() for t in args.terms.split(",") if t.strip())
-    unknown = set(terms) - set(TERMS)
-    if unknown or not terms:
-        raise ConfigError(f"--terms: unknown {sorted(unknown)} (have {', '.join(TERMS)})")
+    terms = parse_terms(args.terms, FIT_TERMS)
     result = calibrate(real, synth, obj, config, args.seed, gt_classes, max_lost=args.max_lost, l2=args.l2,
                        terms=terms)
     table = result["table"]

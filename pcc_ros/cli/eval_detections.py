@@ -28,7 +28,16 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--kitti", type=Path, required=True, help="KITTI tracking / object root (or SynthCars output)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--kitti", type=Path, help="KITTI tracking / object root (SynthCars: per-kind report)")
+    source.add_argument(
+        "--nuscenes", type=Path,
+        help="nuScenes root (v1.0 tables): the cross-sensor check, no detector needed: car boxes on the annotated "
+        "cars (true), car-sized boxes on every annotated non-vehicle and on sampled free ground (false), one score",
+    )
+    parser.add_argument("--score", type=float, default=0.7, help="--nuscenes: every box's detector score (0.7)")
+    parser.add_argument("--ground-boxes", type=int, default=30, help="--nuscenes: free-ground boxes per frame (30)")
+    parser.add_argument("--seed", type=int, default=0, help="--nuscenes: seed of the free-ground boxes (0)")
     parser.add_argument("--detections", type=Path, help="detector results (default: ROOT/detections/synthetic)")
     parser.add_argument("--sequence", help="tracking sequence (needed when the root holds several)")
     parser.add_argument("--frames", help="START:STOP slice of the scans (default: all)")
@@ -46,7 +55,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plot", type=Path, help="PNG: operating curves and score distributions")
 
 
+def _nuscenes(args: argparse.Namespace, pipeline) -> int:
+    from pcc_ros.filter_check import check_json, nuscenes_check, plot_check, print_check
+
+    result = nuscenes_check(args.nuscenes, pipeline, args.score, args.ground_boxes, args.seed, args.max_lost)
+    print_check(result)
+    title = f"{args.nuscenes}: filter vs points-in-box, every box at score {args.score:g}"
+    if args.plot:
+        plot_check(result, args.plot, title)
+        log.info("wrote %s", args.plot)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        write_json(args.json, check_json(result), indent=1, nonfinite_null=True)
+        log.info("wrote %s", args.json)
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.nuscenes is not None:
+        pipeline = build_pipeline(args.config, {"backend": args.backend or "input", "score_mapping": args.score_mapping,
+                                                "rule": args.rule})
+        return _nuscenes(args, pipeline)
     detections = args.detections or (args.kitti / "detections" / "synthetic")
     frames = load_kitti(args.kitti, detections, args.sequence, parse_frames(args.frames))
     pipeline = build_pipeline(

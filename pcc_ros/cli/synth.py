@@ -9,6 +9,7 @@ from pathlib import Path
 
 from pcc_ros.data.synthetic.detector import DetectorParams
 from pcc_ros.errors import ConfigError
+from pcc_ros.geometry.beams import SENSOR_PRESETS
 
 log = logging.getLogger(__name__)
 
@@ -20,7 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed: same seed, same bytes")
     parser.add_argument("--test-fraction", type=float, default=0.2, help="share of sequences in the test split")
     parser.add_argument("--shape-points", type=int, default=16384, help="points per ground-truth shape (>= 16384)")
-    parser.add_argument("--low-res", action="store_true", help="16-beam, 0.8 deg sensor (quick looks, tests)")
+    parser.add_argument("--sensor", default="hdl64", choices=tuple(SENSOR_PRESETS),
+                        help="beam layout of the simulated LiDAR (default hdl64, KITTI's; stored in meta.json)")
+    parser.add_argument("--low-res", action="store_true", help="16-beam, 0.8 deg HDL-64E variant (quick looks, tests)")
     parser.add_argument(
         "--realistic-sensor", action="store_true",
         help="add the real-scan artefacts the domain-gap comparison found missing: per-laser range / elevation "
@@ -37,7 +40,9 @@ def run(args: argparse.Namespace) -> int:
     from pcc_ros.data.synthetic.lidar import REALISTIC_ARTEFACTS, Sensor
 
     extra = REALISTIC_ARTEFACTS if args.realistic_sensor else {}
-    sensor = Sensor.low_res(**extra) if args.low_res else Sensor(**extra)
+    if args.low_res and args.sensor != "hdl64":
+        raise ConfigError("--low-res is a variant of the hdl64 layout; drop it or --sensor")
+    sensor = Sensor.low_res(**extra) if args.low_res else Sensor(layout=args.sensor, **extra)
     meta = generate(args.out, args.sequences, args.frames, args.seed, sensor=sensor,
                     shape_points=args.shape_points, test_fraction=args.test_fraction, overwrite=args.overwrite)
     n_tracks = sum(len(s["tracks"]) for s in meta["sequences"].values())

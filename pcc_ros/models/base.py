@@ -413,13 +413,21 @@ class TorchCompleter(Completer):
     of intra-op threads, which stall whenever another process holds a core (``pcc bench
     complete`` / ``pipeline`` measure the settings). While such a call runs, torch's thread
     count is 1 process-wide.
+
+    ``inference_path`` (run-time, default ``auto``): how the network runs
+    (:mod:`pcc_ros.models.inference`: the compiled CPU loops where numba and SciPy's BLAS load
+    and the network is CPU float32, else torch operators; ``compiled``, ``compiled_layers``,
+    ``operators``, ``reference`` by name). It is this completer's own setting, stored on its
+    model's layers: completers with different paths, devices and precisions run side by side
+    in one process, from any threads; set :attr:`inference_path` between calls to change it.
     """
 
     learned: ClassVar[bool] = True
 
     def __init__(
         self, device: str = "auto", batch_size: int = 32, half_precision: bool = False, workers: int = 1,
-        box_aspect: Sequence[float] | None = None, decode_density: int = 1, **config: Any
+        box_aspect: Sequence[float] | None = None, decode_density: int = 1, inference_path: str = "auto",
+        **config: Any
     ) -> None:
         if self.presets:  # a named size: its preset, then the given overrides
             size = self.check_size(config.pop("size", "default"))
@@ -454,12 +462,26 @@ class TorchCompleter(Completer):
             self.model.to(dtype)  # a checkpoint loaded later is cast by load_state_dict
             self.model.register_forward_pre_hook(_cast_floating_inputs(dtype))
         self.model.eval()
-        if self.device.type == "cpu" and not self.half_precision:
-            from pcc_ros.models.layers import warm_up_kernels
-
-            warm_up_kernels(self.model)  # the compiled CPU loops its layers run, before the first batch
+        self._inference_path, self._warmed_up = "auto", False
+        self.inference_path = inference_path  # resolved, stored on the layers, compiled loops warmed up
         #: What the weights were trained on, their metrics ... (from a loaded checkpoint).
         self.checkpoint_config: dict[str, Any] | None = None
+
+    @property
+    def inference_path(self) -> str:
+        """How the network runs (:mod:`pcc_ros.models.inference`), ``auto`` resolved."""
+        return self._inference_path
+
+    @inference_path.setter
+    def inference_path(self, path: str) -> None:
+        from pcc_ros.models.inference import COMPILED_PATHS, resolve_path, set_inference_path, warm_up_kernels
+
+        resolved = resolve_path(path, self.device.type, self.half_precision)
+        set_inference_path(self.model, resolved)
+        if resolved in COMPILED_PATHS and not self._warmed_up:
+            warm_up_kernels(self.model)  # the compiled CPU loops its layers run, before the first batch
+            self._warmed_up = True
+        self._inference_path = resolved
 
     @classmethod
     def default_config(cls) -> dict[str, Any]:

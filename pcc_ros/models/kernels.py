@@ -3,102 +3,147 @@
 Why: in eager PyTorch every step of a chunk is an operator call (5-10 us of dispatch) and a
 pass through memory: the max-pooling scatters, the ReLUs, the folding decoder's broadcast adds
 and its 3-wide output layer (a matrix product at a fifth of the matmul rate) took a fifth of
-the network's time (``pcc bench complete``). Here a chunk's matrix products are the same MKL
-``sgemm`` ``torch.mm`` runs (libtorch's own, called from the compiled code, the calling
-thread's MKL thread count set to torch's), and the work between them is fused loops over the
-chunk's rows while they are in cache (bias, ReLU, max-pooling, broadcast add, the 3-wide output
-layer with its residual), with no Python between them. The functions are the layers' inference
-paths (``layers.PCNEncoder._forward_compiled``, ``layers.FoldingDecoder._fold_compiled``; the
-torch-operator versions beside them stay for other layer shapes, the GPU and the comparison),
-same weights, same folded constants; float rounding differs in the last bits (``pcc bench
-complete`` and the tests compare them with the original path).
+the network's time (``pcc bench complete``). Here a chunk's matrix products are ``np.dot``
+inside the compiled code, which numba hands to SciPy's BLAS (``scipy.linalg.cython_blas``, a
+supported route on every CPU SciPy ships for), and the work between them is fused loops over
+the chunk's rows while they are in cache (bias, ReLU, max-pooling, broadcast add, the 3-wide
+output layer with its residual), with no Python between them.
+
+The network is defined once, by the torch modules (``layers.PCNEncoder``,
+``layers.FoldingDecoder``, ``pointpncnet_network.PointPnCNetNet``): each derives the weights its
+kernel reads as one of the named structures below (``kernel_weights()``), the same parameters
+with the same folded constants as the modules' chunked operator path; float rounding differs
+in the last bits (``pcc bench complete`` and the tests compare the paths).
 
 :func:`pointpncnet_infer` runs PointPnCNet's whole network in one call (both encoders, the
 octant gather, the attention and fusion, both decoders' fully connected layers and folding):
 called layer by layer, the Python and torch operators between the kernels, run while the
-caches are cold from the kernel before, cost 4-5 % of the network's time (``pcc bench complete``,
-``fast_layers``).
+caches are cold from the kernel before, cost 4-5 % of the network's time (``pcc bench
+complete``, the ``compiled_layers`` path).
 
-Used on CPU float32 inference only (:func:`pcc_ros.models.layers.compiled_kernels` switches them
-off); compiled on first use and cached on disk (:func:`pcc_ros.jit.compiled`; :func:`warm_up` at
-model load).
+Used on CPU float32 inference by a completer whose inference path allows it
+(:mod:`pcc_ros.models.inference`); compiled on first use and cached on disk
+(:func:`pcc_ros.jit.compiled`; :func:`warm_up` at model load).
+
+BLAS threads: the kernels are called from each worker thread with one BLAS thread each
+(parallelism comes from the completer's ``workers``): ``import pcc_ros`` sets
+``OPENBLAS_NUM_THREADS=1`` unless the user set a count (why: :mod:`pcc_ros`).
 """
 
 from __future__ import annotations
 
-import ctypes
-import os
-import threading
+from typing import NamedTuple
 
 import numpy as np
-import torch
-from numba import njit, types
+from numba import njit
 
 from pcc_ros.jit import compiled
 
 
-def _libtorch_blas():
-    """libtorch's Fortran ``sgemm_`` (MKL on x86) as a numba external function (resolved by name
-    when a kernel is linked, so the kernels can be cached) and MKL's per-thread thread count, or
-    ``(None, None)`` where this torch build has no such symbols."""
-    path = os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so")
+def _load_blas() -> bool:
+    """Load SciPy's BLAS (what numba's ``np.dot`` calls); False where SciPy or its BLAS is
+    missing: the completers then run the torch-operator path."""
     try:
-        lib = ctypes.CDLL(path)
-        lib.sgemm_  # noqa: B018  (raises AttributeError where absent)
-        threads = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_int)(("MKL_Set_Num_Threads_Local", lib))  # by value
-    except (OSError, AttributeError):
-        return None, None
-    import llvmlite.binding
-
-    llvmlite.binding.load_library_permanently(path)
-    return types.ExternalFunction("sgemm_", types.void(*([types.intp] * 13))), threads
+        import scipy.linalg.cython_blas  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
-_sgemm, _set_threads = _libtorch_blas()
-AVAILABLE = _sgemm is not None
+#: Whether the compiled kernels can run here (numba, which imported this module, and SciPy's BLAS).
+AVAILABLE = _load_blas()
+
+#: Floats a work array's carved views start on a multiple of (a cache line: misaligned operands
+#: slow the products); :func:`work_memory` hands out a work array that starts on one.
+ALIGN = 16
+#: The octants of PointPnCNet's local stream.
+REGIONS = 8
 
 
-_threads = threading.local()
+class EncoderWeights(NamedTuple):
+    """A PCN encoder for :func:`pcn_encode`: two ``mlp1`` layers, the second composed with the
+    split layer's point half, one ``mlp2`` layer (``layers.PCNEncoder.kernel_weights``).
+    Matrices are transposed, ``(in, out)``, float32."""
+
+    layer0_t: np.ndarray  #: (3, c0) mlp1's first layer
+    layer0_bias: np.ndarray  #: (c0,)
+    layer1_t: np.ndarray  #: (c0, c1) mlp1's second layer, its bias folded into segment_const
+    point_half_t: np.ndarray  #: (c0, h) the split layer's point half composed with layer 1
+    segment_half_t: np.ndarray  #: (c1, h) the split layer's per-segment half
+    segment_const: np.ndarray  #: (h,) the split layer's bias plus layer 1's bias through both halves
+    last_t: np.ndarray  #: (h, out) mlp2's layer
+    last_bias: np.ndarray  #: (out,)
+    chunk_rows: int  #: rows per chunk of whole segments (one longer segment alone)
 
 
-def set_threads(n: int) -> None:
-    """MKL's thread count for the calling thread's products (torch's intra-op threads); the
-    ctypes call is made only when the count changes, not once per kernel call."""
-    if _set_threads is not None and getattr(_threads, "n", None) != n:
-        _set_threads(int(n))
-        _threads.n = n
+class DenseWeights(NamedTuple):
+    """Fully connected layers for :func:`dense`, ReLU between them (``layers.dense_weights``)."""
+
+    weights_t: np.ndarray  #: every layer's transposed (in, out) weight, flat, one after the other
+    biases: np.ndarray  #: every layer's bias, flat, one after the other
+    widths: np.ndarray  #: (layers + 1,) int64: the input width, then each layer's output width
+
+
+class FoldWeights(NamedTuple):
+    """The folding step for :func:`fold`: one hidden layer (``layers.FoldingDecoder``)."""
+
+    grid_proj: np.ndarray  #: (G, h) the grid points through the first layer's grid half
+    point_t: np.ndarray  #: (3, h) the first layer's coarse-point half
+    hidden_t: np.ndarray  #: (h, h1) the hidden layer
+    hidden_bias: np.ndarray  #: (h1,)
+    out_weight: np.ndarray  #: (3, h1) the output layer, not transposed (three dot products a row)
+    out_bias: np.ndarray  #: (3,)
+
+
+class DecoderWeights(NamedTuple):
+    """A folding decoder for :func:`decode` (``layers.FoldingDecoder.kernel_weights``)."""
+
+    coarse: DenseWeights  #: the fully connected layers from the code to the coarse points
+    code_proj: DenseWeights  #: the first folding layer's code half (one layer)
+    fold: FoldWeights
+    coarse_points: int  #: K: coarse points per code
+    codes_per_chunk: int  #: codes folded per chunk (a multiple of the codes per output row)
+
+
+class NetworkWeights(NamedTuple):
+    """PointPnCNet's network for :func:`pointpncnet_infer`
+    (``pointpncnet_network.PointPnCNetNet.kernel_weights``)."""
+
+    global_encoder: EncoderWeights
+    local_encoder: EncoderWeights
+    attention: DenseWeights  #: embedding -> hidden -> 1 logit per octant
+    global_decoder: DecoderWeights  #: one code per row of the output
+    local_decoder: DecoderWeights  #: eight codes (the octants) per row of the output
+    min_region_points: int  #: an octant with fewer input points is absent
+
+
+def work_memory(scratch, name: str, floats: int) -> np.ndarray:
+    """``floats`` float32 of ``scratch``'s ``name`` buffer (kept per thread from call to call:
+    fresh memory costs page faults on every call, and its release stalls the other threads of
+    the process), starting on a multiple of :data:`ALIGN` floats."""
+    buf = scratch(name, floats + ALIGN, np.float32)
+    skip = (-(buf.__array_interface__["data"][0] // 4)) % ALIGN
+    return buf[skip: skip + floats]
 
 
 @njit(inline="always")
-def _mm_args():
-    """:func:`_mm`'s argument memory (sgemm takes every argument by reference): sizes and strides,
-    alpha and beta, and the transpose flag "N" (none)."""
-    return np.empty(6, np.int32), np.empty(2, np.float32), np.full(1, 78, np.uint8)
-
-
-@njit(inline="always")
-def _mm(a, b, c, ints, floats, chars):
-    """``c = a @ b`` (row-major, unit inner strides): column-major ``c^T = b^T a^T``."""
-    m, k = a.shape
-    n = b.shape[1]
-    ints[0], ints[1], ints[2] = n, m, k
-    ints[3], ints[4], ints[5] = b.strides[0] // 4, a.strides[0] // 4, c.strides[0] // 4
-    floats[0], floats[1] = 1.0, 0.0
-    _sgemm(chars.ctypes.data, chars.ctypes.data, ints[0:].ctypes.data, ints[1:].ctypes.data,
-           ints[2:].ctypes.data, floats[0:].ctypes.data, b.ctypes.data, ints[3:].ctypes.data,
-           a.ctypes.data, ints[4:].ctypes.data, floats[1:].ctypes.data, c.ctypes.data, ints[5:].ctypes.data)
+def _carve(work, offset, rows, cols):
+    """A ``(rows, cols)`` view of ``work`` from ``offset`` rounded up to a multiple of
+    :data:`ALIGN` (``work`` starts on one: :func:`work_memory`), and the offset after it."""
+    offset = (offset + ALIGN - 1) // ALIGN * ALIGN
+    return work[offset: offset + rows * cols].reshape((rows, cols)), offset + rows * cols
 
 
 @compiled()
-def pcn_encode(points, counts, rows, w0t, b0, w1t, wct, wst, const, w2t, b2, out, t, f, h, y, g, gp):
+def pcn_encode(points, counts, weights, out, layer0, layer1, hidden, last, pooled1, segment_half):
     """The PCN encoder's composed inference path (points sorted by segment, ``counts`` per
-    segment) on chunks of whole segments of about ``rows`` rows (one longer segment alone):
+    segment) on chunks of whole segments of about ``weights.chunk_rows`` rows:
     ``t = relu(p W0^T + b0)``, ``g = max_seg(t W1^T)``, ``h = relu(t Wc + (g Ws + const)[seg])``,
-    ``out = max_seg(h W2^T) + b2`` (0 for an empty segment).
-    ``t, f, h, y``: work arrays of ``max(rows, largest segment)`` rows; ``g, gp``: of a row per
-    segment."""
-    ints, floats, chars = _mm_args()
-    c0, c1, hp, c2 = w0t.shape[1], w1t.shape[1], wct.shape[1], w2t.shape[1]
+    ``out = max_seg(h W2^T) + b2`` (0 for an empty segment). ``layer0, layer1, hidden, last``:
+    work arrays of ``max(chunk rows, largest segment)`` rows; ``pooled1, segment_half``: of a
+    row per segment."""
+    w = weights
+    c0, c1, hp, c2 = w.layer0_t.shape[1], w.layer1_t.shape[1], w.point_half_t.shape[1], w.last_t.shape[1]
     segments = len(counts)
     starts = np.zeros(segments + 1, np.int64)
     for s in range(segments):
@@ -106,18 +151,19 @@ def pcn_encode(points, counts, rows, w0t, b0, w1t, wct, wst, const, w2t, b2, out
     slo = 0
     while slo < segments:
         shi = slo + 1
-        while shi < segments and starts[shi + 1] - starts[slo] <= rows:
+        while shi < segments and starts[shi + 1] - starts[slo] <= w.chunk_rows:
             shi += 1
         a, r = starts[slo], starts[shi] - starts[slo]
-        tt = t[:r]
+        tt = layer0[:r]
         for i in range(r):
             x0, x1, x2 = points[a + i, 0], points[a + i, 1], points[a + i, 2]
             row = tt[i]
             for j in range(c0):
-                row[j] = max(x0 * w0t[0, j] + x1 * w0t[1, j] + x2 * w0t[2, j] + b0[j], np.float32(0.0))
-        ff = f[:r]
-        _mm(tt, w1t, ff, ints, floats, chars)
-        gg = g[: shi - slo]
+                row[j] = max(x0 * w.layer0_t[0, j] + x1 * w.layer0_t[1, j] + x2 * w.layer0_t[2, j]
+                             + w.layer0_bias[j], np.float32(0.0))
+        ff = layer1[:r]
+        np.dot(tt, w.layer1_t, ff)
+        gg = pooled1[: shi - slo]
         for s in range(slo, shi):
             acc = gg[s - slo]
             acc[:] = -np.inf
@@ -125,20 +171,20 @@ def pcn_encode(points, counts, rows, w0t, b0, w1t, wct, wst, const, w2t, b2, out
                 row = ff[i]
                 for j in range(c1):
                     acc[j] = max(acc[j], row[j])
-        gpc = gp[: shi - slo]
-        _mm(gg, wst, gpc, ints, floats, chars)
-        hh = h[:r]
-        _mm(tt, wct, hh, ints, floats, chars)
+        gpc = segment_half[: shi - slo]
+        np.dot(gg, w.segment_half_t, gpc)
+        hh = hidden[:r]
+        np.dot(tt, w.point_half_t, hh)
         for s in range(slo, shi):
             seg = gpc[s - slo]
             for j in range(hp):
-                seg[j] += const[j]
+                seg[j] += w.segment_const[j]
             for i in range(starts[s] - a, starts[s + 1] - a):
                 row = hh[i]
                 for j in range(hp):
                     row[j] = max(row[j] + seg[j], np.float32(0.0))
-        yy = y[:r]
-        _mm(hh, w2t, yy, ints, floats, chars)
+        yy = last[:r]
+        np.dot(hh, w.last_t, yy)
         for s in range(slo, shi):
             acc = out[s]
             if starts[s + 1] == starts[s]:
@@ -150,23 +196,25 @@ def pcn_encode(points, counts, rows, w0t, b0, w1t, wct, wst, const, w2t, b2, out
                 for j in range(c2):
                     acc[j] = max(acc[j], row[j])
             for j in range(c2):
-                acc[j] += b2[j]
+                acc[j] += w.last_bias[j]
         slo = shi
 
 
 @compiled(fastmath=True)
-def fold(coarse, wpt, code_proj, grid, w1t, b1, w2, b2, out, m, step, hbuf, xbuf):
+def fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, hidden_in, hidden_out):
     """The folding step (one hidden layer): for every code ``s``, coarse point ``k`` and grid
     point ``g``, ``out = (coarse[s, k] + b2) + W2 relu(W1 h + b1)`` with ``h = relu(coarse[s, k]
-    Wp^T + code_proj[s] + grid[g])``, into ``out[s // m, (s % m) K G + k G + g]``, ``step``
-    codes per chunk (``hbuf`` / ``xbuf``: work arrays of ``step K G`` rows). Fast-math: sums may
-    be reassociated (float rounding in the last bits)."""
-    ints, floats, chars = _mm_args()
+    Wp^T + code_proj[s] + grid_proj[g])``, into ``out[s // m, (s % m) K G + k G + g]`` (``m``:
+    ``codes_per_row``), ``codes_per_chunk`` codes per chunk (``hidden_in`` / ``hidden_out``:
+    work arrays of ``codes_per_chunk K G`` rows). Fast-math: sums may be reassociated (float
+    rounding in the last bits)."""
+    w = weights
     codes, k_points = coarse.shape[0], coarse.shape[1]
-    hdim, g_points, h1 = wpt.shape[1], grid.shape[0], w1t.shape[1]
+    hdim, g_points, h1 = w.point_t.shape[1], w.grid_proj.shape[0], w.hidden_t.shape[1]
+    m = codes_per_row
     base = np.empty(hdim, np.float32)
-    for start in range(0, codes, step):
-        stop = min(start + step, codes)
+    for start in range(0, codes, codes_per_chunk):
+        stop = min(start + codes_per_chunk, codes)
         r = (stop - start) * k_points * g_points
         row = 0
         for s in range(start, stop):
@@ -174,28 +222,30 @@ def fold(coarse, wpt, code_proj, grid, w1t, b1, w2, b2, out, m, step, hbuf, xbuf
             for k in range(k_points):
                 x0, x1, x2 = coarse[s, k, 0], coarse[s, k, 1], coarse[s, k, 2]
                 for j in range(hdim):
-                    base[j] = x0 * wpt[0, j] + x1 * wpt[1, j] + x2 * wpt[2, j] + cp[j]
+                    base[j] = x0 * w.point_t[0, j] + x1 * w.point_t[1, j] + x2 * w.point_t[2, j] + cp[j]
                 for gi in range(g_points):
-                    gr = grid[gi]
-                    hr = hbuf[row]
+                    gr = w.grid_proj[gi]
+                    hr = hidden_in[row]
                     for j in range(hdim):
                         hr[j] = max(base[j] + gr[j], np.float32(0.0))
                     row += 1
-        xs = xbuf[:r]
-        _mm(hbuf[:r], w1t, xs, ints, floats, chars)
+        xs = hidden_out[:r]
+        np.dot(hidden_in[:r], w.hidden_t, xs)
         row = 0
         for s in range(start, stop):
             q, p0 = s // m, (s % m) * k_points * g_points
             for k in range(k_points):
-                sp0, sp1, sp2 = coarse[s, k, 0] + b2[0], coarse[s, k, 1] + b2[1], coarse[s, k, 2] + b2[2]
+                sp0 = coarse[s, k, 0] + w.out_bias[0]
+                sp1 = coarse[s, k, 1] + w.out_bias[1]
+                sp2 = coarse[s, k, 2] + w.out_bias[2]
                 for gi in range(g_points):
                     x = xs[row]
                     a0 = a1 = a2 = np.float32(0.0)
                     for j in range(h1):
-                        v = max(x[j] + b1[j], np.float32(0.0))
-                        a0 += w2[0, j] * v
-                        a1 += w2[1, j] * v
-                        a2 += w2[2, j] * v
+                        v = max(x[j] + w.hidden_bias[j], np.float32(0.0))
+                        a0 += w.out_weight[0, j] * v
+                        a1 += w.out_weight[1, j] * v
+                        a2 += w.out_weight[2, j] * v
                     o = p0 + k * g_points + gi
                     out[q, o, 0] = sp0 + a0
                     out[q, o, 1] = sp1 + a1
@@ -203,36 +253,22 @@ def fold(coarse, wpt, code_proj, grid, w1t, b1, w2, b2, out, m, step, hbuf, xbuf
                     row += 1
 
 
-#: Floats :func:`_carve` may skip to align a view (a cache line).
-ALIGN = 16
-
-
-@njit(inline="always")
-def _carve(work, offset, rows, cols):
-    """A ``(rows, cols)`` view of ``work`` from ``offset`` or up to :data:`ALIGN` floats later (a
-    cache-line aligned start: misaligned operands slow the products), and the offset after it."""
-    offset += (ALIGN - (work.ctypes.data // 4 + offset) % ALIGN) % ALIGN
-    return work[offset: offset + rows * cols].reshape((rows, cols)), offset + rows * cols
-
-
 @compiled()
-def dense(x, weights, biases, dims, out, work):
-    """``x`` through fully connected layers: layer ``l`` maps ``dims[l]`` to ``dims[l + 1]``
-    columns, its transposed weight ``(dims[l], dims[l + 1])`` and its bias stored one after the
-    other in the flat ``weights`` / ``biases``; ReLU after every layer but the last, which
-    writes ``out``. ``work``: at least ``2 * (rows * max(dims[1:-1]) + ALIGN)`` floats (hidden layers)."""
-    ints, floats, chars = _mm_args()
-    rows, layers = x.shape[0], len(dims) - 1
+def dense(x, weights, out, work):
+    """``x`` through fully connected layers (:class:`DenseWeights`), ReLU after every layer but
+    the last, which writes ``out``. ``work``: at least :func:`_dense_floats` floats (the hidden
+    layers' outputs)."""
+    rows, layers = x.shape[0], len(weights.widths) - 1
     src = x
     wo = bo = 0
     for layer in range(layers):
-        k, n = dims[layer], dims[layer + 1]
+        k, n = weights.widths[layer], weights.widths[layer + 1]
         if layer == layers - 1:
             dst = out
         else:  # the hidden layers alternate between the two halves of work
             dst, _ = _carve(work, (layer % 2) * (len(work) // 2), rows, n)
-        _mm(src, weights[wo: wo + k * n].reshape((k, n)), dst, ints, floats, chars)
-        bias = biases[bo: bo + n]
+        np.dot(src, weights.weights_t[wo: wo + k * n].reshape((k, n)), dst)
+        bias = weights.biases[bo: bo + n]
         relu = layer < layers - 1
         for i in range(rows):
             row = dst[i]
@@ -242,6 +278,13 @@ def dense(x, weights, biases, dims, out, work):
         wo += k * n
         bo += n
         src = dst
+
+
+@njit(inline="always")
+def _dense_floats(weights, rows):
+    """Work floats :func:`dense` carves for ``rows`` rows."""
+    widths = weights.widths
+    return 2 * (rows * widths[1:-1].max() + ALIGN) if len(widths) > 2 else 0
 
 
 @compiled()
@@ -260,164 +303,170 @@ def sorted_counts(segment, segments):
 
 
 @njit(inline="always")
-def _encoder_floats(enc, most, segments):
-    """Work floats :func:`_encode` carves (``most``: its chunk's rows)."""
-    return most * (enc[0].shape[1] + enc[2].shape[1] + enc[3].shape[1] + enc[6].shape[1]) + \
-        segments * (enc[2].shape[1] + enc[3].shape[1]) + 6 * ALIGN
+def _encoder_floats(weights, counts):
+    """Work floats :func:`_encode` carves."""
+    w = weights
+    most = max(w.chunk_rows, counts.max()) if len(counts) else w.chunk_rows
+    widths = w.layer0_t.shape[1] + w.layer1_t.shape[1] + w.point_half_t.shape[1] + w.last_t.shape[1]
+    return most * widths + len(counts) * (w.layer1_t.shape[1] + w.point_half_t.shape[1]) + 6 * ALIGN
 
 
 @njit(inline="always")
-def _encode(enc, points, counts, rows, most, pooled, work):
+def _encode(weights, points, counts, pooled, work):
     """:func:`pcn_encode` with its work arrays carved from ``work``."""
-    t, o = _carve(work, 0, most, enc[0].shape[1])
-    f, o = _carve(work, o, most, enc[2].shape[1])
-    h, o = _carve(work, o, most, enc[3].shape[1])
-    y, o = _carve(work, o, most, enc[6].shape[1])
-    g, o = _carve(work, o, len(counts), enc[2].shape[1])
-    gp, o = _carve(work, o, len(counts), enc[3].shape[1])
-    pcn_encode(points, counts, rows, enc[0], enc[1], enc[2], enc[3], enc[4], enc[5], enc[6], enc[7], pooled,
-               t, f, h, y, g, gp)
+    w = weights
+    most = max(w.chunk_rows, counts.max()) if len(counts) else w.chunk_rows
+    layer0, o = _carve(work, 0, most, w.layer0_t.shape[1])
+    layer1, o = _carve(work, o, most, w.layer1_t.shape[1])
+    hidden, o = _carve(work, o, most, w.point_half_t.shape[1])
+    last, o = _carve(work, o, most, w.last_t.shape[1])
+    pooled1, o = _carve(work, o, len(counts), w.layer1_t.shape[1])
+    segment_half, o = _carve(work, o, len(counts), w.point_half_t.shape[1])
+    pcn_encode(points, counts, w, pooled, layer0, layer1, hidden, last, pooled1, segment_half)
 
 
 @compiled()
-def encode(enc, points, counts, rows, pooled, work):
+def encoder_floats(weights, counts):
+    """Work floats :func:`encode` needs (:func:`work_memory`)."""
+    return _encoder_floats(weights, counts)
+
+
+@compiled()
+def encode(weights, points, counts, pooled, work):
     """:func:`pcn_encode` on its own (``PCNEncoder``'s compiled path, its layers called one by
-    one): its work arrays carved from ``work``, replaced by a bigger array where too small;
-    returns the one used, for the caller to keep."""
-    most = max(rows, counts.max())
-    need = _encoder_floats(enc, most, len(counts))
-    if len(work) < need:
-        work = np.empty(need + need // 4, np.float32)
-    _encode(enc, points, counts, rows, most, pooled, work)
-    return work
+    one), its work arrays carved from ``work`` (:func:`encoder_floats` floats)."""
+    _encode(weights, points, counts, pooled, work)
 
 
 @njit(inline="always")
-def _fold_floats(fw, codes, k, step):
-    """Work floats :func:`_fold` carves for ``codes`` codes of ``k`` coarse points."""
-    return min(step, codes) * k * fw[0].shape[0] * (fw[1].shape[1] + fw[2].shape[1]) + 2 * ALIGN
+def _fold_floats(weights, codes, coarse_points, codes_per_chunk):
+    """Work floats :func:`_fold` carves for ``codes`` codes of ``coarse_points`` points."""
+    w = weights
+    rows = min(codes_per_chunk, codes) * coarse_points * w.grid_proj.shape[0]
+    return rows * (w.point_t.shape[1] + w.hidden_t.shape[1]) + 2 * ALIGN
 
 
 @njit(inline="always")
-def _fold(coarse, proj, fw, out, m, step, work):
-    """:func:`fold` with its work arrays carved from ``work``; ``fw``: its ``grid, wpt, w1t, b1,
-    w2, b2``."""
-    s, k = coarse.shape[0], coarse.shape[1]
-    rows = min(step, s) * k * fw[0].shape[0]
-    hbuf, o = _carve(work, 0, rows, fw[1].shape[1])
-    xbuf, o = _carve(work, o, rows, fw[2].shape[1])
-    fold(coarse, fw[1], proj, fw[0], fw[2], fw[3], fw[4], fw[5], out, m, step, hbuf, xbuf)
+def _fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, work):
+    """:func:`fold` with its work arrays carved from ``work``."""
+    w = weights
+    rows = min(codes_per_chunk, coarse.shape[0]) * coarse.shape[1] * w.grid_proj.shape[0]
+    hidden_in, o = _carve(work, 0, rows, w.point_t.shape[1])
+    hidden_out, o = _carve(work, o, rows, w.hidden_t.shape[1])
+    fold(coarse, code_proj, w, out, codes_per_row, codes_per_chunk, hidden_in, hidden_out)
 
 
 @compiled()
-def fold_into(coarse, proj, fw, out, m, step, work):
-    """:func:`fold` on its own (``FoldingDecoder``'s compiled path, the layers called one by one):
-    its work arrays carved from ``work``, replaced by a bigger array where too small; returns the
-    one used, for the caller to keep."""
-    need = _fold_floats(fw, coarse.shape[0], coarse.shape[1], step)
-    if len(work) < need:
-        work = np.empty(need + need // 4, np.float32)
-    _fold(coarse, proj, fw, out, m, step, work)
-    return work
+def fold_floats(weights, codes, coarse_points, codes_per_chunk):
+    """Work floats :func:`fold_into` needs (:func:`work_memory`)."""
+    return _fold_floats(weights, codes, coarse_points, codes_per_chunk)
+
+
+@compiled()
+def fold_into(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, work):
+    """:func:`fold` on its own (``FoldingDecoder``'s compiled path, the layers called one by one),
+    its work arrays carved from ``work`` (:func:`fold_floats` floats)."""
+    _fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, work)
 
 
 @njit(inline="always")
-def _decoder_floats(dec, codes, step):
+def _decoder_floats(weights, codes):
     """Work floats :func:`_decode` carves for ``codes`` codes."""
-    fc, k = dec[2], dec[2][-1] // 3
-    hidden = 2 * (codes * fc[1:-1].max() + ALIGN) if len(fc) > 2 else 0
-    return codes * (3 * k + dec[7].shape[1]) + max(hidden, _fold_floats(dec[6:], codes, k, step)) + 2 * ALIGN
+    w = weights
+    coarse = codes * (3 * w.coarse_points + w.code_proj.widths[-1]) + 2 * ALIGN
+    fold_work = _fold_floats(w.fold, codes, w.coarse_points, w.codes_per_chunk)
+    return coarse + max(_dense_floats(w.coarse, codes), _dense_floats(w.code_proj, codes), fold_work) + ALIGN
 
 
 @njit(inline="always")
-def _decode(dec, code, step, m, out, work):
-    """A folding decoder (``dec``: see :func:`pointpncnet_infer`) from ``code`` into ``out``."""
-    s, k = code.shape[0], dec[2][-1] // 3
+def _decode(weights, code, codes_per_row, out, work):
+    """A folding decoder from ``code`` into ``out``."""
+    w = weights
+    s, k = code.shape[0], w.coarse_points
     coarse, o = _carve(work, 0, s, 3 * k)
-    proj, o = _carve(work, o, s, dec[7].shape[1])
-    rest = work[o:]
-    dense(code, dec[0], dec[1], dec[2], coarse, rest)
-    dense(code, dec[3], dec[4], dec[5], proj, rest)
-    _fold(coarse.reshape((s, k, 3)), proj, dec[6:], out, m, step, rest)
+    code_proj, o = _carve(work, o, s, w.code_proj.widths[-1])
+    rest = work[(o + ALIGN - 1) // ALIGN * ALIGN:]
+    dense(code, w.coarse, coarse, rest)
+    dense(code, w.code_proj, code_proj, rest)
+    _fold(coarse.reshape((s, k, 3)), code_proj, w.fold, out, codes_per_row, w.codes_per_chunk, rest)
 
 
 @compiled()
-def pointpncnet_infer(points, counts, point_index, local_counts, min_points, genc, grows, lenc, lrows,
-                      attention, gdec, gstep, ldec, lstep, out, present, work):
-    """PointPnCNet's whole inference (``PointPnCNetNet.forward`` on the fast path) in one call,
-    no Python between its steps: the global encoder over ``points`` (``counts`` per instance,
-    sorted), the local one over the gathered ``points[point_index]`` (``local_counts`` per
-    instance and octant), the attention-weighted fusion, and both folding decoders into ``out``
-    ``(B, Mg + 8 Ml, 3)`` (the global points, then the octants'); ``present`` ``(B, 8)`` gets the
-    octants with at least ``min_points`` points.
+def network_floats(weights, counts, local_counts, gathered):
+    """Work floats :func:`pointpncnet_infer` needs for ``len(counts)`` instances and ``gathered``
+    (point, octant) memberships (:func:`work_memory`)."""
+    w = weights
+    b = len(counts)
+    codes = b * REGIONS
+    embed = w.global_encoder.last_t.shape[1]
+    kept = b * embed * 2 + codes * (2 * embed + REGIONS + 1) + gathered * 3 + 7 * ALIGN  # the carving below
+    return kept + max(_encoder_floats(w.global_encoder, counts), _encoder_floats(w.local_encoder, local_counts),
+                      _decoder_floats(w.global_decoder, b), _decoder_floats(w.local_decoder, codes),
+                      _dense_floats(w.attention, codes))
 
-    ``genc`` / ``lenc``: :func:`pcn_encode`'s weights, ``grows`` / ``lrows`` its chunk rows;
-    ``attention``: :func:`dense`'s ``(weights, biases, dims)``; ``gdec`` / ``ldec``: the fully
-    connected layers' and the code projection's ``(weights, biases, dims)`` then :func:`fold`'s
-    ``grid, wpt, w1t, b1, w2, b2``; ``gstep`` / ``lstep``: codes per folding chunk. ``work``:
-    float32 work memory for every intermediate, replaced by a bigger array where too small;
-    returns the one used, for the caller to keep (fresh memory costs page faults on every call,
-    and its release stalls the other threads of the process)."""
-    b, regions = len(counts), 8
-    codes = b * regions
-    most_g, most_l = max(grows, counts.max()), max(lrows, local_counts.max())
-    embed = genc[6].shape[1]
-    kept = b * embed * 2 + codes * (2 * embed + regions + 1) + len(point_index) * 3 + 7 * ALIGN  # the carving below
-    need = kept + max(_encoder_floats(genc, most_g, b), _encoder_floats(lenc, most_l, codes),
-                      _decoder_floats(gdec, b, gstep), _decoder_floats(ldec, codes, lstep),
-                      2 * (codes * attention[2][1:].max() + ALIGN))
-    if len(work) < need:
-        work = np.empty(need + need // 4, np.float32)
+
+@compiled()
+def pointpncnet_infer(points, counts, point_index, local_counts, weights, out, present, work):
+    """PointPnCNet's whole inference (``PointPnCNetNet.forward`` on the compiled path) in one
+    call, no Python between its steps: the global encoder over ``points`` (``counts`` per
+    instance, sorted), the local one over the gathered ``points[point_index]`` (``local_counts``
+    per instance and octant), the attention-weighted fusion, and both folding decoders into
+    ``out`` ``(B, Mg + 8 Ml, 3)`` (the global points, then the octants'); ``present`` ``(B, 8)``
+    gets the octants with at least ``weights.min_region_points`` points. ``work``: float32 work
+    memory for every intermediate, :func:`network_floats` floats (:func:`work_memory`)."""
+    w = weights
+    b = len(counts)
+    codes = b * REGIONS
+    embed = w.global_encoder.last_t.shape[1]
     e_g, o = _carve(work, 0, b, embed)
     fused, o = _carve(work, o, b, embed)
     e_l, o = _carve(work, o, codes, embed)
-    code, o = _carve(work, o, codes, embed + regions)
+    code, o = _carve(work, o, codes, embed + REGIONS)
     logits, o = _carve(work, o, codes, 1)
     local_points, o = _carve(work, o, len(point_index), 3)
-    phase = work[o:]  # each step's own work memory
+    phase = work[(o + ALIGN - 1) // ALIGN * ALIGN:]  # each step's own work memory
 
-    _encode(genc, points, counts, grows, most_g, e_g, phase)
+    _encode(w.global_encoder, points, counts, e_g, phase)
     for i in range(len(point_index)):
         if not 0 <= point_index[i] < len(points):
             raise IndexError("pointpncnet_infer: a point index out of range")
         local_points[i] = points[point_index[i]]
-    _encode(lenc, local_points, local_counts, lrows, most_l, e_l, phase)
+    _encode(w.local_encoder, local_points, local_counts, e_l, phase)
 
     # attention over the present octants (a softmax), its weighted code max-fused with the global one
-    dense(e_l, attention[0], attention[1], attention[2], logits, phase)
+    dense(e_l, w.attention, logits, phase)
     fused[:] = e_g
-    weights = np.empty(regions, np.float32)
+    octant_weights = np.empty(REGIONS, np.float32)
     for s in range(b):
         top = np.float32(-np.inf)
-        for r in range(regions):
-            present[s, r] = local_counts[s * regions + r] >= min_points
+        for r in range(REGIONS):
+            present[s, r] = local_counts[s * REGIONS + r] >= w.min_region_points
             if present[s, r]:
-                top = max(top, logits[s * regions + r, 0])
+                top = max(top, logits[s * REGIONS + r, 0])
         if top == -np.inf:  # no octant: the global code alone
             continue
         total = np.float32(0.0)
-        for r in range(regions):
-            weights[r] = np.exp(logits[s * regions + r, 0] - top) if present[s, r] else np.float32(0.0)
-            total += weights[r]
-        for r in range(regions):
-            weights[r] /= total
+        for r in range(REGIONS):
+            octant_weights[r] = np.exp(logits[s * REGIONS + r, 0] - top) if present[s, r] else np.float32(0.0)
+            total += octant_weights[r]
+        for r in range(REGIONS):
+            octant_weights[r] /= total
         for j in range(embed):
             acc = np.float32(0.0)
-            for r in range(regions):
-                acc += weights[r] * e_l[s * regions + r, j]
+            for r in range(REGIONS):
+                acc += octant_weights[r] * e_l[s * REGIONS + r, j]
             fused[s, j] = max(fused[s, j], acc)
 
     # the octants' codes: the fused code and the octant's one-hot
     for s in range(b):
-        for r in range(regions):
-            row = code[s * regions + r]
+        for r in range(REGIONS):
+            row = code[s * REGIONS + r]
             row[:embed] = fused[s]
             row[embed:] = 0.0
             row[embed + r] = 1.0
-    mg = gdec[2][-1] // 3 * gdec[6].shape[0]
-    _decode(gdec, fused, gstep, 1, out[:, :mg], phase)
-    _decode(ldec, code, lstep, regions, out[:, mg:], phase)
-    return work
+    global_points = w.global_decoder.coarse_points * w.global_decoder.fold.grid_proj.shape[0]
+    _decode(w.global_decoder, fused, 1, out[:, :global_points], phase)
+    _decode(w.local_decoder, code, REGIONS, out[:, global_points:], phase)
 
 
 @compiled()
@@ -480,12 +529,13 @@ def warm_up() -> None:
     rng = np.random.default_rng(0)
     points = rng.normal(size=(6, 3)).astype(f32)
     octant_pairs(points, np.array([4, 2], np.int64), f32(0.005))
-    sorted_counts(np.array([0, 0, 1], np.int64), 2)
+    counts = sorted_counts(np.array([0, 0, 0, 0, 1, 1], np.int64), 2)
 
     def w(*shape):
         return rng.normal(size=shape).astype(f32)
 
-    encode((w(3, 2), w(2), w(2, 3), w(2, 3), w(3, 3), w(3), w(3, 4), w(4)), points, np.array([4, 2], np.int64), 4,
-           np.empty((2, 4), f32), np.empty(0, f32))
+    encoder = EncoderWeights(w(3, 2), w(2), w(2, 3), w(2, 3), w(3, 3), w(3), w(3, 4), w(4), 4)
+    encode(encoder, points, counts, np.empty((2, 4), f32), np.empty(encoder_floats(encoder, counts), f32))
+    folding = FoldWeights(w(2, 5), w(3, 5), w(5, 4), w(4), w(3, 4), w(3))
     for out in (np.empty((2, 4, 3), f32), np.empty((2, 9, 3), f32)[:, 5:]):
-        fold_into(w(2, 2, 3), w(2, 5), (w(2, 5), w(3, 5), w(5, 4), w(4), w(3, 4), w(3)), out, 1, 1, np.empty(0, f32))
+        fold_into(w(2, 2, 3), w(2, 5), folding, out, 1, 1, np.empty(fold_floats(folding, 2, 2, 1), f32))

@@ -17,15 +17,13 @@ a CPU.
 
 from __future__ import annotations
 
-import threading
-import weakref
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
+from pcc_ros.models.inference import Workspace, as_numpy, kernels_for
 from pcc_ros.scratch import Scratch
 
 #: Bytes of intermediates per chunk of the fused inference paths (one thread): a chunk's
@@ -44,99 +42,18 @@ MULTI_THREAD_CHUNK_FACTOR = 16
 #: two layers as the operator path does), and half the operator path's budget measured about 1 %
 #: faster on the whole network (``pcc bench complete``, 1 thread; a third: the same).
 COMPILED_CHUNK_DIVISOR = 2
-#: A reused inference buffer (:class:`_Workspace`) bigger than this is not kept between calls
-#: (the ``paper`` size's wide layers in multi-thread chunks would hold hundreds of MiB).
-WORKSPACE_KEEP_BYTES = 16 << 20
 
-
-def _chunk_rows(rows: int) -> int:
-    return rows if torch.get_num_threads() == 1 else rows * MULTI_THREAD_CHUNK_FACTOR
 
 
 def _rows_for(widths: Sequence[int], compiled: bool = False) -> int:
-    """Rows per chunk when each row has float32 intermediates of these ``widths``
-    (:data:`CHUNK_BYTES`; for the ``compiled`` loops that over :data:`COMPILED_CHUNK_DIVISOR`)."""
-    budget = CHUNK_BYTES // COMPILED_CHUNK_DIVISOR if compiled else CHUNK_BYTES
-    return _chunk_rows(max(1, budget // (4 * max(1, sum(widths)))))
-
-_reference = False
-
-
-@contextmanager
-def reference_path(enabled: bool = True) -> Iterator[None]:
-    """Run the layers' original (pre-optimisation) code inside this block.
-
-    The original path (``torch.segment_reduce`` max-pooling, whole ``(P, C)`` intermediates)
-    is kept for the speed comparison of ``pcc bench complete`` / ``pcc bench pipeline`` and
-    for the tests that check the fast path returns the same values. Not thread-safe: it is a
-    process-wide switch meant for benchmarks and tests.
-    """
-    global _reference
-    previous, _reference = _reference, bool(enabled)
-    try:
-        yield
-    finally:
-        _reference = previous
-
-
-def using_reference_path() -> bool:
-    """True inside :func:`reference_path`."""
-    return _reference
-
-
-_kernels_enabled = True
-_whole_enabled = True
-
-
-@contextmanager
-def compiled_kernels(enabled: bool = True, whole_networks: bool | None = None) -> Iterator[None]:
-    """Whether the fast path may run its compiled CPU loops (:mod:`pcc_ros.models.kernels`) inside
-    this block (default: yes). Off, it runs the same steps as torch operators: the comparison of
-    ``pcc bench complete`` and the tests. ``whole_networks``: whether a network compiled whole
-    (PointPnCNet: :func:`pcc_ros.models.kernels.pointpncnet_infer`) runs in one call (default:
-    as ``enabled``); False runs its layers' compiled loops one by one, Python between them. A
-    process-wide switch, like :func:`reference_path`."""
-    global _kernels_enabled, _whole_enabled
-    previous = _kernels_enabled, _whole_enabled
-    _kernels_enabled = bool(enabled)
-    _whole_enabled = _kernels_enabled if whole_networks is None else bool(whole_networks)
-    try:
-        yield
-    finally:
-        _kernels_enabled, _whole_enabled = previous
-
-
-def warm_up_kernels(model: nn.Module) -> None:
-    """Compile the fast path's CPU loops now (:func:`pcc_ros.models.kernels.warm_up`) when
-    ``model`` has layers that run them (a PCN encoder or a folding decoder), unless they are
-    switched off (:func:`compiled_kernels`); a module with a ``warm_up_compiled()`` method (a
-    network compiled whole) runs it too."""
-    if _kernels_enabled and any(isinstance(m, PCNEncoder | FoldingDecoder) for m in model.modules()):
-        from pcc_ros.models import kernels
-
-        kernels.warm_up()
-        for module in model.modules():
-            if callable(getattr(module, "warm_up_compiled", None)):
-                module.warm_up_compiled()
-
-
-def as_numpy(t: torch.Tensor) -> np.ndarray:
-    """A C-ordered numpy view (or copy) of a CPU tensor, for the compiled kernels."""
-    return t.detach().contiguous().numpy()
-
-
-def kernels_for(tensor: torch.Tensor, whole_network: bool = False):
-    """The compiled kernels module when they may run on ``tensor`` (CPU, float32), else None;
-    ``whole_network``: for a network's single call (see :func:`compiled_kernels`)."""
-    if (not _kernels_enabled or (whole_network and not _whole_enabled) or tensor.device.type != "cpu"
-            or tensor.dtype != torch.float32):
-        return None
-    from pcc_ros.models import kernels  # numba: heavy, only for CPU inference
-
-    if not kernels.AVAILABLE:
-        return None
-    kernels.set_threads(torch.get_num_threads())
-    return kernels
+    """Rows per chunk when each row has float32 intermediates of these ``widths``: the operator
+    path's :data:`CHUNK_BYTES` (times :data:`MULTI_THREAD_CHUNK_FACTOR` with several intra-op
+    threads), the ``compiled`` loops' that over :data:`COMPILED_CHUNK_DIVISOR` (their products
+    run on one BLAS thread, whatever torch's count)."""
+    if compiled:
+        return max(1, CHUNK_BYTES // COMPILED_CHUNK_DIVISOR // (4 * max(1, sum(widths))))
+    rows = max(1, CHUNK_BYTES // (4 * max(1, sum(widths))))
+    return rows if torch.get_num_threads() == 1 else rows * MULTI_THREAD_CHUNK_FACTOR
 
 
 def segment_max(
@@ -146,11 +63,11 @@ def segment_max(
 
     Empty segments come out as zeros; callers mask them. ``method``: ``"scatter"``
     (``scatter_reduce`` amax, the default) or ``"segment_reduce"`` (the original
-    implementation, the default inside :func:`reference_path`; it needs ``segment`` sorted,
+    implementation, what the ``reference`` inference path runs; it needs ``segment`` sorted,
     which packing gives for free). Both return bit-identical values (a max is exact); the
     scatter is many times faster on CPU.
     """
-    method = method or ("segment_reduce" if _reference else "scatter")
+    method = method or "scatter"
     if features.shape[0] == 0:
         return features.new_zeros(num_segments, features.shape[1])
     if method == "segment_reduce":
@@ -165,44 +82,16 @@ def segment_max(
 
 
 def fast_inference(module: nn.Module) -> bool:
-    """The fused chunked path applies: no autograd needed and not in the reference block."""
-    return not _reference and not (torch.is_grad_enabled() and any(p.requires_grad for p in module.parameters()))
+    """The fused chunked path applies: no autograd needed and ``module`` not on the reference path."""
+    return module.inference_path != "reference" and not (
+        torch.is_grad_enabled() and any(p.requires_grad for p in module.parameters()))
 
 
 def _linears(mlp: SharedMLP | None) -> list[nn.Linear]:
     return [] if mlp is None else [m for m in mlp.net if isinstance(m, nn.Linear)]
 
 
-class _Workspace:
-    """Per-thread buffers of the inference paths, kept from call to call.
-
-    A fresh tensor of a few MiB costs page faults on first touch (the kernel maps and zeroes
-    its pages) and starts cold in cache; the buffers here are allocated once per (module,
-    slot, thread) and reused by every later call of that thread, so the node's worker threads
-    never share one. Nothing a forward returns lives here.
-    """
-
-    def __init__(self) -> None:
-        self._local = threading.local()
-
-    def get(self, owner: nn.Module, slot: str, rows: int, cols: int, like: torch.Tensor) -> torch.Tensor:
-        """A ``(rows, cols)`` buffer (contents undefined) for ``owner``'s ``slot``."""
-        store = getattr(self._local, "store", None)
-        if store is None:
-            store = self._local.store = weakref.WeakKeyDictionary()
-        slots = store.setdefault(owner, {})
-        key = (slot, like.dtype, like.device, torch.is_inference_mode_enabled())
-        buf = slots.get(key)
-        if buf is None or buf.numel() < rows * cols:
-            buf = torch.empty(rows * cols, dtype=like.dtype, device=like.device)
-            if buf.numel() * buf.element_size() > WORKSPACE_KEEP_BYTES:  # too big to hold between calls
-                slots.pop(key, None)
-                return buf.view(rows, cols)
-            slots[key] = buf
-        return buf[: rows * cols].view(rows, cols)
-
-
-_workspace = _Workspace()
+_workspace = Workspace()  # the operator path's buffers (torch, per thread)
 _SCRATCH = Scratch()  # the compiled kernels' work arrays (numpy, per thread)
 
 
@@ -291,24 +180,27 @@ class PCNEncoder(nn.Module):
         self.mlp2 = SharedMLP(widths2[0], widths2[1:]) if len(widths2) > 1 else None
         self.out_dim = widths2[-1]
         self._single = len(widths2) == 1
+        #: how inference runs (:mod:`pcc_ros.models.inference`; its completer sets it)
+        self.inference_path = "auto"
 
     def forward(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor:
         """``points`` ``(P, 3)``, ``segment`` ``(P,)`` in ``[0, num_segments)`` -> ``(S, out_dim)``."""
         if fast_inference(self):
             pooled = self._forward_compiled(points, segment, num_segments)
             return self._forward_chunked(points, segment, num_segments) if pooled is None else pooled
+        method = "segment_reduce" if self.inference_path == "reference" else "scatter"
         f = self.mlp1(points)
-        g = segment_max(f, segment, num_segments)
+        g = segment_max(f, segment, num_segments, method)
         h = self.point_proj(f) + self.segment_proj(g)[segment]
         if not self._single:
             h = self.mlp2(torch.relu(h))
-        return segment_max(h, segment, num_segments)
+        return segment_max(h, segment, num_segments, method)
 
     def _forward_chunked(self, points: torch.Tensor, segment: torch.Tensor, num_segments: int) -> torch.Tensor:
         """Inference: the same function, row chunk by row chunk, pooled as it goes.
 
         Every intermediate lives in a per-thread buffer reused by every chunk and every call
-        (:class:`_Workspace`), so the matrix products write into memory already in the core's
+        (:class:`~pcc_ros.models.inference.Workspace`), so the matrix products write into memory already in the core's
         cache instead of a fresh allocation per product. With sorted segments (packed batches)
         a chunk holds whole segments, so both passes run on it while its ``mlp1`` features are
         still in cache, and where mlp1's last layer is narrower at its input than at its output
@@ -404,10 +296,10 @@ class PCNEncoder(nn.Module):
         """:meth:`_forward_chunked`'s composed path in one compiled call
         (:func:`pcc_ros.models.kernels.encode`: the same products and folded constants, the
         chunks, the pooling, the last bias and the empty segments in the kernel, no torch
-        operator between them); None where it does not apply (GPU, not float32, the compiled
-        loops switched off, other than two ``mlp1`` layers composed with one ``mlp2`` layer,
-        segments not sorted), and :meth:`_forward_chunked` runs instead."""
-        kernels = kernels_for(points)
+        operator between them); None where it does not apply (not a compiled path, GPU, not
+        float32, other than two ``mlp1`` layers composed with one ``mlp2`` layer, segments not
+        sorted), and :meth:`_forward_chunked` runs instead."""
+        kernels = kernels_for(self.inference_path, points)
         weights = self.kernel_weights() if kernels is not None and len(points) else None
         if weights is None:
             return None
@@ -415,33 +307,31 @@ class PCNEncoder(nn.Module):
         if len(counts) != num_segments:
             return None
         pool = np.empty((num_segments, self.out_dim), np.float32)
-        work = kernels.encode(weights, as_numpy(points), counts, self.kernel_rows(), pool,
-                              _SCRATCH.whole("encoder", np.float32))
-        _SCRATCH.keep("encoder", work)
+        work = kernels.work_memory(_SCRATCH, "encoder", kernels.encoder_floats(weights, counts))
+        kernels.encode(weights, as_numpy(points), counts, pool, work)
         return torch.from_numpy(pool)
 
-    def kernel_weights(self) -> tuple[np.ndarray, ...] | None:
-        """The compiled encoder's weights (:func:`pcc_ros.models.kernels.pcn_encode`'s, kept while
-        the parameters are unchanged: :func:`_derived`), or None where its structure is not the
-        one the kernel runs (two ``mlp1`` layers composed with one ``mlp2`` layer, biases)."""
+    def kernel_weights(self):
+        """This encoder for the compiled loops: :class:`pcc_ros.models.kernels.EncoderWeights`
+        (derived from the parameters, kept while they are unchanged: :func:`_derived`), or None
+        where its structure is not the one the kernel runs (two ``mlp1`` layers composed with
+        one ``mlp2`` layer, biases)."""
         first, rest = _linears(self.mlp1), _linears(self.mlp2)
         if len(first) != 2 or len(rest) != 1 or first[1].in_features >= first[1].out_features or first[0].bias is None:
             return None
         last = rest[0]
 
         def make():
+            from pcc_ros.models.kernels import EncoderWeights
+
             wc, const = self._folded(True)
-            return tuple(as_numpy(t) for t in (
+            rows = _rows_for([first[0].out_features, first[1].out_features, self.point_proj.out_features,
+                              self.out_dim], compiled=True)
+            return EncoderWeights(*(as_numpy(t) for t in (
                 first[0].weight.t(), first[0].bias, first[1].weight.t(), wc, self.segment_proj.weight.t(), const,
-                last.weight.t(), last.bias if last.bias is not None else torch.zeros(self.out_dim)))
+                last.weight.t(), last.bias if last.bias is not None else torch.zeros(self.out_dim))), rows)
 
         return _derived(self, "_kernel_weights", tuple(self.parameters()), make)
-
-    def kernel_rows(self) -> int:
-        """Rows per chunk of the compiled encoder (:func:`_rows_for`)."""
-        first = _linears(self.mlp1)
-        return _rows_for([first[0].out_features, first[1].out_features, self.point_proj.out_features, self.out_dim],
-                         compiled=True)
 
     def _folded(self, composed: bool) -> tuple[torch.Tensor | None, torch.Tensor]:
         """The folded constants of :meth:`_forward_chunked`: ``(W_p W1)^T`` (``composed``; else
@@ -535,6 +425,8 @@ class FoldingDecoder(nn.Module):
         self.fold_grid = nn.Linear(2, h, bias=False)
         self.fold_mlp = SharedMLP(h, [*fold_widths[1:], 3])
         self.num_points = num_coarse * self.grid.shape[0]
+        #: how inference runs (:mod:`pcc_ros.models.inference`; its completer sets it)
+        self.inference_path = "auto"
 
     def set_density(self, density: int) -> None:
         """Decode ``density`` times finer along each grid axis (inference): the grid side becomes
@@ -574,7 +466,7 @@ class FoldingDecoder(nn.Module):
 
     def _fold_chunked(self, code: torch.Tensor, coarse: torch.Tensor, out: torch.Tensor | None) -> torch.Tensor:
         """Inference: the folding step a few instances at a time, intermediates in per-thread
-        buffers (:class:`_Workspace`). The last layer (a few output columns, where a product
+        buffers (:class:`~pcc_ros.models.inference.Workspace`). The last layer (a few output columns, where a product
         ``rows x C @ C x 3`` runs far below the matmul rate) is computed transposed, ``W h^T``
         ``(3, rows)``, and the residual sum ``fine = (coarse + b) + h W^T`` is one broadcast add
         from it and the coarse points straight into the output (the same function; float
@@ -586,7 +478,7 @@ class FoldingDecoder(nn.Module):
         if out is None:
             out = torch.empty(s, k * g, 3, dtype=coarse.dtype, device=coarse.device)
         m = s // out.shape[0] if out.shape[0] else 1  # codes per row of out
-        kernels = kernels_for(code)
+        kernels = kernels_for(self.inference_path, code)
         if kernels is not None and self._fold_weights() is None:  # not the folding MLP they run
             kernels = None
         step = self.fold_step(m, compiled=kernels is not None)
@@ -619,112 +511,66 @@ class FoldingDecoder(nn.Module):
         widths = [self.fold_point.out_features, *(lin.out_features for lin in _linears(self.fold_mlp))]
         return max(1, _rows_for(widths, compiled=compiled) // (self.num_points * m)) * m
 
-    def _fold_weights(self) -> tuple[np.ndarray, ...] | None:
-        """:func:`pcc_ros.models.kernels.fold`'s ``grid, wpt, w1t, b1, w2, b2`` (kept while the
-        parameters and the grid are unchanged: :func:`_derived`), or None where the folding MLP
-        is not the one it runs (one hidden layer with a bias, 3 outputs)."""
+    def _fold_weights(self):
+        """The folding step for :func:`pcc_ros.models.kernels.fold`:
+        :class:`pcc_ros.models.kernels.FoldWeights` (kept while the parameters and the grid are
+        unchanged: :func:`_derived`), or None where the folding MLP is not the one it runs (one
+        hidden layer with a bias, 3 outputs)."""
         layers = _linears(self.fold_mlp)
         if len(layers) != 2 or layers[1].out_features != 3 or layers[0].bias is None:
             return None
         hidden, last = layers
-        deps = (self.grid, self.fold_grid.weight, self.fold_point.weight, *hidden.parameters(), *last.parameters())
-        return _derived(self, "_kernel_weights", deps, lambda: tuple(as_numpy(t) for t in (
-            self.fold_grid(self.grid), self.fold_point.weight.t(), hidden.weight.t(), hidden.bias, last.weight,
-            last.bias if last.bias is not None else torch.zeros(3))))
 
-    def kernel_weights(self) -> tuple[np.ndarray, ...] | None:
-        """The whole decoder for :func:`pcc_ros.models.kernels.pointpncnet_infer`: the fully
-        connected layers' and the code projection's :func:`dense_weights`, then
-        :meth:`_fold_weights`; None where the folding MLP is not the compiled one."""
+        def make():
+            from pcc_ros.models.kernels import FoldWeights
+
+            return FoldWeights(*(as_numpy(t) for t in (
+                self.fold_grid(self.grid), self.fold_point.weight.t(), hidden.weight.t(), hidden.bias, last.weight,
+                last.bias if last.bias is not None else torch.zeros(3))))
+
+        deps = (self.grid, self.fold_grid.weight, self.fold_point.weight, *hidden.parameters(), *last.parameters())
+        return _derived(self, "_kernel_weights", deps, make)
+
+    def kernel_weights(self, codes_per_row: int):
+        """The whole decoder for :func:`pcc_ros.models.kernels.pointpncnet_infer`:
+        :class:`pcc_ros.models.kernels.DecoderWeights` (the fully connected layers, the code
+        projection, :meth:`_fold_weights`; its chunks for ``codes_per_row`` codes per output
+        row), or None where the folding MLP is not the compiled one."""
+        from pcc_ros.models.kernels import DecoderWeights
+
         fold = self._fold_weights()
         if fold is None:
             return None
-        return (*dense_weights(self.fc), *dense_weights(self.fold_code), *fold)
+        return DecoderWeights(dense_weights(self.fc), dense_weights(self.fold_code), fold, self.num_coarse,
+                              self.fold_step(codes_per_row, compiled=True))
 
     def _fold_compiled(self, kernels, code: torch.Tensor, coarse: torch.Tensor, out: torch.Tensor, m: int,
                        step: int) -> torch.Tensor:
         """:meth:`_fold_chunked` (one hidden folding layer) in one compiled call
         (:func:`pcc_ros.models.kernels.fold_into`): the same function, the first layer's point and grid
         halves and the output layer's residual inside the kernel."""
-        work = kernels.fold_into(as_numpy(coarse), as_numpy(self.fold_code(code)), self._fold_weights(), out.numpy(),
-                                 m, step, _SCRATCH.whole("fold", np.float32))
-        _SCRATCH.keep("fold", work)
+        weights = self._fold_weights()
+        need = kernels.fold_floats(weights, coarse.shape[0], coarse.shape[1], step)
+        work = kernels.work_memory(_SCRATCH, "fold", need)
+        kernels.fold_into(as_numpy(coarse), as_numpy(self.fold_code(code)), weights, out.numpy(), m, step, work)
         return out
 
 
-def dense_weights(module: nn.Module) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def dense_weights(module: nn.Module):
     """``module``'s fully connected layers (a :class:`SharedMLP` without a final ReLU, or one
-    ``nn.Linear``) packed for :func:`pcc_ros.models.kernels.dense`: the transposed weights and
-    the biases each in one flat float32 array, and the widths; kept while the parameters are
-    unchanged (:func:`_derived`)."""
+    ``nn.Linear``) for :func:`pcc_ros.models.kernels.dense`:
+    :class:`pcc_ros.models.kernels.DenseWeights`, kept while the parameters are unchanged
+    (:func:`_derived`)."""
     linears = [module] if isinstance(module, nn.Linear) else _linears(module)
     if isinstance(module, SharedMLP) and isinstance(module.net[-1], nn.ReLU):
         raise ValueError("dense_weights: the compiled layers end without a ReLU")
 
     def make():
+        from pcc_ros.models.kernels import DenseWeights
+
         zeros = [torch.zeros(lin.out_features) if lin.bias is None else lin.bias for lin in linears]
-        return (as_numpy(torch.cat([lin.weight.t().reshape(-1) for lin in linears])), as_numpy(torch.cat(zeros)),
-                np.array([linears[0].in_features, *(lin.out_features for lin in linears)], np.int64))
+        return DenseWeights(as_numpy(torch.cat([lin.weight.t().reshape(-1) for lin in linears])),
+                            as_numpy(torch.cat(zeros)),
+                            np.array([linears[0].in_features, *(lin.out_features for lin in linears)], np.int64))
 
     return _derived(module, "_dense_weights", tuple(module.parameters()), make)
-
-
-# --------------------------------------------------------------------------- losses
-
-_EPS = 1e-9
-
-
-def nearest(query: torch.Tensor, ref: torch.Tensor, ref_mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Index ``(..., M)`` of the nearest valid ``ref`` ``(..., N, 3)`` point of each ``query`` ``(..., M, 3)``.
-
-    ``argmin_n |q - r_n|^2 = argmin_n (|r_n|^2 - 2 q.r_n)``: the query's own norm is constant
-    along the row, so one fused ``baddbmm`` gives the ranking; invalid references get an
-    infinite norm instead of a masked copy of the big matrix.
-    """
-    lead = query.shape[:-2]
-    q = query.reshape(-1, *query.shape[-2:])
-    r = ref.reshape(-1, *ref.shape[-2:])
-    rr = (r * r).sum(-1)
-    if ref_mask is not None:
-        rr = rr.masked_fill(~ref_mask.reshape(rr.shape), float("inf"))
-    score = torch.baddbmm(rr[:, None, :], q, r.transpose(1, 2), alpha=-2.0)
-    return score.argmin(-1).reshape(*lead, query.shape[-2])
-
-
-def weighted_chamfer(
-    target: torch.Tensor,
-    target_mask: torch.Tensor,
-    pred: torch.Tensor,
-    beta: float,
-) -> torch.Tensor:
-    """Asymmetric weighted Chamfer distance (PointPnCNet Eq. 1), one value per row.
-
-    ``(1 - beta) * mean_{x in X} min_y |x - y| + beta * mean_{y in Y} min_x |y - x|`` with
-    ``X`` = ``target`` ``(..., N, 3)`` valid where ``target_mask`` ``(..., N)`` (targets are
-    observed partial clouds of different sizes, so they come padded) and ``Y`` = ``pred``
-    ``(..., M, 3)``. Distances are Euclidean, not squared (PCN's and the paper's Chamfer-L1);
-    the square root is taken after the minimum, with a small epsilon, so the gradient stays
-    finite when a prediction sits exactly on a target point. Rows with an empty target
-    give 0; callers leave them out of their averages.
-    """
-    # Nearest neighbours without autograd (the (M, N) matrix is the expensive part and its
-    # backward would be as big), then the distances of the chosen pairs with autograd: the
-    # gradient is exactly that of the min formulation, at a fraction of the memory.
-    with torch.no_grad():
-        nn_y2x = nearest(pred, target, target_mask)  # (..., M) nearest valid target point
-        nn_x2y = nearest(target, pred)  # (..., N) nearest prediction of each target point
-    near_x = torch.gather(target, -2, nn_y2x[..., None].expand(*nn_y2x.shape, 3))
-    near_y = torch.gather(pred, -2, nn_x2y[..., None].expand(*nn_x2y.shape, 3))
-    y2x = torch.sqrt(((pred - near_x) ** 2).sum(-1) + _EPS)
-    x2y = torch.sqrt(((target - near_y) ** 2).sum(-1) + _EPS)
-    tmask = target_mask.to(pred.dtype)
-    n_x = tmask.sum(-1)
-    x_term = (x2y * tmask).sum(-1) / n_x.clamp_min(1.0)
-    loss = (1.0 - beta) * x_term + beta * y2x.mean(-1)
-    return torch.where(n_x > 0, loss, torch.zeros_like(loss))
-
-
-def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean of ``values`` where ``mask``; 0 (still differentiable) when nothing is selected."""
-    m = mask.to(values.dtype)
-    return (values * m).sum() / m.sum().clamp_min(1.0)

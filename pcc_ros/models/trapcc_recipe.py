@@ -27,7 +27,7 @@ from torch import nn
 
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.models.base import aspect_scales
-from pcc_ros.models.layers import masked_mean, nearest, weighted_chamfer
+from pcc_ros.models.losses import masked_mean, nearest, weighted_chamfer
 from pcc_ros.models.recipe import CacheRecipe, CacheTrainOptions, TrainingKit, cache_origin
 from pcc_ros.models.trapcc import (
     GEOMETRY_FEATURES,

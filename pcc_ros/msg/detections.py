@@ -71,6 +71,7 @@ STATUS_COLORS: dict[str | None, tuple[float, float, float, float]] = {
     "rejected": (1.0, 0.15, 0.1, 1.0),  # red
     "completed": (0.2, 0.4, 1.0, 1.0),  # blue
     "skipped": (0.6, 0.6, 0.6, 1.0),  # grey: too few points, wrong class ...
+    "unjudged": (1.0, 0.8, 0.0, 1.0),  # amber: a filtered class the filter could not judge
 }
 _OTHER_COLOR = (1.0, 1.0, 1.0, 1.0)
 

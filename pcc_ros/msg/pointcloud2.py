@@ -174,6 +174,16 @@ class _Cloud:
         return out
 
 
+#: The per-point beam index field of spinning-LiDAR drivers (velodyne_pointcloud, ouster-ros,
+#: HesaiLidar_ROS_2.0; nuScenes' scans): the filter's beam model reads it when present.
+RING_FIELD = "ring"
+
+
+def point_field_names(msg) -> tuple[str, ...]:
+    """The names of the message's point fields (its layout checked)."""
+    return tuple(key[0] for key in _Cloud(msg).fields)
+
+
 def validate(msg) -> None:
     """Raise :class:`MessageError` if ``msg`` is not a well-formed PointCloud2."""
     _Cloud(msg)

@@ -33,6 +33,7 @@ import yaml
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.msg.detections import DetectionLimits
 from pcc_ros.paths import resource_dir
+from pcc_ros.pipeline.beam_model import AUTO
 from pcc_ros.pipeline.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
 from pcc_ros.types import class_mask
 
@@ -313,8 +314,13 @@ DESCRIPTIONS = {
     "w_score": "evidence rule: weight of the detector score as a logit (after score_mapping)",
     "w_mismatch": "evidence rule: weight of the shape-mismatch score (0 unless calibrated with a car-constrained "
     "backend)",
+    "mismatch_mean": "evidence rule: the value a missing shape-mismatch term takes (a detection not completed: past "
+                     "max_instances, under min_points): its mean over the calibration detections, the term "
+                     "marginalised to first order (pcc calibrate-filter)",
     "reject_threshold": "evidence rule: detections whose probability of being false exceeds this are rejected",
-    "sensor": "evidence rule: LiDAR beam model for the expected returns (hdl64 = KITTI, hdl32 = nuScenes)",
+    "sensor": "evidence rule: LiDAR beam model for the expected returns: auto (estimated from the scans, from the "
+              "ring field when there is one; docs/filter.md) or a preset (hdl64 = KITTI, hdl32 = nuScenes, vlp16, "
+              "vlp32c, vlp32c_x2, os1_64, os1_128, pandar64)",
     "filter_backend": "completion backend of the mismatch term ('' = the pipeline's backend)",
     "match_threshold": "shape-mismatch score above which a low-score detection is rejected",
     "detection_threshold": "detections scoring at least this (after score_mapping) are always kept",
@@ -347,6 +353,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "match_threshold": (0.0, 1.0),
     "detection_threshold": (0.0, 1.0),
     "reject_threshold": (1e-6, 1.0 - 1e-6),
+    "mismatch_mean": (0.0, 1.0),
     "mcd_scale": (1e-6, 10.0),
     "contour_scale": (1e-6, 10.0),
     "grid_cells": (2, 256),
@@ -363,7 +370,7 @@ RANGES: dict[str, tuple[float, float]] = {
 CHOICES: dict[str, tuple[str, ...]] = {
     "score_mapping": SCORE_MAPPINGS,
     "rule": RULES,
-    "sensor": tuple(SENSOR_PRESETS),
+    "sensor": (AUTO, *SENSOR_PRESETS),
     "qos.points.reliability": RELIABILITIES,
     "qos.detections.reliability": RELIABILITIES,
     "qos.outputs.reliability": RELIABILITIES,

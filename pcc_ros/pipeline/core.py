@@ -32,10 +32,11 @@ from pcc_ros.msg.detections import (
     marker_array_from_boxes,
     transform_detections,
 )
-from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
+from pcc_ros.msg.pointcloud2 import RING_FIELD, create_cloud, point_field_names, read_xyz
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
 from pcc_ros.msg.transforms import same_frame
 from pcc_ros.msg.typestore import new_message
+from pcc_ros.pipeline.beam_model import BeamModel
 from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.evidence import warm_up
 from pcc_ros.pipeline.filter import (
@@ -43,12 +44,21 @@ from pcc_ros.pipeline.filter import (
     false_probability,
     filter_terms,
     map_scores,
+    mark_unjudged,
     mismatch_scores,
     reject_mask,
 )
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
+
+#: The filter's scan evidence is measured for every box of a configured class (max_instances
+#: bounds the completion only) while their crop work bounds sum to at most this many times
+#: ``max_crop_work``; past it the lowest-score boxes pass unjudged, marked and counted.
+EVIDENCE_WORK_FACTOR = 10
+
+#: An organized cloud of at most this many rows is read as one row per beam (Ouster's layout).
+MAX_ORGANIZED_RINGS = 256
 
 #: Layout of the published completed cloud (28 bytes a point): ``instance`` = index of the
 #: detection in its array (-1 for raw scan points), ``source`` = :data:`SOURCE_OBSERVED` (a
@@ -87,9 +97,15 @@ class FrameResult:
     """Everything one frame produces, in the scan's frame ``frame_id``.
 
     Per-detection arrays have one row per input detection (after invalid boxes were
-    dropped, see ``skipped``): ``status`` is ``"kept"``, ``"rejected"`` or ``"skipped"``
-    (another class, too few points, over the per-frame cap or work bound — skipped detections
-    pass the filter untouched), ``mismatch`` is NaN where no shape was judged.
+    dropped, see ``skipped``): ``status`` is ``"kept"`` or ``"rejected"`` (judged),
+    ``"unjudged"`` (a configured class the filter could not judge: a scan without a finite
+    point, the trapcc rule without a completion; published as kept, with the
+    ``pcc_filter_unjudged`` marker) or ``"skipped"`` (another class: passes untouched);
+    ``mismatch`` is NaN where no shape was completed. ``skipped`` counts per reason what the
+    completion left out (another class, too few points, past ``max_instances`` or the work
+    bound); the evidence rule judges every detection of a configured class all the same.
+    ``unjudged_originals``: the detection messages whose box failed the checks (NaN pose,
+    non-positive size, the limits), republished with the marker.
     """
 
     stamp_ns: int
@@ -123,6 +139,7 @@ class FrameResult:
     #: terms behind it (``pcc_ros.pipeline.filter.TERMS`` plus raw counts), one value per detection.
     filter_score: np.ndarray | None = None
     filter_terms: dict[str, np.ndarray] = field(default_factory=dict)
+    unjudged_originals: list = field(default_factory=list)
 
     @property
     def keep(self) -> np.ndarray:
@@ -158,6 +175,8 @@ class Pipeline:
         self.completer = completer
         if config.filter.rule == "evidence":
             warm_up()  # the filter's compiled kernels, before the first frame
+        #: the filter's beam model: a preset, or estimated from the scans (sensor: auto)
+        self.beam_model = BeamModel(config.filter.sensor)
         # The filter's own completion backend for its shape-mismatch term (a car-constrained
         # one such as TraPCC or AML); "" or the pipeline's backend: reuse its completions.
         self.filter_completer = None
@@ -174,8 +193,11 @@ class Pipeline:
 
     # ------------------------------------------------------------------ core
 
-    def process(self, points: np.ndarray, detections: Boxes, stamp_ns: int = 0, frame_id: str = "") -> FrameResult:
-        """Run one frame. ``points``: ``(N, >=3)`` finite scan points; ``detections``: valid boxes."""
+    def process(self, points: np.ndarray, detections: Boxes, stamp_ns: int = 0, frame_id: str = "",
+                rings: np.ndarray | None = None) -> FrameResult:
+        """Run one frame. ``points``: ``(N, >=3)`` finite scan points; ``detections``: valid boxes;
+        ``rings``: the scan's ring field (one value per point) when it has one, read by the beam
+        model's estimate (``sensor: auto``; :meth:`BeamModel.due` says when it is wanted)."""
         cfg = self.config
         timings: dict[str, float] = {}
         n = len(detections)
@@ -188,6 +210,7 @@ class Pipeline:
         wanted = class_mask(detections.label, cfg.classes)  # other classes pass the filter untouched
         _count(skipped, "other class", int((~wanted).sum()))
         candidates = np.flatnonzero(wanted)
+        dropped = candidates[:0]
         if len(candidates) > cfg.max_instances:
             order = np.argsort(-detections.score[candidates], kind="stable")
             dropped = candidates[order[cfg.max_instances :]]
@@ -198,6 +221,8 @@ class Pipeline:
         # max_crop_work the lowest-score boxes are skipped (counted), so one hostile frame
         # (hundreds of huge boxes over a dense scan) cannot stall a node or exhaust memory.
         crop_index, canonical, fits, work = _bounded_crop(points, detections[candidates], cfg)
+        box_work = np.zeros(n)  # the (point, box) work bound of every box of a configured class
+        box_work[candidates] = work
         if fits is not None:
             _count(skipped, "over max_crop_work", int((~fits).sum()))
             log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
@@ -235,15 +260,20 @@ class Pipeline:
             mismatch[selected] = mismatch_scores(crops, shapes, cfg.filter)
         threshold = cfg.detection_thresholds(detections.label)
         if cfg.filter.rule == "evidence":
-            # Every processed box is judged, sparse or not (min_points does not apply); boxes
-            # over max_instances or the work bound stay skipped (the terms cost per ray and box).
-            judged_idx = candidates
-            if not len(points) and len(candidates):  # no finite return at all: no evidence either way
-                judged_idx = candidates[:0]
-                self._empty_scan(stamp_ns, skipped, len(candidates))
+            # Every detection of a configured class is judged, sparse or not (min_points does not
+            # apply), completed or not: max_instances and the work bound limit the completion,
+            # not the scan evidence; a missing shape term is marginalised (filter.term_matrix).
+            judged_idx = np.flatnonzero(wanted)
+            if not len(points) and len(judged_idx):  # no finite return at all: no evidence either way
+                status[judged_idx] = "unjudged"
+                self._empty_scan(stamp_ns, skipped, len(judged_idx))
+                judged_idx = judged_idx[:0]
+            judged_idx = self._evidence_budget(points, detections, judged_idx, dropped, box_work, status, skipped,
+                                               stamp_ns)
+            sensor = self.beam_model.for_frame(points, rings)
             if len(judged_idx):
                 part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
-                                    workers=filter_threads(cfg))
+                                    workers=filter_threads(cfg), sensor=sensor)
                 terms = {k: np.full(n, np.nan) for k in part}
                 for k, v in part.items():
                     terms[k][judged_idx] = v
@@ -254,6 +284,7 @@ class Pipeline:
             judged = np.isfinite(mismatch) & bool(len(points))
             if not len(points) and len(candidates):
                 self._empty_scan(stamp_ns, skipped, len(candidates))
+            status[wanted & ~judged] = "unjudged"  # no completion to compare: kept, marked
             rejected = np.zeros(n, dtype=bool)
             for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
                 group = threshold == value
@@ -313,6 +344,27 @@ class Pipeline:
 
     # ------------------------------------------------------------------ messages
 
+    def _evidence_budget(self, points, detections: Boxes, judged_idx, dropped, box_work, status, skipped,
+                         stamp_ns: int) -> np.ndarray:
+        """The boxes the evidence measures: all of ``judged_idx`` unless their work bounds (the
+        crop's, measured for the boxes past max_instances too) sum past
+        :data:`EVIDENCE_WORK_FACTOR` x ``max_crop_work``; then the highest-scoring that fit, the
+        rest marked unjudged (counted, logged): a hostile frame of huge boxes stays bounded."""
+        cfg = self.config
+        if len(dropped) and len(points):
+            box_work[dropped] = BoxCandidates(points, detections[dropped], cfg.box_margin,
+                                              cfg.ground_margin).pairs_per_box
+        fits = crop_budget(box_work[judged_idx], detections[judged_idx], EVIDENCE_WORK_FACTOR * cfg.max_crop_work)
+        if fits is None:
+            return judged_idx
+        over = judged_idx[~fits]
+        status[over] = "unjudged"
+        _count(skipped, "unjudged over evidence work", len(over))
+        log.warning("frame %d: about %d point-box pairs in %d boxes exceed %d x max_crop_work; the %d lowest-score "
+                    "boxes pass unjudged (marked)", stamp_ns, int(box_work[judged_idx].sum()), len(judged_idx),
+                    EVIDENCE_WORK_FACTOR, len(over))
+        return judged_idx[fits]
+
     def _empty_scan(self, stamp_ns: int, skipped: dict[str, int], n: int) -> None:
         """A scan without a finite point (a driver starting up, a blocked sensor, an organized
         cloud all NaN) says nothing about the boxes: they pass the filter unjudged (counted as
@@ -337,6 +389,23 @@ class Pipeline:
                             "far): the detector gives logits? set score_mapping: sigmoid",
                             outside, float(boxes.score[(boxes.score < 0) | (boxes.score > 1)][0]),
                             self.scores_outside_unit)
+
+    def _read_scan(self, cloud_msg) -> tuple[np.ndarray, np.ndarray | None]:
+        """The scan's finite points and, on a frame the beam model estimates from, each point's
+        ring: the ``ring`` field (Velodyne, Ouster, Hesai drivers), else the row of an organized
+        cloud (one row per beam); None otherwise."""
+        if self.config.filter.rule != "evidence" or not self.beam_model.due():
+            return read_xyz(cloud_msg), None
+        if RING_FIELD in point_field_names(cloud_msg):
+            both = read_xyz(cloud_msg, (RING_FIELD,))
+            return np.ascontiguousarray(both[:, :3]), both[:, 3]
+        points = read_xyz(cloud_msg)
+        height = int(cloud_msg.height)
+        if 1 < height <= MAX_ORGANIZED_RINGS:
+            every = read_xyz(cloud_msg, skip_nonfinite=False)
+            finite = np.isfinite(every).all(axis=1)
+            return points, np.repeat(np.arange(height, dtype=np.float32), int(cloud_msg.width))[finite]
+        return points, None
 
     def process_messages(
         self, cloud_msg, detections_msg, transform=None, with_originals: bool = True
@@ -365,23 +434,26 @@ class Pipeline:
                 "transform them first (the nodes do it with tf2)"
             )
         tic = time.perf_counter()
-        points = read_xyz(cloud_msg)
+        points, rings = self._read_scan(cloud_msg)
         boxes, valid = decode_detection_array(
             detections_msg, skip_invalid=True, limits=self.config.detection_limits(), transform=transform
         )
         if self.config.class_map:  # detector ids -> names, before classes / class_thresholds match
             boxes = replace(boxes, label=self.config.map_labels(boxes.label))
         self._check_score_range(boxes)
-        originals = None
+        originals, invalid = None, []
         if with_originals:
             originals = [d for d, ok in zip(detections_msg.detections, valid) if ok]
+            invalid = [d for d, ok in zip(detections_msg.detections, valid) if not ok]
             if transform is not None:
                 originals = transform_detections(originals, transform, cloud_frame)
+                invalid = transform_detections(invalid, transform, cloud_frame)
         decode_ms = _ms(tic)
         result = self.process(
-            points, boxes, stamp_to_ns(cloud_msg.header.stamp), str(cloud_msg.header.frame_id)
+            points, boxes, stamp_to_ns(cloud_msg.header.stamp), str(cloud_msg.header.frame_id), rings
         )
         result.timings_ms = {"decode_ms": decode_ms, **result.timings_ms}
+        result.unjudged_originals = invalid
         _count(result.skipped, "invalid detection", int((~valid).sum()))
         return result, originals
 
@@ -473,9 +545,11 @@ def build_outputs(
         if original_detections is not None:
             header = detections_header or make_header(result.frame_id, result.stamp_ns, classes)
             chosen = [d for d, m in zip(original_detections, mask) if m]
+            annotated = annotate_detections(chosen, result, np.flatnonzero(mask), classes)
+            if topic == "detections_filtered" and result.unjudged_originals:  # boxes failing the checks
+                annotated += mark_unjudged(result.unjudged_originals, classes)
             outputs[topic] = new_message(
-                "vision_msgs/msg/Detection3DArray", classes, header=header,
-                detections=annotate_detections(chosen, result, np.flatnonzero(mask), classes),
+                "vision_msgs/msg/Detection3DArray", classes, header=header, detections=annotated,
             )
         else:
             array = detection_array_from_boxes(result.detections[mask], result.frame_id, result.stamp_ns, classes)

@@ -21,51 +21,13 @@ from functools import lru_cache
 
 import numpy as np
 
-from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.errors import DataError
+from pcc_ros.geometry.beams import SENSOR_PRESETS, SensorModel
 from pcc_ros.geometry.boxes import box_corners, round_down_to, round_up_to
 from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.geometry.segments import positions_in_runs
 from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
-
-
-@dataclass(frozen=True)
-class SensorModel:
-    """A spinning LiDAR's beam geometry: ``upper_rings`` beams evenly spread from
-    ``elevation_max_deg`` down to ``split_deg[0]``, the other ``rings - upper_rings`` from
-    ``split_deg[1]`` down to ``elevation_min_deg`` (one block when ``upper_rings`` is 0), one
-    return every ``azimuth_resolution_deg``.
-
-    Presets (datasheets): Velodyne HDL-64E as mounted on KITTI's car (two laser blocks,
-    +2.0 .. -8.33 deg and -8.83 .. -24.9 deg, 2083 columns at 10 Hz = 0.1728 deg) and the
-    HDL-32E of nuScenes (32 beams +10.67 .. -30.67 deg, 1084 columns at 20 Hz = 0.33 deg).
-    """
-
-    rings: int = 64
-    elevation_min_deg: float = -24.9
-    elevation_max_deg: float = 2.0
-    azimuth_resolution_deg: float = 0.1728
-    upper_rings: int = 32
-    split_deg: tuple[float, float] = (-8.33, -8.83)
-
-    def __post_init__(self) -> None:
-        if (
-            self.rings < 2
-            or self.azimuth_resolution_deg <= 0
-            or self.elevation_max_deg <= self.elevation_min_deg
-            or not 0 <= self.upper_rings < self.rings
-        ):
-            raise ConfigError(f"bad sensor model {self}")
-
-    def ring_elevations(self) -> np.ndarray:
-        """Ascending beam elevations, radians."""
-        if self.upper_rings == 0:
-            degrees = np.linspace(self.elevation_min_deg, self.elevation_max_deg, self.rings)
-        else:
-            upper = np.linspace(self.split_deg[0], self.elevation_max_deg, self.upper_rings)
-            lower = np.linspace(self.elevation_min_deg, self.split_deg[1], self.rings - self.upper_rings)
-            degrees = np.r_[lower, upper]
-        return np.deg2rad(np.sort(degrees))
 
 
 @lru_cache(maxsize=16)
@@ -79,11 +41,6 @@ def _ring_table(sensor: SensorModel) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return table
 
 
-SENSOR_PRESETS = {
-    "hdl64": SensorModel(64, -24.9, 2.0, 0.1728, 32, (-8.33, -8.83)),
-    "hdl32": SensorModel(32, -30.67, 10.67, 0.33, 0, (0.0, 0.0)),
-}
-
 #: The solid core of a car body inside its box, as fractions of the box (length, width) and of
 #: its height from the bottom: below the windows, above the gap under the chassis. Rays that
 #: cross this core and return from beyond it say the box is empty.
@@ -94,6 +51,9 @@ EVIDENCE_GROUND = 0.3
 #: The local ground is the 5 % quantile of the heights of the returns within this many metres
 #: of the box footprint (all around it: the returns beside a car reach the ground it hides).
 GROUND_REACH = 3.0
+#: ... widened where the beam model's rings fall farther apart on the ground (far boxes, sparse
+#: sensors): half the ring spacing at the box's range, at most this many metres.
+GROUND_REACH_MAX = 10.0
 #: BEV cell (metres) of the ground query's index (coarsened when the boxes spread so far that
 #: the grid would exceed :data:`_MAX_CELLS`).
 _GROUND_CELL = 1.0
@@ -278,7 +238,7 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
     centre, size = boxes.center.copy(), boxes.size.copy()
     centre[:, 2] = bottom - 1.0
-    size[:, :2] += 2 * reach
+    size[:, :2] += 2 * np.reshape(reach, (-1, 1))
     size[:, 2] = 4.0
     wide = Boxes(centre, size, boxes.yaw)
     if not wide.valid_mask().all():
@@ -344,6 +304,25 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     return out
 
 
+def ground_reach(boxes: Boxes, sensor: SensorModel) -> np.ndarray:
+    """Metres around each box's footprint the local ground looks: :data:`GROUND_REACH`, or half
+    the spacing on the road of the sensor's two rings either side of the box's range when that
+    is wider, up to :data:`GROUND_REACH_MAX`. A sparse sensor's rings meet the road metres apart
+    at range, and a fixed reach would often find no ground return at all (the term then says
+    nothing). The road is taken at the box bottom, the sensor at the origin."""
+    if not len(boxes):
+        return np.zeros(0)
+    rings = _ring_table(sensor)[0]
+    d = np.maximum(np.hypot(boxes.center[:, 0], boxes.center[:, 1]), 1.0)
+    h = np.maximum(boxes.size[:, 2] / 2 - boxes.center[:, 2], 0.3)  # sensor height above the box bottom
+    seen = -np.arctan2(h, d)  # elevation at which the ground under the box is seen
+    i = np.clip(np.searchsorted(rings, seen), 1, len(rings) - 1)
+    shallow, steep = -rings[i], -rings[i - 1]  # the rings either side, as depression angles
+    with np.errstate(divide="ignore", invalid="ignore"):
+        spacing = np.where(shallow > 0, h / np.tan(np.maximum(shallow, 1e-9)) - h / np.tan(steep), np.inf)
+    return np.clip(spacing / 2, GROUND_REACH, GROUND_REACH_MAX)
+
+
 def _columns(points: np.ndarray, ws: Scratch | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Contiguous x, y, z columns in the scan's precision (float32 stays float32, others
     become float64): numpy's SIMD loops skip strided arrays."""
@@ -386,7 +365,8 @@ def _side_pool() -> ThreadPoolExecutor:
         return _SIDE_POOL
 
 
-def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1) -> Evidence:
+def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1,
+             reach: float | np.ndarray | None = None) -> Evidence:
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
@@ -394,8 +374,10 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     beams. ``workers`` >= 2: the local ground (a query of its own over the scan) and the
     sensor model's expected returns are measured on a second thread while this one follows the
     rays (numpy and the kernels release the GIL); the values are the same either way.
+    ``reach``: metres around each footprint the local ground looks (default
+    :func:`ground_reach` of the sensor model; ``GROUND_REACH`` is the fixed reach of 93cd59e).
     """
-    sensor = sensor or SensorModel()
+    sensor = sensor or SENSOR_PRESETS["hdl64"]
     n = len(boxes)
     zero = np.zeros(n)
     if n == 0:
@@ -403,12 +385,13 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     if not boxes.valid_mask().all():
         boxes.validate()  # DataError naming the box
     x, y, z = _columns(points)
+    reach = ground_reach(boxes, sensor) if reach is None else reach
     pool = _side_pool() if workers > 1 else None
     # The side thread's jobs, in order: the ground (it needs only the scan and the boxes, so it
     # starts before the box-level setup below), then the expected returns; the two take about
     # as long as the rays do here.
     # (each in a copy of this thread's context: a line logged there is the calling node's)
-    ground_job = pool.submit(contextvars.copy_context().run, _ground, x, y, z, boxes, GROUND_REACH, 0.05,
+    ground_job = pool.submit(contextvars.copy_context().run, _ground, x, y, z, boxes, reach, 0.05,
                              _SCRATCH) if pool else None
     window = angular_window(boxes)
     table = _BoxTable(boxes)
@@ -418,7 +401,7 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     if pool:
         ground, expected = ground_job.result(), expected_job.result()
     else:
-        ground = _ground(x, y, z, boxes, GROUND_REACH, 0.05, _SCRATCH)
+        ground = _ground(x, y, z, boxes, reach, 0.05, _SCRATCH)
         expected = _expected_beams(boxes, sensor, *window, table=table)
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,

@@ -47,6 +47,7 @@ import numpy as np
 from pcc_ros.errors import ConfigError
 from pcc_ros.metrics.chamfer import nearest_distances_batch
 from pcc_ros.msg.typestore import from_template, new_message
+from pcc_ros.pipeline.beam_model import AUTO, sensor_for
 from pcc_ros.pipeline.evidence import (  # noqa: F401  (re-exported: the filter's public names)
     CORE_FRACTION,
     CORE_Z,
@@ -69,16 +70,21 @@ _VIEWS = ((0, 2), (1, 2), (0, 1))  # side (x-z), front (y-z), top (x-y)
 @dataclass(frozen=True)
 class FilterConfig:
     rule: str = "evidence"
-    # evidence rule: logistic weights. Defaults = the KITTI preset written by `pcc calibrate-filter`
-    # into config/detection_filter.yaml (a test keeps the two equal; docs/filter.md has the command).
-    w_bias: float = 1.3016
-    w_density: float = -0.4338
-    w_free_space: float = 0.3253
-    w_ground_gap: float = 2.3514
-    w_score: float = -0.9236
+    # evidence rule: logistic weights. Defaults = the sensor- and detector-agnostic rule written by
+    # `pcc calibrate-filter --sim-sensors ...` into config/detection_filter.yaml (a test keeps the
+    # two equal; docs/filter.md has the command): scan evidence only, no score term (an unknown
+    # detector's score scale is unknown; the score must not reject a real car on its own).
+    w_bias: float = -2.2617
+    w_density: float = -0.8223
+    w_free_space: float = 0.5306
+    w_ground_gap: float = 2.6898
+    w_score: float = 0.0
     w_mismatch: float = 0.0
-    reject_threshold: float = 0.6131
-    sensor: str = "hdl64"
+    # the value a missing mismatch term takes (a detection whose shape was not completed): its
+    # mean over the calibration detections, the first-order marginalisation of the term
+    mismatch_mean: float = 0.0
+    reject_threshold: float = 0.5998
+    sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
     match_threshold: float = 0.3
@@ -94,10 +100,12 @@ class FilterConfig:
             raise ConfigError(f"score_mapping must be one of {SCORE_MAPPINGS}, got {self.score_mapping!r}")
         if self.rule not in RULES:
             raise ConfigError(f"rule must be one of {RULES}, got {self.rule!r}")
-        if self.sensor not in SENSOR_PRESETS:
-            raise ConfigError(f"sensor must be one of {sorted(SENSOR_PRESETS)}, got {self.sensor!r}")
+        if self.sensor != AUTO and self.sensor not in SENSOR_PRESETS:
+            raise ConfigError(f"sensor must be {AUTO!r} or one of {sorted(SENSOR_PRESETS)}, got {self.sensor!r}")
         if not (self.mcd_scale > 0 and self.contour_scale > 0 and self.grid_cells > 1):
             raise ConfigError("mcd_scale, contour_scale must be > 0 and grid_cells > 1")
+        if not 0.0 <= self.mismatch_mean <= 1.0:
+            raise ConfigError(f"mismatch_mean must be in [0, 1], got {self.mismatch_mean}")
         if not 0.0 < self.reject_threshold < 1.0:
             raise ConfigError(f"reject_threshold must be in (0, 1), got {self.reject_threshold}")
 
@@ -228,26 +236,36 @@ def score_logit(scores: np.ndarray, mapping: str) -> np.ndarray:
     return np.log(p / (1 - p))
 
 
-def term_matrix(terms: dict[str, np.ndarray]) -> np.ndarray:
-    """``(N, len(TERMS))`` feature matrix; a missing mismatch (NaN: not judged) reads 0."""
+def term_matrix(terms: dict[str, np.ndarray], mismatch_fill: float = 0.0) -> np.ndarray:
+    """``(N, len(TERMS))`` feature matrix. A missing mismatch (NaN: the shape was not completed,
+    e.g. past ``max_instances`` or under ``min_points``) reads ``mismatch_fill`` (the rule's
+    ``mismatch_mean``: the term marginalised to first order, so the other terms judge alone
+    with the population's average shape evidence); any other missing term reads 0."""
     n = len(next(iter(terms.values())))
-    cols = [np.nan_to_num(np.asarray(terms.get(t, np.zeros(n)), dtype=np.float64), nan=0.0) for t in TERMS]
+    cols = [np.nan_to_num(np.asarray(terms.get(t, np.zeros(n)), dtype=np.float64),
+                          nan=mismatch_fill if t == "mismatch" else 0.0) for t in TERMS]
     return np.stack(cols, axis=1)
 
 
 def false_probability(terms: dict[str, np.ndarray], config: FilterConfig) -> np.ndarray:
-    """``sigmoid(w_bias + X @ w)``: the calibrated probability that each detection is false."""
-    x = term_matrix(terms)
+    """``sigmoid(w_bias + X @ w)``: the calibrated probability that each detection is false
+    (a missing mismatch term marginalised: :func:`term_matrix`)."""
+    x = term_matrix(terms, config.mismatch_mean)
     z = config.w_bias + x @ config.weights
     return 1.0 / (1.0 + np.exp(-z))
 
 
 def filter_terms(
-    points: np.ndarray, boxes: Boxes, config: FilterConfig, mismatch: np.ndarray | None = None, workers: int = 1
+    points: np.ndarray, boxes: Boxes, config: FilterConfig, mismatch: np.ndarray | None = None, workers: int = 1,
+    sensor: SensorModel | None = None, rings: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Every term of the evidence rule for ``boxes`` in ``points`` (plus the raw counts);
-    ``workers``: CPU threads measuring them (:func:`evidence`)."""
-    ev = evidence(points, boxes, SENSOR_PRESETS[config.sensor], workers=workers)
+    ``workers``: CPU threads measuring them (:func:`evidence`). ``sensor``: the beam model (a
+    pipeline passes its :class:`~pcc_ros.pipeline.beam_model.BeamModel`'s); without one, the
+    configured preset, or for ``sensor: auto`` this scan's own estimate (``rings``: its ring
+    field, when it has one)."""
+    sensor = sensor or sensor_for(config.sensor, points, rings)
+    ev = evidence(points, boxes, sensor, workers=workers)
     out = ev.as_dict()
     out["score"] = score_logit(boxes.score, config.score_mapping)
     out["mismatch"] = np.full(len(boxes), np.nan) if mismatch is None else np.asarray(mismatch, dtype=np.float64)
@@ -260,6 +278,11 @@ def filter_terms(
 SCORE_CLASS_ID = "pcc_filter_score"
 #: class_id prefix of the hypotheses carrying the terms behind it (``pcc_filter/density`` ...).
 TERM_CLASS_PREFIX = "pcc_filter/"
+#: class_id of the marker hypothesis (score 1.0) of a detection of a filtered class the filter
+#: could not judge (a box failing the checks, e.g. NaN; a scan without a finite point; the
+#: trapcc rule without a completion): published on ``detections_filtered``, counted as
+#: ``detections_unjudged`` on /diagnostics.
+UNJUDGED_CLASS_ID = "pcc_filter_unjudged"
 
 
 def decision_texts(result) -> list[str] | None:
@@ -287,7 +310,8 @@ def annotate_detections(detections: list, result, index: np.ndarray, classes=Non
     ``ObjectHypothesisWithPose`` ``class_id="pcc_filter_score"``, score = probability that the
     detection is false, then one ``pcc_filter/<term>`` per finite term (score = the term's
     value), all with the box pose. The detector's own hypotheses come first, untouched."""
-    if result.filter_score is None and not np.isfinite(result.mismatch).any():
+    if (result.filter_score is None and not np.isfinite(result.mismatch).any()
+            and not (result.status == "unjudged").any()):
         return list(detections)
     # Hypotheses are copies of one template (typestore.from_template: 11 us per hypothesis
     # constructed, about 3 us copied); a detection's filter hypotheses share one pose message,
@@ -305,6 +329,8 @@ def annotate_detections(detections: list, result, index: np.ndarray, classes=Non
                 values.append((TERM_CLASS_PREFIX + term, float(v[i])))
         if np.isfinite(result.mismatch[i]) and not any(k.endswith("/mismatch") for k, _ in values):
             values.append((TERM_CLASS_PREFIX + "mismatch", float(result.mismatch[i])))
+        if result.status[i] == "unjudged":
+            values.append((UNJUDGED_CLASS_ID, 1.0))
         pose = new_message("geometry_msgs/msg/PoseWithCovariance", classes, pose=det.bbox.center,
                            covariance=np.zeros(36, dtype=np.float64))
         extra = [from_template(template, pose=pose, hypothesis=new_message(
@@ -313,7 +339,29 @@ def annotate_detections(detections: list, result, index: np.ndarray, classes=Non
     return out
 
 
-def decision_counts(status: np.ndarray) -> dict[str, int]:
-    """kept / rejected / skipped counts of one frame's statuses (for /diagnostics)."""
+def mark_unjudged(detections: list, classes=None) -> list:
+    """Copies of ``detections`` (``vision_msgs/Detection3D``) with the :data:`UNJUDGED_CLASS_ID`
+    marker hypothesis appended (pose = the box pose as received)."""
+    template = new_message("vision_msgs/msg/ObjectHypothesisWithPose", classes)
+    out = []
+    for det in detections:
+        pose = new_message("geometry_msgs/msg/PoseWithCovariance", classes, pose=det.bbox.center,
+                           covariance=np.zeros(36, dtype=np.float64))
+        marker = from_template(template, pose=pose, hypothesis=new_message(
+            "vision_msgs/msg/ObjectHypothesis", classes, class_id=UNJUDGED_CLASS_ID, score=1.0))
+        out.append(from_template(det, results=[*det.results, marker]))
+    return out
+
+
+#: The decisions of a frame: judged (kept, rejected), not judged although of a filtered class
+#: (unjudged, published with the marker), not the filter's business (skipped: another class).
+DECISIONS = ("kept", "rejected", "unjudged", "skipped")
+
+
+def decision_counts(status: np.ndarray, unjudged_extra: int = 0) -> dict[str, int]:
+    """Counts of one frame's statuses per :data:`DECISIONS` (for /diagnostics);
+    ``unjudged_extra``: detections dropped before the pipeline (boxes failing the checks)."""
     status = np.asarray(status, dtype=object)
-    return {k: int((status == k).sum()) for k in ("kept", "rejected", "skipped")}
+    counts = {k: int((status == k).sum()) for k in DECISIONS}
+    counts["unjudged"] += int(unjudged_extra)
+    return counts

@@ -41,7 +41,7 @@ from pcc_ros.pipeline.config import (
     unknown_parameters,
 )
 from pcc_ros.pipeline.core import DETECTION_OUTPUTS, MARKER_OUTPUTS, FrameResult, Pipeline, build_outputs
-from pcc_ros.pipeline.filter import decision_counts
+from pcc_ros.pipeline.filter import DECISIONS, decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.heap import freeze_long_lived
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
@@ -195,7 +195,7 @@ class NodeCore:
         if self._scan_timeout_ns <= 0:
             raise ConfigError(f"scan_timeout must be > 0, not {values['scan_timeout']}")
         self._no_transform_logged: set[tuple[str, str]] = set()
-        self.decisions = {"kept": 0, "rejected": 0, "skipped": 0}  # filter mode: totals
+        self.decisions = dict.fromkeys(DECISIONS, 0)  # filter mode: totals
         #: detections skipped per reason ("other class", "invalid detection", ...), all frames
         self.skipped_totals: dict[str, int] = {}
         self._other_classes: set[str] = set()  # class ids outside `classes` already reported
@@ -471,7 +471,7 @@ class NodeCore:
             self.publishers[name].publish(msg)
         self.frames += 1
         if self.mode == "filter":
-            self.last_decisions = decision_counts(result.status)
+            self.last_decisions = decision_counts(result.status, result.skipped.get("invalid detection", 0))
             for k, v in self.last_decisions.items():
                 self.decisions[k] += v
         self.latency_ms.append((time.perf_counter() - tic) * 1e3)
@@ -508,7 +508,8 @@ class NodeCore:
         matrix = tf.matrix()
         points = (result.completed_points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]).astype(np.float32)
         moved = replace(
-            result, frame_id=frame, detections=transform_boxes(result.detections, matrix), completed_points=points
+            result, frame_id=frame, detections=transform_boxes(result.detections, matrix), completed_points=points,
+            unjudged_originals=transform_detections(result.unjudged_originals, tf, frame),
         )
         return moved, None if originals is None else transform_detections(originals, tf, frame)
 
@@ -537,7 +538,7 @@ class NodeCore:
             "latency_p95_ms": f"{np.percentile(latency, 95):.1f}",
         }
         if self.mode == "filter":
-            for k in ("kept", "rejected", "skipped"):
+            for k in DECISIONS:
                 values[f"detections_{k}"] = self.decisions[k]
                 values[f"last_frame_{k}"] = self.last_decisions[k]
         return {k: str(v) for k, v in values.items()}

@@ -58,7 +58,13 @@ class FrameResult:
     gt_points: np.ndarray  # (K,) returns on each labelled object
     occluded: np.ndarray  # (K,) KITTI occlusion level 0..2
     detections: Boxes
-    detection_true: np.ndarray  # (D,) bool
+    detection_kind: np.ndarray  # (D,) "true" or a false-positive kind (detector.FALSE_KINDS)
+    detection_source: np.ndarray  # (D,) the non-vehicle object a confusion sits on, "-" otherwise
+
+    @property
+    def detection_true(self) -> np.ndarray:
+        """``(D,)`` bool: the detection is on a real car (kind ``"true"``)."""
+        return self.detection_kind == "true"
 
 
 def seeded_rng(seed: int, *key: int) -> np.random.Generator:
@@ -99,7 +105,8 @@ def expected_points(boxes: Boxes, sensor: Sensor) -> np.ndarray:
     beta = np.arctan2(boxes.center[:, 1], boxes.center[:, 0]) - boxes.yaw
     area = boxes.size[:, 2] * (boxes.size[:, 0] * np.abs(np.sin(beta)) + boxes.size[:, 1] * np.abs(np.cos(beta)))
     d_az = np.deg2rad(360.0 / len(sensor.azimuths))
-    d_el = np.deg2rad((sensor.elevation_top - sensor.elevation_bottom) / (sensor.beams - 1))
+    table = sensor.model.elevations_deg
+    d_el = np.deg2rad((table[-1] - table[0]) / (len(table) - 1))
     return area / (r**2 * d_az * d_el) * (1 - sensor.dropout)
 
 
@@ -137,13 +144,14 @@ def simulate_frame(
     clutter_idx = np.flatnonzero(((kinds == KIND_CLUTTER) | (kinds == KIND_PEDESTRIAN)) & (dist < 80))
     clutter = Boxes(local[clutter_idx], sizes[clutter_idx], yaws[clutter_idx])
     confusion = np.array([street.objects[i].confusion for i in clutter_idx])
+    names = np.array([street.objects[i].name for i in clutter_idx], dtype=object)
     ground_owner = np.flatnonzero((kinds == KIND_GROUND) | (kinds == KIND_STRUCTURE))
-    gsel = np.isin(scan.owner, ground_owner) & (np.linalg.norm(scan.points[:, :2], axis=1) > 6.0)
-    gsel &= np.linalg.norm(scan.points[:, :2], axis=1) < 50.0
+    gsel = np.isin(scan.owner, ground_owner) & (np.linalg.norm(scan.points[:, :2], axis=1) > 5.0)
+    gsel &= np.linalg.norm(scan.points[:, :2], axis=1) < detector.far_range[1]
     gsel &= scan.points[:, 2] < -sensor.mount_height + 0.3
-    dets, true = detect(gt[veh_mask], counts[vehicles], clutter, counts[clutter_idx], confusion,
-                        scan.points[gsel, :3].astype(np.float64), -sensor.mount_height, rng, detector)
-    return FrameResult(scan, gt, counts[idx], occluded, dets, true)
+    dets, kind, source = detect(gt[veh_mask], counts[vehicles], clutter, counts[clutter_idx], confusion,
+                                scan.points[gsel, :3].astype(np.float64), -sensor.mount_height, rng, detector, names)
+    return FrameResult(scan, gt, counts[idx], occluded, dets, kind, source)
 
 
 def _parameters(sequences, frames, seed, sensor, scene, detector, labels, shape_points, test_fraction) -> dict:
@@ -258,6 +266,8 @@ def _write_sequence(out, name, index, split, street, seed, sensor, detector, lab
         writer.write_bin(out / "training" / "velodyne" / name / f"{f:06d}.bin", res.scan.points)
         writer.write_text(out / "detections" / "synthetic" / name / f"{f:06d}.txt",
                           writer.detection_lines(res.detections, calib))
+        writer.write_text(out / "detections" / "synthetic" / name / f"{f:06d}{writer.KIND_SUFFIX}",
+                          writer.kind_lines(res.detection_kind, res.detection_source))
         lines.extend(writer.tracking_label_lines(res.gt, f, res.occluded, calib))
         seen.update(int(t) for t in res.gt.track_id)
         bar.update(1)

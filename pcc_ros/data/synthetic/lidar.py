@@ -1,8 +1,10 @@
-"""A Velodyne HDL-64E-like spinning LiDAR, simulated by one batched ray cast per frame.
+"""A spinning LiDAR, simulated by one batched ray cast per frame.
 
-Beam elevations follow the HDL-64E's two laser blocks (upper block +2.0 deg to -8.33 deg
-in 1/3 deg steps, lower block -8.83 deg to -24.9 deg in ~1/2 deg steps), one full
-revolution at ~0.17 deg azimuth resolution (2083 columns, ~133k rays). Every ray of a
+The beam layout is a named sensor of :data:`pcc_ros.geometry.beams.SENSOR_PRESETS` (the table
+the filter's beam model reads too), by default the Velodyne HDL-64E as on KITTI's car (upper
+block +2.0 deg to -8.33 deg in 1/3 deg steps, lower block -8.83 deg to -24.9 deg in ~1/2 deg
+steps, 2083 columns at ~0.17 deg, ~133k rays); ``vlp16``, ``os1_64``, ``pandar64``, two stacked
+``vlp32c`` ... are one ``layout=`` away. Every ray of a
 frame goes to open3d's ``RaycastingScene.cast_rays`` in a single call against the whole
 world (ground, vehicles, clutter), so occlusion, self-occlusion and ground returns are
 physical. Returns then get Gaussian range noise, random dropout (more on glass and on
@@ -18,6 +20,7 @@ import numpy as np
 import open3d as o3d
 
 from pcc_ros.data.synthetic.mesh import MATERIALS, Mesh
+from pcc_ros.geometry.beams import SensorModel, linspace_blocks, sensor_preset
 
 _ALBEDO = np.array([MATERIALS[k][1] for k in sorted(MATERIALS)])
 _MAT_DROP = np.array([MATERIALS[k][2] for k in sorted(MATERIALS)])
@@ -32,12 +35,12 @@ REALISTIC_ARTEFACTS = {"beam_range_bias": 0.015, "beam_elevation_error": 0.04, "
 class Sensor:
     """Sensor model parameters (angles in degrees, distances in metres)."""
 
-    beams: int = 64
-    upper_beams: int = 32  # beams in the upper block; the rest form the lower block
-    elevation_top: float = 2.0
-    elevation_split: tuple[float, float] = (-8.33, -8.83)  # last upper, first lower beam
-    elevation_bottom: float = -24.9
-    azimuth_step: float = 0.1728  # 2083 columns per revolution
+    #: the beam layout: a name of pcc_ros.geometry.beams.SENSOR_PRESETS
+    layout: str = "hdl64"
+    #: an explicit elevation table (degrees, any order) instead of the layout's (``low_res``)
+    elevation_table: tuple[float, ...] = ()
+    #: degrees between two firings of a beam; 0: the layout's
+    azimuth_step: float = 0.0
     mount_height: float = 1.73
     max_range: float = 120.0
     min_range: float = 2.5  # KITTI-style removal of near returns (ego vehicle)
@@ -59,10 +62,27 @@ class Sensor:
     #: Extra dropout of weak returns (glass, dark or grazing surfaces) at every range.
     weak_dropout: float = 0.0
 
+    def __post_init__(self) -> None:
+        _ = self.model  # an unknown layout or a bad table fails here, naming it
+
     @classmethod
     def low_res(cls, **overrides) -> Sensor:
-        """A 16-beam, 0.8 deg variant with the same field of view, for fast tests."""
-        return cls(**{"beams": 16, "upper_beams": 8, "azimuth_step": 0.8, **overrides})
+        """A 16-beam, 0.8 deg variant of the HDL-64E with the same field of view, for fast tests."""
+        table = linspace_blocks((2.0, -8.33, 8), (-8.83, -24.9, 8))
+        return cls(**{"elevation_table": table, "azimuth_step": 0.8, **overrides})
+
+    @cached_property
+    def model(self) -> SensorModel:
+        """The nominal beam layout (the filter's :class:`~pcc_ros.geometry.beams.SensorModel`)."""
+        preset = sensor_preset(self.layout)
+        if not self.elevation_table and not self.azimuth_step:
+            return preset
+        return SensorModel(self.elevation_table or preset.elevations_deg,
+                           self.azimuth_step or preset.azimuth_resolution_deg, self.layout)
+
+    @property
+    def beams(self) -> int:
+        return self.model.rings
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -76,9 +96,7 @@ class Sensor:
     @cached_property
     def elevations(self) -> np.ndarray:
         """``(beams,)`` elevation angles in degrees, top beam first (with the per-laser errors)."""
-        upper = np.linspace(self.elevation_top, self.elevation_split[0], self.upper_beams)
-        lower = np.linspace(self.elevation_split[1], self.elevation_bottom, self.beams - self.upper_beams)
-        nominal = np.r_[upper, lower]
+        nominal = self.model.top_first()
         if self.beam_elevation_error > 0:
             nominal = nominal + self._calibration[1] * self.beam_elevation_error
         return nominal
@@ -96,7 +114,7 @@ class Sensor:
     @cached_property
     def azimuths(self) -> np.ndarray:
         """``(columns,)`` azimuth angles in degrees, counter-clockwise from +x."""
-        columns = round(360.0 / self.azimuth_step)
+        columns = round(self.model.columns)
         return np.arange(columns) * (360.0 / columns)
 
     @cached_property

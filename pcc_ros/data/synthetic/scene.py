@@ -5,7 +5,9 @@ z = 0. One :class:`Street` holds every object of a sequence with a constant-velo
 motion (zero for parked cars and clutter); :meth:`Street.world_at` assembles the
 triangle soup of one frame (one ray-casting geometry, per-triangle owner) and
 :meth:`Street.boxes_at` the boxes of all labelled objects. Clutter is chosen to fool
-detectors: low walls, bushes, vegetation blobs and bins have car-like extents.
+detectors: low walls, bushes, vegetation blobs and bins have car-like extents; street furniture
+(:mod:`pcc_ros.data.synthetic.furniture`: bollard rows, signs, bicycles, fences) and pedestrians
+complete the non-vehicle world the detector's confusions sit on.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from pcc_ros.data.synthetic import mesh as M
+from pcc_ros.data.synthetic.furniture import BUILDERS as FURNITURE_BUILDERS
 from pcc_ros.data.synthetic.lidar import Layer
 from pcc_ros.data.synthetic.vehicles import VehicleModel, random_vehicle
 from pcc_ros.geometry.rotations import rotation_z
@@ -36,6 +39,7 @@ class SceneParams:
     pedestrians_per_100m: float = 5.0
     poles_spacing: tuple[float, float] = (12.0, 30.0)
     clutter_per_100m: float = 9.0
+    furniture_per_100m: float = 6.0  # bollard rows, signs, bicycle racks, fences (furniture.py), per side
     margin: float = 90.0  # street extends this far behind the first / beyond the last ego pose
     cull_range: float = 125.0
 
@@ -204,6 +208,35 @@ def _vehicle(rng: np.random.Generator, x: float, y: float, yaw: float, track: in
     )
 
 
+def _add_furniture(objects: list[SceneObject], rng: np.random.Generator, mean: float, x_lo: float, x_hi: float,
+                  side: float, kerb: float, walk: float) -> None:
+    """Street furniture on one side (a Poisson number of groups): rows of 3-8 bollards at the
+    kerb, single signs at the kerb, racks of 1-4 bicycles on the sidewalk, fences at its back."""
+    for _ in range(rng.poisson(mean)):
+        name = str(rng.choice(["bollard", "sign", "bicycle", "fence"], p=[0.3, 0.25, 0.25, 0.2]))
+        x = float(rng.uniform(x_lo, x_hi))
+        if name == "bollard":
+            step = float(rng.uniform(1.2, 1.8))
+            for k in range(int(rng.integers(3, 9))):
+                objects.append(_place(KIND_CLUTTER, name, FURNITURE_BUILDERS[name](rng), x + k * step,
+                                      side * (kerb + 0.3), 0.14, 0.0, confusion=0.02))
+        elif name == "sign":
+            objects.append(_place(KIND_CLUTTER, name, FURNITURE_BUILDERS[name](rng), x, side * (kerb + 0.35), 0.14,
+                                  float(rng.uniform(-np.pi, np.pi)), confusion=0.03))
+        elif name == "bicycle":
+            across = bool(rng.random() < 0.5)  # parked across the sidewalk side by side, or along it
+            yaw = (np.pi / 2 if across else 0.0) + float(rng.normal(0, 0.1))
+            step = 0.8 if across else 2.0
+            for k in range(int(rng.integers(1, 5))):
+                objects.append(_place(KIND_CLUTTER, name, FURNITURE_BUILDERS[name](rng), x + step * k,
+                                      side * (kerb + float(rng.uniform(0.8, max(walk - 0.8, 0.9)))), 0.14, yaw,
+                                      confusion=float(rng.beta(2, 6))))
+        else:
+            objects.append(_place(KIND_CLUTTER, name, FURNITURE_BUILDERS[name](rng), x,
+                                  side * (kerb + walk - 0.1), 0.14, float(rng.normal(0, 0.02)),
+                                  confusion=float(rng.beta(1.5, 6))))
+
+
 def build_street(frames: int, params: SceneParams, rng: np.random.Generator) -> Street:
     """A random street and ego trajectory for ``frames`` frames (deterministic for ``rng``)."""
     p = params
@@ -305,6 +338,7 @@ def build_street(frames: int, params: SceneParams, rng: np.random.Generator) -> 
                                       M.sphere(crown, [0, 0, trunk_h + crown[2] * 0.9], 2, M.VEGETATION, rng, 0.3)])
                 conf = float(rng.beta(1, 8))
             objects.append(_place(KIND_CLUTTER, str(kind), mesh, cx, cy, 0.14, yaw, confusion=conf))
+        _add_furniture(objects, rng, p.furniture_per_100m * length / 100.0, x_lo, x_hi, side, kerb, walk)
         # Pedestrians on the sidewalk, walking along it or standing.
         for _ in range(rng.poisson(p.pedestrians_per_100m * length / 100.0)):
             speed = float(rng.choice([-1, 1])) * float(rng.uniform(0.8, 1.6)) if rng.random() < 0.7 else 0.0

@@ -8,6 +8,9 @@ Layout under the output directory::
     training/oxts/SSSS.txt              KITTI OXTS lines (30 values) of the ego pose
     training/poses/SSSS.txt             world <- velodyne 3x4 per frame (KITTI odometry style)
     detections/synthetic/SSSS/FFFFFF.txt  KITTI object lines + score column
+    detections/synthetic/SSSS/FFFFFF.kind one line per detection, same order: its kind
+                                        (true / confusion / ghost / far / misplaced) and the
+                                        non-vehicle object a confusion sits on ("-" otherwise)
     shapes/SSSS/<track_id>.npy          float32 (M, 3) complete surface, canonical frame
     meta.json                           seed, parameters, splits, per-track info
 
@@ -25,6 +28,7 @@ import numpy as np
 
 from pcc_ros import files
 from pcc_ros.data.kitti_format import Calibration, format_label_lines, lidar_to_camera_rows
+from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import box_corners
 from pcc_ros.types import Boxes
 
@@ -73,6 +77,29 @@ def detection_lines(boxes: Boxes, calib: Calibration) -> list[str]:
     """KITTI object lines with a score column."""
     rows = lidar_to_camera_rows(boxes, calib, bbox=image_boxes(boxes, calib))
     return format_label_lines(rows, tracking=False, with_score=True)
+
+
+#: File suffix of the per-frame detection kinds beside ``FFFFFF.txt``.
+KIND_SUFFIX = ".kind"
+
+
+def kind_lines(kind: np.ndarray, source: np.ndarray) -> list[str]:
+    """One ``"<kind> <object>"`` line per detection, in the order of the detection file."""
+    return [f"{k} {s}" for k, s in zip(kind, source)]
+
+
+def read_kinds(path: Path, count: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The kinds and objects of a frame's ``count`` detections, or None when the file is absent.
+    A file that does not match the detections (line count, two words a line) raises DataError."""
+    if not path.exists():
+        return None
+    try:
+        rows = [line.split() for line in path.read_text().splitlines() if line.strip()]
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror})") from exc
+    if len(rows) != count or any(len(r) != 2 for r in rows):
+        raise DataError(f"{path}: expected {count} lines of '<kind> <object>', got {len(rows)}")
+    return np.array([r[0] for r in rows], dtype=object), np.array([r[1] for r in rows], dtype=object)
 
 
 def oxts_lines(xy: np.ndarray, yaw: np.ndarray, z: float, dt: float) -> list[str]:

@@ -1,0 +1,111 @@
+"""``pcc calibrate-filter --sim-sensors ...`` / ``--sensor X``: one rule across sensors.
+
+The command half of :mod:`pcc_ros.filter_sensors` (which says what is fitted and how): the
+simulated sets are generated (once, cached), every detection measured, the rule fitted and
+cross-validated by sensor and by sequence, the ablation run; the node YAML (``--out``) and the
+report (``--json``) written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from typing import Any
+
+import numpy as np
+
+from pcc_ros.detection_eval import default_config, load_kitti, parse_frames
+from pcc_ros.errors import ConfigError
+from pcc_ros.files import write_json, write_text
+from pcc_ros.filter_calibration import preset_yaml
+from pcc_ros.filter_sensors import (
+    SENSOR_TERMS,
+    Rows,
+    calibrate_sensors,
+    measuring_pipeline,
+    parse_terms,
+    real_rows,
+    synth_dataset,
+    synth_rows,
+)
+from pcc_ros.pipeline.filter import TERMS
+
+log = logging.getLogger(__name__)
+
+
+def _line(name: str, fig: dict[str, Any]) -> str:
+    kinds = ", ".join(f"{k} {v['removed']:.0%}" for k, v in fig["per_kind"].items())
+    return (f"{name}: {fig['false_removed']:.1%} false removed, {fig['true_lost']:.1%} true lost at the fold "
+            f"thresholds; best at <= 2 % lost {fig['false_removed_at_0.02_lost_best']:.1%}; AUC "
+            f"{fig['auc_false_above_true']:.3f}; per kind: {kinds}")
+
+
+def run_sensors(args: argparse.Namespace) -> int:
+    if args.sim_sensors:
+        sensors = tuple(s.strip() for s in args.sim_sensors.split(",") if s.strip())
+    elif args.sensor and args.sensor != "auto":
+        sensors = (args.sensor,)  # the labelled-frame-free path: simulation of that sensor only
+    else:
+        raise ConfigError("give --real (labelled frames), --sim-sensors, or --sensor NAME (simulation only)")
+    terms = parse_terms(args.terms, SENSOR_TERMS)
+    pipeline = measuring_pipeline(args.filter_backend, shape="mismatch" in terms)
+    parts = []
+    single = len(sensors) == 1 and args.real is None  # --sensor X: that sensor's own beam model
+    for layout in sensors:
+        root = synth_dataset(args.sim_root, layout, args.sim_seed, args.sim_sequences, args.sim_frames)
+        parts.append(synth_rows(pipeline, root, layout, layout if single else "auto"))
+    if args.real is not None:
+        if args.real_detections is None:
+            raise ConfigError("--real needs --real-detections (the real detector's results)")
+        from dataclasses import replace
+
+        pipeline.config = replace(pipeline.config, filter=replace(pipeline.config.filter,
+                                                                   score_mapping=args.score_mapping))
+        classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
+        frames = load_kitti(args.real, args.real_detections, args.real_sequence, parse_frames(args.real_frames))
+        parts.append(real_rows(pipeline, frames, args.sensor, classes))
+    rows = Rows.concatenate(parts)
+    result = calibrate_sensors(rows, terms, args.max_lost, args.l2)
+    print("rows:", json.dumps(result["rows"]))
+    print("weights:", " ".join(f"w_{t}={w:+.4f}" for t, w in result["weights"].items()),
+          f"w_bias={result['bias']:+.4f} reject_threshold={result['threshold']:.4f}")
+    if "cv_by_sensor" in result:
+        for s, fig in result["cv_by_sensor"]["folds"].items():
+            print(_line(f"held-out sensor {s}", fig))
+    print(_line("held-out sequences (pooled)", result["cv_by_sequence"]["pooled"]))
+    if "cv_real_frames" in result:
+        print(_line("held-out real frames", result["cv_real_frames"]))
+    for t, a in result["ablation"].items():
+        print(f"without {t}: held-out AUC {a['auc_without']:.3f} ({a['auc_change']:+.3f} for the term), removed at "
+              f"<= 2 % lost {a['removed_at_0.02_without']:.1%} ({a['removed_at_0.02_change']:+.1%})")
+    m = result.get("mismatch")
+    if m is None:
+        print("mismatch: not among the fitted terms (weight 0)")
+    else:
+        print(f"mismatch: weight {m['weight']:+.4f}; alone, AUC confusions vs true cars "
+              f"{m['auc_alone_confusion_vs_true']:.3f}"
+              f" (all false {m['auc_alone_all_false_vs_true']:.3f}); held-out AUC on confusions with / without it "
+              f"{m['confusion_auc_held_out_with']:.3f} / {m['confusion_auc_held_out_without']:.3f}")
+    sensor_value = "auto" if len(sensors) > 1 or args.real is not None else sensors[0]
+    if args.out:
+        weights = np.array([result["weights"][t] for t in TERMS])
+        values: dict[str, Any] = {"sensor": sensor_value, "score_mapping": "identity"}
+        if weights[TERMS.index("mismatch")] != 0:
+            values["filter_backend"] = args.filter_backend
+        values["mismatch_mean"] = round(float(result["mismatch_mean"]), 4)
+        real = f" --real {args.real} --real-detections {args.real_detections}" if args.real else ""
+        header = (f"# calibrated: pcc calibrate-filter --sim-sensors {','.join(sensors)} --sim-seed {args.sim_seed}"
+                  f" --sim-sequences {args.sim_sequences} --sim-frames {args.sim_frames}"
+                  f"{real}"
+                  f" --terms {','.join(terms)} --out {args.out}\n")
+        text = preset_yaml(args.base_config or default_config(), result["bias"], weights, result["threshold"], values,
+                           header)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        write_text(args.out, text)
+        log.info("wrote %s", args.out)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        write_json(args.json, {"sensors": list(sensors), "sim_seed": args.sim_seed, **result}, indent=1,
+                   nonfinite_null=True)
+    return 0

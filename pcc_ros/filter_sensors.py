@@ -1,0 +1,276 @@
+"""One evidence rule for every sensor: ``pcc calibrate-filter --sim-sensors ...`` / ``--sensor X``.
+
+The rule's terms are normalised by the beam model (``density`` compares the returns with what
+the sensor's own beams would give a car there; ``free_space`` is a ratio of rays; the ground gap
+is metres), so one weight set can serve any sensor. This module fits that one weight set on:
+
+* **simulated sensors**: SynthCars generated with each beam layout of ``sensors`` (cached under
+  ``root/<layout>_s<seed>``, resumable, deterministic), its detector's four labelled kinds of
+  false positives (confusion, ghost, far, misplaced; ``docs/synthcars.md``) and true detections;
+* **real labelled frames** (optional): a KITTI root with a real detector's results (KITTI
+  tracking 0000 with PointRCNN), true / false by BEV IoU as ``pcc eval detections`` decides.
+
+Every row is measured by the node's own pipeline (:class:`pcc_ros.pipeline.core.Pipeline`, the
+completion skipped, ``max_instances`` lifted so that every box is judged) with the simulated
+sensor's beam model; the shape ``mismatch`` comes from a car-constrained completion
+(``filter_backend``, TraPCC by default). Fit: the L2 logistic regression of
+:mod:`pcc_ros.filter_calibration`, each sensor's rows and the real rows weighing the same.
+Threshold: the smallest that loses at most ``max_lost`` of the training rows' true detections.
+
+Honesty: leave-one-group-out cross-validation **by sensor** (fit on the other sensors and the
+real frames, judge the held-out sensor at the fold's own threshold, per false-positive kind) and
+**by sequence** (every SynthCars sequence and every block of real frames held out in turn);
+an **ablation** refits without each term and reports what the held-out figures lose, and the
+mismatch term's own AUC on confusions (non-vehicles boxed as cars) against true cars.
+The detector score is not among the default terms: the score scale of an unknown detector is
+unknown, and a score term could reject real cars on its own (``--terms`` adds it for a known one).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from pcc_ros.detection_eval import auc, detection_truth, load_kitti, operating_curve, removed_at
+from pcc_ros.errors import ConfigError
+from pcc_ros.filter_calibration import fit_logistic, predict, threshold_for
+from pcc_ros.pipeline.filter import TERMS, term_matrix
+
+log = logging.getLogger(__name__)
+
+#: Beam layouts simulated by default (``pcc_ros.geometry.beams.SENSOR_PRESETS`` names).
+DEFAULT_SENSORS = ("hdl64", "vlp16", "vlp32c", "os1_64")
+#: Terms fitted by default: scan evidence only. No detector score (an unknown detector's scale is
+#: unknown); the shape ``mismatch`` is opt-in (``--terms``): it costs a car-constrained completion of
+#: every box and, measured across the simulated sensors, buys ranking but no removal at 2 % lost.
+SENSOR_TERMS = ("density", "free_space", "ground_gap")
+
+
+def parse_terms(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:
+    """``--terms``: comma-separated names of :data:`TERMS` (``default`` when empty)."""
+    terms = tuple(t.strip() for t in (text or ",".join(default)).split(",") if t.strip())
+    unknown = set(terms) - set(TERMS)
+    if unknown or not terms:
+        raise ConfigError(f"--terms: unknown {sorted(unknown)} (have {', '.join(TERMS)})")
+    return terms
+
+
+@dataclass
+class Rows:
+    """One row per detection: features over :data:`TERMS`, label (1 = false), kind, sensor,
+    group (the cross-validation unit: a SynthCars sequence or a block of real frames)."""
+
+    x: np.ndarray
+    false: np.ndarray
+    kind: np.ndarray
+    sensor: np.ndarray
+    group: np.ndarray
+
+    @classmethod
+    def concatenate(cls, parts: list[Rows]) -> Rows:
+        parts = [p for p in parts if len(p.false)]
+        if not parts:
+            return cls(np.zeros((0, len(TERMS))), *(np.zeros(0, t) for t in (bool, object, object, object)))
+        return cls(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("x", "false", "kind", "sensor", "group")))
+
+    def subset(self, mask: np.ndarray) -> Rows:
+        return Rows(self.x[mask], self.false[mask], self.kind[mask], self.sensor[mask], self.group[mask])
+
+
+def synth_dataset(root: Path, layout: str, seed: int, sequences: int, frames: int) -> Path:
+    """SynthCars of one beam layout under ``root/<layout>_s<seed>`` (generated once, then reused)."""
+    from pcc_ros.data.synthetic import generate
+    from pcc_ros.data.synthetic.lidar import Sensor
+
+    out = Path(root) / f"{layout}_s{seed}"
+    generate(out, sequences, frames, seed, sensor=Sensor(layout=layout), test_fraction=0.0)
+    return out
+
+
+def measuring_pipeline(filter_backend: str, shape: bool = True, device: str = "cpu"):
+    """The node's pipeline set to measure every term of every box (no completion of its own);
+    ``shape``: also the mismatch against ``filter_backend``'s completion (else NaN, read as 0)."""
+    from pcc_ros.detection_eval import build_pipeline
+
+    pipeline = build_pipeline(None, {"backend": "input", "device": device, "w_mismatch": 1.0 if shape else 0.0,
+                                     "filter_backend": filter_backend})
+    pipeline.config = replace(pipeline.config, max_instances=100_000)
+    return pipeline
+
+
+def _measure(pipeline, sensor: str, frames, truth_of, kind_of, group_of, label: str) -> Rows:
+    """Rows of ``frames``, the beam model ``sensor`` (``auto``: estimated from the scans as the node
+    does, afresh for every sequence: a new sequence may be another sensor)."""
+    from pcc_ros.pipeline.beam_model import BeamModel
+
+    pipeline.config = replace(pipeline.config, filter=replace(pipeline.config.filter, sensor=sensor))
+    parts, last = [], None
+    for f in tqdm(frames, desc=f"rows {label}", unit="frame"):
+        if group_of(f) != last:
+            pipeline.beam_model, last = BeamModel(sensor), group_of(f)
+        keep = truth_of(f) >= 0
+        boxes = f.dt.boxes[keep]
+        if not len(boxes):
+            continue
+        result = pipeline.process(f.points, boxes)
+        terms = {t: result.filter_terms.get(t, np.full(len(boxes), np.nan)) for t in TERMS}
+        n = len(boxes)
+        x = term_matrix(terms)
+        x[:, TERMS.index("mismatch")] = result.mismatch  # NaN where no shape was completed: filled at the fit
+        parts.append(Rows(x, truth_of(f)[keep] == 0, kind_of(f)[keep],
+                          np.full(n, label, dtype=object), np.full(n, group_of(f), dtype=object)))
+    return Rows.concatenate(parts)
+
+
+def synth_rows(pipeline, root: Path, layout: str, sensor: str = "auto") -> Rows:
+    """Rows of every frame of a SynthCars root simulated with ``layout`` (truth and kind from its
+    ``.kind`` files), measured with the beam model ``sensor``."""
+    split = root / "training" / "velodyne"
+    frames = []
+    for seq in sorted(p.name for p in split.iterdir() if p.is_dir()):
+        frames += load_kitti(root, root / "detections" / "synthetic", seq)
+
+    def kinds(f):
+        return f.kinds if f.kinds is not None else np.full(len(f.dt.boxes), "true", dtype=object)
+
+    return _measure(pipeline, sensor, frames, lambda f: (kinds(f) == "true").astype(np.int64), kinds,
+                    lambda f: f"{layout}:{f.name.split('/')[0]}", layout)
+
+
+def real_rows(pipeline, frames, sensor: str, gt_classes, block: int = 4) -> Rows:
+    """Rows of real labelled frames (true / false by BEV IoU 0.3; DontCare left out); groups are
+    blocks of ``block`` neighbouring frames (they see the same objects)."""
+    index = {f.name: i for i, f in enumerate(frames)}
+    return _measure(pipeline, sensor, frames, lambda f: detection_truth(f, gt_classes, 0.3),
+                    lambda f: np.where(detection_truth(f, gt_classes, 0.3) == 1, "true", "real false"),
+                    lambda f: f"real:{index[f.name] // block}", "real")
+
+
+# ----------------------------------------------------------------------------- fit and judge
+
+
+_MISMATCH = TERMS.index("mismatch")
+
+
+def filled(x: np.ndarray, mismatch_mean: float) -> np.ndarray:
+    """``x`` with a missing mismatch (NaN: no shape completed) read as ``mismatch_mean``, as the
+    rule reads it (:func:`pcc_ros.pipeline.filter.term_matrix`)."""
+    out = x.copy()
+    out[:, _MISMATCH] = np.where(np.isfinite(out[:, _MISMATCH]), out[:, _MISMATCH], mismatch_mean)
+    return out
+
+
+def fit_rows(rows: Rows, terms: tuple[str, ...], max_lost: float, l2: float
+             ) -> tuple[float, np.ndarray, float, float]:
+    """(bias, weights over TERMS, threshold, mismatch_mean); every sensor's rows (and the real
+    ones) weigh the same; ``mismatch_mean``: the mean measured mismatch of these rows."""
+    measured = rows.x[:, _MISMATCH][np.isfinite(rows.x[:, _MISMATCH])]
+    mean = float(measured.mean()) if len(measured) and "mismatch" in terms else 0.0
+    x = filled(rows.x, mean)
+    cols = [TERMS.index(t) for t in terms]
+    weight = np.ones(len(rows.false))
+    for s in np.unique(rows.sensor):
+        sel = rows.sensor == s
+        weight[sel] = len(rows.false) / (sel.sum() * len(np.unique(rows.sensor)))
+    bias, w = fit_logistic(x[:, cols], rows.false, weight, l2)
+    weights = np.zeros(len(TERMS))
+    weights[cols] = w
+    return bias, weights, threshold_for(predict(bias, weights, x), rows.false, max_lost), mean
+
+
+def figures(p: np.ndarray, rows: Rows, reject: np.ndarray) -> dict[str, Any]:
+    """Removed / lost at the given decisions, per kind, the best removal at <= 2 % lost and AUC."""
+    true = ~rows.false
+    best, _ = removed_at(operating_curve(p, true), 0.02)
+    out = {"true": int(true.sum()), "false": int(rows.false.sum()),
+           "true_lost": float(reject[true].mean()) if true.any() else float("nan"),
+           "false_removed": float(reject[rows.false].mean()) if rows.false.any() else float("nan"),
+           "false_removed_at_0.02_lost_best": best, "auc_false_above_true": auc(p, true), "per_kind": {}}
+    for k in sorted(set(rows.kind[rows.false])):
+        sel = rows.kind == k
+        out["per_kind"][k] = {"count": int(sel.sum()), "removed": float(reject[sel].mean()),
+                              "auc_vs_true": auc(np.r_[p[sel], p[true]], np.r_[np.zeros(sel.sum(), bool),
+                                                                               np.ones(true.sum(), bool)])}
+    return out
+
+
+def leave_one_out(rows: Rows, by: np.ndarray, terms, max_lost: float, l2: float,
+                  only: np.ndarray | None = None) -> dict[str, Any]:
+    """Leave-one-group-out: each value of ``by`` held out in turn (only those where ``only``);
+    the held-out rows are judged with the fold's weights and threshold. Pooled and per group."""
+    p = np.full(len(rows.false), np.nan)
+    reject = np.zeros(len(rows.false), bool)
+    folds = {}
+    for g in np.unique(by[only] if only is not None else by):
+        test = by == g
+        train = ~test
+        if rows.false[train].all() or not rows.false[train].any():
+            continue
+        bias, weights, threshold, mean = fit_rows(rows.subset(train), terms, max_lost, l2)
+        p[test] = predict(bias, weights, filled(rows.x[test], mean))
+        reject[test] = p[test] > threshold
+        folds[str(g)] = {"threshold": threshold, "weights": dict(zip(TERMS, np.round(weights, 4).tolist())),
+                         **figures(p[test], rows.subset(test), reject[test])}
+    held = np.isfinite(p)
+    return {"pooled": figures(p[held], rows.subset(held), reject[held]), "folds": folds}
+
+
+def calibrate_sensors(rows: Rows, terms: tuple[str, ...], max_lost: float = 0.01, l2: float = 1e-2) -> dict[str, Any]:
+    """The fit on every row, the cross-validation by sensor and by sequence, the ablation."""
+    bias, weights, threshold, mean = fit_rows(rows, terms, max_lost, l2)
+    x = filled(rows.x, mean)
+    p = predict(bias, weights, x)
+    sim = rows.sensor != "real"
+    out: dict[str, Any] = {
+        "terms": list(terms), "bias": bias, "weights": dict(zip(TERMS, weights.tolist())), "threshold": threshold,
+        "mismatch_mean": mean,
+        "rows": {str(s): {"true": int((~rows.false[rows.sensor == s]).sum()),
+                          "false": int(rows.false[rows.sensor == s].sum())} for s in np.unique(rows.sensor)},
+        "in_sample": figures(p, rows, p > threshold),
+    }
+    if len(np.unique(rows.sensor[sim])) > 1:
+        out["cv_by_sensor"] = leave_one_out(rows, rows.sensor, terms, max_lost, l2, only=sim)
+    out["cv_by_sequence"] = leave_one_out(rows, rows.group, terms, max_lost, l2)
+    real = rows.sensor == "real"
+    if real.any():
+        held = leave_one_out(rows, rows.group, terms, max_lost, l2, only=real)
+        out["cv_real_frames"] = held["pooled"]
+    ablation = {}
+    for t in terms:
+        rest = tuple(u for u in terms if u != t)
+        if not rest:
+            continue
+        cv = leave_one_out(rows, rows.group, rest, max_lost, l2)["pooled"]
+        full = out["cv_by_sequence"]["pooled"]
+        ablation[t] = {
+            "auc_without": cv["auc_false_above_true"], "auc_change": full["auc_false_above_true"]
+            - cv["auc_false_above_true"],
+            "removed_at_0.02_without": cv["false_removed_at_0.02_lost_best"],
+            "removed_at_0.02_change": full["false_removed_at_0.02_lost_best"] - cv["false_removed_at_0.02_lost_best"],
+            "confusion_auc_without": cv["per_kind"].get("confusion", {}).get("auc_vs_true", float("nan")),
+        }
+    out["ablation"] = ablation
+    if "mismatch" in terms:
+        out["mismatch"] = mismatch_report(rows, out)
+    return out
+
+
+def mismatch_report(rows: Rows, result: dict[str, Any]) -> dict[str, Any]:
+    """What the shape term brings: its weight, its own AUC on confusions vs true cars, and the
+    held-out AUC on confusions with and without it."""
+    m = rows.x[:, _MISMATCH]
+    true, conf = ~rows.false, rows.kind == "confusion"
+    sel = (true | conf) & np.isfinite(m)
+    full = result["cv_by_sequence"]["pooled"]["per_kind"].get("confusion", {}).get("auc_vs_true", float("nan"))
+    without = result["ablation"].get("mismatch", {}).get("confusion_auc_without", float("nan"))
+    return {"weight": result["weights"]["mismatch"],
+            "auc_alone_confusion_vs_true": auc(m[sel], true[sel]) if conf.any() else float("nan"),
+            "auc_alone_all_false_vs_true": auc(m[np.isfinite(m)], true[np.isfinite(m)]),
+            "measured_share": float(np.isfinite(m).mean()),
+            "confusion_auc_held_out_with": full, "confusion_auc_held_out_without": without,
+            "confusion_auc_contribution": full - without}

@@ -1,0 +1,49 @@
+"""The cross-sensor check on the real nuScenes frame (``pcc eval detections --nuscenes``)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pcc_ros.cli.main import main
+from pcc_ros.filter_check import CAR_SIZE, constructed_boxes
+from pcc_ros.geometry.boxes import iou_bev
+
+
+@pytest.fixture()
+def nuscenes_root(shared_data):
+    root = shared_data / "nuscenes_mini"
+    if not (root / "v1.0-mini").is_dir():
+        pytest.skip("no nuScenes sample in ../shared/data")
+    return root
+
+
+def test_constructed_boxes_on_the_real_frame(nuscenes_root):
+    from pcc_ros.data.nuscenes import NuScenes
+
+    sample = next(NuScenes(nuscenes_root).frames())
+    boxes, group, is_true = constructed_boxes(sample.points, sample.ground_truth, sample.extras["category"], 0.7, 20,
+                                              seed=3)
+    assert is_true.sum() == 8  # the annotated cars
+    assert (group == "human.pedestrian.adult").sum() == 30 and (group == "movable_object.barrier").sum() == 22
+    ground = group == "free ground"
+    assert ground.sum() == 20 and np.all(boxes.score == 0.7)
+    np.testing.assert_allclose(boxes.size[~is_true], np.tile(CAR_SIZE, ((~is_true).sum(), 1)))
+    assert iou_bev(boxes[ground], sample.ground_truth).max() <= 0.0  # free ground overlaps no annotation
+    again = constructed_boxes(sample.points, sample.ground_truth, sample.extras["category"], 0.7, 20, seed=3)[0]
+    assert again.equals(boxes)  # seeded
+
+
+def test_nuscenes_check_writes_curve_and_png(nuscenes_root, tmp_path):
+    out_json, out_png = tmp_path / "nus.json", tmp_path / "nus.png"
+    assert main(["eval-detections", "--nuscenes", str(nuscenes_root), "--ground-boxes", "10", "--json", str(out_json),
+                 "--plot", str(out_png)]) == 0
+    result = json.loads(out_json.read_text())
+    assert result["true"] == 8 and result["false"] == 57 + 10
+    curve = result["methods"]["filter"]["curve"]
+    assert curve["false_removed"][0] == 0 and curve["false_removed"][-1] > 0.5 and curve["true_lost"][-1] > 0
+    assert "points-in-box" in result["methods"] and len(result["well_seen_cars"]) == 1
+    assert set(result["by_score"]) == {"0.5", "0.7", "0.9"}
+    assert out_png.stat().st_size > 20_000 and out_png.read_bytes()[:4] == b"\x89PNG"
