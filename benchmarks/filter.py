@@ -9,7 +9,9 @@ was at 93cd59e (``benchmarks._reference.evidence``), timed call by call, interle
 a warm-up (min / median / max of ``--repeat`` calls each), ours also with ``workers=2`` (the
 ground and the expected returns on a second thread, as the pipeline runs it with ``workers`` >= 2).
 Every output (raw counts, expected returns, ground heights, the derived terms), of both thread
-settings, is checked bit-identical first. The machine's load
+settings, is checked bit-identical first. The profile terms
+(:func:`pcc_ros.pipeline.evidence_profile.profile_terms`, newer than 93cd59e) are timed beside
+them (``profile_ms``; the pipeline's filter costs ``beams_ms + profile_ms``). The machine's load
 average is recorded before and after. Last, the thread grain: the same numpy work on one thread
 and split over two (a pool thread beside the calling one), interleaved, in calls of the filter's
 grain (250 ``np.multiply`` of 50k doubles per half, about 15 us each) and in large calls (3
@@ -102,6 +104,7 @@ def thread_grain(repeat: int) -> list[dict]:
 
 def run(args: argparse.Namespace) -> dict:
     from benchmarks._reference import evidence as reference_evidence
+    from pcc_ros.pipeline.evidence_profile import profile_terms
     from pcc_ros.pipeline.filter import GROUND_REACH, SENSOR_PRESETS, evidence
 
     load_before = load_average()
@@ -115,19 +118,23 @@ def run(args: argparse.Namespace) -> dict:
         times = interleaved({"ours": lambda p=points, b=boxes: evidence(p, b, sensor, reach=fixed),
                              "ours_2": lambda p=points, b=boxes: evidence(p, b, sensor, workers=2, reach=fixed),
                              "ours_beams": lambda p=points, b=boxes: evidence(p, b, sensor),
+                             "profile": lambda p=points, b=boxes: profile_terms(p, b, sensor),
                              "93cd59e": lambda p=points, b=boxes: reference_evidence(p, b, sensor)},
                             repeat=args.repeat, warmup=3)
         ours, two, ref = (summary_ms(times[k]) for k in ("ours", "ours_2", "93cd59e"))
-        beams = summary_ms(times["ours_beams"])
+        beams, profile = summary_ms(times["ours_beams"]), summary_ms(times["profile"])
         rows.append({"scan": scan, "points": len(points), "boxes": len(boxes),
                      "ours_min": ours["min_ms"], "ours_ms": ours["median_ms"], "ours_max": ours["max_ms"],
                      "ours2_min": two["min_ms"], "ours2_ms": two["median_ms"], "beams_ms": beams["median_ms"],
+                     "profile_ms": profile["median_ms"],
                      "ref_min": ref["min_ms"], "ref_ms": ref["median_ms"], "ref_max": ref["max_ms"],
                      "speedup": ref["median_ms"] / ours["median_ms"], "outputs": "identical"})
     print_table(f"evidence filter measurements, ms ({args.repeat} interleaved calls each: min / median / max); "
                 "ours = one thread, ours2 = workers 2 (ground and expected returns on a second thread, as the "
                 "pipeline's workers >= 2), both with 93cd59e's fixed ground reach; beams = one thread, the ground "
-                "reach the pipeline uses (widened with the beam model's ring spacing); ref = main at 93cd59e", rows)
+                "reach the pipeline uses (widened with the beam model's ring spacing); profile = the profile terms "
+                "(above, fill, spill, overlap, depth, top: one more pass, no 93cd59e counterpart, not compared), "
+                "which the pipeline adds to beams; ref = main at 93cd59e", rows)
     grain = thread_grain(args.grain_repeat) if args.grain_repeat > 0 else []
     if grain:
         print_table(f"thread grain: the same numpy work on one thread and split over two, ms ({args.grain_repeat} "

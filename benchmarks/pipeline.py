@@ -201,7 +201,9 @@ def check_equal(a, b) -> float:
         (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y, equal_nan=True))
         for x, y in scores
     ):
-        raise SystemExit("fast and original filters give different probabilities or terms")
+        bad = [k for k in ra.filter_terms
+               if not np.array_equal(ra.filter_terms[k], rb.filter_terms.get(k), equal_nan=True)]
+        raise SystemExit(f"fast and original filters give different probabilities or terms: {bad}")
     if ra.completed_points.shape != rb.completed_points.shape or not np.array_equal(
         ra.completed_instance, rb.completed_instance
     ):

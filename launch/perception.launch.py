@@ -18,6 +18,11 @@ Arguments (``ros2 launch pcc_ros perception.launch.py --show-args`` lists them):
 * ``backend``, ``device``, ``score_mapping``: override the parameter file's value for both
   nodes; empty = keep the file's value.
 * ``use_sim_time``: ``true`` to follow ``/clock`` (``ros2 bag play --clock``).
+* ``managed``: ``true`` starts the managed (lifecycle) nodes (``completion_node_managed``,
+  ``detection_filter_node_managed``): they load in ``configure`` and serve in ``activate``.
+* ``autostart``: with ``managed:=true``, ``true`` (the default) configures and activates them at
+  once (launch_ros' ``LifecycleNode(autostart=True)``); ``false`` leaves them unconfigured for a
+  lifecycle manager (``ros2 lifecycle set /completion_node configure`` ...).
 * ``rviz``: ``true`` also starts ``rviz2`` with ``config/pcc_ros.rviz``.
 
 Every argument is plain text turned into node options by :func:`node_options` (no ROS
@@ -29,7 +34,7 @@ import os
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
-from launch_ros.actions import Node
+from launch_ros.actions import LifecycleNode, Node
 
 #: (name, default, description) of every launch argument.
 ARGUMENTS = (
@@ -43,6 +48,8 @@ ARGUMENTS = (
     ("device", "", "auto, cpu, cuda or cuda:N; empty = the params file's"),
     ("score_mapping", "", "identity (probabilities) or sigmoid (logits, e.g. PointRCNN); empty = the params file's"),
     ("use_sim_time", "false", "true: use /clock (bag replay with --clock)"),
+    ("managed", "false", "true: the managed (lifecycle) nodes, which load in configure and serve in activate"),
+    ("autostart", "true", "with managed:=true: configure and activate at once; false: wait for a lifecycle manager"),
     ("rviz", "false", "true: also start rviz2 with config/pcc_ros.rviz"),
 )
 NODES = (("completion_node", "completion.yaml"), ("detection_filter_node", "detection_filter.yaml"))
@@ -57,8 +64,11 @@ def _flag(text: str, name: str) -> bool:
 
 
 def node_options(args: dict, share: str) -> list:
-    """``(executable, options)`` of every process to start, from the launch arguments' text."""
+    """``(action, options)`` of every process to start (``action``: ``"Node"`` or, for a managed
+    node, ``"LifecycleNode"``, the ``launch_ros.actions`` class), from the launch arguments' text."""
     namespace = args["namespace"].strip()
+    managed = _flag(args["managed"], "managed")
+    autostart = _flag(args["autostart"], "autostart")
     overrides = {"use_sim_time": _flag(args["use_sim_time"], "use_sim_time")}
     for name in ("backend", "device", "score_mapping"):
         if args[name].strip():
@@ -70,24 +80,22 @@ def node_options(args: dict, share: str) -> list:
     processes = []
     for name, config in NODES:
         params_file = args["params_file"].strip() or os.path.join(share, "config", config)
-        processes.append(
-            (
-                name,
-                {
-                    "package": "pcc_ros",
-                    "executable": name,
-                    "name": name,
-                    "namespace": namespace,
-                    "parameters": [params_file, overrides],
-                    "remappings": remappings,
-                    "output": "screen",
-                },
-            )
-        )
+        options = {
+            "package": "pcc_ros",
+            "executable": f"{name}_managed" if managed else name,
+            "name": name,
+            "namespace": namespace,
+            "parameters": [params_file, overrides],
+            "remappings": remappings,
+            "output": "screen",
+        }
+        if managed:
+            options["autostart"] = autostart
+        processes.append(("LifecycleNode" if managed else "Node", options))
     if _flag(args["rviz"], "rviz"):
         processes.append(
             (
-                "rviz2",
+                "Node",
                 {
                     "package": "rviz2",
                     "executable": "rviz2",
@@ -105,7 +113,8 @@ def node_options(args: dict, share: str) -> list:
 def _launch_nodes(context, *args, **kwargs):
     values = {name: context.launch_configurations.get(name, default) for name, default, _ in ARGUMENTS}
     share = get_package_share_directory("pcc_ros")
-    return [Node(**options) for _, options in node_options(values, share)]
+    actions = {"Node": Node, "LifecycleNode": LifecycleNode}
+    return [actions[action](**options) for action, options in node_options(values, share)]
 
 
 def generate_launch_description() -> LaunchDescription:

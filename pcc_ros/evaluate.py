@@ -42,9 +42,10 @@ from pcc_ros.data.instance_cache import EvalShapes, InstanceCache
 from pcc_ros.data.track_aggregate import aggregate_instances
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.metrics import METRICS, instance_metrics, to_metres, unit_label
+from pcc_ros.metrics.balance import track_consistency
 from pcc_ros.models import backend_names, get_backend, load_completer
 from pcc_ros.models.base import SceneContext
-from pcc_ros.plotting import canonical_grid
+from pcc_ros.plotting import plot_examples
 from pcc_ros.tables import metric_cell, print_table
 
 log = logging.getLogger("pcc.eval")
@@ -62,7 +63,9 @@ POINT_BANDS: tuple[tuple[str, float, float], ...] = (
 )
 #: Metrics reported, in table order.
 REPORTED = ("cd_l1", "cd_l2", "precision", "coverage", "fscore", "fscore_fixed", "emd", "fidelity", "side_cd",
-            "l_g", "l_i", "l_s", "mean_cd")
+            "l_g", "l_i", "l_s", "mean_cd", "far_coverage", "lateral_offset", "consistency")
+#: Metrics of the per-family table (SynthCars: which vehicle shapes a backend completes well).
+FAMILY_METRICS = ("cd_l1", "coverage", "far_coverage", "lateral_offset", "consistency")
 
 
 @dataclass
@@ -162,10 +165,28 @@ def instances_from_cache(
             instances.append(_eval_instance(cache, keys, int(i), aggregated[key], False))
     if skipped:
         log.info("skipped %d instance(s) of split %r without a %s reference", skipped, split, reference)
+    attach_families(cache, instances)
     attach_contexts(cache, instances)
     if gt_free:
         attach_pseudo_gt(cache, instances)
     return instances, reference
+
+
+def attach_families(cache: Any, instances: Sequence[EvalInstance]) -> None:
+    """Each instance's SynthCars vehicle family (``meta["family"]``), from the ``meta.json`` of the
+    SynthCars root the cache was extracted from, for the per-family tables; nothing for other data."""
+    root = (getattr(cache, "index", None) or {}).get("synthcars")
+    if not root or not instances:
+        return
+    from pcc_ros.data.synthetic import load_families
+
+    families = load_families(root)
+    if not families:
+        log.info("%s: no SynthCars meta.json (moved?): no per-family tables", root)
+    for inst in instances:
+        name = families.get((inst.meta["sequence"], str(cache.meta["track"][inst.meta["index"]])))
+        if name:
+            inst.meta["family"] = name
 
 
 def attach_contexts(cache: Any, instances: Sequence[EvalInstance]) -> None:
@@ -214,7 +235,8 @@ def _eval_instance(cache: Any, keys: np.ndarray, i: int, reference: np.ndarray, 
         length=float(meta["box_size"][i, 0]),
         distance=float(meta["distance"][i]),
         has_ground_truth=has_gt,
-        meta={"index": i, "sequence": str(meta["sequence"][i]), "frame": int(meta["frame"][i])},
+        meta={"index": i, "sequence": str(meta["sequence"][i]), "frame": int(meta["frame"][i]),
+              "origin": np.asarray(meta["origin"][i], dtype=np.float64)},
         size=np.asarray(meta["box_size"][i], dtype=np.float64),
     )
 
@@ -280,8 +302,13 @@ def score_backend(
                 emd_points=emd_points,
                 seed=seed + i,
                 pseudo_gt=inst.pseudo_gt,
+                origin=inst.meta.get("origin"),
             )
         )
+    steady = track_consistency([inst.key.rpartition("@")[0] for inst in instances],
+                               [inst.meta.get("frame", 0) for inst in instances], completions)
+    for row, value in zip(rows, steady):
+        row["consistency"] = float(value)
     return completions, rows, seconds
 
 
@@ -291,8 +318,8 @@ def _mean_table(
     """Means over the masked rows; ``None`` (JSON null) for an empty band."""
     chosen = [r for r, m in zip(rows, mask) if m]
     out: dict[str, float | int | None] = {"count": len(chosen)}
-    for key in keys:
-        values = [r[key] for r in chosen if key in r]
+    for key in keys:  # NaN-aware: a track's first frame has no consistency, a view from above no far half
+        values = [r[key] for r in chosen if key in r and np.isfinite(r[key])]
         out[key] = float(np.mean(values)) if values else None
     return out
 
@@ -305,7 +332,9 @@ def summarise(instances: Sequence[EvalInstance], rows: Sequence[dict[str, float]
     distance = np.array([inst.distance for inst in instances])
     points = np.array([inst.num_points for inst in instances])
     everything = np.ones(len(instances), dtype=bool)
+    family = np.array([str(inst.meta.get("family", "")) for inst in instances])
     return {
+        "by_family": {f: _mean_table(metres, family == f, keys) for f in sorted(set(family) - {""})},
         "overall": _mean_table(metres, everything, keys),
         "overall_canonical": _mean_table(rows, everything, keys),
         "by_distance": {
@@ -343,36 +372,19 @@ def print_tables(results: dict[str, Any], reference: str) -> None:
     counts.update({band: first["by_distance"][band]["count"] for band, _, _ in DISTANCE_BANDS})
     counts.update({band: first["by_points"][band]["count"] for band, _, _ in POINT_BANDS})
     print_table("instances per band", [counts], columns)
+    families = sorted({f for res in backends.values() for f in res.get("by_family", {})})
+    for key in (k for k in FAMILY_METRICS if k in keys and families):
+        rows = [{"backend": name, **{f: metric_cell(res["by_family"][f][key]) for f in families if f in
+                                     res.get("by_family", {})}} for name, res in backends.items()]
+        print_table(f"{key} by vehicle family [{unit_label(key, metres=True)}; reference: {reference}; instances: "
+                    + ", ".join(f"{f} {first['by_family'][f]['count']}" for f in families
+                                if f in first.get("by_family", {})) + "]", rows, ["backend", *families])
     canon_rows = [
         {"backend": name,
          **{f"{k} [{unit_label(k, metres=False)}]": metric_cell(res["overall_canonical"][k]) for k in keys}}
         for name, res in backends.items()
     ]
     print_table("overall in canonical units (box length = 1)", canon_rows)
-
-
-def plot_examples(
-    path: Path,
-    instances: Sequence[EvalInstance],
-    completions: dict[str, Any],
-    reference: str,
-    picks: Sequence[int],
-    max_draw: int = 2048,
-) -> None:
-    """A PNG grid: one row per example instance, columns input / each backend / reference.
-
-    ``picks`` are instance indices (:func:`example_indices` spreads them over the distance
-    range so near and far cars both appear); ``completions[name][i]`` is backend ``name``'s
-    completion of instance ``i`` (a list or a dict). Clouds are drawn in 3D in the
-    canonical frame from the same viewpoint.
-    """
-    if not picks:
-        raise ValueError("plot_examples: no instances to draw")
-    names = [n for n in completions if n != "input"]  # the partial column already shows it
-    columns = ["partial input", *names, "ground truth" if reference == "ground_truth" else "aggregated reference"]
-    rows = [(f"{instances[i].key}\n{instances[i].distance:.0f} m, {instances[i].num_points} pts",
-             [instances[i].partial, *(completions[n][i] for n in names), instances[i].reference]) for i in picks]
-    canonical_grid(path, columns, rows, "canonical frame (x forward, y left, z up; box length = 1)", max_draw)
 
 
 # --------------------------------------------------------------------------- command

@@ -255,8 +255,27 @@ def calibrate_sensors(rows: Rows, terms: tuple[str, ...], max_lost: float = 0.01
             "confusion_auc_without": cv["per_kind"].get("confusion", {}).get("auc_vs_true", float("nan")),
         }
     out["ablation"] = ablation
+    out["term_auc"] = term_auc(rows)
     if "mismatch" in terms:
         out["mismatch"] = mismatch_report(rows, out)
+    return out
+
+
+def term_auc(rows: Rows) -> dict[str, dict[str, float]]:
+    """Each measured term alone: per false kind, the AUC of that kind's boxes scoring above the
+    true ones (of the simulation for the simulated kinds, of the real frames for ``real false``;
+    below 0.5: the term is lower on false boxes). What a term could bring, before any fit."""
+    out: dict[str, dict[str, float]] = {}
+    real = rows.sensor == "real"
+    for t in TERMS:
+        x = rows.x[:, TERMS.index(t)]
+        if not np.isfinite(x).any() or np.nanstd(x) == 0:
+            continue  # not measured (the shape without a completion; the score of one fixed value)
+        out[t] = {}
+        for kind in sorted(set(rows.kind[rows.false])):
+            sel = (rows.kind == kind) | (~rows.false & (real == (kind == "real false")))
+            sel &= np.isfinite(x)
+            out[t][str(kind)] = auc(x[sel], ~rows.false[sel])
     return out
 
 

@@ -1,4 +1,4 @@
-"""Matplotlib helpers shared by the PNGs the tools write (``pcc demo``, ``pcc eval``, SynthCars previews).
+"""Matplotlib helpers shared by the PNGs the tools write (``pcc demo``, SynthCars previews, ``pcc eval``).
 
 :func:`label_boxes` puts one text label beside each box of a bird's-eye view so that no label
 sits inside a box (on top of that car's points, where a label in the box's colour vanishes),
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -93,22 +94,39 @@ def label_boxes(ax, corners: np.ndarray, texts: Sequence[str | None], colors: Se
     return artists
 
 
-def canonical_grid(path: Path, columns: Sequence[str], rows: Sequence[tuple[str, Sequence[np.ndarray]]], title: str,
-                   max_draw: int = 2048) -> None:
-    """A PNG grid of canonical clouds: one row per ``(label, clouds)``, one 3D panel per column, all
-    from the same viewpoint over the canonical box (so sizes compare across panels). The first
-    column is drawn red, the last green, the others blue; at most ``max_draw`` points per panel
-    (a seeded subset)."""
+def plot_examples(
+    path: Path,
+    instances: Sequence[Any],
+    completions: dict[str, Any],
+    reference: str,
+    picks: Sequence[int],
+    max_draw: int = 2048,
+) -> None:
+    """A PNG grid: one row per example instance, columns input / each backend / reference.
+
+    ``instances``: :class:`pcc_ros.evaluate.EvalInstance` (``partial``, ``reference``, ``key``,
+    ``distance``, ``num_points``). ``picks`` are instance indices (``evaluate.example_indices``
+    spreads them over the distance range so near and far cars both appear);
+    ``completions[name][i]`` is backend ``name``'s completion of instance ``i`` (a list or a
+    dict). Clouds are drawn in 3D in the canonical frame from the same viewpoint.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig = plt.figure(figsize=(2.6 * len(columns), 2.4 * len(rows)))
+    count = len(picks)
+    if count == 0:
+        raise ValueError("plot_examples: no instances to draw")
+    names = [n for n in completions if n != "input"]  # the partial column already shows it
+    columns = ["partial input", *names, "ground truth" if reference == "ground_truth" else "aggregated reference"]
+    fig = plt.figure(figsize=(2.6 * len(columns), 2.4 * count))
     rng = np.random.default_rng(0)
-    for row, (label, clouds) in enumerate(rows):
-        for col, (name, cloud) in enumerate(zip(columns, clouds)):
-            ax = fig.add_subplot(len(rows), len(columns), row * len(columns) + col + 1, projection="3d")
+    for row, idx in enumerate(picks):
+        inst = instances[idx]
+        clouds = [inst.partial, *(completions[n][idx] for n in names), inst.reference]
+        for col, (title, cloud) in enumerate(zip(columns, clouds)):
+            ax = fig.add_subplot(count, len(columns), row * len(columns) + col + 1, projection="3d")
             if len(cloud) > max_draw:
                 cloud = cloud[rng.choice(len(cloud), max_draw, replace=False)]
             colour = "tab:red" if col == 0 else ("tab:green" if col == len(columns) - 1 else "tab:blue")
@@ -122,10 +140,13 @@ def canonical_grid(path: Path, columns: Sequence[str], rows: Sequence[tuple[str,
             ax.set_yticks([])
             ax.set_zticks([])
             if row == 0:
-                ax.set_title(name, fontsize=9)
+                ax.set_title(title, fontsize=9)
             if col == 0:
-                ax.text2D(0.0, 0.0, label, transform=ax.transAxes, fontsize=7)
-    fig.suptitle(title, fontsize=9)
+                ax.text2D(
+                    0.0, 0.0, f"{inst.key}\n{inst.distance:.0f} m, {inst.num_points} pts", transform=ax.transAxes,
+                    fontsize=7,
+                )
+    fig.suptitle("canonical frame (x forward, y left, z up; box length = 1)", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

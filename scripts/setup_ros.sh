@@ -13,22 +13,21 @@
 #      AMENT_PREFIX_PATH and defaults RMW_IMPLEMENTATION to rmw_fastrtps_cpp in every Python
 #      process of the venv, so the nodes start from their entry points without sourcing
 #      anything (LD_LIBRARY_PATH is set by the wheels' own ros_wheels_bootstrapper.pth);
-#   4. vision_msgs (not among the wheels) is built from scripts/vision_msgs with
-#      rosidl_generate_interfaces, its .msg files written from pcc_ros/msg/typestore.py, and
-#      installed into VENV.
+#   4. vision_msgs and tf2_msgs (not among the wheels) are built from scripts/vision_msgs and
+#      scripts/tf2_msgs with rosidl_generate_interfaces, their .msg files written from
+#      pcc_ros/msg/typestore.py (BUILT_PACKAGES), and installed into VENV.
 # Idempotent and cached: stamp files in VENV hold a hash of each step's inputs; a second run
 # rebuilds nothing and prints one line.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=${1:-.venv}
 PY="$VENV/bin/python"
-BUILD=build/vision_msgs
 say() { echo "pcc_ros setup (ROS): $*"; }
 
 if [ "${ROS_DISTRO:-}" = "jazzy" ]; then
-  if ! "$PY" -c 'import rclpy, vision_msgs.msg, sensor_msgs.msg' 2>/dev/null; then
-    say "ROS_DISTRO=jazzy is sourced but rclpy / vision_msgs do not import in $PY." >&2
-    say "  install them (apt-get install ros-jazzy-vision-msgs) and make the ROS Python packages visible" >&2
+  if ! "$PY" -c 'import rclpy, vision_msgs.msg, sensor_msgs.msg, tf2_msgs.msg' 2>/dev/null; then
+    say "ROS_DISTRO=jazzy is sourced but rclpy / vision_msgs / tf2_msgs do not import in $PY." >&2
+    say "  install them (apt-get install ros-jazzy-vision-msgs ros-jazzy-tf2-ros) and make the ROS Python packages visible" >&2
     say "  to the venv (PYTHONPATH from 'source /opt/ros/jazzy/setup.bash', same Python version)." >&2
     exit 1
   fi
@@ -105,41 +104,50 @@ if not hook.exists() or hook.read_text() != line:
     hook.write_text(line)
 PYEOF
 
-# ---------------------------------------------------------------- 4. vision_msgs
-rm -rf "$BUILD/src" && mkdir -p "$BUILD/src/msg"
-cp scripts/vision_msgs/package.xml scripts/vision_msgs/CMakeLists.txt "$BUILD/src/"
-"$PY" - "$BUILD/src/msg" <<'PYEOF'
+# ------------------------------------------------------- 4. vision_msgs, tf2_msgs
+# One package each, from scripts/PKG (package.xml, CMakeLists.txt) and the .msg texts of
+# pcc_ros/msg/typestore.py (BUILT_PACKAGES), installed into VENV; each with its own stamp.
+venv_abs=$(cd "$VENV" && pwd)
+versions=$("$PY" -c 'import sys, numpy; print(sys.version.split()[0], numpy.__version__)')
+build_messages() {
+  local pkg=$1 build=build/$1 key stamp start
+  rm -rf "$build/src" && mkdir -p "$build/src/msg"
+  cp "scripts/$pkg/package.xml" "scripts/$pkg/CMakeLists.txt" "$build/src/"
+  "$PY" - "$build/src/msg" "$pkg" <<'PYEOF'
 import sys
 from pathlib import Path
 
-from pcc_ros.msg.typestore import VISION_MSGS
+from pcc_ros.msg.typestore import BUILT_PACKAGES
 
-for name, text in VISION_MSGS.items():
+for name, text in BUILT_PACKAGES[sys.argv[2]].items():
     (Path(sys.argv[1]) / f"{name.rsplit('/', 1)[1]}.msg").write_text(text.lstrip())
 PYEOF
-versions=$("$PY" -c 'import sys, numpy; print(sys.version.split()[0], numpy.__version__)')
-vision_key=$( (cat "$BUILD"/src/package.xml "$BUILD"/src/CMakeLists.txt "$BUILD"/src/msg/*.msg; echo "$versions $wheel_key") \
-  | sha256sum | cut -d' ' -f1)
-vision_stamp="$VENV/.pcc_ros-vision_msgs"
-if [ "$(cat "$vision_stamp" 2>/dev/null)" = "$vision_key" ] \
-   && "$PY" -c 'import vision_msgs.msg' 2>/dev/null; then
-  say "ROS 2 Jazzy wheels and vision_msgs up to date"
-  exit 0
+  key=$( (cat "$build"/src/package.xml "$build"/src/CMakeLists.txt "$build"/src/msg/*.msg; echo "$versions $wheel_key") \
+    | sha256sum | cut -d' ' -f1)
+  stamp="$VENV/.pcc_ros-$pkg"
+  if [ "$(cat "$stamp" 2>/dev/null)" = "$key" ] && "$PY" -c "import $pkg.msg" 2>/dev/null; then
+    return 0
+  fi
+  say "building $pkg (rosidl_generate_interfaces, about a minute)"
+  rm -rf "$build/build" && mkdir -p "$build/build"
+  start=$(date +%s)
+  (
+    cd "$build/build"
+    export PATH="$venv_abs/bin:$PATH"
+    cmake ../src -DCMAKE_PREFIX_PATH="$venv_abs" -DCMAKE_INSTALL_PREFIX="$venv_abs" -DCMAKE_BUILD_TYPE=Release \
+      -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$venv_abs/bin/python" > cmake.log 2>&1 \
+      || { tail -40 cmake.log >&2; say "cmake configure failed (log: $build/build/cmake.log)" >&2; exit 1; }
+    make -j"$(nproc)" install > make.log 2>&1 \
+      || { tail -40 make.log >&2; say "$pkg build failed (log: $build/build/make.log)" >&2; exit 1; }
+  )
+  "$PY" -c "import $pkg.msg" || { say "$pkg was built but does not import" >&2; exit 1; }
+  echo "$key" > "$stamp"
+  say "$pkg built and installed into $VENV in $(( $(date +%s) - start )) s"
+  built=1
+}
+built=0
+build_messages vision_msgs
+build_messages tf2_msgs
+if [ "$built" = 0 ]; then
+  say "ROS 2 Jazzy wheels, vision_msgs and tf2_msgs up to date"
 fi
-say "building vision_msgs (rosidl_generate_interfaces, about a minute)"
-venv_abs=$(cd "$VENV" && pwd)
-rm -rf "$BUILD/build" && mkdir -p "$BUILD/build"
-start=$(date +%s)
-(
-  cd "$BUILD/build"
-  export PATH="$venv_abs/bin:$PATH"
-  cmake ../src -DCMAKE_PREFIX_PATH="$venv_abs" -DCMAKE_INSTALL_PREFIX="$venv_abs" -DCMAKE_BUILD_TYPE=Release \
-    -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$venv_abs/bin/python" > cmake.log 2>&1 \
-    || { tail -40 cmake.log >&2; say "cmake configure failed (log: $BUILD/build/cmake.log)" >&2; exit 1; }
-  make -j"$(nproc)" install > make.log 2>&1 \
-    || { tail -40 make.log >&2; say "vision_msgs build failed (log: $BUILD/build/make.log)" >&2; exit 1; }
-)
-"$PY" -c 'from vision_msgs.msg import Detection3DArray; Detection3DArray()' \
-  || { say "vision_msgs was built but does not import" >&2; exit 1; }
-echo "$vision_key" > "$vision_stamp"
-say "vision_msgs built and installed into $VENV in $(( $(date +%s) - start )) s"

@@ -3,18 +3,17 @@
 Small synthetic inputs (a few thousand points, one car per frame) so hundreds of damaged
 variants run in seconds; every damaged input must end in a *named* error (``ERROR pcc:``
 with the file, never ``internal error``, never a traceback) or a counted skip, and a failed
-command must leave no output behind.
+command must leave no output behind. The checks themselves are conftest's
+(:func:`conftest.assert_named_failure`), the one helper every error-path test uses.
 """
 
 from __future__ import annotations
 
-import logging
 import shutil
 from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.cli.main import main
 from pcc_ros.types import Boxes, Sample
 
 CAR = dict(center=(10.0, 2.0, 0.8), size=(4.2, 1.8, 1.5), yaw=0.3)
@@ -44,35 +43,6 @@ def small_frames(n: int = 3, seed: int = 0, points: int = 1500) -> list[Sample]:
                             points=pts, fields=("x", "y", "z", "intensity"), detections=box,
                             ground_truth=box, sequence="0000", index=i))
     return frames
-
-
-def run_cli(args: list[str], caplog) -> tuple[int, str]:
-    """``pcc ARGS`` in-process: its exit status and the log text it produced."""
-    caplog.clear()
-    with caplog.at_level(logging.INFO):
-        rc = main([str(a) for a in args])
-    return rc, "\n".join(f"{r.levelname} {r.name}: {r.getMessage()}" for r in caplog.records)
-
-
-def assert_named_failure(rc: int, text: str, *names: str, output: Path | None = None) -> None:
-    """A failure that is a named error: non-zero, ``ERROR pcc: <name>...``, no internal error or
-    traceback, and no output left behind."""
-    assert rc != 0, text
-    assert "ERROR pcc: " in text, text
-    assert "internal error" not in text and "Traceback" not in text, text
-    for name in names:
-        assert str(name) in text, f"{name!r} not named in: {text}"
-    if output is not None:
-        assert not Path(output).exists(), f"{output} left behind after a failure"
-        leftovers = [p.name for p in Path(output).parent.iterdir() if p.name.startswith(f".{Path(output).name}")]
-        assert not leftovers, f"temporaries left behind: {leftovers}"
-
-
-def assert_no_internal_error(rc: int, text: str) -> None:
-    """Success, or a named error — never an unexpected exception reaching the boundary."""
-    assert "internal error" not in text and "Traceback" not in text, text
-    if rc != 0:
-        assert "ERROR pcc: " in text, text
 
 
 def copy_tree(src: Path, dst: Path) -> Path:

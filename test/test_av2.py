@@ -9,6 +9,7 @@ import shutil
 import numpy as np
 import pytest
 from av2_fixture import read_table, write_log
+from conftest import assert_named_failure, run_cli
 from scipy.spatial.transform import Rotation
 
 from pcc_ros.cli.main import main
@@ -113,12 +114,12 @@ def test_convert_in_the_up_lidar_frame_through_the_calibration(av2_log, tmp_path
 
 
 def test_unknown_or_tilted_frame_is_refused_naming_the_sensors(av2_log, tmp_path, caplog):
-    assert main(["convert", "av2", str(av2_log.root), "--frame", "lidar_top", "--out", str(tmp_path / "x")]) == 1
-    assert "no sensor 'lidar_top'" in caplog.text and "up_lidar" in caplog.text
+    rc, text = run_cli(["convert", "av2", av2_log.root, "--frame", "lidar_top", "--out", tmp_path / "x"], caplog)
+    assert_named_failure(rc, text, "no sensor 'lidar_top'", "up_lidar")
     # the fixture's down_lidar is mounted upside down and a camera looks along its z: no yaw-only boxes there
     for sensor, degrees in (("down_lidar", "180"), ("ring_front_center", "90")):
-        assert main(["convert", "av2", str(av2_log.root), "--frame", sensor, "--out", str(tmp_path / "x")]) == 1
-        assert f"sensor '{sensor}' is tilted {degrees} deg" in caplog.text
+        rc, text = run_cli(["convert", "av2", av2_log.root, "--frame", sensor, "--out", tmp_path / "x"], caplog)
+        assert_named_failure(rc, text, f"sensor '{sensor}' is tilted {degrees} deg")
     assert not (tmp_path / "x").exists()
 
 
@@ -192,9 +193,8 @@ def test_damaged_logs_name_the_file(av2_log, tmp_path, caplog, damage, named):
         feather.write_feather(table.set_column(table.column_names.index(name), name, column), path)
     else:
         sweep.rename(sweep.with_name("sweep.feather"))
-    assert main(["convert", "av2", str(root), "--out", str(tmp_path / "bag")]) == 1
-    assert named in caplog.text and "Traceback" not in caplog.text
-    assert not (tmp_path / "bag").exists()
+    rc, text = run_cli(["convert", "av2", root, "--out", tmp_path / "bag"], caplog)
+    assert_named_failure(rc, text, named, output=tmp_path / "bag")
     with pytest.raises(DataError, match="feather"):
         list(Av2Log(root).frames())
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_named_failure, run_cli
 from test_kitti import OXTS, _copy_tracking
 from test_nuscenes import build_tables
 
@@ -128,7 +129,7 @@ def test_refuses_overwrite_and_force_replaces(shared_data, tmp_path, caplog):
     args = ["convert", "kitti-object", str(src), "--frames", "1", "--out", str(out)]
     assert main(args) == 0
     before = (out / "metadata.yaml").read_text()
-    assert main(args) == 1 and "exists; pass --force" in caplog.text
+    assert_named_failure(*run_cli(args, caplog), out, "exists; pass --force")
     assert (out / "metadata.yaml").read_text() == before
     assert main([*args[:4], "2", *args[5:], "--force"]) == 0
     assert len(list(read_frames(out))) == 2
@@ -139,8 +140,8 @@ def test_out_named_like_a_storage_file_is_refused_naming_the_folder_to_use(share
     """`--out x.mcap` made a folder x.mcap/ holding x.mcap.mcap (rosbags writes a bag folder), which
     `pcc info x.mcap` then could not read; now it is refused before any work, saying what to pass."""
     src = str(shared_data / "kitti_object")
-    assert main(["convert", "kitti-object", src, "--frames", "1", "--out", str(tmp_path / name)]) == 1
-    assert f"{name}: name the bag folder" in caplog.text and f"use {tmp_path / 'x'}" in caplog.text
+    rc, text = run_cli(["convert", "kitti-object", src, "--frames", "1", "--out", str(tmp_path / name)], caplog)
+    assert_named_failure(rc, text, f"{name}: name the bag folder", f"use {tmp_path / 'x'}")
     assert not list(tmp_path.iterdir())
 
 
@@ -192,8 +193,8 @@ def test_tracking_needs_sequence_choice(shared_data, tmp_path, caplog):
     src = tmp_path / "two"
     for seq in ("0000", "0001"):
         (src / "training/velodyne" / seq).mkdir(parents=True)
-    assert main(["convert", "kitti-tracking", str(src), "--out", str(tmp_path / "bag")]) == 1
-    assert "choose --sequence among 0000, 0001" in caplog.text
+    rc, text = run_cli(["convert", "kitti-tracking", str(src), "--out", str(tmp_path / "bag")], caplog)
+    assert_named_failure(rc, text, "choose --sequence among 0000, 0001", output=tmp_path / "bag")
 
 
 def test_synth_layout_uses_its_detections(shared_data, tmp_path):
@@ -210,9 +211,8 @@ def test_synth_layout_uses_its_detections(shared_data, tmp_path):
 
 @pytest.mark.slow
 def test_synthcars_output_converts(tmp_path):
-    synthetic = pytest.importorskip("pcc_ros.data.synthetic")
-    if not hasattr(synthetic, "generate"):
-        pytest.skip("SynthCars generator not available yet")
+    from pcc_ros.data import synthetic
+
     synthetic.generate(tmp_path / "synth", sequences=1, frames=2, seed=0)
     seq = KittiTracking(tmp_path / "synth").sequences()[0]
     assert main(["convert", "synth", str(tmp_path / "synth"), "--sequence", seq, "--out", str(tmp_path / "bag")]) == 0

@@ -9,6 +9,7 @@ import logging
 
 import numpy as np
 import pytest
+from conftest import assert_named_failure, run_cli
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.geometry.beams import SENSOR_PRESETS, SensorModel, sensor_preset
@@ -179,7 +180,7 @@ def test_pipeline_reads_the_ring_field_and_organized_rows_of_a_cloud():
     assert pipeline.beam_model.model.rings == 32
 
 
-def test_pcc_synth_sensor_is_stored_and_read_back(tmp_path):
+def test_pcc_synth_sensor_is_stored_and_read_back(tmp_path, caplog):
     """``pcc synth --sensor`` simulates that layout and says so in meta.json; the filter reads
     the same table from the scans it wrote."""
     import json
@@ -197,4 +198,5 @@ def test_pcc_synth_sensor_is_stored_and_read_back(tmp_path):
     assert found.rings >= 12  # the beams seen beyond MIN_RANGE (the steepest meet the ground nearer)
     assert np.abs(np.asarray(found.elevations_deg)[:, None] - table).min(axis=1).max() < 1e-3
     assert found.azimuth_resolution_deg == pytest.approx(0.2, rel=0.01)
-    assert main(["synth", "--out", str(tmp_path / "x"), "--frames", "1", "--sensor", "vlp16", "--low-res"]) == 1
+    rc, text = run_cli(["synth", "--out", tmp_path / "x", "--frames", "1", "--sensor", "vlp16", "--low-res"], caplog)
+    assert_named_failure(rc, text, "--low-res is a variant of the hdl64 layout", "drop it", output=tmp_path / "x")

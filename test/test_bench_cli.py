@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import pytest
-
-from pcc_ros.cli.main import main
+from conftest import assert_named_failure, run_cli
 
 
 @pytest.mark.parametrize(("backends", "said"), [
@@ -23,8 +22,9 @@ def test_bench_complete_refuses_named_backends_before_timing(backends, said, mon
         raise AssertionError("the benchmark started timing before --backends was checked")
 
     monkeypatch.setattr(complete, "_load_pointpncnet", timing_started)
-    assert main(["bench", "complete", "--backends", backends]) == 1
-    assert said in caplog.text and "mirror" in caplog.text.split(said, 1)[1]
+    rc, text = run_cli(["bench", "complete", "--backends", backends], caplog)
+    assert_named_failure(rc, text, said)
+    assert "mirror" in text.split(said, 1)[1]
 
 
 def test_backend_names_strip_check_and_allow_an_empty_none_where_asked():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 from av2_fixture import write_log
+from conftest import assert_named_failure, run_cli
 
 from pcc_ros.cli.main import main
 from pcc_ros.data.layouts import check_layout, check_tree
@@ -107,8 +108,6 @@ def test_a_folder_of_datasets_reports_each(shared_data):
 
 
 def test_eval_real_without_the_default_data_says_what_to_download(tmp_path, caplog):
-    rc = main(["eval", "--real", "--real-sources", str(tmp_path / "shared" / "data" / "kitti_tracking"),
-               "--backends", "input", "--json", str(tmp_path / "r.json")])
-    assert rc == 1 and "Traceback" not in caplog.text
-    assert "real dataset not found" in caplog.text and "cvlibs.net" in caplog.text and "check-data" in caplog.text
-    assert not (tmp_path / "r.json").exists()
+    rc, text = run_cli(["eval", "--real", "--real-sources", tmp_path / "shared" / "data" / "kitti_tracking",
+                        "--backends", "input", "--json", tmp_path / "r.json"], caplog)
+    assert_named_failure(rc, text, "real dataset not found", "cvlibs.net", "check-data", output=tmp_path / "r.json")

@@ -6,6 +6,7 @@ import json
 import logging
 
 import pytest
+from conftest import assert_named_failure, run_cli
 
 from pcc_ros.cli.main import main
 
@@ -40,9 +41,8 @@ def test_demo_with_a_kitti_folder_that_is_not_there_fails_naming_it(tmp_path, ca
     """`--kitti PATH` asked for by name: a missing PATH is an error before any work, not a demo
     that quietly leaves out its real-data half and exits 0."""
     out = tmp_path / "demo"
-    code = main(["demo", "--out", str(out), "--backend", "mirror", "--frames", "2", "--kitti", str(tmp_path / "nope")])
-    assert code == 1
-    assert "nope" in caplog.text and "no KITTI tracking data" in caplog.text
+    argv = ["demo", "--out", str(out), "--backend", "mirror", "--frames", "2", "--kitti", str(tmp_path / "nope")]
+    assert_named_failure(*run_cli(argv, caplog), tmp_path / "nope", "no KITTI tracking data")
     assert not (out / "demo.json").exists()
 
 
@@ -51,6 +51,6 @@ def test_demo_names_a_misspelt_backend_before_any_work(tmp_path, caplog, flag):
     """The backend and the baselines are checked first (was: after SynthCars was generated, and for
     a baseline after the backend's whole replay)."""
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--frames", "2", *flag]) == 1
-    assert "unknown completion backend 'mirorr'; available: " in caplog.text
+    rc, text = run_cli(["demo", "--out", str(out), "--frames", "2", *flag], caplog)
+    assert_named_failure(rc, text, "unknown completion backend 'mirorr'; available: ")
     assert not out.exists()

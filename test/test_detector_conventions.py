@@ -104,18 +104,19 @@ def test_numeric_class_ids_are_reported_once_then_counted(caplog):
 
 
 def test_class_ids_reported_stay_bounded_within_one_frame(caplog):
-    """A hostile detector with hundreds of distinct labels in one frame: at most 64 ids are
-    remembered and named, however many the first frame brings."""
-    from pcc_ros.runtime import node as node_module
+    """A hostile detector with hundreds of distinct labels in one frame: at most
+    ``REPORTED_CLASSES`` ids are remembered and named, however many the first frame brings."""
+    from pcc_ros.runtime.diagnostics import REPORTED_CLASSES, report_other_classes
 
-    _, core, _ = _graph_node()
+    log = logging.getLogger("pcc_ros.test.classes")
     labels = np.array([f"thing{i}" for i in range(500)], dtype=object)
+    seen: set[str] = set()
     with caplog.at_level(logging.INFO):
-        core._report_other_classes(labels, ("Car",))
-        core._report_other_classes(labels[::-1].copy(), ("Car",))
+        report_other_classes(log, "completion", labels, ("Car",), seen)
+        report_other_classes(log, "completion", labels[::-1].copy(), ("Car",), seen)
     named = [r.getMessage() for r in caplog.records if "not in classes" in r.getMessage()]
-    assert len(named) == 1 and named[0].count("'thing") == node_module._REPORTED_CLASSES
-    assert len(core._other_classes) == node_module._REPORTED_CLASSES
+    assert len(named) == 1 and named[0].count("'thing") == REPORTED_CLASSES
+    assert len(seen) == REPORTED_CLASSES
 
 
 def test_other_class_names_are_said_once_at_info(caplog):
@@ -170,7 +171,7 @@ def test_scans_without_any_detections_name_the_topic_and_qos(caplog):
         for k in (1, 2, 3):  # the detector publishes best-effort: nothing reaches the reliable reader
             pub_cloud.publish(_messages(k * 1_000_000_000)[0])
     lines = [r.getMessage() for r in caplog.records if "dropped unpaired" in r.getMessage()]
-    assert len(lines) == 1 and "'detections'" in lines[0] and "qos.detections.reliability" in lines[0], lines
+    assert len(lines) == 1 and "'/detections'" in lines[0] and "qos.detections.reliability" in lines[0], lines
     assert core.diagnostics_values()["last_unpaired_gap_ms"] == "-"
 
 

@@ -47,3 +47,8 @@ def test_nuscenes_check_writes_curve_and_png(nuscenes_root, tmp_path):
     assert "points-in-box" in result["methods"] and len(result["well_seen_cars"]) == 1
     assert set(result["by_score"]) == {"0.5", "0.7", "0.9"}
     assert out_png.stat().st_size > 20_000 and out_png.read_bytes()[:4] == b"\x89PNG"
+    # the shipped rule's overlap term reads the check's overlapping boxes (no NMS): the figure
+    # without it is reported beside, and it can only remove fewer
+    conf = result["configured"]
+    assert conf["non_vehicle_overlapping_another"] > 0
+    assert conf["non_vehicle_removed_without_overlap"] <= conf["non_vehicle_removed"]

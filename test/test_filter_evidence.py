@@ -12,6 +12,7 @@ from pcc_ros.pipeline.filter import (
     evidence,
     false_probability,
     filter_terms,
+    mismatch_scores,
     score_logit,
 )
 from pcc_ros.types import Boxes
@@ -126,7 +127,12 @@ def test_shipped_filter_rejects_the_empty_box_and_keeps_the_car():
         assert (false_probability(terms, config)[0] > config.reject_threshold) == false
 
 
-def test_defaults_are_the_shipped_calibration():
+def test_filter_config_defaults_equal_the_shipped_yaml():
+    """Two copies that must agree: FilterConfig's defaults (what ``pcc replay`` and the library
+    use) and config/detection_filter.yaml (what the node loads). This says nothing of the weights'
+    worth: that is measured against independent baselines on labelled real frames
+    (test_filter_calibration.py: the shipped threshold against points-in-box and the detector
+    score) and, for a fit, by calibrate-filter's leave-frames-out folds."""
     from pathlib import Path
 
     from pcc_ros.pipeline.config import read_parameters
@@ -363,31 +369,38 @@ def test_bad_input_is_a_clear_error():
 
 def test_mismatch_work_runs_only_when_its_weight_is_non_zero():
     """The shape-mismatch term costs a completion per box; with ``w_mismatch`` 0 (the shipped
-    presets) the pipeline neither completes for it nor computes it, with a non-zero weight it
-    does, through the configured ``filter_backend``."""
+    presets) the pipeline neither loads the ``filter_backend`` nor completes for it, with a non-zero
+    weight it loads that second backend (mirror beside the pipeline's input) and completes the
+    boxes with it: the mismatch is the mirror's, not the pipeline's own backend's."""
+    from pcc_ros.models.baselines import InputCompleter, MirrorCompleter
     from pcc_ros.pipeline.core import Pipeline, PipelineConfig
 
-    calls = []
-
-    class Counting:
-        uses_context = False
-
-        def complete(self, crops, context=None, sizes=None):
-            calls.append(len(crops))
-            return [np.asarray(c, dtype=np.float32) for c in crops]
-
     scan = cast([(CAR_LO, CAR_HI)])
-    for weight, expected_calls in ((0.0, 1), (1.5, 2)):
-        calls.clear()
-        config = PipelineConfig(backend="input", min_points=5,
-                                filter=FilterConfig(w_mismatch=weight, filter_backend="input"))
-        pipeline = Pipeline(config, completer=Counting())
-        if weight:
-            pipeline.filter_completer = Counting()  # the filter's own backend, counted
-        result = pipeline.process(scan, BOX)
-        assert len(calls) == expected_calls
-        assert np.isfinite(result.mismatch[0]) == bool(weight)
-        assert ("mismatch" in result.filter_terms and np.isfinite(result.filter_terms["mismatch"][0])) == bool(weight)
+
+    def pipeline(weight: float, filter_backend: str) -> Pipeline:
+        return Pipeline(PipelineConfig(backend="input", min_points=5,
+                                       filter=FilterConfig(w_mismatch=weight, filter_backend=filter_backend)))
+
+    off = pipeline(0.0, "mirror")
+    assert off.filter_completer is None  # nothing loaded for a term that does not count
+    result = off.process(scan, BOX)
+    assert not np.isfinite(result.mismatch[0]) and not np.isfinite(result.filter_terms.get("mismatch", [np.nan])[0])
+
+    on = pipeline(1.5, "mirror")
+    assert type(on.completer) is InputCompleter and type(on.filter_completer) is MirrorCompleter
+    seen = []
+    complete = on.filter_completer.complete
+    on.filter_completer.complete = lambda crops, *a, **k: seen.append((crops, complete(crops, *a, **k))) or seen[-1][1]
+    result = on.process(scan, BOX)
+    assert len(seen) == 1 and len(seen[0][0]) == 1  # one completion, of the one box
+    (crops, shapes), = seen
+    assert len(shapes[0]) == 2 * len(crops[0])  # the mirror's: the crop and its reflection
+    expected = mismatch_scores(crops, shapes, on.config.filter)
+    assert np.isfinite(result.mismatch[0]) and result.mismatch[0] == expected[0]
+    assert result.filter_terms["mismatch"][0] == expected[0]
+
+    own = pipeline(1.5, "")  # "": the pipeline's own completions (the input's), no second backend
+    assert own.filter_completer is None and np.isfinite(own.process(scan, BOX).mismatch[0])
 
 
 def _heights(rng: np.random.Generator, dtype, kinds: list[str], size) -> list[np.ndarray]:

@@ -49,3 +49,8 @@ def test_one_rule_across_sensors_cross_validates_by_sensor():
     assert result["cv_by_sensor"]["pooled"]["auc_false_above_true"] > 0.85
     assert result["ablation"]["free_space"]["auc_change"] > 0.05  # removing a real term costs
     assert set(result["cv_by_sequence"]["pooled"]["per_kind"]) == {"ghost", "confusion"}
+    # each term alone: free_space (+3 in the law) ranks false high, density (-2) low; the
+    # unmeasured (constant) columns are left out
+    alone = result["term_auc"]
+    assert set(alone) == {"density", "free_space"} and set(alone["free_space"]) == {"ghost", "confusion"}
+    assert alone["free_space"]["ghost"] > 0.75 and alone["density"]["confusion"] < 0.35

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fuzz_support import assert_named_failure, run_cli, small_frames
+from conftest import assert_named_failure, run_cli
+from fuzz_support import small_frames
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from safetensors.torch import load_file, save_file

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fuzz_support import assert_named_failure, run_cli
+from conftest import assert_named_failure, run_cli
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

@@ -134,7 +134,7 @@ def test_failed_extraction_leaves_no_cache(tmp_path):
     (DataError("a.txt:3: bad", hint="fix it"), "a.txt:3: bad — fix it"),
 ])
 def test_every_exception_is_one_named_line_and_debug_shows_the_traceback(monkeypatch, caplog, capsys, error, expected):
-    from fuzz_support import run_cli
+    from conftest import run_cli
 
     import pcc_ros.cli.info as info
 
@@ -150,7 +150,7 @@ def test_every_exception_is_one_named_line_and_debug_shows_the_traceback(monkeyp
 
 
 def test_ctrl_c_is_reported_with_status_130(monkeypatch, caplog):
-    from fuzz_support import run_cli
+    from conftest import run_cli
 
     import pcc_ros.cli.info as info
 

@@ -104,13 +104,13 @@ def test_overload_keeps_memory_bounded_counts_drops_and_recovers(shared_data):
     busy = threading.Event()
     process = core.process
 
-    def timed_process(cloud, dets):
+    def timed_process(cloud, dets, transforms=None):
         busy.set()
         try:
             # at least FRAME_FLOOR_S a frame, so 100 Hz overloads the node on any machine (these
             # 3-frame scans alone run near 100 Hz here since the filter's kernels are compiled)
             time.sleep(FRAME_FLOOR_S)
-            return process(cloud, dets)
+            return process(cloud, dets, transforms)
         finally:
             busy.clear()
 

@@ -1,12 +1,15 @@
-"""launch/perception.launch.py: its arguments become the two nodes with the right parameters.
+"""launch/perception.launch.py's own code, run against recording stand-ins: what it asks for.
 
-``launch`` and ``launch_ros`` are not published on PyPI (only a ROS 2 install has them), so
-this test runs the launch file's own code — ``generate_launch_description()`` and the
-``OpaqueFunction`` that builds the nodes — against minimal stand-ins that record what the
-file asks for (``DeclareLaunchArgument``, ``OpaqueFunction``, ``launch_ros.actions.Node``),
+This is not a launch: ``launch`` and ``launch_ros`` are not published on PyPI (no
+ros-jazzy-launch wheels; the PyPI project named ``launch`` is unrelated), so these tests run
+the launch file's own code — ``generate_launch_description()`` and the ``OpaqueFunction``
+that builds the nodes — against minimal stand-ins that record what the file asks for
+(``DeclareLaunchArgument``, ``OpaqueFunction``, ``launch_ros.actions.Node``),
 then checks the result against the package itself: the executables are console scripts in
 setup.py, the parameter files exist and every value passes the node core's parameter check.
-Where the real ``launch_ros`` is importable the file is also loaded by it.
+Nothing here starts a process; the nodes themselves run under real rclpy in test_ros_e2e.py
+and test_ros_tools.py. Where the real ``launch_ros`` is importable (a ROS 2 install) the file
+is also loaded by it; elsewhere that test skips saying so.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 LAUNCH_FILE = REPO / "launch" / "perception.launch.py"
 EXPECTED_ARGUMENTS = {
     "params_file", "namespace", "points", "detections", "outputs", "backend", "device", "score_mapping",
-    "use_sim_time", "rviz",
+    "use_sim_time", "rviz", "managed", "autostart",
 }
 
 
@@ -49,6 +52,7 @@ def _stand_ins(share: Path) -> dict[str, types.ModuleType]:
     modules["launch.actions"].DeclareLaunchArgument = type("DeclareLaunchArgument", (_Recorded,), {})
     modules["launch.actions"].OpaqueFunction = _OpaqueFunction
     modules["launch_ros.actions"].Node = type("Node", (_Recorded,), {})
+    modules["launch_ros.actions"].LifecycleNode = type("LifecycleNode", (_Recorded,), {})
 
     def get_package_share_directory(package):
         assert package == "pcc_ros"
@@ -59,7 +63,7 @@ def _stand_ins(share: Path) -> dict[str, types.ModuleType]:
 
 
 @pytest.fixture
-def launch(monkeypatch, tmp_path):
+def recorded_launch(monkeypatch, tmp_path):
     """``run(**arguments)`` -> the processes the launch file starts, as recorded keyword dicts."""
     share = REPO  # the source tree has the install's layout for config/ (share/pcc_ros/config)
     for name, module in _stand_ins(share).items():
@@ -77,7 +81,8 @@ def launch(monkeypatch, tmp_path):
         values = {name: kw["default_value"] for name, kw in declared.items()}
         values.update(arguments)
         context = types.SimpleNamespace(launch_configurations=values)
-        return [node.kwargs for function in opaque for node in function.execute(context)]
+        return [{**node.kwargs, "action": type(node).__name__}
+                for function in opaque for node in function.execute(context)]
 
     run.declared = declared
     return run
@@ -88,19 +93,20 @@ def _console_scripts() -> set[str]:
     return set(re.findall(r'"(\w+) = pcc_ros\.', text))
 
 
-def test_every_argument_is_declared_and_documented(launch):
-    assert set(launch.declared) == EXPECTED_ARGUMENTS
+def test_every_argument_the_file_declares_is_documented(recorded_launch):
+    assert set(recorded_launch.declared) == EXPECTED_ARGUMENTS
     doc = LAUNCH_FILE.read_text().split('"""')[1]
     nodes_doc = (REPO / "docs" / "nodes.md").read_text()
-    for name, kwargs in launch.declared.items():
+    for name, kwargs in recorded_launch.declared.items():
         assert kwargs["description"], name
         assert f"``{name}``" in doc, f"{name} missing from the launch file's docstring"
         assert f"`{name}`" in nodes_doc, f"{name} missing from docs/nodes.md"
 
 
-def test_defaults_start_both_nodes_with_the_shipped_parameter_files(launch):
-    processes = launch()
+def test_defaults_ask_for_both_nodes_with_the_shipped_parameter_files(recorded_launch):
+    processes = recorded_launch()
     assert [p["executable"] for p in processes] == ["completion_node", "detection_filter_node"]
+    assert {p.pop("action") for p in processes} == {"Node"}
     assert {p["executable"] for p in processes} <= _console_scripts()
     for process in processes:
         params_file, overrides = process["parameters"]
@@ -113,13 +119,13 @@ def test_defaults_start_both_nodes_with_the_shipped_parameter_files(launch):
         assert process["remappings"] == [("points", "points"), ("detections", "detections")]
 
 
-def test_arguments_reach_the_nodes(launch, tmp_path):
+def test_arguments_reach_the_recorded_node_actions(recorded_launch, tmp_path):
     params = tmp_path / "mine.yaml"
     params.write_text(
         "/**/completion_node:\n  ros__parameters:\n    min_points: 7\n"
         "/**/detection_filter_node:\n  ros__parameters:\n    match_threshold: 0.4\n"
     )
-    processes = launch(
+    processes = recorded_launch(
         params_file=str(params), namespace="/car1", points="/velodyne_points", detections="/detector/boxes",
         outputs="/perception/pcc", backend="mirror", device="cuda:0", score_mapping="sigmoid", use_sim_time="true",
     )
@@ -137,13 +143,30 @@ def test_arguments_reach_the_nodes(launch, tmp_path):
     assert read_parameters(params, "completion_node") == {"min_points": 7}
 
 
-def test_rviz_argument_adds_rviz_with_the_shipped_config(launch):
-    processes = launch(rviz="true")
+@pytest.mark.parametrize("autostart", ["true", "false"])
+def test_managed_argument_asks_for_the_lifecycle_nodes(recorded_launch, autostart):
+    """``managed:=true``: launch_ros' LifecycleNode with the managed entry points (console scripts
+    of setup.py), the same parameters and remappings, autostart as asked."""
+    plain = recorded_launch(points="/velodyne_points")
+    processes = recorded_launch(points="/velodyne_points", managed="true", autostart=autostart)
+    assert [p["action"] for p in processes] == ["LifecycleNode", "LifecycleNode"]
+    assert [p["executable"] for p in processes] == ["completion_node_managed", "detection_filter_node_managed"]
+    assert {p["executable"] for p in processes} <= _console_scripts()
+    for process, same in zip(processes, plain):
+        assert process.pop("autostart") is (autostart == "true")
+        assert {k: v for k, v in process.items() if k not in ("executable", "action")} == {
+            k: v for k, v in same.items() if k not in ("executable", "action")}
+    with pytest.raises(ValueError, match="managed"):
+        recorded_launch(managed="maybe")
+
+
+def test_rviz_argument_asks_for_rviz_with_the_shipped_config(recorded_launch):
+    processes = recorded_launch(rviz="true")
     rviz = processes[-1]
     assert rviz["executable"] == "rviz2" and rviz["arguments"][0] == "-d"
     assert Path(rviz["arguments"][1]).is_file()
     with pytest.raises(ValueError, match="use_sim_time"):
-        launch(use_sim_time="yes please")
+        recorded_launch(use_sim_time="yes please")
 
 
 def test_rviz_config_shows_the_node_outputs_with_their_fields():
@@ -166,7 +189,8 @@ def test_rviz_config_shows_the_node_outputs_with_their_fields():
     assert 'glob("config/*.rviz")' in setup  # installed to share/pcc_ros/config
 
 
-@pytest.mark.skipif(importlib.util.find_spec("launch_ros") is None, reason="launch_ros (a ROS 2 install) is absent")
+@pytest.mark.skipif(importlib.util.find_spec("launch_ros") is None,
+                    reason="launch_ros absent: only a ROS 2 install has it (no ros-jazzy-launch-ros wheel on PyPI)")
 def test_real_launch_loads_the_file():  # pragma: no cover - only on a ROS machine
     from launch.launch_description_sources import PythonLaunchDescriptionSource
 

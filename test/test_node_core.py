@@ -18,7 +18,14 @@ from pcc_ros.pipeline.config import check_value, parameter_table
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig, build_outputs
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, QoS, Transform
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
-from pcc_ros.runtime.node import OUTPUTS, NodeCore, node_parameters, output_names, unknown_parameters
+from pcc_ros.runtime.node import (
+    OUTPUTS,
+    NodeCore,
+    node_parameters,
+    output_names,
+    pipeline_stages,
+    unknown_parameters,
+)
 from pcc_ros.types import Boxes
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
@@ -153,11 +160,13 @@ def test_a_node_builds_only_what_it_publishes(graph, monkeypatch, mode, outputs)
     graph.set_transform("velodyne", "base_link", Transform((1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
     cloud, dets = _messages(1_000_000_000, frame="base_link")
     transform = graph.transforms.lookup("velodyne", "base_link", 1_000_000_000)
-    result, originals = Pipeline(PipelineConfig(backend="mirror")).process_messages(cloud, dets, transform)
+    names = output_names(mode) if outputs is None else outputs
+    # the stages the node runs for its outputs (a completion node judges nothing: its markers are grey)
+    pipeline = Pipeline(PipelineConfig(backend="mirror"), **pipeline_stages(names))
+    result, originals = pipeline.process_messages(cloud, dets, transform)
     expected = build_outputs(result, originals, detections_header=cloud.header)
     assert set(expected) == {*OUTPUTS["completion"], *OUTPUTS["filter"]}
 
-    names = output_names(mode) if outputs is None else outputs
     built: list[str] = []
     for name in ("transform_detections", "completed_cloud_array", "filter_texts"):
         original = getattr(core_module, name)
@@ -413,10 +422,10 @@ def test_output_frame_moves_every_output_through_the_transform(graph):
 
 def test_output_frame_without_tf_says_so_once_and_counts_skipped_frames(graph, caplog):
     runtime = LocalRuntime(graph, "filter_node")
-    runtime.has_tf = False  # what the rclpy host reports when tf2_ros is not installed
+    runtime.has_tf = False  # what the rclpy host reports with neither tf2_ros nor tf2_msgs installed
     with caplog.at_level(logging.ERROR, logger="pcc_ros.filter_node"):
         core = NodeCore(runtime, "filter_node", "filter", {"backend": "mirror", "output_frame": "map"}, threaded=False)
-    assert sum("needs tf2_ros" in r.message for r in caplog.records) == 1
+    assert sum("needs transforms" in r.message for r in caplog.records) == 1
     driver = LocalRuntime(graph, "driver")
     for k in (1, 2):
         cloud, dets = _messages(k * 1_000_000_000)
@@ -504,7 +513,7 @@ def test_detections_without_scans_are_counted_and_reported(graph, caplog):
     assert core.scans == 1 and core.detection_arrays == 21
     assert core.detections_without_scans == 15  # those more than 0.5 s after the last scan
     assert core.scans_stalled
-    assert sum("no scan on 'points'" in r.getMessage() for r in caplog.records) == 1  # warned once
+    assert sum("no scan on '/points'" in r.getMessage() for r in caplog.records) == 1  # warned once
     status = diags[-1].status[0]  # published at 3.0 s by the 1 Hz timer
     assert int(status.level) == 1 and "no scan" in status.message
     values = core.diagnostics_values()
@@ -532,7 +541,8 @@ def test_rclpy_node_declares_rules_refuses_unknown_keys_and_swaps_at_run_time():
             PipelineNode("filter_node", "filter", parameter_overrides=[Parameter("backendd", value="mirror")])
         with pytest.raises(ConfigError, match="'match_threshold'"):
             PipelineNode("filter_node", "filter", parameter_overrides=[Parameter("match_threshold", value=3.0)])
-        node = PipelineNode("filter_node", "filter", parameter_overrides=[Parameter("backend", value="mirror")])
+        node = PipelineNode("filter_node", "filter", parameter_overrides=[Parameter("backend", value="mirror"),
+                                                                         Parameter("rule", value="trapcc")])
         nodes.append(node)
         described = node.describe_parameters(["match_threshold", "min_points", "qos.points.depth"])
         assert described[0].floating_point_range[0].to_value == 1.0 and described[0].description
@@ -593,7 +603,7 @@ def test_a_threaded_node_collects_a_reloaded_backend_between_frames(graph):
     core = _node(LocalGraph(), "completion", threaded=True)
     started, release = threading.Event(), threading.Event()
 
-    def frame_on_the_old_backend(cloud, dets):
+    def frame_on_the_old_backend(cloud, dets, transforms=None):
         held = core.pipeline  # what process() holds during a frame
         started.set()
         release.wait(5)
@@ -665,3 +675,77 @@ def test_a_nodes_log_lines_keep_their_module_name_and_carry_the_node():
     assert [(r.name, r.pcc_node) for r in seen] == [("pcc_ros.pipeline.core", "pcc_ros.completion_node")]
     assert NodeNameFormatter().format(seen[0]) == "WARNING pcc_ros.completion_node: a pipeline line"
     assert seen[0].name == "pcc_ros.pipeline.core"  # formatting did not rename it
+
+
+def test_each_node_runs_only_the_stages_its_outputs_and_rule_need(graph):
+    """The filter node with a rule that gives the shape no weight (the shipped file: evidence rule,
+    w_mismatch 0) loads no completion backend and runs no network, though its file names the
+    trained one; the completion node runs no filter. A change to a rule that scores the shape
+    loads the backend then (and only then)."""
+    from pcc_ros.pipeline.config import load_parameters
+
+    values = load_parameters(with_filter=True)
+    assert values["rule"] == "evidence" and values["w_mismatch"] == 0.0 and values["backend"] == "pointpncnet"
+    filter_core = NodeCore(LocalRuntime(graph, "detection_filter_node"), "detection_filter_node", "filter", values,
+                           threaded=False)
+    completion_core = _node(graph, "completion")
+    results = {}
+    filter_core.on_result = lambda result, *_: results.setdefault("filter", result)
+    completion_core.on_result = lambda result, *_: results.setdefault("completion", result)
+    kept = _tap(graph, "/detections_filtered", DETS)
+    completed = _tap(graph, "/completed", CLOUD)
+    _send(LocalRuntime(graph, "driver"), *_messages(1_000_000_000))
+    assert len(kept) == 1 and len(completed) == 1
+
+    assert filter_core.pipeline.completer is None and not filter_core.pipeline.completes
+    judged = results["filter"]
+    assert "complete_ms" not in judged.timings_ms and judged.completions == [] and judged.crops == []
+    assert set(judged.status) <= {"kept", "rejected"} and np.isfinite(judged.filter_score).all()
+    assert judged.completed_source.tolist() == [] or (judged.completed_source == 0).all()  # nothing generated
+
+    assert not completion_core.pipeline.filters and completion_core.pipeline.completer is not None
+    made = results["completion"]
+    assert "filter_ms" not in made.timings_ms and set(made.status) == {"skipped"}  # not judged
+    assert len(made.completions) == 2 and np.isnan(made.filter_score).all()
+
+    # the same filter node asked to weigh the shape: the backend loads (mirror: cheap) and runs
+    assert filter_core.set_parameters({"w_mismatch": 0.5, "backend": "mirror"}).successful
+    assert filter_core.pipeline.completer is not None
+    results.clear()
+    _send(LocalRuntime(graph, "driver"), *_messages(2_000_000_000))
+    assert "complete_ms" in results["filter"].timings_ms and len(results["filter"].completions) == 2
+
+
+def test_qos_overrides_are_honoured_or_refused_under_rclpy():
+    """rclpy's ``qos_overrides.<topic>.<entity>.<policy>`` parameters set the entity's QoS (here the
+    scan subscription made reliable, as the graph reports it); one that names no topic, entity or
+    policy of the node, or a value rclpy does not know, stops the node with the name (it used to
+    be accepted and ignored)."""
+    rclpy = require_rclpy()
+    from rclpy.parameter import Parameter
+    from rclpy.qos import ReliabilityPolicy
+
+    from pcc_ros.nodes.ros_node import PipelineNode
+
+    rclpy.init()
+    nodes = []
+    try:
+        for name, value, match in (("qos_overrides./point.subscription.reliability", "reliable", "/point.subscription"),
+                                   ("qos_overrides./points.subscription.durability", "volatile", "durability"),
+                                   ("qos_overrides./points.subscription.reliability", "sometimes", "sometimes")):
+            with pytest.raises(ConfigError, match=match):
+                PipelineNode("completion_node", "completion",
+                             parameter_overrides=[Parameter("backend", value="mirror"), Parameter(name, value=value)])
+        node = PipelineNode("completion_node", "completion", parameter_overrides=[
+            Parameter("backend", value="mirror"),
+            Parameter("qos_overrides./points.subscription.reliability", value="reliable"),
+            Parameter("qos_overrides./completed.publisher.depth", value=3)])
+        nodes.append(node)
+        assert node.core.parameters["qos.points.reliability"] == "best_effort"  # the node's own default ...
+        (info,) = node.get_subscriptions_info_by_topic("/points")
+        assert info.qos_profile.reliability == ReliabilityPolicy.RELIABLE  # ... overridden
+        assert node.get_parameter("qos_overrides./completed.publisher.depth").value == 3
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()

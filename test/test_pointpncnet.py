@@ -242,6 +242,30 @@ def test_train_batch_uses_only_the_observed_views():
     assert (seg[:-1] <= seg[1:]).all()
 
 
+def test_symmetry_options_mirror_the_targets_flip_groups_and_score_asymmetry():
+    """mirror_targets joins each target view with its reflection (y -> -y); flip_prob reflects whole
+    groups; symmetry_weight adds the asymmetry of the global output to the loss."""
+    rng = np.random.default_rng(4)
+    one_side = [[np.abs(car_like(rng, n)) * np.array([1, 1, 1], np.float32) for n in (300, 200)] for _ in range(2)]
+    plain = make_train_batch(one_side, PRESETS["default"], TrainOptions(loss_points=4096, views=2, drop_prob=0.0), rng)
+    assert (plain.target[plain.target_mask][:, 1] >= 0).all()  # the seen flank only
+    mirrored = make_train_batch(one_side, PRESETS["default"],
+                                TrainOptions(loss_points=4096, views=2, drop_prob=0.0, mirror_targets=True), rng)
+    pts = mirrored.target[mirrored.target_mask].numpy()
+    assert (pts[:, 1] < -0.01).mean() == pytest.approx(0.5, abs=0.05)  # the far flank is a target too
+    assert mirrored.region_present.sum() > plain.region_present.sum()  # and so are its octants
+    flipped = make_train_batch(one_side, PRESETS["default"],
+                               TrainOptions(loss_points=4096, views=2, drop_prob=0.0, flip_prob=1.0), rng)
+    assert (flipped.target[flipped.target_mask][:, 1] <= 0).all()
+    assert (flipped.inputs.points.numpy()[:, 1] <= 0).all()
+    torch.manual_seed(0)
+    recipe = training_recipe("default", loss_points=128, local_loss_points=16, symmetry_weight=1.0)
+    net = recipe.build_completer("cpu").model.train()
+    _, stats = recipe.loss(net, plain)
+    assert stats["symmetry"] > 0 and stats["loss"] > stats["global"] + stats["local"]
+    assert "symmetry" not in training_recipe("default", loss_points=128).loss(net, plain)[1]
+
+
 def _scene_frames(n_frames: int = 3) -> list[Sample]:
     """One car per frame with a ground plane under it and clutter just outside its box: what a
     node crop (margin, lower ground cut) holds and a tight crop does not."""

@@ -31,8 +31,6 @@ from pcc_ros.pipeline.config import check_value, parameter_specs
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
-SHARED_DATA = REPO.parent / "shared" / "data"
-KITTI = SHARED_DATA / "kitti_tracking"
 
 
 def _code_lines() -> list[str]:
@@ -197,11 +195,12 @@ def test_node_without_rclpy_says_what_is_missing():
 
 
 @pytest.fixture
-def workdir(tmp_path, monkeypatch):
-    """A checkout-like folder whose ``../shared/data`` is the real sample data."""
-    if not KITTI.is_dir():
-        pytest.skip("../shared/data (the real KITTI sample) is not present")
-    (tmp_path / "shared").symlink_to(SHARED_DATA.parent, target_is_directory=True)
+def workdir(tmp_path, monkeypatch, shared_data):
+    """A checkout-like folder whose ``../shared/data`` is the real sample data (conftest's
+    ``shared_data``: a reported skip without it, a failure in CI)."""
+    kitti = shared_data / "kitti_tracking"
+    assert kitti.is_dir(), f"{kitti}: the real KITTI sample is missing from ../shared/data"
+    (tmp_path / "shared").symlink_to(shared_data.parent, target_is_directory=True)
     repo = tmp_path / "repo"
     repo.mkdir()
     monkeypatch.chdir(repo)

@@ -7,6 +7,7 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from conftest import assert_named_failure, run_cli
 
 from pcc_ros.data.track_aggregate import aggregate_clouds, collect_tracks, voxel_downsample
 from pcc_ros.geometry.canonical import from_canonical
@@ -110,15 +111,17 @@ def test_pcc_eval_real_on_kitti(shared_data, tmp_path, capsys):
     assert mirror["lateral_offset"] == pytest.approx(0.0, abs=1e-6)  # symmetric by construction
     assert inp["lateral_offset"] > 0.1
     assert mirror["points_max"] > inp["points_max"]
+    assert 0 < mirror["consistency"] < inp["consistency"] and mirror["consistency_pairs"] >= 30
+    assert mirror["far_completeness"] < inp["far_completeness"]
+    summary = {r["backend"]: r for r in result["summary"]}
+    assert summary["mirror"]["generated_gain_vs_mirror"] == 0.0 and summary["input"]["lateral_balance"] > 0.1
     assert out_png.stat().st_size > 10_000
 
 
 def test_pcc_eval_real_missing_source_is_a_clear_error(tmp_path, caplog):
-    from pcc_ros.cli.main import main
 
-    rc = main(["eval", "--real", "--real-sources", str(tmp_path / "nope"), "--backends", "input"])
-    assert rc == 1
-    assert "nope" in caplog.text and "not found" in caplog.text
+    rc, text = run_cli(["eval", "--real", "--real-sources", tmp_path / "nope", "--backends", "input"], caplog)
+    assert_named_failure(rc, text, tmp_path / "nope", "not found")
 
 
 def test_context_backends_get_the_other_cars_of_the_same_frame():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import assert_named_failure, run_cli
 from rosbags.highlevel import AnyReader
 
 from pcc_ros.cli.main import main
@@ -91,12 +92,12 @@ def test_cli_replay_refuses_an_out_named_like_a_storage_file_before_loading_the_
         raise AssertionError("the pipeline was built before --out was checked")
 
     monkeypatch.setattr(replay_module, "Pipeline", loaded)
-    assert main(["replay", str(kitti_bag), "--out", str(tmp_path / "y.mcap")]) == 1
-    assert "y.mcap: name the bag folder" in caplog.text and not (tmp_path / "y.mcap").exists()
+    rc, text = run_cli(["replay", str(kitti_bag), "--out", str(tmp_path / "y.mcap")], caplog)
+    assert_named_failure(rc, text, "y.mcap: name the bag folder", output=tmp_path / "y.mcap")
     (tmp_path / "y").mkdir()
     (tmp_path / "y" / "metadata.yaml").write_text("")
-    assert main(["replay", str(kitti_bag), "--out", str(tmp_path / "y")]) == 1
-    assert "exists; pass --force" in caplog.text
+    rc, text = run_cli(["replay", str(kitti_bag), "--out", str(tmp_path / "y")], caplog)
+    assert_named_failure(rc, text, tmp_path / "y", "exists; pass --force")
 
 
 def test_a_warning_during_the_progress_bar_is_its_own_line(kitti_bag, tmp_path):

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from conftest import REPO, require_rclpy
 
-from pcc_ros.msg.typestore import VISION_MSGS, type_hash
+from pcc_ros.msg.typestore import BUILT_PACKAGES, type_hash
 
 WHEELS_STAMP = Path(sys.prefix) / ".pcc_ros-ros-wheels"
 VISION_STAMP = Path(sys.prefix) / ".pcc_ros-vision_msgs"
@@ -23,19 +23,24 @@ from_wheels = pytest.mark.skipif(
 
 
 @pytest.mark.ros
-def test_built_vision_msgs_have_upstream_rihs01_hashes():
-    """The generated type descriptions hash exactly as upstream vision_msgs 4.1 (wire-compatible)."""
+@pytest.mark.parametrize("package", sorted(BUILT_PACKAGES))
+def test_built_message_packages_have_upstream_rihs01_hashes(package):
+    """The generated type descriptions hash exactly as upstream vision_msgs 4.1 and tf2_msgs
+    (wire-compatible: the nodes' /tf readers match any Jazzy tf broadcaster)."""
     require_rclpy()
     from ament_index_python.packages import get_package_share_directory
 
-    share = Path(get_package_share_directory("vision_msgs"))
-    for name in VISION_MSGS:
+    share = Path(get_package_share_directory(package))
+    for name in BUILT_PACKAGES[package]:
         description = json.loads((share / "msg" / f"{name.rsplit('/', 1)[1]}.json").read_text())
         hashes = {h["type_name"]: h["hash_string"] for h in description["type_hashes"]}
         assert hashes[name] == type_hash(name), name
-    # Upstream's published value, independent of this project's type store.
+    # Upstream's published values, independent of this project's type store.
     assert type_hash("vision_msgs/msg/Detection3DArray") == (
         "RIHS01_793f5eab9595ac1c0da07873cc859db42eae51f0ee76056db8562515d830e018"
+    )
+    assert type_hash("tf2_msgs/msg/TFMessage") == (
+        "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
     )
 
 
@@ -83,7 +88,7 @@ def test_the_venv_runs_rclpy_without_sourcing_anything():
     dropped = ("AMENT_PREFIX_PATH", "RMW_IMPLEMENTATION", "LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")
     env = {k: v for k, v in os.environ.items() if k not in dropped}
     code = (
-        "import os, sys, rclpy, vision_msgs.msg; "
+        "import os, sys, rclpy, vision_msgs.msg, tf2_msgs.msg; "
         "from ament_index_python.packages import get_package_share_directory as share; "
         "print(os.environ['RMW_IMPLEMENTATION'], sys.prefix in os.environ['AMENT_PREFIX_PATH'].split(os.pathsep), "
         "share('vision_msgs').startswith(sys.prefix))"
@@ -118,3 +123,24 @@ def test_setup_defers_to_a_sourced_ros_install_and_refuses_another_distro():
     humble = subprocess.run(script, cwd=REPO, env={**os.environ, "ROS_DISTRO": "humble"},
                             capture_output=True, text=True, timeout=120)
     assert humble.returncode == 1 and "ROS_DISTRO=humble" in humble.stderr and "Jazzy" in humble.stderr
+
+
+@pytest.mark.ros
+def test_every_topic_type_hashes_as_the_installed_ros_packages_describe_it():
+    """Every message type on the nodes' topics: the project's type store (which writes the bags
+    and decodes the wire) gives the RIHS01 hash that rosidl computed for the installed ROS 2
+    package (its share/<package>/msg/<Type>.json), not a value pasted into the test."""
+    require_rclpy()
+    from ament_index_python.packages import get_package_share_directory
+
+    from pcc_ros.msg.typestore import type_hash
+    from pcc_ros.runtime.node import INPUTS, OUTPUTS
+
+    types = {*INPUTS.values(), *(t for mode in OUTPUTS.values() for t in mode.values()),
+             "diagnostic_msgs/msg/DiagnosticArray"}
+    assert len(types) >= 4
+    for name in sorted(types):
+        package, _, message = name.split("/")
+        description = json.loads((Path(get_package_share_directory(package)) / "msg" / f"{message}.json").read_text())
+        hashes = {h["type_name"]: h["hash_string"] for h in description["type_hashes"]}
+        assert hashes[name] == type_hash(name), name

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from conftest import assert_named_failure, run_cli
 
 from pcc_ros.cli.main import main
 from pcc_ros.errors import ConfigError
@@ -23,7 +24,7 @@ def _argv(tiny_cache, out, *extra):
 
 
 @pytest.mark.slow
-def test_train_validate_checkpoint_and_resume(tiny_cache, tmp_path, capsys):
+def test_train_validate_checkpoint_and_resume(tiny_cache, tmp_path, capsys, caplog):
     out = tmp_path / "run"
     assert main(_argv(tiny_cache, out, "--iterations", "4")) == 0
     summary = json.loads(capsys.readouterr().out)
@@ -42,6 +43,14 @@ def test_train_validate_checkpoint_and_resume(tiny_cache, tmp_path, capsys):
     assert config["training"]["selected_by"] == "val_cd_l1"
     assert config["training"]["recipe"]["drop_prob"] == 0.2
     assert config["metrics"]["val_cd_l1"] == best["val_cd_l1"]
+    # Not only what the run wrote about itself: the weights in the file, scored again on the same
+    # validation instances, give the recorded figure (the file holds the weights that scored it).
+    from pcc_ros.data.instances import InstanceCache
+    from pcc_ros.train import validate, validation_instances
+
+    instances, _ = validation_instances(InstanceCache.load(tiny_cache), "test", 6, 0)
+    rescored = validate(load_completer("pointpncnet", out / "pointpncnet.safetensors", device="cpu"), instances, 0)
+    assert rescored["val_cd_l1"] == pytest.approx(best["val_cd_l1"], rel=1e-4)
     assert config["training"]["machine"]["cpu_count"] >= 1 and config["training"]["real_data"]["share"] == 0.0
     last = load_config(out / "pointpncnet_last.json")
     assert last["training"]["steps"] == 4 and last["metrics"]["val_cd_l1"] == vals[-1]["val_cd_l1"]
@@ -49,7 +58,8 @@ def test_train_validate_checkpoint_and_resume(tiny_cache, tmp_path, capsys):
     assert completer.complete([np.random.default_rng(0).normal(size=(50, 3)) * 0.2])[0].shape == (2048, 3)
 
     # a second run into the same directory must be explicit
-    assert main(_argv(tiny_cache, out, "--iterations", "4")) == 1
+    assert_named_failure(*run_cli(_argv(tiny_cache, out, "--iterations", "4"), caplog), out,
+                         "already holds a training run", "pass --resume")
     # resuming continues the step counter and the log
     assert main(_argv(tiny_cache, out, "--iterations", "8", "--resume")) == 0
     assert json.loads(capsys.readouterr().out)["step"] == 8
@@ -58,11 +68,13 @@ def test_train_validate_checkpoint_and_resume(tiny_cache, tmp_path, capsys):
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records if "val_cd_l1" in r] == [2, 4, 6, 8]
     # resuming with other settings is refused
-    assert main(_argv(tiny_cache, out, "--iterations", "10", "--resume", "--lr", "1e-2")) == 1
-    assert main(_argv(tiny_cache, out, "--iterations", "10", "--resume", "--config", "paper")) == 1
+    assert_named_failure(*run_cli(_argv(tiny_cache, out, "--iterations", "10", "--resume", "--lr", "1e-2"), caplog),
+                         "--resume with different settings than the saved run", "'lr': (0.0005, 0.01)")
+    assert_named_failure(*run_cli(_argv(tiny_cache, out, "--iterations", "10", "--resume", "--config", "paper"),
+                                  caplog), out / "resume.safetensors", "made with another model config")
 
 
-def test_real_scans_are_mixed_at_the_requested_share(tiny_cache, tmp_path):
+def test_real_scans_are_mixed_at_the_requested_share(tiny_cache, tmp_path, caplog):
     out = tmp_path / "mixed"
     argv = [*_argv(tiny_cache, out, "--iterations", "2"), "--val-instances", "0", "--real-data", str(tiny_cache),
             "--real-share", "0.25"]
@@ -70,11 +82,13 @@ def test_real_scans_are_mixed_at_the_requested_share(tiny_cache, tmp_path):
     mixing = load_config(out / "pointpncnet.json")["training"]["real_data"]
     assert mixing["share_requested"] == 0.25 and mixing["repeats"] >= 1 and mixing["share"] > 0  # tiny: 1 repeat
     assert mixing["groups"] >= 1 and str(tiny_cache) in mixing["caches"]
-    assert main([*argv[:-1], "1.5"]) == 1  # a share outside (0, 1) is a clear error, not a traceback
+    # A share outside (0, 1) is refused for itself (into a fresh --out: not "already holds a run").
+    fresh = [str(tmp_path / "fresh") if a == str(out) else a for a in argv[:-1]]
+    assert_named_failure(*run_cli([*fresh, "1.5"], caplog), "--real-share must be in (0, 1), got 1.5")
 
 
 @pytest.mark.slow
-def test_init_from_a_checkpoint_is_recorded_and_validated_at_step_0(tiny_cache, tmp_path):
+def test_init_from_a_checkpoint_is_recorded_and_validated_at_step_0(tiny_cache, tmp_path, caplog):
     first = tmp_path / "first"
     assert main(_argv(tiny_cache, first, "--iterations", "2")) == 0
     out = tmp_path / "finetune"
@@ -88,7 +102,8 @@ def test_init_from_a_checkpoint_is_recorded_and_validated_at_step_0(tiny_cache, 
     assert config["training"]["selected_step"] == 2  # step 0 (the initial weights) is never "selected"
     bad = tmp_path / "bad"
     argv = _argv(tiny_cache, bad, "--iterations", "2", "--init", str(tmp_path / "missing.safetensors"))
-    assert main(argv) == 1
+    assert_named_failure(*run_cli(argv, caplog), tmp_path / "missing.safetensors", "checkpoint weights not found",
+                         output=bad)
 
 
 def test_no_inpainting_ablation_is_recorded(tiny_cache, tmp_path):

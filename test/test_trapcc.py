@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import assert_named_failure, run_cli
 
 from pcc_ros.data.gt_pools import (
     PoolConfig,
@@ -423,7 +424,7 @@ def test_gt_free_metrics_on_known_clouds():
 
 
 @pytest.mark.slow
-def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys):
+def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys, caplog):
     import json
 
     from pcc_ros.cli.main import main
@@ -445,7 +446,8 @@ def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["step"] == 5
     loaded = load_completer("trapcc", out / "trapcc.safetensors", device="cpu")
     assert loaded.complete([np.random.default_rng(0).normal(size=(40, 3)) * 0.2])[0].shape == (256, 3)
-    assert main([*argv, "--iterations", "2", "--no-inpainting"]) == 1  # PointPnCNet's ablation: refused
+    assert_named_failure(*run_cli([*argv, "--iterations", "2", "--no-inpainting"], caplog),
+                         "--no-inpainting is PointPnCNet's ablation", "--option scene_graph=none")
     # the generic --real-data / --real-share flags reach TraPCC's own mixing (and its pools)
     mixed = tmp_path / "mixed"
     argv_mixed = [a if a != str(out) else str(mixed) for a in argv]
@@ -482,11 +484,21 @@ def test_fast_evenness_matches_the_plain_definition():
 
 
 def test_half_precision_with_neighbours():
+    """half_precision on the CPU runs the network in bfloat16 (its weights are bfloat16) with the
+    scene-graph neighbours: the same weights give float32 outputs that differ from the full
+    precision run's by bfloat16 rounding only."""
     torch.manual_seed(0)
     net = create("trapcc", device="cpu", half_precision=True, **TINY)
+    torch.manual_seed(0)
+    full = create("trapcc", device="cpu", **TINY)
+    assert {p.dtype for p in net.model.parameters()} == {torch.bfloat16}
+    assert {p.dtype for p in full.model.parameters()} == {torch.float32}
     clouds, contexts = _frame_contexts()
-    out = net.complete(clouds, contexts)
+    out, ref = net.complete(clouds, contexts), full.complete(clouds, contexts)
     assert all(o.dtype == np.float32 and np.isfinite(o).all() for o in out)
+    diff = np.concatenate([np.abs(o - r).ravel() for o, r in zip(out, ref)])
+    scale = np.concatenate([np.abs(r).ravel() for r in ref]).mean()
+    assert diff.max() > 0 and np.median(diff) < 0.05 * scale, (np.median(diff), scale)  # rounded, not another net
 
 
 def test_shipped_weights_record_their_training_data():

@@ -79,6 +79,8 @@ def run_sensors(args: argparse.Namespace) -> int:
     for t, a in result["ablation"].items():
         print(f"without {t}: held-out AUC {a['auc_without']:.3f} ({a['auc_change']:+.3f} for the term), removed at "
               f"<= 2 % lost {a['removed_at_0.02_without']:.1%} ({a['removed_at_0.02_change']:+.1%})")
+    for t, kinds in result["term_auc"].items():
+        print(f"{t} alone, AUC false above true: " + ", ".join(f"{k} {v:.3f}" for k, v in kinds.items()))
     m = result.get("mismatch")
     if m is None:
         print("mismatch: not among the fitted terms (weight 0)")

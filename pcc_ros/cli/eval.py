@@ -49,6 +49,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "output, plus a NAME/generated row)",
     )
     parser.add_argument(
+        "--real-table", type=Path, default=None, metavar="PATH",
+        help="--real: write the summary (completeness, generated-only completeness, unseen half, lateral balance, "
+        "consistency per backend) as a Markdown table, the README's real-data table",
+    )
+    parser.add_argument(
+        "--real-track-memory", choices=("ids", "nearest"), default=None,
+        help="--real: track-level completion as completion_node's track_memory does it: each car completed from "
+        "its crops of the earlier frames too (causal), associated by the labels' track ids or by the nearest box",
+    )
+    parser.add_argument(
         "--plot-backends", default=None,
         help="--real: comma-separated completion columns of the PNG (default: every evaluated backend)",
     )
@@ -109,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
             matched_labels=args.real_matched_labels, keep_input=not args.real_generated_only,
             decode_density=args.decode_density, device=args.device,
             batch_size=args.batch_size, json=args.json, plot=args.plot, plot_backends=args.plot_backends,
-            examples=args.examples,
+            examples=args.examples, table=args.real_table, track_memory=args.real_track_memory,
         ))
     if args.data is None:
         raise ConfigError("--data is required (an instance cache), unless --real")

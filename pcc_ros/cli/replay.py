@@ -50,7 +50,9 @@ def run(args: argparse.Namespace) -> int:
     print_table(f"replay timing per frame ({summary.frames} frames, backend {parameters['backend']})",
                 summary.latency_table())
     print(
-        f"\nkept {summary.kept}, rejected {summary.rejected} detections; skipped frames {summary.skipped_frames}; "
+        ("\n" + (f"kept {summary.kept}, rejected {summary.rejected} detections" if args.filter
+                 else "detections not judged (the completion node runs no filter; --filter judges them)"))
+        + f"; skipped frames {summary.skipped_frames}; "
         f"undecodable messages {summary.undecodable} (left out of the output); "
         f"unpaired clouds {summary.unpaired_clouds}, unpaired detection arrays {summary.unpaired_detections}"
     )

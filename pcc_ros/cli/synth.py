@@ -7,6 +7,7 @@ import json
 import logging
 from pathlib import Path
 
+from pcc_ros.assignments import parse_assignments
 from pcc_ros.data.synthetic.detector import DetectorParams
 from pcc_ros.errors import ConfigError
 from pcc_ros.geometry.beams import SENSOR_PRESETS
@@ -29,21 +30,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="add the real-scan artefacts the domain-gap comparison found missing: per-laser range / elevation "
         "residuals and mixed pixels at depth edges (Sensor.realistic)",
     )
+    parser.add_argument(
+        "--vehicle-mix", default=None, metavar="FAMILY=WEIGHT,...",
+        help="vehicle families and their weights instead of the street mix, e.g. van=1,suv=1,pickup=1,truck=1 "
+        "(families: sedan, hatchback, wagon (estate), suv, van, pickup, truck; weights need not sum to 1)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset made with other parameters")
     parser.add_argument("--preview", action="store_true", help="also write preview.png (BEV of one frame)")
     parser.add_argument("--preview-sequence", type=int, default=0, help="sequence shown by --preview")
     parser.add_argument("--preview-frame", type=int, default=None, help="frame shown by --preview (default: middle)")
 
 
+def parse_vehicle_mix(text: str) -> tuple[tuple[str, float], ...]:
+    """``van=1,suv=2,estate=1`` -> ``(("van", 1.0), ("suv", 2.0), ("wagon", 1.0))`` for
+    ``SceneParams.vehicle_mix``; an unknown family or a bad weight is a :class:`ConfigError`."""
+    from pcc_ros.data.synthetic.vehicles import family_weights
+
+    items = parse_assignments([t.strip() for t in text.split(",") if t.strip()], "--vehicle-mix", "FAMILY=WEIGHT")
+    try:
+        return tuple(family_weights([(name, float(weight)) for name, weight in items.items()]).items())
+    except ValueError as exc:
+        raise ConfigError(f"--vehicle-mix: {exc}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from pcc_ros.data.synthetic.generator import generate
     from pcc_ros.data.synthetic.lidar import REALISTIC_ARTEFACTS, Sensor
+    from pcc_ros.data.synthetic.scene import SceneParams
 
     extra = REALISTIC_ARTEFACTS if args.realistic_sensor else {}
     if args.low_res and args.sensor != "hdl64":
         raise ConfigError("--low-res is a variant of the hdl64 layout; drop it or --sensor")
     sensor = Sensor.low_res(**extra) if args.low_res else Sensor(layout=args.sensor, **extra)
-    meta = generate(args.out, args.sequences, args.frames, args.seed, sensor=sensor,
+    scene = SceneParams(vehicle_mix=parse_vehicle_mix(args.vehicle_mix)) if args.vehicle_mix else None
+    meta = generate(args.out, args.sequences, args.frames, args.seed, sensor=sensor, scene=scene,
                     shape_points=args.shape_points, test_fraction=args.test_fraction, overwrite=args.overwrite)
     n_tracks = sum(len(s["tracks"]) for s in meta["sequences"].values())
     log.info("wrote %d sequences x %d frames, %d tracks to %s (train %s, test %s)", args.sequences, args.frames,

@@ -63,3 +63,11 @@ def from_canonical_batch(points: np.ndarray, center: np.ndarray, yaw: np.ndarray
     rot = rotation_z(np.asarray(yaw, dtype=np.float64))
     p = np.asarray(points, dtype=np.float64)[..., :3] * np.asarray(length, dtype=np.float64)[:, None, None]
     return np.einsum("bnk,bjk->bnj", p, rot) + np.asarray(center, dtype=np.float64)[:, None, :]
+
+
+def mirror_y(points: np.ndarray) -> np.ndarray:
+    """The reflection of canonical ``points`` across the box's x-z plane (``y -> -y``), the left /
+    right symmetry of a car; extra columns after x, y, z (flags, intensity) are kept as they are."""
+    out = np.array(points, copy=True)
+    out[..., 1] = -out[..., 1]
+    return out

@@ -21,8 +21,14 @@ Per instance, all in metres (sensor frame; canonical values times the box length
 * ``bottom_gap`` / ``top_gap``: box bottom to the completion's 1st z-percentile and the
   completion's 99th z-percentile to the box top (positive = floating above the bottom /
   short of the top).
-* ``lateral_offset``: |mean y| of the completion (the front view's left / right balance; a
-  completion that fills only the observed side is lopsided).
+* ``lateral_offset``: |mean y| of the completion, the *lateral balance* (the front view's left /
+  right balance; a completion that fills only the observed side is lopsided; 0 for a symmetric car).
+* ``far_completeness``: ``completeness`` restricted to the reference's points in the box half away
+  from the sensor (the unseen half, :func:`~pcc_ros.metrics.balance.far_completeness`; NaN when the
+  reference has none there).
+* ``consistency``: symmetric Chamfer-L1 between the completions of the same track in consecutive
+  frames, box frame (:func:`~pcc_ros.metrics.balance.track_consistency`); filled in by the
+  evaluation, which knows the tracks (NaN for a track's first frame).
 * ``points``: output points, to see whether a 5-point and a 4000-point input get the same.
 """
 
@@ -34,6 +40,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pcc_ros.metrics.balance import far_completeness, lateral_offset
 from pcc_ros.metrics.chamfer import nearest_distances
 from pcc_ros.metrics.gtfree import side_view_cd
 
@@ -52,7 +59,9 @@ REAL_METRICS: dict[str, tuple[str, bool | None, str]] = {
     "inside_box": ("-", False, f"share of completion points inside the box (+{BOX_TOLERANCE_M} m)"),
     "bottom_gap": ("m", True, "box bottom -> 1st percentile of completion z (positive: floating)"),
     "top_gap": ("m", True, "99th percentile of completion z -> box top (positive: short of the top)"),
-    "lateral_offset": ("m", True, "|mean y| of the completion (front-view left/right balance)"),
+    "lateral_offset": ("m", True, "lateral balance: |mean y| of the completion (front-view left/right balance)"),
+    "far_completeness": ("m", True, "aggregated GT's points in the box half away from the sensor -> completion"),
+    "consistency": ("m", True, "symmetric Chamfer-L1 between a track's completions in consecutive frames"),
     "points": ("count", None, "output points per instance"),
 }
 
@@ -67,9 +76,13 @@ def input_spacing(partial: np.ndarray) -> float:
 
 
 def real_instance_metrics(
-    completion: np.ndarray, partial: np.ndarray, reference: np.ndarray, box_size: np.ndarray
+    completion: np.ndarray, partial: np.ndarray, reference: np.ndarray, box_size: np.ndarray,
+    origin: np.ndarray | None = None,
 ) -> dict[str, float]:
-    """Every real-data metric of one instance (canonical clouds in, metres out)."""
+    """Every per-instance real-data metric of one instance (canonical clouds in, metres out).
+
+    ``origin``: the sensor in the canonical frame, which says which half is unseen
+    (``far_completeness`` is NaN without it). ``consistency`` spans two frames: NaN here."""
     size = np.asarray(box_size, dtype=np.float64)
     length = float(size[0])
     comp = np.asarray(completion, dtype=np.float64).reshape(-1, 3)
@@ -80,7 +93,10 @@ def real_instance_metrics(
         out.update({k: nan for k in REAL_METRICS if k != "points"})
         out["inside_box"] = 0.0
         return out
+    out["consistency"] = float("nan")
     out["completeness"] = float(nearest_distances(reference, comp).mean()) * length
+    out["far_completeness"] = (far_completeness(reference, comp, origin) * length if origin is not None
+                               else float("nan"))
     out["fidelity"] = float(nearest_distances(part, comp).mean()) * length
     copies = nearest_distances(comp, part) <= COPY_TOLERANCE
     generated = comp[~copies]
@@ -95,7 +111,7 @@ def real_instance_metrics(
     lo, hi = np.percentile(comp[:, 2], [1.0, 99.0])
     out["bottom_gap"] = float(lo + half[2]) * length
     out["top_gap"] = float(half[2] - hi) * length
-    out["lateral_offset"] = abs(float(comp[:, 1].mean())) * length
+    out["lateral_offset"] = lateral_offset(comp) * length
     return out
 
 
@@ -111,6 +127,7 @@ def mean_rows(rows: Sequence[dict[str, float]], mask: np.ndarray) -> dict[str, A
         pts = np.array([r["points"] for r in chosen])
         out["points_min"] = float(pts.min())
         out["points_max"] = float(pts.max())
+        out["consistency_pairs"] = int(np.isfinite([r.get("consistency", np.nan) for r in chosen]).sum())
     return out
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pcc_ros.metrics.balance import far_completeness, lateral_offset
 from pcc_ros.metrics.chamfer import PairDistances, chamfer_from_distances
 from pcc_ros.metrics.emd import DEFAULT_MAX_POINTS, emd
 from pcc_ros.metrics.fscore import fscore_from_distances, side_length
@@ -43,6 +44,9 @@ METRICS: dict[str, MetricInfo] = {
     "l_i": MetricInfo(2, True, "TraPCC L-I: MCD input -> prediction (= fidelity)"),
     "l_s": MetricInfo(2, True, "TraPCC L-S: side-view squared Chamfer to the retrieved Whole-GT"),
     "mean_cd": MetricInfo(2, True, "TraPCC meanCD: mean of L-G, L-I and L-S"),
+    "far_coverage": MetricInfo(1, True, "coverage of the reference's half away from the sensor (the unseen half)"),
+    "lateral_offset": MetricInfo(1, True, "lateral balance: |mean y| of the prediction (0: left/right balanced)"),
+    "consistency": MetricInfo(1, True, "symmetric Chamfer-L1 between a track's predictions in consecutive frames"),
 }
 
 
@@ -71,6 +75,7 @@ def instance_metrics(
     emd_points: int = DEFAULT_MAX_POINTS,
     seed: int = 0,
     pseudo_gt: dict[str, np.ndarray | None] | None = None,
+    origin: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Every metric of one canonical (prediction, reference) pair, canonical units.
 
@@ -79,6 +84,9 @@ def instance_metrics(
     ``side_cd`` is always computed against ``reference``. ``length`` (metres) converts the
     fixed F-score threshold to canonical units. ``pseudo_gt`` (TraPCC's retrieved Whole- /
     Partial-GT, see :func:`~pcc_ros.metrics.gtfree.gt_free_metrics`) adds L-G, L-I, L-S and meanCD.
+    ``origin`` (the sensor in the canonical frame) adds ``far_coverage``, the coverage of the
+    reference's half away from the sensor (:mod:`pcc_ros.metrics.balance`); ``lateral_offset``
+    is always computed; ``consistency`` spans two frames and is added by the evaluation.
     """
     if length <= 0 or not np.isfinite(length):
         raise ValueError(f"box length must be positive, got {length}")
@@ -91,6 +99,9 @@ def instance_metrics(
     if partial is not None:
         out["fidelity"] = fidelity(partial, pred)
     out["side_cd"] = side_view_cd(pred, reference)
+    out["lateral_offset"] = lateral_offset(pred)
+    if origin is not None:
+        out["far_coverage"] = far_completeness(reference, pred, origin)
     if pseudo_gt is not None and partial is not None:
         out.update(gt_free_metrics(pred, partial, pseudo_gt))
     return out

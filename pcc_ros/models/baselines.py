@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pcc_ros.errors import ConfigError
+from pcc_ros.geometry.canonical import mirror_y
 from pcc_ros.models.base import Completer, SceneContext, cloud_seed
 from pcc_ros.models.registry import register
 
@@ -50,8 +51,7 @@ class MirrorCompleter(Completer):
         super().__init__(device=device)
 
     def _complete(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
-        flip = np.array([1.0, -1.0, 1.0], dtype=np.float32)
-        return [np.concatenate([cloud, cloud * flip]) for cloud in clouds]
+        return [np.concatenate([cloud, mirror_y(cloud)]) for cloud in clouds]
 
 
 def densify_cloud(

@@ -38,6 +38,7 @@ import torch
 from torch import nn
 
 from pcc_ros.errors import ConfigError
+from pcc_ros.geometry.canonical import mirror_y
 from pcc_ros.models.base import (
     CacheRecipe,
     CacheTrainOptions,
@@ -186,6 +187,18 @@ class TrainOptions(CacheTrainOptions):
     #: crops' targets (the car's own returns), so the network learns to leave the frame out.
     target_margin: float | None = None
     target_ground_margin: float = 0.1
+    #: the left / right symmetry of a car, which the partial targets alone never teach: the
+    #: observations of a track are all seen from one flank, so the prediction -> target term pulls
+    #: every generated point to the seen side (``docs/pointpncnet.md``, "far side").
+    #: ``mirror_targets``: each pseudo-ground-truth view is joined by its reflection across the
+    #: box's x-z plane (the mirror prior as a target, on the global and the octant losses);
+    mirror_targets: bool = False
+    #: ``flip_prob``: each training group (input and targets) is reflected with this probability, so
+    #: the right-hand traffic's seen flank (+y in 72 % of SynthCars observations) is no prior;
+    flip_prob: float = 0.0
+    #: ``symmetry_weight``: weight of the symmetric Chamfer-L1 between the global output and its own
+    #: reflection (0: off).
+    symmetry_weight: float = 0.0
 
 
 def target_flags(points: np.ndarray, size: np.ndarray, margin: float, ground_margin: float) -> np.ndarray:
@@ -260,10 +273,15 @@ def make_train_batch(
     cap = int(options.input_points or cfg["max_input_points"])
     inputs, input_regions, targets = [], [], []
     for views in groups:  # loop over instances of a batch (tens); all per-point work is vectorised
+        if options.flip_prob > 0 and rng.random() < options.flip_prob:
+            views = [mirror_y(v) for v in views]
         k = int(rng.integers(len(views)))
         others = [v for i, v in enumerate(views) if i != k]
         order = rng.permutation(len(others))[: max(0, options.views - 1)]
-        targets.append([view_targets(views[k]), *(view_targets(others[i]) for i in order)])
+        chosen = [view_targets(views[k]), *(view_targets(others[i]) for i in order)]
+        if options.mirror_targets:
+            chosen = [np.concatenate([x, mirror_y(x)]) for x in chosen]
+        targets.append(chosen)
         cloud = views[k][:, :3]
         if len(cloud) > cap:
             cloud = cloud[rng.choice(len(cloud), cap, replace=False)]
@@ -299,14 +317,16 @@ def make_train_batch(
 
 
 def inpainting_loss(
-    net: nn.Module, batch: TrainBatch, beta: float, local_weight: float = 1.0
+    net: nn.Module, batch: TrainBatch, beta: float, local_weight: float = 1.0, symmetry_weight: float = 0.0
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Inpainting-global + inpainting-local losses with multi-view consistency.
 
     Global: ``L_wcd(X_j, Y_g)`` for every view ``j`` of the track. Local: the sum over
     octants ``i`` present in view ``j`` of ``L_wcd(X_j^i, Y_l^i)``. Both are averaged over
     views and instances (the paper sums over views; the average keeps the scale independent
-    of how many views a track happens to have).
+    of how many views a track happens to have). ``symmetry_weight`` adds that weight times the
+    symmetric Chamfer-L1 between ``Y_g`` and its reflection across the box's x-z plane: a car is
+    left / right symmetric, and nothing else in the loss asks for the side the sensor did not see.
     """
     inp = batch.inputs
     y_global, y_local, _ = net(inp.points, inp.segment, inp.regions, inp.batch_size)
@@ -318,7 +338,15 @@ def inpainting_loss(
     per_view = (per_region * batch.region_present).sum(-1)
     local_loss = masked_mean(per_view, batch.view_mask)
     loss = global_loss + local_weight * local_loss
-    stats = {"loss": float(loss.detach()), "global": float(global_loss.detach()), "local": float(local_loss.detach())}
+    stats = {"loss": 0.0, "global": float(global_loss.detach()), "local": float(local_loss.detach())}
+    if symmetry_weight > 0:
+        flip = torch.tensor([1.0, -1.0, 1.0], dtype=y_global.dtype, device=y_global.device)
+        reflected = y_global * flip
+        symmetry = weighted_chamfer(reflected, torch.ones(reflected.shape[:-1], dtype=torch.bool,
+                                                          device=reflected.device), y_global, 0.5).mean()
+        loss = loss + symmetry_weight * symmetry
+        stats["symmetry"] = float(symmetry.detach())
+    stats["loss"] = float(loss.detach())
     return loss, stats
 
 
@@ -434,7 +462,7 @@ class PointPnCNetRecipe(CacheRecipe):
                 yield make_train_batch(chosen, cfg, self.options, rng)
 
     def loss(self, net: nn.Module, batch: TrainBatch) -> tuple[torch.Tensor, dict[str, float]]:
-        return inpainting_loss(net, batch, self.options.beta, self.options.local_weight)
+        return inpainting_loss(net, batch, self.options.beta, self.options.local_weight, self.options.symmetry_weight)
 
 
 @PointPnCNet.trains_with

@@ -83,6 +83,14 @@ def get_backend(name: str) -> type[Completer]:
     return cls
 
 
+def check_backend_name(name: str) -> None:
+    """:class:`ConfigError` (as :func:`get_backend` says it) when no backend is called ``name``,
+    without importing a backend module: a pipeline that loads no backend (a filter node whose
+    rule gives the shape no weight) still refuses a misspelt ``backend``, without importing torch."""
+    if name not in _REGISTERED and name not in BACKENDS:
+        get_backend(name)
+
+
 def backend_names(spec: str, option: str = "--backends", empty_ok: bool = False) -> list[str]:
     """The backends a comma-separated option names (``"input, mirror"``), checked before any work:
     an unknown name is :func:`get_backend`'s one-line :class:`ConfigError` naming the available

@@ -119,9 +119,13 @@ def _buffer(data) -> np.ndarray:
             raise MessageError(f"PointCloud2 data buffer is unusable ({exc})") from None
     if isinstance(data, (list, tuple)):
         try:
-            return np.asarray(data, dtype=np.uint8)
-        except (OverflowError, ValueError, TypeError) as exc:
+            values = np.asarray(data)
+        except (ValueError, TypeError) as exc:
             raise MessageError(f"PointCloud2 data is not a byte sequence ({exc})") from None
+        # checked here, not by the uint8 conversion: numpy 1.x wraps 300 to 44 (numpy 2 raises)
+        if values.size and (values.dtype.kind not in "iub" or values.min() < 0 or values.max() > 255):
+            raise MessageError(f"PointCloud2 data is not a byte sequence (values {values.dtype} outside 0..255)")
+        return values.astype(np.uint8).reshape(-1)
     raise MessageError(f"PointCloud2 data has unsupported type {type(data).__name__}")
 
 

@@ -123,6 +123,16 @@ class TransformBuffer:
         for series in self._dynamic.values():
             series.forget_before(stamp_ns)
 
+    def clear_dynamic(self) -> None:
+        """Forget every ``/tf`` sample, keep ``/tf_static``: what tf2 does when the clock jumps back
+        (a looped bag or a reset simulator sends the same stamps with other poses; static
+        transforms are not sent again, their publishers latch them once)."""
+        self._dynamic.clear()
+
+    def newest_stamp(self) -> int:
+        """The newest ``/tf`` sample's stamp (ns), 0 when there is none."""
+        return max((series.stamps[-1] for series in self._dynamic.values() if series.stamps), default=0)
+
     def static_edge(self, child: str) -> tuple[str, Transform] | None:
         """The static edge ``parent <- child`` (``/tf_static``) as ``(parent, transform)``, or None."""
         return self._static.get(frame_name(child))

@@ -76,6 +76,19 @@ Detection3D[] detections
 }
 
 
+#: tf2_msgs 0.36 (Jazzy) TFMessage: what ``/tf`` and ``/tf_static`` carry. rosbags' Jazzy store has it;
+#: the ROS 2 wheels do not, so ``scripts/setup_ros.sh`` builds it into the venv from this text
+#: (its RIHS01 hash then equals upstream's, the store's own).
+TF2_MSGS: dict[str, str] = {
+    "tf2_msgs/msg/TFMessage": """
+geometry_msgs/TransformStamped[] transforms
+""",
+}
+
+#: The message packages ``scripts/setup_ros.sh`` builds into a venv of ROS 2 wheels: package -> definitions.
+BUILT_PACKAGES: dict[str, dict[str, str]] = {"vision_msgs": VISION_MSGS, "tf2_msgs": TF2_MSGS}
+
+
 @lru_cache(maxsize=1)
 def get_typestore() -> Typestore:
     """The ROS 2 Jazzy rosbags type store with vision_msgs 4.x registered (built once)."""

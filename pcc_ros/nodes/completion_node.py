@@ -20,5 +20,10 @@ def main(args: list[str] | None = None) -> int:
     return node_main(NODE_NAME, MODE, args)
 
 
+def main_managed(args: list[str] | None = None) -> int:
+    """``ros2 run pcc_ros completion_node_managed``: the same node as a managed (lifecycle) node."""
+    return node_main(NODE_NAME, MODE, args, managed=True)
+
+
 if __name__ == "__main__":
     sys.exit(main())

@@ -34,7 +34,7 @@ MESSAGE_PACKAGES = ("sensor_msgs", "vision_msgs", "visualization_msgs", "diagnos
 
 def usage(node_name: str, mode: str) -> str:
     lines = [
-        f"usage: ros2 run pcc_ros {node_name} [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]",
+        f"usage: ros2 run pcc_ros {node_name}[_managed] [--ros-args --params-file FILE -p NAME:=VALUE -r FROM:=TO ...]",
         "",
         f"  {topics(mode)}",
         "",
@@ -59,8 +59,10 @@ def missing_ros_message(node_name: str, exc: ImportError) -> str:
     )
 
 
-def node_main(node_name: str, mode: str, args: list[str] | None = None) -> int:
-    """``main()`` of a node: ``-h``/``--help`` without ROS, a clear error when rclpy is missing."""
+def node_main(node_name: str, mode: str, args: list[str] | None = None, managed: bool = False) -> int:
+    """``main()`` of a node: ``-h``/``--help`` without ROS, a clear error when rclpy is missing.
+    ``managed``: the lifecycle node (:mod:`pcc_ros.nodes.lifecycle`), which serves once configured
+    and activated."""
     argv = list(sys.argv[1:] if args is None else args)
     own = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
     if "-h" in own or "--help" in own:
@@ -69,8 +71,12 @@ def node_main(node_name: str, mode: str, args: list[str] | None = None) -> int:
     try:
         for package in MESSAGE_PACKAGES:  # imported later by the node: check them before starting
             importlib.import_module(f"{package}.msg")
-        from pcc_ros.nodes.ros_node import run  # rclpy only from here on
+        from pcc_ros.nodes.ros_node import PipelineNode, run  # rclpy only from here on
+
+        node_class = PipelineNode
+        if managed:
+            from pcc_ros.nodes.lifecycle import ManagedPipelineNode as node_class
     except ImportError as exc:
         print(missing_ros_message(node_name, exc), file=sys.stderr)
         return 1
-    return run(node_name, mode, args)
+    return run(node_name, mode, args, node_class)

@@ -5,6 +5,7 @@ whose type rclpy can import is published as recorded — the bag's CDR bytes go 
 are, nothing is decoded — with the QoS a recorder of the original graph would offer
 (``/points`` best-effort keep-last 5 like a driver, ``/tf_static`` transient-local, the
 rest reliable keep-last 10); messages keep their recorded spacing divided by ``--rate``.
+``--clock`` also publishes ``/clock`` at each message's bag time (``use_sim_time`` nodes).
 ``--wait-subscribers N`` holds the start until every published topic (or those in
 ``--wait-topics``) has N matched readers, and ``--delay`` a little longer (a writer matches
 before its readers do), so no frame is published into the void.
@@ -28,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", type=Path, help="rosbag2 (MCAP or sqlite3)")
     parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1.0)")
     parser.add_argument("--loop", action="store_true", help="play again from the start at the end")
+    parser.add_argument("--clock", action="store_true",
+                        help="also publish /clock at the bag's time (nodes with use_sim_time follow it; with --loop "
+                             "it jumps back at each new loop, as ros2 bag play --clock --loop)")
     parser.add_argument("--topics", nargs="+", help="only these topics (default: all)")
     parser.add_argument("--wait-subscribers", type=int, default=0, metavar="N",
                         help="before playing, wait until every topic in --wait-topics has N matched readers")
@@ -74,6 +78,10 @@ def run(args: argparse.Namespace) -> int:
             time.sleep(max(0.0, args.delay))
             wanted = [c for c in connections if c.topic in publishers]
             counts.update(dict.fromkeys(publishers, 0))
+            clock = None
+            if args.clock:
+                clock_class = rclpy_classes("rosgraph_msgs/msg/Clock")
+                clock = node.create_publisher(clock_class, "/clock", 10)
             while True:
                 start_wall, start_bag = None, None
                 for connection, time_ns, raw in iter_messages(reader, args.bag, wanted):
@@ -89,6 +97,10 @@ def run(args: argparse.Namespace) -> int:
                     delay = start_wall + (time_ns - start_bag) / 1e9 / args.rate - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
+                    if clock is not None:  # the bag's time first, then its message (use_sim_time nodes)
+                        tick = clock_class()
+                        tick.clock.sec, tick.clock.nanosec = divmod(int(time_ns), 1_000_000_000)
+                        clock.publish(tick)
                     publishers[connection.topic].publish(bytes(raw))  # the recorded CDR, as is
                     counts[connection.topic] += 1
                 if not args.loop:

@@ -8,6 +8,7 @@ its siblings are the only ones that import rclpy.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib
 import itertools
@@ -23,18 +24,20 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
+from rclpy.clock import JumpThreshold
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.time import Time
+from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
 from rclpy.utilities import remove_ros_args
 
 from pcc_ros.errors import ConfigError, PccError
+from pcc_ros.nodes.tf_listener import transform_source
 from pcc_ros.pipeline.config import ParameterSpec, parameter_table, read_parameters
 from pcc_ros.runtime.base import QoS, Transform
-from pcc_ros.runtime.node import NodeCore, node_at_work, unknown_parameters
+from pcc_ros.runtime.node import DIAGNOSTICS_TOPIC, INPUTS, NodeCore, node_at_work, unknown_parameters
 
 _TYPES = {
     "bool": ParameterType.PARAMETER_BOOL,
@@ -57,6 +60,53 @@ def rclpy_classes(name: str) -> type:
     return getattr(importlib.import_module(f"{package}.msg"), type_name)
 
 
+#: rclpy's QoS overriding on every publisher and subscription of the nodes: the parameters
+#: ``qos_overrides.<topic>.<publisher|subscription>.<history|depth|reliability>`` (read-only) set
+#: the entity's policy over the node's own ``qos.*`` parameters.
+QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
+#: The values each overridable policy accepts (rclpy's policy names, lower case).
+QOS_OVERRIDE_VALUES = {
+    "history": ("keep_last", "keep_all", "system_default"),
+    "reliability": ("reliable", "best_effort", "system_default", "best_available"),
+}
+
+
+@contextlib.contextmanager
+def qos_override_errors():
+    """rclpy's errors about a ``qos_overrides.*`` value as a :class:`ConfigError` naming it."""
+    try:
+        yield
+    except (InvalidQosOverridesError, RuntimeError, InvalidParameterTypeException) as exc:
+        raise ConfigError(f"qos_overrides: {exc}") from None
+
+
+def check_qos_overrides(node: Node, core: NodeCore) -> None:
+    """Refuse a ``qos_overrides.*`` parameter that names no topic of this node, or a policy or
+    value rclpy does not override (rclpy would ignore the first silently: a typo must stop the
+    node, as an unknown parameter does)."""
+    topics = {node.resolve_topic_name(core.topics[name]): "subscription" for name in INPUTS}
+    topics.update({node.resolve_topic_name(core.topics[name]): "publisher" for name in core.outputs})
+    topics[node.resolve_topic_name(DIAGNOSTICS_TOPIC)] = "publisher"
+    policies = ("history", "depth", "reliability")
+    known = {f"qos_overrides.{topic}.{kind}.{policy}" for topic, kind in topics.items() for policy in policies}
+    problems = []
+    for name, parameter in node._parameter_overrides.items():
+        if not name.startswith("qos_overrides."):
+            continue
+        if name not in known:
+            problems.append(f"{name} (no such topic / entity / policy of this node; known: "
+                            f"qos_overrides.<{' | '.join(sorted(topics))}>.<publisher|subscription>.<"
+                            f"{' | '.join(policies)}>)")
+            continue
+        policy, value = name.rsplit(".", 1)[1], parameter.value
+        if policy == "depth" and not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+            problems.append(f"{name}: depth must be a non-negative integer, not {value!r}")
+        elif policy in QOS_OVERRIDE_VALUES and str(value).lower() not in QOS_OVERRIDE_VALUES[policy]:
+            problems.append(f"{name}: {value!r} is not one of {', '.join(QOS_OVERRIDE_VALUES[policy])}")
+    if problems:
+        raise ConfigError("bad qos_overrides parameter(s): " + "; ".join(problems))
+
+
 def qos_profile(qos: QoS) -> QoSProfile:
     """The rclpy profile of a seam :class:`QoS`."""
     return QoSProfile(
@@ -74,25 +124,23 @@ class RclpyRuntime:
 
     def __init__(self, node: Node) -> None:
         self.node = node
-        self._tf_buffer = None
         self._tf_missing_logged = False
-        try:
-            from tf2_ros import Buffer, TransformListener
-        except ImportError:  # the ROS 2 Jazzy PyPI wheels do not ship tf2_ros
-            return
-        self._tf_buffer = Buffer()
-        self._tf_listener = TransformListener(self._tf_buffer, node)
+        self.tf = transform_source(node, self)  # tf2_ros, else the package's /tf listener
 
     @property
     def has_tf(self) -> bool:
-        """True where tf2_ros is installed (a ROS 2 install; not the PyPI wheels)."""
-        return self._tf_buffer is not None
+        """True where transforms can be looked up (tf2_ros, or tf2_msgs for the package's listener)."""
+        return self.tf is not None
 
     def create_publisher(self, topic, msgtype, qos):
-        return self.node.create_publisher(rclpy_classes(msgtype), topic, qos_profile(qos))
+        with qos_override_errors():
+            return self.node.create_publisher(rclpy_classes(msgtype), topic, qos_profile(qos),
+                                              qos_overriding_options=QOS_OVERRIDES)
 
     def create_subscription(self, topic, msgtype, callback, qos):
-        return self.node.create_subscription(rclpy_classes(msgtype), topic, callback, qos_profile(qos))
+        with qos_override_errors():
+            return self.node.create_subscription(rclpy_classes(msgtype), topic, callback, qos_profile(qos),
+                                                 qos_overriding_options=QOS_OVERRIDES)
 
     def create_timer(self, period_s, callback):
         return self.node.create_timer(period_s, callback)
@@ -103,26 +151,34 @@ class RclpyRuntime:
     def get_logger(self):
         return self.node.get_logger()
 
+    def count_publishers(self, topic: str) -> int:
+        return self.node.count_publishers(topic)
+
+    def resolve_topic(self, topic: str) -> str:
+        return self.node.resolve_topic_name(topic)
+
+    def on_clock_jump(self, callback) -> None:
+        """rcl's jump handler: called from the ``/clock`` callback that moved the clock back."""
+        threshold = JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1_000_000),
+                                  on_clock_change=True)
+        self._jump_handler = self.node.get_clock().create_jump_callback(threshold, post_callback=lambda _: callback())
+
+    def reset_transforms(self) -> None:
+        if self.tf is not None:
+            self.tf.clear()
+
     def lookup_transform(self, target: str, source: str, stamp_ns: int) -> Transform | None:
-        if self._tf_buffer is None:
+        if self.tf is None:
             if not self._tf_missing_logged:  # said once; the node core counts every skipped frame
                 self._tf_missing_logged = True
                 self.node.get_logger().warning(
-                    f"tf2_ros is not installed (the ROS 2 Jazzy wheels do not ship it): no transform "
-                    f"'{source}' -> '{target}'; frames that need one (detections in another frame than the "
-                    "scan, or an output_frame) are skipped and counted (diagnostics: frames_without_transform). "
-                    "Publish detections in the scan frame, or run on a ROS 2 Jazzy install."
+                    f"neither tf2_ros nor tf2_msgs is installed: no transform '{source}' -> '{target}'; frames "
+                    "that need one (detections in another frame than the scan, or an output_frame) are skipped "
+                    "and counted (diagnostics: frames_without_transform). Run `make setup` (builds tf2_msgs "
+                    "into the venv) or use a ROS 2 Jazzy install."
                 )
             return None
-        try:
-            tf = self._tf_buffer.lookup_transform(
-                target, source, Time(nanoseconds=stamp_ns), timeout=Duration(seconds=0.05)
-            )
-        except Exception as exc:  # tf2 raises several unrelated exception types
-            self.node.get_logger().warning(f"tf2: {exc}")
-            return None
-        t, q = tf.transform.translation, tf.transform.rotation
-        return Transform((t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
+        return self.tf.lookup(target, source, stamp_ns)
 
 
 class RclpyLogHandler(logging.Handler):
@@ -213,6 +269,29 @@ def descriptor(spec: ParameterSpec) -> ParameterDescriptor:
     return out
 
 
+def declare_parameters(node: Node) -> list[str]:
+    """Declare every node parameter with its descriptor; returns the reasons of the values rclpy
+    refused (wrong type, out of range: that parameter keeps its default), empty when none."""
+    errors = []
+    for spec in parameter_table():
+        default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
+        try:
+            node.declare_parameter(spec.name, default, descriptor(spec))
+        except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
+            errors.append(f"parameter '{spec.name}': {exc}")
+            node.declare_parameter(spec.name, default, descriptor(spec), ignore_override=True)
+    return errors
+
+
+def checked_values(node: Node) -> dict:
+    """The node's parameter values; an unknown name among the given ones is a :class:`ConfigError`
+    (rclpy ignores a parameter-file key nobody declares: a typo must stop the node instead)."""
+    unknown = unknown_parameters(node._parameter_overrides)
+    if unknown:
+        raise ConfigError(f"unknown node parameter(s): {unknown} (see docs/nodes.md for the list)")
+    return {spec.name: node.get_parameter(spec.name).value for spec in parameter_table()}
+
+
 class PipelineNode(Node):
     """Completion (``mode="completion"``) or detection filtering (``mode="filter"``)."""
 
@@ -228,19 +307,13 @@ class PipelineNode(Node):
             raise
 
     def _start(self, node_name: str, mode: str) -> None:
-        """Declare and check the parameters, then build the node core."""
-        for spec in parameter_table():
-            default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
-            try:
-                self.declare_parameter(spec.name, default, descriptor(spec))
-            except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
-                raise ConfigError(f"parameter '{spec.name}': {exc}") from None
-        # rclpy ignores a parameter-file key nobody declares: a typo must stop the node instead.
-        unknown = unknown_parameters(self._parameter_overrides)
-        if unknown:
-            raise ConfigError(f"unknown node parameter(s): {unknown} (see docs/nodes.md for the list)")
-        values = {spec.name: self.get_parameter(spec.name).value for spec in parameter_table()}
-        self.core = NodeCore(RclpyRuntime(self), node_name, mode, values)
+        """Declare and check the parameters, then build the node core and serve."""
+        errors = declare_parameters(self)
+        if errors:
+            raise ConfigError(errors[0])
+        self.core = NodeCore(RclpyRuntime(self), node_name, mode, checked_values(self), connect=False)
+        check_qos_overrides(self, self.core)
+        self.core.connect()
         self.add_on_set_parameters_callback(self._on_set_parameters)  # after declaring: run-time changes only
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
@@ -267,8 +340,9 @@ def startup_error(exc: BaseException, argv: list[str]) -> str:
     return re.sub(r",? at /\S+", "", str(exc)).strip() + " — check the --ros-args"
 
 
-def run(node_name: str, mode: str, args: list[str] | None = None) -> int:
-    """``main()`` of both nodes: init, spin, clean shutdown on Ctrl-C / external shutdown."""
+def run(node_name: str, mode: str, args: list[str] | None = None, node_class: type = PipelineNode) -> int:
+    """``main()`` of both nodes: init, spin, clean shutdown on Ctrl-C / external shutdown.
+    ``node_class``: :class:`PipelineNode`, or the managed (lifecycle) host."""
     try:
         # rcl's own parser first: rclpy.init on a bad --ros-args line or parameter file also logs
         # "[rcl]: Failed to parse global arguments" before raising, a second, vaguer line above ours
@@ -279,7 +353,7 @@ def run(node_name: str, mode: str, args: list[str] | None = None) -> int:
         return 1
     node = None
     try:
-        node = PipelineNode(node_name, mode)
+        node = node_class(node_name, mode)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

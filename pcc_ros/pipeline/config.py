@@ -34,6 +34,7 @@ from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.msg.detections import DetectionLimits
 from pcc_ros.paths import resource_dir
 from pcc_ros.pipeline.beam_model import AUTO
+from pcc_ros.pipeline.evidence_profile import PROFILE_TERM_DOCS
 from pcc_ros.pipeline.filter import RULES, SCORE_MAPPINGS, SENSOR_PRESETS, FilterConfig
 from pcc_ros.types import class_mask
 
@@ -67,6 +68,11 @@ class PipelineConfig:
     max_box_range: float = 1000.0
     max_box_tilt: float = 0.35
     max_crop_work: int = 100_000
+    #: track-level completion (pipeline/track_memory.py): complete each car from its crops of the last
+    #: track_max_age seconds, same Detection3D.id or, without ids, the nearest box within track_gate metres
+    track_memory: bool = False
+    track_max_age: float = 1.0
+    track_gate: float = 2.0
     filter: FilterConfig = field(default_factory=FilterConfig)
 
     def __post_init__(self) -> None:
@@ -138,6 +144,7 @@ NODE_DEFAULTS: dict[str, Any] = {
     "qos.outputs.reliability": "reliable",
     "qos.outputs.depth": 10,
     "scan_timeout": 1.0,
+    "tf_timeout": 0.5,
 }
 #: Parameters every ROS node has, or rclpy adds itself; never reported as unknown.
 ROS_OWN_PARAMETERS = ("use_sim_time", "start_type_description_service")
@@ -306,6 +313,10 @@ DESCRIPTIONS = {
     "max_box_tilt": "radians of roll / pitch a box may have (dropped, yaw kept); more tilted boxes are skipped",
     "max_crop_work": "per-frame bound on (point, box) pairs, about the points under all box footprints; "
     "lowest-score boxes beyond it are skipped and counted",
+    "track_memory": "complete each car from its accumulated crops of the last track_max_age seconds (same "
+    "Detection3D.id, or the nearest box within track_gate metres when ids are empty); off: each frame alone",
+    "track_max_age": "track_memory: seconds a car's past crops are kept (an id unseen this long is freed)",
+    "track_gate": "track_memory without ids: metres a box centre may move between frames and stay the same car",
     "rule": "filter rule: evidence (calibrated scan evidence, docs/filter.md) | trapcc (shape mismatch + score gate)",
     "w_bias": "evidence rule: logistic bias (pcc calibrate-filter)",
     "w_density": "evidence rule: weight of log((returns in box + 1) / (returns a car would give + 1))",
@@ -314,6 +325,7 @@ DESCRIPTIONS = {
     "w_score": "evidence rule: weight of the detector score as a logit (after score_mapping)",
     "w_mismatch": "evidence rule: weight of the shape-mismatch score (0 unless calibrated with a car-constrained "
     "backend)",
+    **{f"w_{t}": f"evidence rule: weight of {text}" for t, text in PROFILE_TERM_DOCS.items()},
     "mismatch_mean": "evidence rule: the value a missing shape-mismatch term takes (a detection not completed: past "
                      "max_instances, under min_points): its mean over the calibration detections, the term "
                      "marginalised to first order (pcc calibrate-filter)",
@@ -339,6 +351,8 @@ DESCRIPTIONS = {
     "qos.outputs.reliability": "every output publisher: reliable or best_effort",
     "qos.outputs.depth": "every output publisher: keep-last history depth",
     "scan_timeout": "seconds without a scan while detections arrive before /diagnostics warns (scans lost?)",
+    "tf_timeout": "seconds a frame waits for a transform it needs (tf lagging); then it is dropped and counted "
+                  "(0: dropped at once)",
 }
 
 #: Inclusive numeric ranges (the rclpy host declares them as Integer/FloatingPointRange).
@@ -350,6 +364,8 @@ RANGES: dict[str, tuple[float, float]] = {
     "batch_size": (1, 4096),
     "workers": (1, 64),
     "decode_density": (1, 8),
+    "track_max_age": (0.01, 60.0),
+    "track_gate": (0.01, 50.0),
     "match_threshold": (0.0, 1.0),
     "detection_threshold": (0.0, 1.0),
     "reject_threshold": (1e-6, 1.0 - 1e-6),
@@ -361,6 +377,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "sync_slop": (0.0, 10.0),
     "queue_size": (1, 1000),
     "scan_timeout": (0.01, 3600.0),
+    "tf_timeout": (0.0, 10.0),
     "qos.points.depth": (1, 1000),
     "qos.detections.depth": (1, 1000),
     "qos.outputs.depth": (1, 1000),

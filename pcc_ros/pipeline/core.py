@@ -24,7 +24,7 @@ from pcc_ros.geometry.boxes import BoxCandidates, canonical_crops
 from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.lograte import worth_logging
 from pcc_ros.models.base import SceneContext
-from pcc_ros.models.registry import get_backend, load_completer
+from pcc_ros.models.registry import check_backend_name, get_backend, load_completer
 from pcc_ros.msg.detections import (
     box_edge_points,
     decode_detection_array,
@@ -48,6 +48,7 @@ from pcc_ros.pipeline.filter import (
     mismatch_scores,
     reject_mask,
 )
+from pcc_ros.pipeline.track_memory import TrackMemory
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
@@ -154,6 +155,13 @@ class FrameResult:
         return self.detections[~self.keep]
 
 
+def needs_completion(config: PipelineConfig, completes: bool = True, filters: bool = True) -> bool:
+    """Whether a pipeline that publishes completions (``completes``) and / or filter decisions
+    (``filters``) runs the completion network: for its completions, or for a filter rule that
+    scores the shape (TraPCC, or a nonzero ``w_mismatch``)."""
+    return completes or (filters and config.filter.uses_mismatch)
+
+
 class Pipeline:
     """Completion and shape-mismatch filtering of one frame at a time.
 
@@ -161,19 +169,28 @@ class Pipeline:
         config: the parameters.
         completer: a ready backend; by default loaded from ``config.backend`` /
             ``config.checkpoint`` (the shipped default checkpoint when empty).
+        completes: run the completion stage. ``False`` (a filter node whose rule gives the shape
+            no weight): no backend is loaded (``completer`` is None) and no network runs; a
+            rule that scores the shape completes whatever this says (:func:`needs_completion`).
+        filters: run the filter stage (``False``: a completion node; no detection is judged).
     """
 
-    def __init__(self, config: PipelineConfig, completer=None) -> None:
+    def __init__(self, config: PipelineConfig, completer=None, completes: bool = True, filters: bool = True) -> None:
         self.config = config
+        self.filters = filters
+        self.completes = needs_completion(config, completes, filters)
         #: frames so far whose scan had no finite point / scores outside [0, 1] (each logged at 1, 101, ...)
         self.empty_scans = 0
         self.scores_outside_unit = 0
-        if completer is None:
+        self.crop_work_frames = 0  # frames whose boxes exceeded max_crop_work
+        if completer is None and self.completes:
             completer = load_completer(
                 config.backend, config.checkpoint or None, device=config.device, **self._runtime_options(config)
             )
-        self.completer = completer
-        if config.filter.rule == "evidence":
+        self.completer = completer if self.completes else None
+        if not self.completes:
+            check_backend_name(config.backend)  # not loaded, but a misspelt name is still refused
+        if filters and config.filter.rule == "evidence":
             warm_up()  # the filter's compiled kernels, before the first frame
         #: the filter's beam model: a preset, or estimated from the scans (sensor: auto)
         self.beam_model = BeamModel(config.filter.sensor)
@@ -181,8 +198,10 @@ class Pipeline:
         # one such as TraPCC or AML); "" or the pipeline's backend: reuse its completions.
         self.filter_completer = None
         name = config.filter.filter_backend
-        if config.filter.uses_mismatch and name and name != config.backend:
+        if filters and config.filter.uses_mismatch and name and name != config.backend:
             self.filter_completer = load_completer(name, None, device=config.device)
+        #: each car's recent crops in its box frame (track_memory; None: every frame alone)
+        self.track_memory = TrackMemory(config.track_max_age, config.track_gate) if config.track_memory else None
 
     @staticmethod
     def _runtime_options(config: PipelineConfig) -> dict[str, Any]:
@@ -225,9 +244,11 @@ class Pipeline:
         box_work[candidates] = work
         if fits is not None:
             _count(skipped, "over max_crop_work", int((~fits).sum()))
-            log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
-                        "lowest-score boxes", stamp_ns, int(work.sum()), len(candidates), cfg.max_crop_work,
-                        int((~fits).sum()))
+            self.crop_work_frames += 1  # a dense sensor on a busy street can meet it every frame: not every line
+            if worth_logging(self.crop_work_frames, every=100):
+                log.warning("frame %d: about %d point-box pairs in %d boxes exceed max_crop_work %d; skipped the %d "
+                            "lowest-score boxes (%d such frames so far)", stamp_ns, int(work.sum()), len(candidates),
+                            cfg.max_crop_work, int((~fits).sum()), self.crop_work_frames)
             candidates = candidates[fits]
         counts = np.array([len(c) for c in canonical], dtype=np.int64)
         num_points[candidates] = counts
@@ -247,53 +268,62 @@ class Pipeline:
         if getattr(self.completer, "uses_context", False) and crops:
             context = SceneContext.from_frame(detections[selected], crops)
         sizes = detections.size[selected]
-        completions = self.completer.complete(crops, context, sizes=sizes) if crops else []
-        timings["complete_ms"] = _ms(tic)
+        completions = []
+        if self.completes:
+            inputs = crops
+            if self.track_memory is not None:  # the car's accumulated crops (causal); the filter reads this frame's
+                inputs = self.track_memory.update(detections[selected], crops, stamp_ns)
+                timings["track_memory_ms"] = _ms(tic)
+            completions = self.completer.complete(inputs, context, sizes=sizes) if crops else []
+            timings["complete_ms"] = _ms(tic)
+        else:  # nothing completed: no crop stands for a completion (crops, completions, completed_index agree)
+            crops, selected = [], selected[:0]
 
         tic = time.perf_counter()
         filter_score = np.full(n, np.nan)
         terms: dict[str, np.ndarray] = {}
-        if crops and cfg.filter.uses_mismatch:
-            shapes = completions
-            if self.filter_completer is not None:
-                shapes = self.filter_completer.complete(crops, context, sizes=sizes)
-            mismatch[selected] = mismatch_scores(crops, shapes, cfg.filter)
         threshold = cfg.detection_thresholds(detections.label)
-        if cfg.filter.rule == "evidence":
-            # Every detection of a configured class is judged, sparse or not (min_points does not
-            # apply), completed or not: max_instances and the work bound limit the completion,
-            # not the scan evidence; a missing shape term is marginalised (filter.term_matrix).
-            judged_idx = np.flatnonzero(wanted)
-            if not len(points) and len(judged_idx):  # no finite return at all: no evidence either way
-                status[judged_idx] = "unjudged"
-                self._empty_scan(stamp_ns, skipped, len(judged_idx))
-                judged_idx = judged_idx[:0]
-            judged_idx = self._evidence_budget(points, detections, judged_idx, dropped, box_work, status, skipped,
-                                               stamp_ns)
-            sensor = self.beam_model.for_frame(points, rings)
-            if len(judged_idx):
-                part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
-                                    workers=filter_threads(cfg), sensor=sensor)
-                terms = {k: np.full(n, np.nan) for k in part}
-                for k, v in part.items():
-                    terms[k][judged_idx] = v
-                filter_score[judged_idx] = false_probability(part, cfg.filter)
-                reject = filter_score[judged_idx] > cfg.filter.reject_threshold
-                status[judged_idx] = np.where(reject, "rejected", "kept")
-        else:
-            judged = np.isfinite(mismatch) & bool(len(points))
-            if not len(points) and len(candidates):
-                self._empty_scan(stamp_ns, skipped, len(candidates))
-            status[wanted & ~judged] = "unjudged"  # no completion to compare: kept, marked
-            rejected = np.zeros(n, dtype=bool)
-            for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
-                group = threshold == value
-                rejected[group] = reject_mask(
-                    mismatch[group], detections.score[group], replace(cfg.filter, detection_threshold=float(value))
-                )
-            status[judged] = np.where(rejected[judged], "rejected", "kept")
+        if self.filters:
+            if crops and cfg.filter.uses_mismatch:
+                shapes = completions
+                if self.filter_completer is not None:
+                    shapes = self.filter_completer.complete(crops, context, sizes=sizes)
+                mismatch[selected] = mismatch_scores(crops, shapes, cfg.filter)
+            if cfg.filter.rule == "evidence":
+                # Every detection of a configured class is judged, sparse or not (min_points does not
+                # apply), completed or not: max_instances and the work bound limit the completion,
+                # not the scan evidence; a missing shape term is marginalised (filter.term_matrix).
+                judged_idx = np.flatnonzero(wanted)
+                if not len(points) and len(judged_idx):  # no finite return at all: no evidence either way
+                    status[judged_idx] = "unjudged"
+                    self._empty_scan(stamp_ns, skipped, len(judged_idx))
+                    judged_idx = judged_idx[:0]
+                judged_idx = self._evidence_budget(points, detections, judged_idx, dropped, box_work, status, skipped,
+                                                   stamp_ns)
+                sensor = self.beam_model.for_frame(points, rings)
+                if len(judged_idx):
+                    part = filter_terms(points, detections[judged_idx], cfg.filter, mismatch[judged_idx],
+                                        workers=filter_threads(cfg), sensor=sensor)
+                    terms = {k: np.full(n, np.nan) for k in part}
+                    for k, v in part.items():
+                        terms[k][judged_idx] = v
+                    filter_score[judged_idx] = false_probability(part, cfg.filter)
+                    reject = filter_score[judged_idx] > cfg.filter.reject_threshold
+                    status[judged_idx] = np.where(reject, "rejected", "kept")
+            else:
+                judged = np.isfinite(mismatch) & bool(len(points))
+                if not len(points) and len(candidates):
+                    self._empty_scan(stamp_ns, skipped, len(candidates))
+                status[wanted & ~judged] = "unjudged"  # no completion to compare: kept, marked
+                rejected = np.zeros(n, dtype=bool)
+                for value in np.unique(threshold):  # one pass per distinct class threshold (a handful)
+                    group = threshold == value
+                    rejected[group] = reject_mask(
+                        mismatch[group], detections.score[group], replace(cfg.filter, detection_threshold=float(value))
+                    )
+                status[judged] = np.where(rejected[judged], "rejected", "kept")
+            timings["filter_ms"] = _ms(tic)
         probability = map_scores(detections.score, cfg.filter.score_mapping)
-        timings["filter_ms"] = _ms(tic)
 
         tic = time.perf_counter()
         sensor = [

@@ -416,8 +416,11 @@ def warm_up() -> None:
     rng = np.random.default_rng(0)
     boxes = Boxes(np.array([[10.0, 0.0, -0.8]]), np.array([[4.0, 1.8, 1.5]]), np.zeros(1))
     scan = np.c_[rng.uniform(5, 15, (64, 2)), rng.uniform(-2, 1, 64)]
+    from pcc_ros.pipeline.evidence_profile import profile_terms  # the filter's other compiled pass
+
     for dtype in (np.float32, np.float64):
         evidence(scan.astype(dtype), boxes)
+        profile_terms(scan.astype(dtype), boxes, SENSOR_PRESETS["hdl64"])
 
 
 def _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes: Boxes) -> dict[str, np.ndarray]:

@@ -14,7 +14,10 @@ measured in the scan itself (documented with their derivation in ``docs/filter.m
 * ``ground_gap``: metres between the box bottom and the local ground (cars stand on it);
 * ``score``: the detector score as a logit, after the explicit ``score_mapping``;
 * ``mismatch``: TraPCC's shape mismatch (below) against the completion of ``filter_backend``
-  (0 weight unless calibrated with a car-constrained backend).
+  (0 weight unless calibrated with a car-constrained backend);
+* ``above``, ``fill``, ``spill``, ``overlap``: where the returns lie in and around the box
+  (returns over its top, the share of its silhouette they cover, returns spilling out of its
+  sides, its footprint covered by a higher-scored box): :mod:`pcc_ros.pipeline.evidence_profile`.
 
 ``p_false = sigmoid(w_bias + sum_k w_k * term_k)``; a detection is rejected when
 ``p_false > reject_threshold``. Weights and threshold come from ``pcc calibrate-filter``
@@ -45,7 +48,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.metrics.chamfer import nearest_distances_batch
 from pcc_ros.msg.typestore import from_template, new_message
 from pcc_ros.pipeline.beam_model import AUTO, sensor_for
 from pcc_ros.pipeline.evidence import (  # noqa: F401  (re-exported: the filter's public names)
@@ -60,6 +62,7 @@ from pcc_ros.pipeline.evidence import (  # noqa: F401  (re-exported: the filter'
     evidence,
     local_ground,
 )
+from pcc_ros.pipeline.evidence_profile import PROFILE_TERMS, profile_terms
 from pcc_ros.types import Boxes
 
 SCORE_MAPPINGS = ("identity", "sigmoid")
@@ -74,16 +77,23 @@ class FilterConfig:
     # `pcc calibrate-filter --sim-sensors ...` into config/detection_filter.yaml (a test keeps the
     # two equal; docs/filter.md has the command): scan evidence only, no score term (an unknown
     # detector's score scale is unknown; the score must not reject a real car on its own).
-    w_bias: float = -2.2617
-    w_density: float = -0.8223
-    w_free_space: float = 0.5306
-    w_ground_gap: float = 2.6898
+    w_bias: float = -4.2286
+    w_density: float = -0.8825
+    w_free_space: float = 0.3587
+    w_ground_gap: float = 3.1199
     w_score: float = 0.0
     w_mismatch: float = 0.0
+    # profile terms (pcc_ros.pipeline.evidence_profile): where the returns lie in and around the box
+    w_above: float = 2.072
+    w_fill: float = 0.0
+    w_spill: float = 0.0
+    w_overlap: float = 11.4406
+    w_depth: float = 4.49
+    w_top: float = 0.0
     # the value a missing mismatch term takes (a detection whose shape was not completed): its
     # mean over the calibration detections, the first-order marginalisation of the term
     mismatch_mean: float = 0.0
-    reject_threshold: float = 0.5998
+    reject_threshold: float = 0.6829
     sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
@@ -182,6 +192,10 @@ def mcd(partials: list[np.ndarray], completions: list[np.ndarray]) -> np.ndarray
     out = np.full(len(partials), np.inf)
     ok = [k for k, (p, c) in enumerate(zip(partials, completions)) if len(p) and len(c)]
     if ok:
+        # imported here: the metrics package pulls in scipy.spatial / scipy.optimize (about half a
+        # second of a node's start-up), and only the shape-mismatch term needs it
+        from pcc_ros.metrics.chamfer import nearest_distances_batch
+
         distances = nearest_distances_batch([partials[k] for k in ok], [completions[k] for k in ok])
         out[ok] = [float(np.mean(d**2)) for d in distances]
     return out
@@ -220,7 +234,7 @@ def reject_mask(mismatch: np.ndarray, detection_scores: np.ndarray, config: Filt
 # ============================================================================ physics evidence
 
 #: The evidence terms, in the order of the logistic weights (:attr:`FilterConfig.weights`).
-TERMS = ("density", "free_space", "ground_gap", "score", "mismatch")
+TERMS = ("density", "free_space", "ground_gap", "score", "mismatch", *PROFILE_TERMS)
 
 # The measurements themselves (rays, expected returns, local ground) live in
 # pcc_ros.pipeline.evidence; imported above and re-exported here.
@@ -267,6 +281,7 @@ def filter_terms(
     sensor = sensor or sensor_for(config.sensor, points, rings)
     ev = evidence(points, boxes, sensor, workers=workers)
     out = ev.as_dict()
+    out.update(profile_terms(points, boxes, sensor))
     out["score"] = score_logit(boxes.score, config.score_mapping)
     out["mismatch"] = np.full(len(boxes), np.nan) if mismatch is None else np.asarray(mismatch, dtype=np.float64)
     return out

@@ -45,7 +45,7 @@ from pcc_ros.pipeline.config import NODE_DEFAULTS, NODE_NAMES, load_parameters, 
 from pcc_ros.pipeline.core import Pipeline
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime, resolve_topic
-from pcc_ros.runtime.node import NodeCore, output_names
+from pcc_ros.runtime.node import NodeCore, output_names, pipeline_stages
 
 log = logging.getLogger(__name__)
 
@@ -131,9 +131,10 @@ def replay_bag(
         if pipeline is None:
             raise ConfigError("replay_bag needs a pipeline or node parameters")
         parameters = {**pipeline.config.as_parameters(), **NODE_DEFAULTS}
-    if pipeline is None:  # the backend loads first: a bad checkpoint is named before the bag is read
-        pipeline = Pipeline(pipeline_config(node_parameters(parameters)))
     mode = "filter" if with_filter else "completion"
+    if pipeline is None:  # the backend loads first: a bad checkpoint is named before the bag is read
+        stages = pipeline_stages(output_names(mode, with_completion=with_filter))  # the live node's stages
+        pipeline = Pipeline(pipeline_config(node_parameters(parameters)), **stages)
     summary = ReplaySummary()
     with open_bag(bag) as reader:
         paired = {points_topic: POINTCLOUD2, detections_topic: DETECTION3DARRAY}

@@ -79,5 +79,24 @@ class Runtime(Protocol):
     def get_logger(self) -> Logger: ...
 
     def lookup_transform(self, target: str, source: str, stamp_ns: int) -> Transform | None:
-        """``source`` -> ``target`` at ``stamp_ns``; ``None`` when unknown (the caller logs and skips)."""
+        """``source`` -> ``target`` at ``stamp_ns`` from what has arrived, without waiting; ``None``
+        when unknown (the node core holds the frame for ``tf_timeout``, then drops and counts it)."""
+        ...
+
+    def on_clock_jump(self, callback: Callable[[], None]) -> None:
+        """Call ``callback`` right after the node's clock jumps back (``/clock`` under ``use_sim_time``),
+        before the messages of the new timeline are handed to the node."""
+        ...
+
+    def reset_transforms(self) -> None:
+        """Forget the dynamic transforms (``/tf``), keep the static ones: the clock jumped back."""
+        ...
+
+    def count_publishers(self, topic: str) -> int:
+        """Publishers on ``topic`` (a resolved name) now: a warning checks there is one before
+        blaming QoS or the middleware."""
+        ...
+
+    def resolve_topic(self, topic: str) -> str:
+        """``topic`` as the graph names it: remapped and expanded in the node's namespace."""
         ...

@@ -46,6 +46,7 @@ class _Subscription:
     callback: Callable[[Any], None]
     qos: QoS
     received: int = 0
+    topic_name: str = ""
 
 
 @dataclass
@@ -62,6 +63,8 @@ class LocalGraph:
     simulated: bool = False
     _subs: dict[str, list[_Subscription]] = field(default_factory=lambda: defaultdict(list))
     _types: dict[str, str] = field(default_factory=dict)
+    _publishers: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    _jump_callbacks: list[Callable[[], None]] = field(default_factory=list)
     _timers: list[_Timer] = field(default_factory=list)
     transforms: TransformBuffer = field(default_factory=TransformBuffer)
     _sim_ns: int = 0
@@ -85,6 +88,20 @@ class LocalGraph:
                 timer.next_ns += timer.period_ns
             timer.callback()
 
+    def jump_to(self, stamp_ns: int) -> None:
+        """Move the simulated clock to ``stamp_ns``, backwards too (a looped bag or a reset simulator
+        under ``use_sim_time``); every timer's next deadline restarts from there, as rcl's do."""
+        if not self.simulated:
+            raise RuntimeError("jump_to needs LocalGraph(simulated=True)")
+        with self._lock:
+            back = int(stamp_ns) < self._sim_ns
+            self._sim_ns = int(stamp_ns)
+            for timer in self._timers:
+                timer.next_ns = self._sim_ns + timer.period_ns
+            callbacks = list(self._jump_callbacks) if back else []
+        for callback in callbacks:
+            callback()
+
     def set_transform(self, target: str, source: str, transform: Transform) -> None:
         """Static transform ``source`` -> ``target``, i.e. the edge ``target <- source`` (what
         ``/tf_static`` would carry with ``target`` as the parent frame)."""
@@ -97,6 +114,10 @@ class LocalGraph:
 
     def subscribers(self, topic: str) -> int:
         return len(self._subs.get(topic, ()))
+
+    def publishers(self, topic: str) -> int:
+        """Publishers created on ``topic`` (they live as long as the graph)."""
+        return self._publishers.get(topic, 0)
 
 
 class _LocalPublisher:
@@ -133,12 +154,14 @@ class LocalRuntime:
     def create_publisher(self, topic: str, msgtype: str, qos: QoS) -> _LocalPublisher:
         name = resolve_topic(topic, self.namespace)
         self.graph._check_type(name, msgtype)
+        with self.graph._lock:
+            self.graph._publishers[name] += 1
         return _LocalPublisher(self.graph, name, qos)
 
     def create_subscription(self, topic: str, msgtype: str, callback: Callable[[Any], None], qos: QoS) -> _Subscription:
         name = resolve_topic(topic, self.namespace)
         self.graph._check_type(name, msgtype)
-        sub = _Subscription(msgtype, callback, qos)
+        sub = _Subscription(msgtype, callback, qos, topic_name=name)
         with self.graph._lock:
             self.graph._subs[name].append(sub)
         return sub
@@ -169,6 +192,19 @@ class LocalRuntime:
 
     def lookup_transform(self, target: str, source: str, stamp_ns: int) -> Transform | None:
         return self.graph.transforms.lookup(target, source, stamp_ns)
+
+    def on_clock_jump(self, callback: Callable[[], None]) -> None:
+        with self.graph._lock:
+            self.graph._jump_callbacks.append(callback)
+
+    def reset_transforms(self) -> None:
+        self.graph.transforms.clear_dynamic()
+
+    def count_publishers(self, topic: str) -> int:
+        return self.graph.publishers(topic)
+
+    def resolve_topic(self, topic: str) -> str:
+        return resolve_topic(topic, self.namespace)
 
     def shutdown(self) -> None:
         """Stop wall-clock timers (subscriptions stay registered: the graph outlives nodes in tests)."""

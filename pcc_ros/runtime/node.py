@@ -29,27 +29,37 @@ from pcc_ros.geometry.transforms import transform_boxes
 from pcc_ros.lograte import worth_logging
 from pcc_ros.msg.detections import transform_detections
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
-from pcc_ros.msg.transforms import frame_name, same_frame
-from pcc_ros.msg.typestore import is_rosbags_class, new_message
 from pcc_ros.pipeline.config import (
     BACKEND_PARAMETERS,
     check_value,
-    integer_id,
     node_parameters,
     parameter_specs,
     pipeline_config,
     unknown_parameters,
 )
-from pcc_ros.pipeline.core import DETECTION_OUTPUTS, MARKER_OUTPUTS, FrameResult, Pipeline, build_outputs
+from pcc_ros.pipeline.core import (
+    DETECTION_OUTPUTS,
+    MARKER_OUTPUTS,
+    FrameResult,
+    Pipeline,
+    build_outputs,
+    needs_completion,
+)
 from pcc_ros.pipeline.filter import DECISIONS, decision_counts
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
+from pcc_ros.runtime.diagnostics import (
+    Health,
+    node_status,
+    node_values,
+    report_other_classes,
+    silent_topic_hint,
+    unpaired_message,
+)
 from pcc_ros.runtime.heap import freeze_long_lived
 from pcc_ros.runtime.pairing import LatestSlot, StampPairer
-from pcc_ros.types import class_mask
+from pcc_ros.runtime.tfwait import POLL_S, FrameTransforms, TransformWait, frame_transforms
 
 MODES = ("completion", "filter")
-#: At most this many distinct class ids outside ``classes`` are reported (hostile labels stay bounded).
-_REPORTED_CLASSES = 64
 
 #: Default topics (relative names, remappable) -> message type, per mode.
 INPUTS = {"points": "sensor_msgs/msg/PointCloud2", "detections": "vision_msgs/msg/Detection3DArray"}
@@ -65,6 +75,9 @@ OUTPUTS = {
     },
 }
 DIAGNOSTICS_TOPIC = "/diagnostics"
+#: A clock that moves back by more than this is a jump (a looped bag, a reset simulator).
+JUMP_BACK_NS = 1_000_000
+
 
 #: The logger of the node whose work runs here now (:func:`working_for`; a context variable, so per
 #: thread): a line the package's modules log meanwhile (the pipeline, the message decoders, a backend
@@ -113,6 +126,14 @@ def output_names(mode: str, with_completion: bool = False) -> list[str]:
     return names
 
 
+def pipeline_stages(names) -> dict[str, bool]:
+    """The pipeline stages a node publishing ``names`` runs (:class:`Pipeline`'s ``completes`` /
+    ``filters``): each node computes what its outputs need, no more (the filter rule may still
+    ask for the completions: :func:`~pcc_ros.pipeline.core.needs_completion`)."""
+    return {"completes": any(n in OUTPUTS["completion"] for n in names),
+            "filters": any(n in OUTPUTS["filter"] for n in names)}
+
+
 def qos_of(values: dict[str, Any], topic: str) -> QoS:
     """The :class:`QoS` of ``points``, ``detections`` or ``outputs`` from the node parameters."""
     return QoS(
@@ -145,6 +166,9 @@ class NodeCore:
         on_result: called as ``on_result(result, cloud, detections)`` after each published
             frame (``detections`` as received, ``result`` in the scan frame): replay's summary,
             the demo and evaluation read the frames through it.
+        connect: create the publishers, subscriptions, timer and worker now (a plain node);
+            ``False`` loads and checks only, and :meth:`connect` serves later (a managed node's
+            ``configure``, then ``activate``).
     """
 
     def __init__(
@@ -158,6 +182,7 @@ class NodeCore:
         remap: dict[str, str] | None = None,
         outputs: list[str] | None = None,
         on_result=None,
+        connect: bool = True,
     ) -> None:
         names = output_names(mode) if outputs is None else list(outputs)
         every = {**OUTPUTS["completion"], **OUTPUTS["filter"]}
@@ -169,8 +194,10 @@ class NodeCore:
         values = node_parameters(parameters)
         self.parameters = values
         config = pipeline_config(values)
+        #: the stages the outputs need (a filter node whose rule gives the shape no weight runs no network)
+        self.stages = pipeline_stages(names)
         with working_for(self.log):  # a backend's load lines are this node's
-            self.pipeline = pipeline or Pipeline(config)  # a missing/corrupt checkpoint fails here, loudly
+            self.pipeline = pipeline or Pipeline(config, **self.stages)  # a missing/corrupt checkpoint fails here
         self.output_frame = str(values["output_frame"])
         self.pairer: StampPairer = StampPairer(
             slop_ns=int(float(values["sync_slop"]) * 1e9), queue_size=int(values["queue_size"])
@@ -180,7 +207,15 @@ class NodeCore:
         self.failures = 0
         self.first_failure = ""  # the reason of the first skipped frame (replay's summary names it)
         self.on_result = on_result
-        self.no_transform = 0  # frames skipped because a transform was not available
+        self.no_transform = 0  # frames dropped because a transform did not arrive within tf_timeout
+        self.tf_wait = TransformWait(float(values["tf_timeout"]))
+        self.time_jumps = 0
+        self._clock_ns: int | None = None  # the node clock as last seen (a jump back resets the node)
+        self._clock_lock = threading.Lock()
+        self.last_missing_transform = ""  # the last transform a dropped frame lacked (diagnostics' reason)
+        self._tf_gap = False  # frames were dropped since the last frame whose transforms resolved
+        self.tf_recoveries = 0
+        self.health = Health()
         self.parameter_changes = 0
         self._parameter_lock = threading.Lock()
         # Arrival bookkeeping: scans that stop arriving while detections keep coming (a large
@@ -190,11 +225,12 @@ class NodeCore:
         self.detections_without_scans = 0
         self.scans_stalled = False
         self._last_scan_ns: int | None = None
-        self._first_detections_ns: int | None = None
-        self._scan_timeout_ns = int(float(values["scan_timeout"]) * 1e9)
-        if self._scan_timeout_ns <= 0:
+        self.last_detections_ns: int | None = None
+        self._detections_since: int | None = None  # detections arriving without a long pause since
+        self.scan_timeout_ns = int(float(values["scan_timeout"]) * 1e9)
+        if self.scan_timeout_ns <= 0:
             raise ConfigError(f"scan_timeout must be > 0, not {values['scan_timeout']}")
-        self._no_transform_logged: set[tuple[str, str]] = set()
+        self._no_transform_logged: set[str] = set()
         self.decisions = dict.fromkeys(DECISIONS, 0)  # filter mode: totals
         #: detections skipped per reason ("other class", "invalid detection", ...), all frames
         self.skipped_totals: dict[str, int] = {}
@@ -209,6 +245,24 @@ class NodeCore:
         #: Publishes detection messages: the pipeline keeps (and moves) the received ones for them.
         self._republishes_detections = any(name in DETECTION_OUTPUTS for name in names)
 
+        self.publishers: dict[str, Any] = {}
+        self.pub_diagnostics = None
+        self.threaded = threaded
+        self._running = False
+        self._refreeze = threading.Event()  # set by a backend reload, served by the worker
+        self._worker = None
+        on_jump = getattr(runtime, "on_clock_jump", None)
+        if on_jump is not None:  # the jump seen as /clock moves, before the new timeline's messages
+            on_jump(self._watch_clock)
+        self._warn_without_tf()
+        freeze_long_lived()  # the loaded backend and the node's objects: no full collection walks them per frame
+        if connect:
+            self.connect()
+
+    def connect(self) -> None:
+        """Serve: create the output publishers, the input subscriptions, the diagnostics timer
+        and the worker (a managed node's ``activate``; a plain node's start)."""
+        runtime, values = self.runtime, self.parameters
         self.publishers = {
             name: runtime.create_publisher(self.topics[name], msgtype, qos_of(values, "outputs"))
             for name, msgtype in self.outputs.items()
@@ -216,23 +270,24 @@ class NodeCore:
         self.pub_diagnostics = runtime.create_publisher(
             DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", RELIABLE
         )
-        runtime.create_subscription(self.topics["points"], INPUTS["points"], self.on_cloud, qos_of(values, "points"))
-        runtime.create_subscription(
-            self.topics["detections"], INPUTS["detections"], self.on_detections, qos_of(values, "detections")
-        )
+        subs = {
+            "points": runtime.create_subscription(
+                self.topics["points"], INPUTS["points"], self.on_cloud, qos_of(values, "points")),
+            "detections": runtime.create_subscription(
+                self.topics["detections"], INPUTS["detections"], self.on_detections, qos_of(values, "detections")),
+        }
+        #: The inputs' names as the graph knows them (remapped, in the namespace): what warnings name.
+        self.resolved = {name: str(getattr(sub, "topic_name", "") or self.topics[name]) for name, sub in subs.items()}
         runtime.create_timer(1.0, self.publish_diagnostics)
-
-        self.threaded = threaded
-        self._running = threaded
-        self._refreeze = threading.Event()  # set by a backend reload, served by the worker
-        self._worker = None
-        if threaded:
-            self._worker = threading.Thread(target=self._work, name=f"{node_name}_worker", daemon=True)
+        self._running = self.threaded
+        if self.threaded:
+            self.slot = LatestSlot(self.pairer.stats)
+            self._worker = threading.Thread(target=self._work, name=f"{self.node_name}_worker", daemon=True)
             self._worker.start()
-        self._warn_without_tf()
-        freeze_long_lived()  # the loaded backend and the node's objects: no full collection walks them per frame
+        config = self.pipeline.config
         self.log.info(
-            f"{mode} node ready: backend={config.backend} classes={list(config.classes)} device={config.device}"
+            f"{self.mode} node ready: backend={config.backend if self.pipeline.completes else '(none: no completion)'} "
+            f"classes={list(config.classes)} device={config.device}"
             + (f" output_frame={self.output_frame}" if self.output_frame else "")
         )
 
@@ -240,10 +295,10 @@ class NodeCore:
         """Say once, at start-up or when output_frame is set, that frames will be skipped without tf2."""
         if self.output_frame and not getattr(self.runtime, "has_tf", True):
             self.log.error(
-                f"output_frame '{self.output_frame}' needs tf2_ros, which this runtime does not have (the ROS 2 "
-                "wheels from PyPI do not ship it): every frame whose scan is not already in that frame is "
-                "skipped and counted as frames_without_transform on /diagnostics. Install ROS 2 Jazzy's "
-                "tf2_ros or leave output_frame empty."
+                f"output_frame '{self.output_frame}' needs transforms, which this runtime cannot look up (neither "
+                "tf2_ros nor tf2_msgs is installed): every frame whose scan is not already in that frame is "
+                "skipped and counted as frames_without_transform on /diagnostics. Run `make setup` (builds "
+                "tf2_msgs into the venv), use a ROS 2 Jazzy install, or leave output_frame empty."
             )
 
     # ------------------------------------------------------------- parameters
@@ -276,11 +331,10 @@ class NodeCore:
                 values = {**self.parameters, **changed}
                 config = pipeline_config(values)
                 old = self.pipeline
-                reload = any(
-                    n in changed for n in BACKEND_PARAMETERS
-                ) or not isinstance(old, Pipeline)
+                reload = (any(n in changed for n in BACKEND_PARAMETERS) or not isinstance(old, Pipeline)
+                          or (needs_completion(config, **self.stages) and old.completer is None))
                 with working_for(self.log):
-                    pipeline = Pipeline(config) if reload else Pipeline(config, completer=old.completer)
+                    pipeline = Pipeline(config, completer=None if reload else old.completer, **self.stages)
             except PccError as exc:
                 self.log.warning(f"parameter change refused: {exc}")
                 return SetResult(False, str(exc))
@@ -288,6 +342,7 @@ class NodeCore:
             self.parameters = values
             self.output_frame = str(values["output_frame"])
             self.pairer.slop_ns = int(float(values["sync_slop"]) * 1e9)
+            self.tf_wait.timeout_s = float(values["tf_timeout"])
             self.parameter_changes += 1
             if {"classes", "class_map"} & set(changed):
                 self._other_classes = set()  # report the class ids the new setting leaves out
@@ -308,9 +363,39 @@ class NodeCore:
 
     # ------------------------------------------------------------- callbacks
 
+    def _watch_clock(self) -> int:
+        """The node clock now; a jump back (under ``use_sim_time``: a looped bag, a reset simulator)
+        resets the node to serve the new timeline."""
+        with self._clock_lock:  # callbacks and the timer may run on different threads: read in order
+            now = self.runtime.now_ns()
+            last, self._clock_ns = self._clock_ns, now
+            if last is not None and now < last - JUMP_BACK_NS:
+                self._jumped_back(last, now)
+        return now
+
+    def _jumped_back(self, last_ns: int, now_ns: int) -> None:
+        """Pairing queues, the pending pair, held frames and tf's dynamic transforms belong to the old
+        timeline (the same stamps come again, with other poses): all are forgotten, as tf2 clears
+        its buffer on such a jump; static transforms stay."""
+        self.time_jumps += 1
+        self.pairer.clear()
+        self.slot.take(timeout=0)
+        held = self.tf_wait.clear()
+        reset = getattr(self.runtime, "reset_transforms", None)
+        if reset is not None:
+            reset()
+        self._last_scan_ns = self.last_detections_ns = self._detections_since = None
+        self.scans_stalled = False
+        if worth_logging(self.time_jumps):
+            self.log.warning(
+                f"clock jumped back from {last_ns / 1e9:.3f} s to {now_ns / 1e9:.3f} s (a looped bag or a reset "
+                f"simulator under use_sim_time): pairing queues, {held} held frame(s) and the tf buffer's dynamic "
+                f"transforms reset; serving the new timeline (jump {self.time_jumps}: time_jumps_back on /diagnostics)"
+            )
+
     def on_cloud(self, msg) -> None:
         self.scans += 1
-        self._last_scan_ns = self.runtime.now_ns()
+        self._last_scan_ns = self._watch_clock()
         if self.scans_stalled:
             self.scans_stalled = False
             self.log.info("scans arrive again")
@@ -318,18 +403,19 @@ class NodeCore:
 
     def on_detections(self, msg) -> None:
         self.detection_arrays += 1
-        now = self.runtime.now_ns()
-        if self._first_detections_ns is None:
-            self._first_detections_ns = now
-        since = self._last_scan_ns if self._last_scan_ns is not None else self._first_detections_ns
-        if now - since > self._scan_timeout_ns:
+        now = self._watch_clock()
+        if self.last_detections_ns is None or now - self.last_detections_ns > self.scan_timeout_ns:
+            self._detections_since = now  # (re)started after a pause: a publisher that idled is no stall
+        self.last_detections_ns = now
+        since = max(self._last_scan_ns or 0, self._detections_since)
+        if now - since > self.scan_timeout_ns:
             self.detections_without_scans += 1
             if not self.scans_stalled:
                 self.scans_stalled = True
-                self.log.warning(
-                    f"detections arrive but no scan on '{self.topics['points']}' for {(now - since) / 1e9:.1f} s: "
-                    "large clouds dropped by the middleware? (docs/nodes.md, 'Large clouds')"
-                )
+                hint = silent_topic_hint(self.runtime, self.resolved["points"], "qos.points.reliability",
+                                         self.parameters["qos.points.reliability"])
+                self.log.warning(f"detections arrive but no scan on '{self.resolved['points']}' for "
+                                 f"{(now - since) / 1e9:.1f} s: {hint}")
         self._pair(self.pairer.add_right, msg)
 
     def _pair(self, add, msg) -> None:
@@ -360,24 +446,9 @@ class NodeCore:
         self._drops_seen = total
         if not due:
             return
-        what, other = ("scan", "detections") if stats.last_drop_left else ("detections", "scan")
-        gap = stats.last_drop_gap_ns
-        if gap < 0:
-            topic = self.topics["detections" if stats.last_drop_left else "points"]
-            qos = "qos.detections.reliability" if stats.last_drop_left else "qos.points.reliability"
-            near = (f"no {other} has arrived at all: check the topic ('{topic}', remapped?) and its QoS (a "
-                    f"best-effort publisher never reaches a reliable reader: set {qos}: best_effort)")
-        elif gap > self.pairer.slop_ns:
-            near = f"the nearest {other} stamp seen lately was {gap / 1e6:.0f} ms away"
-        else:  # its partner arrived, but paired with a closer message or after a newer pair
-            near = f"a {other} stamp {gap / 1e6:.0f} ms away had paired with another message or came out of order"
-        self.log.warning(
-            f"{total} messages dropped unpaired so far ({stats.dropped_clouds} scans, {stats.dropped_detections} "
-            f"detection arrays; dropped_clouds / dropped_detections on /diagnostics): the last, {what} stamped "
-            f"{stats.last_drop_stamp_ns / 1e9:.3f}, found no {other} within sync_slop "
-            f"{self.pairer.slop_ns / 1e9:g} s; {near}. A detector must copy the scan's header stamp (if it "
-            "restamps, raise sync_slop); scans lost on the way: docs/nodes.md 'Large clouds'."
-        )
+        name = "detections" if stats.last_drop_left else "points"  # the input that sent nothing to pair with
+        self.log.warning(unpaired_message(stats, self.pairer.slop_ns, lambda: silent_topic_hint(
+            self.runtime, self.resolved[name], f"qos.{name}.reliability", self.parameters[f"qos.{name}.reliability"])))
 
     def _wanted_outputs(self) -> list[str]:
         """The outputs to build this frame: every data output, and a marker array only while
@@ -387,52 +458,34 @@ class NodeCore:
         return [name for name, pub in self.publishers.items()
                 if name not in MARKER_OUTPUTS or pub.get_subscription_count() > 0]
 
-    def _report_other_classes(self, labels: np.ndarray, classes) -> None:
-        """Say once per class id that detections outside ``classes`` are passed over (a detector
-        whose ids the node does not know would otherwise be silently ignored: nothing completed,
-        nothing judged)."""
-        if not len(labels) or len(self._other_classes) >= _REPORTED_CLASSES:
-            return
-        new = sorted({str(v) for v in labels[~class_mask(labels, classes)]} - self._other_classes)
-        new = new[: _REPORTED_CLASSES - len(self._other_classes)]  # bounded within one frame too
-        if not new:
-            return
-        self._other_classes.update(new)
-        effect = "not completed" if self.mode == "completion" else "passed on unjudged"
-        numeric = [v for v in new if integer_id(v) is not None]
-        if numeric:
-            self.log.warning(
-                f"detections of class id(s) {numeric} are not in classes {list(classes)}: {effect}. Numeric ids "
-                "come from the detector's class list: map them with class_map (OpenPCDet: '1:Car'; "
-                "mmdetection3d nuScenes: '0:car', its KITTI 3-class model: '2:Car'; check your model's "
-                "class names). Counted as skipped_other_class on /diagnostics"
-            )
-        if "" in new:  # no hypothesis at all: a single-class detector that leaves results empty?
-            self.log.warning(
-                f"detections without a class (no hypotheses in results) are not in classes {list(classes)}: "
-                f"{effect}. A single-class vehicle detector that sends none: add '' to classes "
-                "(classes: [Car, Van, '']). Counted as skipped_other_class on /diagnostics"
-            )
-        names = [v for v in new if v not in numeric and v != ""]
-        if names:
-            self.log.info(
-                f"detections of class(es) {names} are not in classes {list(classes)}: {effect} (counted as "
-                "skipped_other_class on /diagnostics; add a class to classes to include it)"
-            )
-
     def _work(self) -> None:
         while self._running:
             if self._refreeze.is_set():  # a backend was reloaded: between frames, collect the old one
                 self._refreeze.clear()
                 freeze_long_lived()
-            pair = self.slot.take(timeout=0.5)
+            pair = self.slot.take(timeout=POLL_S if len(self.tf_wait) else 0.5)
             if pair is not None:
-                self._process_logged(*pair)
+                for old in self.tf_wait.add(pair):  # over the hold's capacity: the oldest goes
+                    self._dropped_without_transform(self._resolve(old)[1] or "(held frames over capacity)")
+            if len(self.tf_wait):
+                ready, dropped = self.tf_wait.release(self._resolve)
+                for _, missing in dropped:
+                    self._dropped_without_transform(missing)
+                for (cloud, detections), transforms in ready:
+                    self._process_logged(cloud, detections, transforms)
 
-    def _process_logged(self, cloud, detections) -> None:
+    def _resolve(self, pair) -> tuple[FrameTransforms | None, str]:
+        """The transforms ``pair`` needs, or ``(None, what is missing)``; a message too malformed to
+        say goes on to :meth:`process`, whose error names it."""
+        try:
+            return frame_transforms(self.runtime, *pair, self.output_frame)
+        except Exception:
+            return FrameTransforms(output_frame=self.output_frame), ""
+
+    def _process_logged(self, cloud, detections, transforms: FrameTransforms | None = None) -> None:
         try:
             with working_for(self.log):  # the decoders' and the pipeline's lines are this node's
-                self.process(cloud, detections)
+                self.process(cloud, detections, transforms)
         except PccError as exc:  # malformed input: log, skip, keep serving
             self._failed(str(exc))
             self.log.warning(f"skipped a frame: {exc}")
@@ -446,29 +499,36 @@ class NodeCore:
 
     # ------------------------------------------------------------- work
 
-    def process(self, cloud, detections) -> dict[str, Any] | None:
-        """Run one pair through the pipeline and publish; returns the published messages (None: skipped)."""
+    def process(self, cloud, detections, transforms: FrameTransforms | None = None) -> dict[str, Any] | None:
+        """Run one pair through the pipeline and publish; returns the published messages (None: skipped).
+
+        ``transforms``: looked up already (the worker held the frame until they arrived); by
+        default looked up now, and a frame whose transform is unknown is dropped and counted."""
         tic = time.perf_counter()
-        pipeline, output_frame = self.pipeline, self.output_frame  # one consistent set per frame
-        transform = None
-        source, target = detections.header.frame_id, cloud.header.frame_id
-        if source and not same_frame(source, target):  # detections in another frame: moved once, after decoding
-            transform = self._lookup(target, source, stamp_to_ns(detections.header.stamp))
-            if transform is None:
+        pipeline = self.pipeline  # one consistent set per frame
+        if transforms is None:
+            transforms, missing = frame_transforms(self.runtime, cloud, detections, self.output_frame)
+            if transforms is None:
+                self._dropped_without_transform(missing)
                 return None
-        result, originals = pipeline.process_messages(cloud, detections, transform=transform,
+        if self._tf_gap and (transforms.detections is not None or transforms.output is not None):
+            self._tf_gap = False
+            self.tf_recoveries += 1  # tf that flaps: said at the 1st, 10th, 100th ... recovery
+            if worth_logging(self.tf_recoveries):
+                self.log.info(f"transforms arrive again ({self.no_transform} frame(s) dropped without one so far)")
+        result, originals = pipeline.process_messages(cloud, detections, transform=transforms.detections,
                                                       with_originals=self._republishes_detections)
         header = cloud.header
-        if output_frame and not same_frame(output_frame, result.frame_id):
-            moved = self._to_output_frame(result, originals, output_frame)
-            if moved is None:
-                return None
-            result, originals = moved
-            header = make_header(output_frame, result.stamp_ns, self.runtime.classes)
+        if transforms.output is not None:
+            result, originals = self._to_output_frame(result, originals, transforms.output_frame, transforms.output)
+            header = make_header(transforms.output_frame, result.stamp_ns, self.runtime.classes)
         outputs = build_outputs(result, originals, self.runtime.classes, detections_header=header,
                                 names=self._wanted_outputs())
         for name, msg in outputs.items():
-            self.publishers[name].publish(msg)
+            publisher = self.publishers.get(name)
+            if publisher is None:  # stopped serving (deactivated) while this frame ran
+                return None
+            publisher.publish(msg)
         self.frames += 1
         if self.mode == "filter":
             self.last_decisions = decision_counts(result.status, result.skipped.get("invalid detection", 0))
@@ -480,31 +540,31 @@ class NodeCore:
             self.log.debug(f"frame {result.stamp_ns}: skipped {result.skipped}")
             for reason, n in result.skipped.items():
                 self.skipped_totals[reason] = self.skipped_totals.get(reason, 0) + n
-        self._report_other_classes(result.detections.label, pipeline.config.classes)
+        report_other_classes(self.log, self.mode, result.detections.label, pipeline.config.classes,
+                             self._other_classes)
         if self.on_result is not None:
             self.on_result(result, cloud, detections)
         return outputs
 
-    def _lookup(self, target: str, source: str, stamp_ns: int):
-        """The runtime's transform, or None (counted; the reason logged once per frame pair)."""
-        # tf2 in ROS 2 refuses frame ids with a leading '/' (ROS 1 drivers, converted bags): strip it
-        tf = self.runtime.lookup_transform(frame_name(target), frame_name(source), stamp_ns)
-        if tf is None:
-            self.no_transform += 1
-            self._failed(f"no transform '{source}' -> '{target}'")
-            if (source, target) not in self._no_transform_logged:  # once per frame pair, then counted
-                self._no_transform_logged.add((source, target))
-                self.log.warning(
-                    f"no transform '{source}' -> '{target}': such frames are skipped "
-                    "(counted on /diagnostics as frames_without_transform)"
-                )
-        return tf
+    def _dropped_without_transform(self, missing: str) -> None:
+        """Count a frame dropped for want of a transform; log the 1st, 10th, 100th ... and each new pair of frames."""
+        self.no_transform += 1
+        self._tf_gap = True
+        self.last_missing_transform = missing
+        self._failed(f"no transform {missing}")
+        if missing not in self._no_transform_logged and len(self._no_transform_logged) < 64:  # hostile ids: bounded
+            self._no_transform_logged.add(missing)
+        elif not worth_logging(self.no_transform):
+            return
+        source = getattr(getattr(self.runtime, "tf", None), "name", "the runtime's transforms")
+        wait = f"within tf_timeout {self.tf_wait.timeout_s:g} s" if self.threaded else "(offline: nothing more comes)"
+        self.log.warning(
+            f"no transform {missing} at the frame's stamp {wait} ({source}): frame dropped, never processed in "
+            f"the wrong frame ({self.no_transform} so far: frames_without_transform on /diagnostics)"
+        )
 
-    def _to_output_frame(self, result: FrameResult, originals, frame: str):
-        """The frame's result and detection messages re-expressed in ``frame``, or None (no transform)."""
-        tf = self._lookup(frame, result.frame_id, result.stamp_ns)
-        if tf is None:
-            return None
+    def _to_output_frame(self, result: FrameResult, originals, frame: str, tf):
+        """The frame's result and detection messages re-expressed in ``frame`` (``tf``: ``frame`` <- scan)."""
         matrix = tf.matrix()
         points = (result.completed_points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]).astype(np.float32)
         moved = replace(
@@ -517,69 +577,32 @@ class NodeCore:
 
     def diagnostics_values(self) -> dict[str, str]:
         """The key/values of the node's diagnostics status (counters and latency percentiles)."""
-        stats = self.pairer.stats
-        latency = np.array(self.latency_ms) if self.latency_ms else np.zeros(1)
-        values = {
-            "frames": self.frames,
-            "failed_frames": self.failures,
-            "paired": stats.paired,
-            "dropped_clouds": stats.dropped_clouds,
-            "dropped_detections": stats.dropped_detections,
-            "dropped_pairs_newest_wins": stats.dropped_pairs,
-            "frames_without_transform": self.no_transform,
-            "parameter_changes": self.parameter_changes,
-            "backend": self.parameters["backend"],
-            "scans_received": self.scans,
-            "detections_received": self.detection_arrays,
-            "detections_without_scans": self.detections_without_scans,
-            "last_unpaired_gap_ms": f"{stats.last_drop_gap_ns / 1e6:.1f}" if stats.last_drop_gap_ns >= 0 else "-",
-            **{f"skipped_{reason.replace(' ', '_')}": n for reason, n in sorted(self.skipped_totals.items())},
-            "latency_p50_ms": f"{np.percentile(latency, 50):.1f}",
-            "latency_p95_ms": f"{np.percentile(latency, 95):.1f}",
-        }
-        if self.mode == "filter":
-            for k in DECISIONS:
-                values[f"detections_{k}"] = self.decisions[k]
-                values[f"last_frame_{k}"] = self.last_decisions[k]
-        return {k: str(v) for k, v in values.items()}
+        return node_values(self)
 
     def diagnostics_message(self):
-        """A ``diagnostic_msgs/DiagnosticArray`` of the runtime's class flavour (level WARN after failures)."""
-        classes = self.runtime.classes
-        failed = self.failures
-        level = 1 if failed or self.scans_stalled else 0
-        message = f"{self.frames} frames"
-        if self.scans_stalled:
-            message += f"; detections arrive but no scan for more than {self._scan_timeout_ns / 1e9:g} s"
-        status = new_message(
-            "diagnostic_msgs/msg/DiagnosticStatus",
-            classes,
-            level=bytes([level]) if _byte_is_bytes(classes) else level,
-            name=f"pcc_ros: {self.node_name}",
-            message=message,
-            hardware_id="pcc_ros",
-            values=[
-                new_message("diagnostic_msgs/msg/KeyValue", classes, key=k, value=v)
-                for k, v in self.diagnostics_values().items()
-            ],
-        )
-        header = make_header("", self.runtime.now_ns(), classes)
-        return new_message("diagnostic_msgs/msg/DiagnosticArray", classes, header=header, status=[status])
+        """A ``diagnostic_msgs/DiagnosticArray`` of the runtime's class flavour: WARN, with the reasons,
+        while lost work was counted lately (:mod:`pcc_ros.runtime.diagnostics`) or scans stall."""
+        return node_status(self)
 
     def publish_diagnostics(self) -> None:
+        publisher = self.pub_diagnostics
+        if publisher is None:  # not serving
+            return
         try:
-            self.pub_diagnostics.publish(self.diagnostics_message())
+            self._watch_clock()
+            publisher.publish(self.diagnostics_message())
         except Exception as exc:  # diagnostics must never take the node down
             self.log.error(f"diagnostics failed: {type(exc).__name__}: {exc}")
 
     def shutdown(self) -> None:
-        """Stop the worker (pending pair dropped); the runtime closes its own entities."""
+        """Stop serving: the worker ends (a pending pair is dropped) and nothing is published any
+        more; the backend stays loaded (a managed node's ``deactivate``: :meth:`connect` serves
+        again). The runtime closes its own entities."""
         self._running = False
         self.slot.close()
         if self._worker is not None:
             self._worker.join(timeout=2.0)
+            self._worker = None
+        self.publishers = {}
+        self.pub_diagnostics = None
 
-
-def _byte_is_bytes(classes) -> bool:
-    """rclpy's generated classes type ``byte`` fields as ``bytes``; rosbags uses ints."""
-    return not is_rosbags_class(classes("diagnostic_msgs/msg/DiagnosticStatus"))

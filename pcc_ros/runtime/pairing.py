@@ -68,6 +68,15 @@ class StampPairer(Generic[T, U]):
         with self._lock:
             return len(self._left), len(self._right)
 
+    def clear(self) -> None:
+        """Forget every queued message and recent stamp (the clock jumped back: they belong to the old
+        timeline); the counters stay."""
+        with self._lock:
+            self._left.clear()
+            self._right.clear()
+            self._recent_left.clear()
+            self._recent_right.clear()
+
     def _add(self, own: deque, other: deque, stamp_ns: int, item, left: bool):
         (self._recent_left if left else self._recent_right).append(stamp_ns)
         best = None

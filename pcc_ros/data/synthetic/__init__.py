@@ -6,7 +6,7 @@ KITTI tracking devkit layout plus the complete canonical shape of every labelled
 See ``docs/synthcars.md``.
 """
 
-__all__ = ["generate", "load_shape"]
+__all__ = ["generate", "load_families", "load_shape"]
 
 
 def __getattr__(name: str):

@@ -303,3 +303,20 @@ def load_shape(root: str | Path, sequence: str | int, track_id: str | int) -> np
     if not np.isfinite(array).all():
         raise DataError(f"{path}: non-finite coordinates")
     return array.astype(np.float32, copy=False)
+
+
+def load_families(root: str | Path) -> dict[tuple[str, str], str]:
+    """``(sequence, track id) -> vehicle family`` (``sedan``, ``van``, ...) of a SynthCars root,
+    read from its ``meta.json`` (per-family evaluation); empty when the root has no meta.json or
+    it records no tracks (a hand-made root with splits only).
+
+    Raises :class:`DataError` for a meta.json that exists but cannot be read."""
+    path = Path(root) / "meta.json"
+    if not path.is_file():
+        return {}
+    try:
+        sequences = json.loads(path.read_text()).get("sequences", {})
+        return {(str(seq), str(track)): str(info["name"]) for seq, entry in sequences.items()
+                for track, info in entry.get("tracks", {}).items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise DataError(f"{path}: unreadable SynthCars meta.json ({exc})") from exc

@@ -42,6 +42,8 @@ class SceneParams:
     furniture_per_100m: float = 6.0  # bollard rows, signs, bicycle racks, fences (furniture.py), per side
     margin: float = 90.0  # street extends this far behind the first / beyond the last ego pose
     cull_range: float = 125.0
+    #: vehicle families and weights, ``(("van", 1.0), ("suv", 1.0))`` (vehicles.family_weights); empty: street mix
+    vehicle_mix: tuple = ()
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -200,8 +202,9 @@ def _place(kind: int, name: str, mesh: M.Mesh, x: float, y: float, base_z: float
     return SceneObject(kind, name, m, size, pos, yaw, **kw)
 
 
-def _vehicle(rng: np.random.Generator, x: float, y: float, yaw: float, track: int, velocity=(0.0, 0.0)) -> SceneObject:
-    model = random_vehicle(rng)
+def _vehicle(rng: np.random.Generator, x: float, y: float, yaw: float, track: int, velocity=(0.0, 0.0),
+             mix: tuple = ()) -> SceneObject:
+    model = random_vehicle(rng, mix=mix)
     return SceneObject(
         KIND_VEHICLE, model.family, model.mesh, model.size, np.array([x, y, model.size[2] / 2]), yaw,
         np.asarray(velocity, dtype=np.float64), model.label, track, 0.0, model,
@@ -279,7 +282,7 @@ def build_street(frames: int, params: SceneParams, rng: np.random.Generator) -> 
             yaw_base = (np.pi / 2 if rng.random() < 0.5 else -np.pi / 2) if perpendicular else (
                 0.0 if side < 0 or rng.random() < 0.5 else np.pi)
             yaw = yaw_base + float(rng.normal(0, 0.04 if not perpendicular else 0.08))
-            obj = _vehicle(rng, 0.0, 0.0, yaw, track)
+            obj = _vehicle(rng, 0.0, 0.0, yaw, track, mix=p.vehicle_mix)
             extent = obj.size[1] if perpendicular else obj.size[0]
             x += extent / 2
             inset = obj.size[0] / 2 + 0.3 if perpendicular else obj.size[1] / 2 + 0.25
@@ -366,7 +369,8 @@ def build_street(frames: int, params: SceneParams, rng: np.random.Generator) -> 
             if speed < 0.5 and speed >= 0:
                 speed = 0.0
             while x < x_end:
-                obj = _vehicle(rng, 0.0, 0.0, 0.0 if direction > 0 else np.pi, track, velocity=(speed, 0.0))
+                obj = _vehicle(rng, 0.0, 0.0, 0.0 if direction > 0 else np.pi, track, velocity=(speed, 0.0),
+                               mix=p.vehicle_mix)
                 obj.position[:2] = [x, y + float(rng.normal(0, 0.1))]
                 objects.append(obj)
                 track += 1

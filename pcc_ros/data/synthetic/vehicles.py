@@ -1,4 +1,4 @@
-"""Procedural vehicle meshes: six families with shaped bodies, wheels and wheel arches.
+"""Procedural vehicle meshes: seven families with shaped bodies, wheels and wheel arches.
 
 A body is lofted along its length: a side profile (roof line over the bumper, trunk
 deck, rear window, roof, windshield, hood) gives the top of each cross-section, the
@@ -8,10 +8,13 @@ greenhouse tumblehome) and at the rounded bumper corners. Wheels are closed cyli
 standing on the ground inside the arches; a pickup adds bed rails and a tailgate over
 a lowered bed floor. Each part is a closed component (see :mod:`.mesh`).
 
-Sizes follow KITTI: the families labelled ``Car`` (sedan, hatchback, wagon, SUV) are
+Sizes follow KITTI: the families labelled ``Car`` (sedan, hatchback, wagon = estate, SUV) are
 mixed so their mean box is about 3.9 x 1.6 x 1.5 m (KITTI's car mean is 3.88 x 1.63 x
 1.53 m); vans and pickups are larger and labelled ``Van``, as KITTI's annotators did
-for vans, minibuses and most pickups / large utility vehicles.
+for vans, minibuses and most pickups / large utility vehicles. Small box trucks (a cab in
+front of a taller cargo box, ``Truck``) are not in the default street mix; a scene asks for
+them, or for any other mix, with ``SceneParams.vehicle_mix`` (``pcc synth --vehicle-mix``).
+The per-family sizes and the production vehicles they are modelled on: ``docs/synthcars.md``.
 
 The mesh is centred on its tight axis-aligned box, x to the front, z up, so the box
 *is* the ground-truth label and the canonical frame is a plain scaling.
@@ -26,8 +29,11 @@ import open3d as o3d
 
 from pcc_ros.data.synthetic.mesh import GLASS, PAINT, TYRE, Mesh, box, concatenate, cylinder, sample_surface, tube
 
-FAMILIES = ("sedan", "hatchback", "wagon", "suv", "van", "pickup")
-LABELS = {"sedan": "Car", "hatchback": "Car", "wagon": "Car", "suv": "Car", "van": "Van", "pickup": "Van"}
+FAMILIES = ("sedan", "hatchback", "wagon", "suv", "van", "pickup", "truck")
+LABELS = {"sedan": "Car", "hatchback": "Car", "wagon": "Car", "suv": "Car", "van": "Van", "pickup": "Van",
+          "truck": "Truck"}
+#: Other names of a family (British usage: an estate car is a station wagon).
+ALIASES = {"estate": "wagon", "station_wagon": "wagon", "minivan": "van", "box_truck": "truck"}
 # Street mix: car families dominate as on KITTI's streets.
 FAMILY_WEIGHTS = {"sedan": 0.28, "hatchback": 0.34, "wagon": 0.14, "suv": 0.12, "van": 0.08, "pickup": 0.04}
 
@@ -39,6 +45,7 @@ _SIZE = {
     "suv": ((4.25, 0.25), (1.78, 0.06), (1.68, 0.06)),
     "van": ((4.90, 0.30), (1.90, 0.06), (1.98, 0.12)),
     "pickup": ((5.10, 0.30), (1.88, 0.06), (1.80, 0.07)),
+    "truck": ((6.20, 0.45), (2.05, 0.06), (2.85, 0.15)),
 }
 
 _STATIONS = 44
@@ -56,9 +63,33 @@ class VehicleModel:
     params: dict = field(default_factory=dict)
 
 
-def sample_family(rng: np.random.Generator) -> str:
-    names = list(FAMILY_WEIGHTS)
-    p = np.array([FAMILY_WEIGHTS[n] for n in names])
+def family_weights(mix: object = None) -> dict[str, float]:
+    """A vehicle mix as ``{family: weight}``: ``None`` / empty is the street mix
+    (:data:`FAMILY_WEIGHTS`); otherwise a mapping or ``(family, weight)`` pairs (the form a
+    ``SceneParams`` stores), aliases (``estate``) resolved. Unknown families, negative weights
+    or an all-zero mix raise ``ValueError`` naming them."""
+    if not mix:
+        return dict(FAMILY_WEIGHTS)
+    pairs = mix.items() if isinstance(mix, dict) else mix
+    out: dict[str, float] = {}
+    for name, weight in pairs:  # a handful of families
+        family = ALIASES.get(str(name), str(name))
+        if family not in FAMILIES:
+            raise ValueError(f"unknown vehicle family {name!r} (known: {', '.join(FAMILIES)}; "
+                             f"aliases: {', '.join(ALIASES)})")
+        if not float(weight) >= 0:
+            raise ValueError(f"vehicle family {name!r}: weight must be >= 0, got {weight}")
+        out[family] = out.get(family, 0.0) + float(weight)
+    if sum(out.values()) <= 0:
+        raise ValueError(f"vehicle mix {dict(out)} has no positive weight")
+    return out
+
+
+def sample_family(rng: np.random.Generator, mix: object = None) -> str:
+    """A family drawn from ``mix`` (:func:`family_weights`; default the street mix)."""
+    weights = family_weights(mix)
+    names = list(weights)
+    p = np.array([weights[n] for n in names])
     return names[int(rng.choice(len(names), p=p / p.sum()))]
 
 
@@ -92,6 +123,11 @@ def _profile(family: str, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
         pts = [(0, 0.40), (0.012, 0.93), (0.03, 1.0), (roof_end, 1.0), (ws, hood + 0.08),
                (0.975, hood), (1.0, hood - 0.14)]
         glass = (roof_end - 0.18, ws)
+    elif family == "truck":  # a tall cargo box behind a lower cab with a near-vertical windscreen
+        cab, box_end = j(0.70, 0.78), j(0.70, 0.75)
+        pts = [(0, 0.30), (0.006, 0.97), (0.015, 1.0), (box_end, 1.0), (box_end + 0.012, cab),
+               (0.90, cab), (0.975, 0.62 * cab), (1.0, 0.45 * cab)]
+        glass = (box_end + 0.04, 0.975)
     elif family == "pickup":
         floor, hood = j(0.50, 0.56), j(0.62, 0.68)
         bed, roof_end, ws = j(0.36, 0.42), j(0.60, 0.64), j(0.72, 0.76)
@@ -109,13 +145,16 @@ def build_vehicle(family: str, rng: np.random.Generator) -> VehicleModel:
     length = float(np.clip(rng.normal(lm, ls), lm - 2.5 * ls, lm + 2.5 * ls))
     width = float(np.clip(rng.normal(wm, ws), wm - 2.5 * ws, wm + 2.5 * ws))
     height = float(np.clip(rng.normal(hm, hs), hm - 2.5 * hs, hm + 2.5 * hs))
-    big = family in ("suv", "van", "pickup")
+    big = family in ("suv", "van", "pickup", "truck")
     wheel_r = float(rng.uniform(0.33, 0.39) if big else rng.uniform(0.28, 0.32))
     wheel_w = float(rng.uniform(0.20, 0.26) if big else rng.uniform(0.17, 0.22))
     clearance = float(rng.uniform(0.20, 0.26) if big else rng.uniform(0.13, 0.18))
-    front_oh = float(rng.uniform(0.17, 0.22) * length) if family != "van" else float(rng.uniform(0.12, 0.16) * length)
+    short_nose = family in ("van", "truck")
+    front_oh = float(rng.uniform(0.12, 0.16) * length) if short_nose else float(rng.uniform(0.17, 0.22) * length)
     rear_oh = float(rng.uniform(0.15, 0.22) * length)
     tumble = float(rng.uniform(0.10, 0.20))
+    if family == "truck":  # a cargo box has straight walls
+        tumble *= 0.2
     squareness = float(rng.uniform(4.0, 7.0))
     key, marks = _profile(family, rng)
     belt = marks["hood"] + float(rng.uniform(0.02, 0.06))
@@ -198,9 +237,12 @@ def build_vehicle(family: str, rng: np.random.Generator) -> VehicleModel:
     return VehicleModel(family, LABELS[family], mesh, hi - lo, params)
 
 
-def random_vehicle(rng: np.random.Generator, family: str | None = None) -> VehicleModel:
-    """A vehicle of a family drawn from the street mix (or the given family)."""
-    return build_vehicle(family or sample_family(rng), rng)
+def random_vehicle(rng: np.random.Generator, family: str | None = None, mix: object = None) -> VehicleModel:
+    """A vehicle of the given family (an alias such as ``estate`` accepted), else of one drawn from
+    ``mix`` (:func:`family_weights`; default the street mix, whose draws are unchanged)."""
+    if family is not None:
+        family = ALIASES.get(family, family)
+    return build_vehicle(family or sample_family(rng, mix), rng)
 
 
 def surface_samples(model: VehicleModel, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -1,0 +1,122 @@
+"""The evidence filter's profile terms: where a box's returns lie, not only how many there are.
+
+The ray terms of :mod:`pcc_ros.pipeline.evidence` say whether *something* solid fills a box.
+A pole, a sign, a pedestrian or a bush inside a car-sized box is solid too; a box shifted off
+its car still holds part of the car. These terms look at the arrangement of the returns in and
+around each box (definitions in ``docs/filter.md``, "Profile terms"):
+
+* ``above``: the share of the returns over the box footprint, from :data:`EVIDENCE_GROUND`
+  above the bottom to :data:`ABOVE_REACH` over the top, that lie above the top. A car has sky
+  over its roof; a pole, sign, tree or lamp post continues upward.
+* ``fill``: the azimuth span of the in-box returns over the box's own azimuth span seen from
+  the sensor, both widened by one azimuth step of the beam model (so a far car a few columns
+  wide is not punished for the sensor's resolution). A car's visible faces cover its whole
+  silhouette; a pole, bollard or pedestrian covers a sliver of it.
+* ``spill``: log of (returns in a shell :data:`SHELL` metres wide around the box's sides, at
+  body height + 1) / (returns in the box at body height + 1). A box displaced off its car has
+  the car's returns straddling a face; a box on a car has them inside.
+* ``overlap``: the largest share of the box's footprint covered by another box of the frame
+  with a higher detector score (ties: the earlier box). A duplicate the detector's NMS let
+  through; only the order of the scores is used, never their scale.
+
+All four are dimensionless and read the scan geometry only through the sensor's azimuth step
+(the beam model's), so one weight set serves every sensor. One vectorised pass of
+:class:`pcc_ros.geometry.boxes.BoxCandidates` over the scan against the boxes grown by the
+shell and the reach above.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pcc_ros.geometry.beams import SensorModel
+from pcc_ros.geometry.boxes import BoxCandidates, iou_bev
+from pcc_ros.geometry.canonical import to_box_local
+from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, angular_window
+from pcc_ros.types import Boxes
+
+#: The profile terms, in the order :func:`profile_terms` returns them.
+PROFILE_TERMS = ("above", "fill", "spill", "overlap", "depth", "top")
+#: What each term measures (the node's parameter descriptions of their weights).
+PROFILE_TERM_DOCS = {
+    "above": "the share of the returns over the box footprint that lie above its top (up to 1.5 m over it)",
+    "fill": "the share of the box's azimuth span its returns cover",
+    "spill": "log((returns in a 0.6 m shell around the box's sides + 1) / (returns in the box + 1))",
+    "overlap": "the largest share of the box footprint a higher-scored box covers",
+    "depth": "how deep behind the box's near surface its returns lie (share of its depth along each ray)",
+    "top": "the highest in-box return's height as a share of the box height",
+}
+#: Metres above the box top searched for returns of an object continuing upward.
+ABOVE_REACH = 1.5
+#: Metres of the shell around the box's sides searched for returns spilling out of it.
+SHELL = 0.6
+#: Metres beyond the box's sides that still count as in it: a detector's box is tight, and a
+#: car's near face lies on its boundary, half its returns a hair outside.
+FACE_MARGIN = 0.1
+
+
+def covered_share(boxes: Boxes) -> np.ndarray:
+    """Per box, the largest share of its BEV footprint that a box with a higher score (ties:
+    an earlier box) covers: the duplicate check an NMS would make, measured, not applied."""
+    n = len(boxes)
+    if n < 2:
+        return np.zeros(n)
+    iou = iou_bev(boxes, boxes)
+    area = boxes.size[:, 0] * boxes.size[:, 1]
+    # intersection from IoU: I = IoU * (A_i + A_j) / (1 + IoU)
+    inter = iou * (area[:, None] + area[None, :]) / (1.0 + iou)
+    score = np.nan_to_num(np.asarray(boxes.score, dtype=np.float64), nan=-np.inf)
+    idx = np.arange(n)
+    better = (score[None, :] > score[:, None]) | ((score[None, :] == score[:, None]) & (idx[None, :] < idx[:, None]))
+    share = np.where(better, inter / np.maximum(area[:, None], 1e-12), 0.0)
+    return np.clip(share.max(axis=1), 0.0, 1.0)
+
+
+def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel) -> dict[str, np.ndarray]:
+    """``above``, ``fill``, ``spill``, ``overlap``, ``depth`` and ``top`` of every box (module
+    docstring), plus the raw counts behind them (``n_body``, ``n_above``, ``n_shell``).
+
+    ``depth``: how deep behind the box's near surface its body returns lie, as a share of the
+    box's depth along each return's ray (0: where the ray enters the box, 1: its far side),
+    averaged with one prior return at 0.5 (no return: 0.5, undecided). A car fills its box: the
+    rays stop at its faces; a pole, a pedestrian or a bollard in a car box stops them deep
+    inside; a box shifted off its car holds the car's returns at its back. ``top``: the highest
+    body return over the box bottom, as a share of the box height (0 without one)."""
+    n = len(boxes)
+    if n == 0:
+        zero = np.zeros(0)
+        return {k: zero for k in (*PROFILE_TERMS, "n_body", "n_above", "n_shell")}
+    centre, size = boxes.center.copy(), boxes.size.copy()
+    size[:, :2] += 2 * (SHELL + FACE_MARGIN)
+    size[:, 2] += ABOVE_REACH
+    centre[:, 2] += ABOVE_REACH / 2
+    grown = Boxes(centre, size, boxes.yaw)
+    candidates = BoxCandidates(points, grown)
+    pair_point, starts, (lx, ly, lz) = candidates.pairs(local=True)
+    cos, sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
+    cx, cy, cz = boxes.center.T
+    origin = np.ascontiguousarray(np.stack(to_box_local(0.0, 0.0, 0.0, cx, cy, cz, cos, sin), axis=1))
+    centre_az = np.arctan2(cy, cx)
+    pts = candidates.points
+    px, py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
+    out = np.zeros((n, 7))
+    from pcc_ros.pipeline import profile_kernels as kernels  # numba: heavy, only when measuring
+
+    kernels.profile_pairs(lx, ly, lz, px, py, pair_point, starts, np.ascontiguousarray(boxes.size / 2), origin,
+                          centre_az, ABOVE_REACH / 2, FACE_MARGIN, EVIDENCE_GROUND, out)
+    n_body, n_above, n_shell = out[:, kernels.BODY], out[:, kernels.ABOVE], out[:, kernels.SHELL]
+    has = n_body > 0
+    az_lo, az_hi, *_ = angular_window(boxes)
+    step = np.deg2rad(sensor.azimuth_resolution_deg)
+    span = out[:, kernels.AZ_MAX] - out[:, kernels.AZ_MIN]
+    fill = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
+    top = np.where(has, (out[:, kernels.TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0)
+    return {
+        "above": n_above / (n_above + n_body + 1.0),
+        "fill": fill,
+        "spill": np.log((n_shell + 1.0) / (n_body + 1.0)),
+        "overlap": covered_share(boxes),
+        "depth": (out[:, kernels.DEPTH_SUM] + 0.5) / (n_body + 1.0),
+        "top": top,
+        "n_body": n_body, "n_above": n_above, "n_shell": n_shell,
+    }

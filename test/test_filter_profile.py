@@ -1,0 +1,90 @@
+"""The filter's profile terms (pcc_ros.pipeline.evidence_profile) on ray-cast scenes where each
+term's value is known: a car in its box against a pole, a box shifted off its car, a duplicate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_filter_evidence import BOX, CAR_HI, CAR_LO, GROUND_Z, SENSOR, cast
+
+from pcc_ros.pipeline.evidence_profile import covered_share, profile_terms
+from pcc_ros.pipeline.filter import FilterConfig, false_probability, filter_terms
+from pcc_ros.types import Boxes
+
+CAR = (CAR_LO, CAR_HI)
+#: a pole (0.2 m square, 4 m tall) in the middle of the car box
+POLE = ((16.0, -0.1, GROUND_Z), (16.2, 0.1, GROUND_Z + 4.0))
+#: a pedestrian-sized column (0.5 x 0.5 m, 1.5 m: no taller than the box) at the box's centre
+COLUMN = ((15.85, -0.25, GROUND_Z), (16.35, 0.25, GROUND_Z + 1.5))
+
+
+def terms(targets, boxes=BOX):
+    return profile_terms(cast(targets), boxes, SENSOR)
+
+
+def test_above_is_zero_over_a_car_and_most_returns_over_a_pole():
+    car, pole = terms([CAR]), terms([POLE])
+    assert car["above"][0] == 0.0 and car["n_body"][0] > 100
+    # the pole's returns: one per ring and azimuth column on its face; the rings crossing it
+    # from the box top to 1.5 m over it, against those from 0.3 m over the bottom to the top
+    z = 16.0 * np.tan(SENSOR.ring_elevations())
+    top = GROUND_Z + 1.5
+    over, body = ((z > top) & (z <= top + 1.5)).sum(), ((z >= GROUND_Z + 0.3) & (z <= top)).sum()
+    assert over > 3 and pole["above"][0] == pytest.approx(over / (over + body), abs=0.05)
+
+
+def test_depth_is_near_the_surface_for_a_car_and_deep_for_a_column():
+    car, column = terms([CAR]), terms([COLUMN])
+    # the car's faces are the box's faces: its returns lie where the rays enter the box
+    assert car["depth"][0] < 0.05
+    # the column's near face is 0.25 m before the box centre along a ray of 4.2 m of box
+    assert column["depth"][0] == pytest.approx((2.1 - 0.25) / 4.2, abs=0.05)
+    # an empty box: undecided
+    assert terms([])["depth"][0] == 0.5
+
+
+def test_fill_covers_the_car_silhouette_and_a_sliver_of_it_for_a_pole():
+    car, pole, empty = terms([CAR]), terms([POLE]), terms([])
+    assert car["fill"][0] > 0.9
+    # 0.2 m of the box's 1.8 m width seen at 16 m, widened by one azimuth step each
+    assert 0.05 < pole["fill"][0] < 0.2
+    assert empty["fill"][0] == 0.0
+
+
+def test_boxes_shifted_off_their_car():
+    on = terms([CAR])
+    assert on["n_shell"][0] == 0 and on["spill"][0] < -4
+    # a box width across: the car's returns lie in the shell beside the box, a strip inside
+    across = Boxes([[16.1, 1.8, GROUND_Z + 0.75]], [[4.2, 1.8, 1.5]], [0.0], ["Car"], [0.3])
+    off = terms([CAR], across)
+    assert off["n_shell"][0] > 3 * off["n_body"][0] > 0 and off["spill"][0] > on["spill"][0] + 6
+    # 2.5 m along, towards the sensor: the car's face (x = 14) lies 2.5 m behind the box's (11.5)
+    along = Boxes([[13.6, 0.0, GROUND_Z + 0.75]], [[4.2, 1.8, 1.5]], [0.0], ["Car"], [0.3])
+    assert terms([CAR], along)["depth"][0] == pytest.approx((2.5 - 0.1) / 4.2, abs=0.05)
+
+
+def test_overlap_is_the_footprint_share_a_higher_scored_box_covers():
+    boxes = Boxes([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 10.0, 0.0]], [[4.0, 2.0, 1.5]] * 3, [0.0] * 3,
+                  ["Car"] * 3, [0.9, 0.5, 0.7])
+    share = covered_share(boxes)
+    assert share.tolist() == pytest.approx([0.0, 0.5, 0.0])
+    # equal scores: the earlier box is the better one
+    tied = Boxes(boxes.center[:2], boxes.size[:2], boxes.yaw[:2], ["Car"] * 2, [0.5, 0.5])
+    assert covered_share(tied).tolist() == pytest.approx([0.0, 0.5])
+    # rotated 90 deg on the same centre: a 2 x 2 m square of the 4 x 2 m box
+    cross = Boxes(np.zeros((2, 3)), [[4.0, 2.0, 1.5]] * 2, [0.0, np.pi / 2], ["Car"] * 2, [0.9, 0.1])
+    assert covered_share(cross)[1] == pytest.approx(0.5, abs=1e-6)
+
+
+def test_shipped_rule_rejects_the_pole_box_and_keeps_the_car():
+    config = FilterConfig()
+    car = false_probability(filter_terms(cast([CAR]), BOX, config, sensor=SENSOR), config)[0]
+    pole = false_probability(filter_terms(cast([POLE]), BOX, config, sensor=SENSOR), config)[0]
+    assert car < config.reject_threshold < pole
+
+
+def test_no_boxes_and_no_points():
+    empty = profile_terms(np.zeros((0, 3), np.float32), BOX, SENSOR)
+    assert empty["fill"][0] == 0.0 and empty["depth"][0] == 0.5 and empty["above"][0] == 0.0
+    none = profile_terms(cast([CAR]), Boxes(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)), SENSOR)
+    assert all(len(v) == 0 for v in none.values())

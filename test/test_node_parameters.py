@@ -1,0 +1,413 @@
+"""Every node parameter, changed through the node core, changes what the node does.
+
+One case per row of the parameter table (:func:`pcc_ros.pipeline.config.parameter_table`): a
+new parameter without a case here fails :func:`test_every_parameter_has_a_case`. Each case
+starts a :class:`~pcc_ros.runtime.node.NodeCore` on the in-process graph and sends it one
+frame, then sends the same frame to a node whose parameter was changed the way the rclpy host
+changes it (``set_parameters``; a read-only one by starting the node with it): what it published (its output
+messages, byte for byte, and its counters) must differ, and where the effect has a direction
+it is checked too. The QoS parameters are also read back from the real rclpy graph.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from conftest import require_rclpy
+from test_trapcc import TINY  # a TraPCC network that loads in well under a second
+
+from pcc_ros.msg.detections import detection_array_from_boxes
+from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
+from pcc_ros.msg.typestore import get_typestore
+from pcc_ros.pipeline.config import parameter_table
+from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, QoS, Transform
+from pcc_ros.runtime.local import LocalGraph, LocalRuntime
+from pcc_ros.runtime.node import OUTPUTS, NodeCore
+from pcc_ros.types import Boxes
+
+CLOUD = "sensor_msgs/msg/PointCloud2"
+DETS = "vision_msgs/msg/Detection3DArray"
+STAMP = 1_000_000_000
+DET_LAG = 10_000_000  # detections 10 ms after their scan: paired within the default sync_slop (50 ms)
+
+def _scene(rng: np.random.Generator) -> tuple[np.ndarray, Boxes]:
+    """Two cars (400 and 300 returns in their boxes, car a's on its right half only, as a sensor
+    beside it sees it; a few just beside car a), an empty box, ground."""
+    car1 = rng.uniform([-2, -0.85, -0.7], [2, 0.0, 0.7], size=(400, 3)) + np.array([10, 0, -0.8])
+    car2 = rng.uniform([-2, -0.8, -0.7], [2, 0.8, 0.7], size=(300, 3)) + np.array([6, 5, -0.8])
+    beside = rng.uniform([-2, -1.3, -0.7], [2, -0.95, 0.7], size=(60, 3)) + np.array([10, 0, -0.8])
+    ground = rng.uniform([0, -10, -1.7], [30, 10, -1.6], size=(500, 3))
+    points = np.concatenate([car1, car2, beside, ground]).astype(np.float32)
+    boxes = Boxes([[10, 0, -0.8], [6, 5, -0.8], [20, -6, -0.8]], [[4.2, 1.8, 1.5], [4.2, 1.7, 1.5], [4.0, 1.7, 1.5]],
+                  [0.0, 0.1, 0.0], ["Car", "Car", "Car"], [0.9, 0.8, 0.2], ["a", "b", "c"])
+    return points, boxes
+
+
+def _messages(stamp_ns: int, tilt: float = 0.0):
+    points, boxes = _scene(np.random.default_rng(0))
+    cloud = create_cloud(points, ["x", "y", "z"], "velodyne", stamp_ns)
+    dets = detection_array_from_boxes(boxes, "velodyne", stamp_ns + DET_LAG)
+    if tilt:  # box "a" rolled by ``tilt`` (a detector's 3D box that is not upright)
+        q = dets.detections[0].bbox.center.orientation
+        q.x, q.w = float(np.sin(tilt / 2)), float(np.cos(tilt / 2))
+    return cloud, dets
+
+
+def _wire(msg, msgtype: str) -> bytes:
+    return bytes(get_typestore().serialize_cdr(msg, msgtype))
+
+
+@dataclass
+class Case:
+    """How to see one parameter act: the node's mode and starting parameters, the new value,
+    the scene's options, and an extra check of the direction ``check(before, after)``."""
+
+    mode: str
+    value: Any
+    base: dict[str, Any] = field(default_factory=dict)
+    tilt: float = 0.0
+    detections_qos: QoS = RELIABLE
+    check: Any = None
+    learned: bool = False  # the base backend is the tiny TraPCC checkpoint
+
+
+def _completed(obs) -> np.ndarray:
+    msgs = obs.messages.get("completed", [])
+    return read_xyz(msgs[-1], ("instance", "source")) if msgs else np.zeros((0, 5), np.float32)
+
+
+def _instances(obs) -> set[int]:
+    return {int(i) for i in np.unique(_completed(obs)[:, 3]) if i >= 0}
+
+
+def _ids(obs, output: str) -> list[str]:
+    msgs = obs.messages.get(output, [])
+    return [d.id for d in msgs[-1].detections] if msgs else []
+
+
+def _fewer_instances(before, after) -> None:
+    assert len(_instances(after)) < len(_instances(before)), (_instances(before), _instances(after))
+
+
+def _fewer_points(before, after) -> None:
+    assert len(_completed(after)) < len(_completed(before)), (len(_completed(before)), len(_completed(after)))
+
+
+def _more_points(before, after) -> None:
+    assert len(_completed(after)) > len(_completed(before)), (len(_completed(before)), len(_completed(after)))
+
+
+def _nothing_after(before, after) -> None:
+    assert before.frames == 1 and after.frames == 0, (before.frames, after.frames)
+
+
+def _all_rejected(before, after) -> None:
+    assert sorted(_ids(after, "detections_rejected")) == ["a", "b", "c"]
+    assert _ids(after, "detections_filtered") == [] != _ids(before, "detections_filtered")
+
+
+def _nothing_received(before, after) -> None:
+    assert any(before.wire.values()) and not any(after.wire.values())
+
+
+def _none_rejected(before, after) -> None:
+    assert _ids(before, "detections_rejected") and _ids(after, "detections_rejected") == []
+
+
+TRAPCC_RULE = {"rule": "trapcc", "backend": "input"}
+#: The shape-mismatch knobs: the TraPCC rule on densify's completions (points beside the crop's:
+#: a mismatch above 0; the mirror's and the input's contain the crop and its side view, scoring 0).
+MISMATCH = {"rule": "trapcc", "backend": "densify"}
+#: ... and the contour term's: a completion that does not cover the crop's silhouette (the tiny
+#: network's; the baselines' all do, scoring 0), the MCD term scaled down so the score is not saturated.
+CONTOUR = {"rule": "trapcc", "mcd_scale": 10.0}
+#: parameter -> how to see it act (completion cases use the mirror backend unless ``base`` says).
+CASES: dict[str, Case] = {
+    "backend": Case("completion", "input", check=_fewer_points),  # the mirror adds each car's reflection
+    "checkpoint": Case("completion", "SECOND", learned=True),  # other weights, other completions
+    "device": Case("completion", "cuda", learned=True),  # special: see test_each_parameter_changes_the_node
+    "classes": Case("completion", ["Van"], check=_fewer_instances),
+    "min_points": Case("completion", 350, check=_fewer_instances),  # car b holds 300 returns
+    "max_instances": Case("completion", 1, check=_fewer_instances),
+    "box_margin": Case("completion", 0.5, check=_more_points),  # the returns beside car a join it
+    "ground_margin": Case("completion", 1.0, check=_fewer_points),  # the lower metre counts as ground
+    "half_precision": Case("completion", True, learned=True),
+    "batch_size": Case("completion", 1, base={"workers": 1}, learned=True),  # special: network calls counted
+    "workers": Case("completion", 1, base={"workers": 2}, learned=True),  # special: threads counted
+    "decode_density": Case("completion", 1, learned=True, check=_fewer_points),
+    "include_input_points": Case("completion", True, check=_more_points),
+    "include_observed_points": Case("completion", False, check=_fewer_points),
+    "class_thresholds": Case("filter", "Car:0.1", base=TRAPCC_RULE, check=_none_rejected),
+    "class_map": Case("completion", "Car:Truck"),  # detector id Car now names a class not completed
+    "max_box_size": Case("completion", 3.0),
+    "max_box_range": Case("completion", 8.0, check=_fewer_instances),  # car a's centre is 10 m ahead
+    "max_box_tilt": Case("completion", 0.1, tilt=0.2, check=_fewer_instances),
+    "max_crop_work": Case("completion", 300, check=_fewer_instances),
+    "rule": Case("filter", "trapcc", base={"backend": "input"}),
+    "w_bias": Case("filter", 40.0, base={"backend": "input"}, check=_all_rejected),
+    "w_density": Case("filter", 3.0, base={"backend": "input"}),
+    "w_free_space": Case("filter", 3.0, base={"backend": "input"}),
+    "w_ground_gap": Case("filter", -30.0, base={"backend": "input"}),
+    "w_score": Case("filter", 3.0, base={"backend": "input"}),
+    "w_mismatch": Case("filter", 3.0, base={"backend": "input"}),
+    "reject_threshold": Case("filter", 1e-6, base={"backend": "input"}, check=_all_rejected),
+    "sensor": Case("filter", "hdl32", base={"backend": "input"}),
+    # past max_instances boxes b and c are not completed: their mismatch term reads mismatch_mean
+    "mismatch_mean": Case("filter", 1.0, base={"backend": "input", "w_mismatch": 3.0, "max_instances": 1}),
+    "filter_backend": Case("filter", "densify", base={"backend": "input", "w_mismatch": 3.0}),
+    "match_threshold": Case("filter", 1.0, base=TRAPCC_RULE, check=_none_rejected),
+    "detection_threshold": Case("filter", 0.1, base=TRAPCC_RULE, check=_none_rejected),
+    "score_mapping": Case("filter", "sigmoid", base=TRAPCC_RULE, check=_none_rejected),  # sigmoid(0.2) > 0.5
+    "mcd_scale": Case("filter", 10.0, base=MISMATCH),
+    "contour_scale": Case("filter", 0.01, base=CONTOUR, learned=True),
+    "grid_cells": Case("filter", 4, base=CONTOUR, learned=True),
+    "grid_extent": Case("filter", 5.0, base=CONTOUR, learned=True),
+    "sync_slop": Case("completion", 0.0, check=_nothing_after),  # detections 10 ms late: unpaired
+    "queue_size": Case("completion", 1),  # special: an older scan waits for its detections
+    "output_frame": Case("completion", "base_link"),
+    "qos.points.reliability": Case("completion", "reliable", check=_nothing_after),  # the driver is best effort
+    "qos.points.depth": Case("completion", 1),  # special: the subscription's QoS on the graph
+    # a best-effort detections publisher: unheard by the reliable default, heard by best_effort
+    "qos.detections.reliability": Case("completion", "reliable", base={"qos.detections.reliability": "best_effort"},
+                                       detections_qos=SENSOR_DATA, check=_nothing_after),
+    "qos.detections.depth": Case("completion", 1),
+    "qos.outputs.reliability": Case("completion", "best_effort", check=_nothing_received),  # the probe: reliable
+    "qos.outputs.depth": Case("completion", 1),
+    "scan_timeout": Case("completion", 0.25),  # special: detections without scans counted
+}
+
+
+def test_every_parameter_has_a_case():
+    assert set(CASES) == {spec.name for spec in parameter_table()}, set(CASES) ^ {s.name for s in parameter_table()}
+
+
+@pytest.fixture(autouse=True)
+def _no_heap_freeze(monkeypatch):
+    """Each node start freezes the heap after a full collection (a second or more in a test
+    session's heap, tested in test_node_core): not what these tests look at, so skipped here."""
+    import pcc_ros.runtime.node as node_module
+
+    monkeypatch.setattr(node_module, "freeze_long_lived", lambda: None)
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoints(tmp_path_factory):
+    """Two tiny TraPCC checkpoints with different weights."""
+    from pcc_ros.models import create
+
+    folder = tmp_path_factory.mktemp("tiny_trapcc")
+    torch.manual_seed(0)
+    net = create("trapcc", device="cpu", **TINY)
+    first = net.save(folder / "first.safetensors")
+    with torch.no_grad():
+        for p in net.model.parameters():
+            p.add_(torch.randn_like(p) * 0.2)
+    return str(first), str(net.save(folder / "second.safetensors"))
+
+
+@dataclass
+class Observed:
+    """What one frame made the node publish."""
+
+    messages: dict[str, list]
+    wire: dict[str, list[bytes]]
+    frames: int
+    counters: dict[str, Any]
+
+
+class Harness:
+    """A node core on the in-process graph, its driver and a reliable probe of every output."""
+
+    def __init__(self, mode: str, params: dict[str, Any], case: Case) -> None:
+        self.graph = LocalGraph(simulated=True)
+        self.graph.set_transform("base_link", "velodyne", Transform((1.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0)))
+        self.case = case
+        self.core = NodeCore(LocalRuntime(self.graph, f"{mode}_node"), f"{mode}_node", mode, params, threaded=False)
+        self.got: dict[str, list] = {name: [] for name in OUTPUTS[mode]}
+        probe = LocalRuntime(self.graph, "probe")
+        for name, msgtype in OUTPUTS[mode].items():
+            probe.create_subscription(f"/{name}", msgtype, self.got[name].append, RELIABLE)
+        driver = LocalRuntime(self.graph, "driver")
+        self.pub_cloud = driver.create_publisher("/points", CLOUD, SENSOR_DATA)
+        self.pub_dets = driver.create_publisher("/detections", DETS, case.detections_qos)
+        self.counters: dict[str, Any] = {}
+
+    def _instrument(self) -> None:
+        """Count the backend's network calls and the threads they ran on (learned backends)."""
+        self.counters = {"calls": 0, "threads": set()}
+        model = getattr(self.core.pipeline.completer, "model", None)
+        if model is not None:
+            def hook(*_):
+                self.counters["calls"] += 1
+                self.counters["threads"].add(threading.get_ident())
+
+            model.register_forward_hook(hook)
+
+    def frame(self, stamp_ns: int) -> Observed:
+        self._instrument()
+        for values in self.got.values():
+            values.clear()
+        frames = self.core.frames
+        self.graph.advance_to(stamp_ns)
+        cloud, dets = _messages(stamp_ns, self.case.tilt)
+        self.pub_cloud.publish(cloud)
+        self.pub_dets.publish(dets)
+        wire = {name: [_wire(m, OUTPUTS[self.core.mode][name]) for m in msgs] for name, msgs in self.got.items()}
+        return Observed({k: list(v) for k, v in self.got.items()}, wire, self.core.frames - frames,
+                        dict(self.counters))
+
+
+_BASELINES: dict[tuple, Observed] = {}
+
+
+def _baseline(case: Case, base: dict[str, Any]) -> Observed:
+    """The frame through the unchanged node (one run per distinct starting point)."""
+    key = (case.mode, repr(sorted(base.items())), case.tilt, case.detections_qos, case.learned)
+    if key not in _BASELINES:
+        _BASELINES[key] = Harness(case.mode, base, case).frame(STAMP)
+    return _BASELINES[key]
+
+
+def _base(case: Case, checkpoints) -> dict[str, Any]:
+    base = {"backend": "mirror", **case.base}
+    if case.learned:
+        base.update(backend="trapcc", checkpoint=checkpoints[0], device="cpu")
+    return base
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_each_parameter_changes_the_node(name, tiny_checkpoints, caplog):
+    case = CASES[name]
+    spec = {s.name: s for s in parameter_table()}[name]
+    value = tiny_checkpoints[1] if case.value == "SECOND" else case.value
+    base = _base(case, tiny_checkpoints)
+
+    if name == "device":
+        node = Harness(case.mode, base, case)
+        changed = node.core.set_parameters({"device": value})
+        if torch.cuda.is_available():
+            assert changed.successful and node.core.pipeline.completer.device.type == "cuda"
+        else:  # refused, saying why; the node keeps serving on the CPU
+            assert not changed.successful and "cuda" in changed.reason.lower(), changed.reason
+            assert node.core.pipeline.completer.device.type == "cpu" and node.frame(STAMP).frames == 1
+        return
+    if name == "scan_timeout":
+        counts = []
+        for timeout in (spec.default, value):
+            core = Harness(case.mode, {**base, name: timeout}, case)
+            core.frame(STAMP)
+            for k in range(1, 6):  # scans stop; detections go on at 10 Hz
+                core.graph.advance_to(STAMP + k * 100_000_000)
+                core.pub_dets.publish(_messages(STAMP + k * 100_000_000)[1])
+            counts.append(core.core.detections_without_scans)
+        assert counts == [0, 3], counts  # 300 to 500 ms after the last scan: past 0.25 s, not past 1 s
+        # (a timeout below the detections' own period could never tell a stall from an idle publisher)
+        return
+    if name == "queue_size":
+        answered = []
+        for size in (spec.default, value):
+            core = Harness(case.mode, {**base, name: size}, case)
+            first, second = _messages(STAMP)[0], _messages(STAMP + 100_000_000)[0]
+            core.pub_cloud.publish(first)
+            core.pub_cloud.publish(second)  # with room for one scan, the first is dropped
+            core.pub_dets.publish(_messages(STAMP)[1])
+            answered.append(core.core.frames)
+        assert answered == [1, 0], answered
+        return
+    if name.startswith("qos.") and name.endswith(".depth"):
+        topic = name.split(".")[1]
+        core = Harness(case.mode, {**base, name: value}, case)
+        if topic == "outputs":
+            assert {p.qos.depth for p in core.core.publishers.values()} == {value}
+        else:
+            assert [s.qos.depth for s in core.graph._subs[f"/{topic}"]] == [value]
+        assert spec.default != value
+        return  # the real rclpy graph: test_qos_parameters_reach_the_real_rclpy_graph
+
+    # The same frame through the node as it was and through one whose parameter was changed.
+    before = _baseline(case, base)
+    if spec.read_only:
+        node = Harness(case.mode, {**base, name: value}, case)
+    else:
+        node = Harness(case.mode, base, case)
+        result = node.core.set_parameters({name: value})
+        assert result.successful, result.reason
+    after = node.frame(STAMP)
+    assert before.frames == 1, f"{name}: the unchanged node answered no frame"
+
+    if name == "batch_size":  # same completions, one network call per box instead of one per frame
+        n = len(_instances(before))
+        assert before.counters["calls"] == 1 and after.counters["calls"] == n > 1, (before.counters, after.counters)
+        return
+    if name == "workers":  # the boxes completed on one thread instead of two
+        assert len(before.counters["threads"]) == 2 and len(after.counters["threads"]) == 1
+        return
+    if name == "half_precision":
+        assert {p.dtype for p in node.core.pipeline.completer.model.parameters()} == {torch.bfloat16}
+    if name == "output_frame":
+        assert after.messages["completed"][0].header.frame_id == "base_link"
+        assert {m.header.frame_id for m in after.messages["completed_markers"][0].markers} == {"base_link"}
+    assert after.wire != before.wire, f"{name}: changing it changed nothing the node published"
+    if case.check is not None:
+        case.check(before, after)
+
+
+def test_qos_parameters_reach_the_real_rclpy_graph():
+    """The QoS parameters under real rclpy: another participant sees the node's subscriptions and
+    publishers with the configured reliability on the graph (DDS discovery does not carry the
+    history depth), and the node's rclpy endpoints keep the configured depth."""
+    rclpy = require_rclpy()
+    from rclpy.parameter import Parameter
+    from rclpy.qos import ReliabilityPolicy
+
+    from pcc_ros.nodes.ros_node import PipelineNode
+
+    values = {"backend": "mirror", "qos.points.reliability": "reliable", "qos.points.depth": 3,
+              "qos.detections.reliability": "best_effort", "qos.detections.depth": 4,
+              "qos.outputs.reliability": "best_effort", "qos.outputs.depth": 6}
+    rclpy.init()
+    node = probe = None
+    try:
+        node = PipelineNode("qos_node", "completion",
+                            parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
+        probe = rclpy.create_node("qos_probe")
+        reliability = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT}
+
+        def seen(topic: str, kind: str):
+            info = getattr(probe, f"get_{kind}_info_by_topic")(topic)
+            return [i.qos_profile.reliability for i in info if i.node_name == "qos_node"]
+
+        own = {s.topic_name: s.qos_profile for s in node.subscriptions}
+        own.update({p.topic_name: p.qos_profile for p in node.publishers})
+        for topic, kind, key in (("/points", "subscriptions", "points"), ("/detections", "subscriptions", "detections"),
+                                 ("/completed", "publishers", "outputs")):
+            expected = [reliability[values[f"qos.{key}.reliability"]]]
+            for _ in range(50):  # discovery: the probe learns the node's endpoints
+                if seen(topic, kind) == expected:
+                    break
+                rclpy.spin_once(probe, timeout_sec=0.1)
+            assert seen(topic, kind) == expected, (topic, seen(topic, kind))
+            assert own[topic].depth == values[f"qos.{key}.depth"] and own[topic].reliability == expected[0], topic
+        # The DDS rule the in-process graph copies, here for real: a best-effort scan publisher (a
+        # LiDAR driver's QoS) never matches the reliable scan subscription; a reliable one does.
+        from rclpy.qos import QoSProfile, qos_profile_sensor_data
+        from sensor_msgs.msg import PointCloud2
+
+        best_effort = probe.create_publisher(PointCloud2, "/points", qos_profile_sensor_data)
+        reliable = probe.create_publisher(PointCloud2, "/points", QoSProfile(depth=5,
+                                                                             reliability=ReliabilityPolicy.RELIABLE))
+        for _ in range(50):
+            if reliable.get_subscription_count() == 1:
+                break
+            rclpy.spin_once(probe, timeout_sec=0.1)
+        assert (reliable.get_subscription_count(), best_effort.get_subscription_count()) == (1, 0)
+    finally:
+        for n in (probe, node):
+            if n is not None:
+                n.destroy_node()
+        rclpy.try_shutdown()
