@@ -243,11 +243,38 @@ def render_bench_table(results: dict[str, dict[str, Any]]) -> list[str]:
     return table(header, [BENCH_ROWS[name](results[f"bench-{name}"]) for name in BENCH_ROWS])
 
 
+def render_demo(d: dict[str, Any]) -> list[str]:
+    """README: what ``make demo`` prints, its units and which way is better in every header."""
+    synth = d["synthcars"]
+    completion = table(
+        [f"SynthCars completion vs true shapes ({synth['completion'][0]['instances']} cars)",
+         "CD-L1 (m, lower is better)", "precision (m, lower is better)", "coverage (m, lower is better)",
+         "F-score@1% (0-1, higher is better)"],
+        [[r["backend"] + (" (shipped)" if r["backend"] == d["backend"] else ""), f"{r['cd_l1']:.3f}",
+          f"{r['precision']:.3f}", f"{r['coverage']:.3f}", f"{r['fscore']:.3f}"] for r in synth["completion"]])
+
+    def row(name: str, half: dict[str, Any] | None) -> list[str]:
+        if half is None:
+            return [name, "skipped: no KITTI tracking data (docs/datasets.md, Getting real data)", "-", "-", "-"]
+        f = half["filter"]
+        return [name, f"`{half['filter_config']}`", f"{f['true_kept']} / {f['true_rejected']}",
+                f"{f['false_kept']} / {f['false_rejected']}",
+                f"{f['precision_before']:.3f} -> {f['precision_after']:.3f}"]
+
+    filtering = table(
+        ["detection filter (true = BEV IoU >= 0.3 with a labelled car)", "filter setting",
+         "true detections kept / rejected (keep all)", "false detections kept / rejected (reject all)",
+         "share of kept detections that are true, before -> after (higher is better)"],
+        [row("SynthCars, simulated detector", synth), row("real KITTI 0000, PointRCNN", d["kitti"])])
+    return [*completion, "", *filtering]
+
+
 #: Every figure block of the README and docs: marker id -> its result file and renderer.
 FIGURES: dict[str, Figure] = {
     "bench-table": Figure(tuple(f"bench-{name}" for name in BENCH_ROWS), render_bench_table),
     "bench-messages": one("bench-messages", render_bench_messages),
     "bench-crop": one("bench-crop", render_bench_crop),
+    "demo": one("demo", render_demo),
 }
 
 
