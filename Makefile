@@ -11,7 +11,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.pcc_ros-installed
 OUT    ?= out
 
-.PHONY: setup system-deps ros test test-fast test-numpy1 demo bench lint clean
+.PHONY: setup system-deps ros test test-fast test-numpy1 demo bench figures lint clean
 
 setup: system-deps $(STAMP) ros
 
@@ -70,6 +70,11 @@ bench: setup
 	  $(VENV)/bin/pcc bench $$name --json benchmarks/results/$$name.json $$([ $$name = soak ] && echo --minutes 5) \
 	    || exit 1; \
 	done
+
+# the README's and docs' figure tables from a fresh `make bench` (scripts/render_figures.py)
+figures: bench
+	$(PY) scripts/render_figures.py store-bench benchmarks/results
+	$(PY) scripts/render_figures.py
 
 lint: setup
 	$(VENV)/bin/ruff check .

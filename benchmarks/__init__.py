@@ -18,6 +18,7 @@ import importlib
 import importlib.util
 import os
 import pkgutil
+import shlex
 import subprocess
 import time
 from pathlib import Path
@@ -77,10 +78,24 @@ def run_context() -> dict[str, object]:
             "environment": {k: os.environ.get(k) for k in TIMING_ENVIRONMENT}}
 
 
+def _without_output(argv: list[str]) -> list[str]:
+    """A benchmark's arguments without ``--json FILE``: the command as a reader reruns it."""
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == "--json":
+            skip = True
+        elif not arg.startswith("--json="):
+            out.append(arg)
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     module = importlib.import_module(f"{__name__}.{args.bench_name}")
     bench_args = benchmark_parser(args.bench_name, module).parse_args(args.passthrough)
     context = run_context()
+    context["command"] = shlex.join(["pcc", "bench", args.bench_name, *_without_output(args.passthrough)])
     from benchmarks.common import OtherLoad
 
     with OtherLoad() as others:

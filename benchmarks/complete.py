@@ -117,7 +117,7 @@ def frame_contexts(clouds: list[np.ndarray]) -> list[Any]:
 
 
 def cache_clouds(path: Path, count: int) -> list[np.ndarray]:
-    from pcc_ros.data.instances import InstanceCache
+    from pcc_ros.data.instance_cache import InstanceCache
 
     cache = InstanceCache.load(path)
     idx = cache.indices("test") if len(cache.indices("test")) else np.arange(len(cache))

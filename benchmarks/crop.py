@@ -155,6 +155,7 @@ def run(args: argparse.Namespace) -> dict:
     if at30:
         result.update({k: at30[k] for k in ("ours_ms", "open3d_ms", "speedup_vs_open3d")})
         result["target_met"] = bool(at30["speedup_vs_open3d"] >= TARGET_SPEEDUP)
+        result["target_speedup"] = TARGET_SPEEDUP
         print(f"\n30 boxes: {at30['ours_ms']:.2f} ms vs open3d {at30['open3d_ms']:.2f} ms (medians, interleaved) "
               f"-> {at30['speedup_vs_open3d']:.2f}x (target >= {TARGET_SPEEDUP}x: "
               f"{'met' if result['target_met'] else 'NOT met'})")

@@ -43,7 +43,8 @@ ARGUMENTS = (
     ("points", "points", "input sensor_msgs/PointCloud2 topic"),
     ("detections", "detections", "input vision_msgs/Detection3DArray topic"),
     ("outputs", "", "namespace of the output topics; empty = the nodes' namespace"),
-    ("backend", "", "completion backend (pointpncnet, input, densify, mirror); empty = the params file's"),
+    ("backend", "", "completion backend (pointpncnet, trapcc, aml, aml_ml, mirror, densify, input); "
+     "empty = the params file's"),
     ("device", "", "auto, cpu, cuda or cuda:N; empty = the params file's"),
     ("score_mapping", "", "identity (probabilities) or sigmoid (logits, e.g. PointRCNN); empty = the params file's"),
     ("use_sim_time", "false", "true: use /clock (bag replay with --clock)"),

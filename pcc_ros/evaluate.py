@@ -38,7 +38,8 @@ from tqdm import tqdm
 from pcc_ros import files
 from pcc_ros.assignments import parse_assignments
 from pcc_ros.data.gt_pools import PoolConfig, load_or_assign, load_or_build_pools
-from pcc_ros.data.instances import EvalShapes, InstanceCache, aggregate_track
+from pcc_ros.data.instance_cache import EvalShapes, InstanceCache
+from pcc_ros.data.track_aggregate import aggregate_instances
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.metrics import METRICS, instance_metrics, to_metres, unit_label
 from pcc_ros.metrics.balance import track_consistency
@@ -111,13 +112,13 @@ def instances_from_cache(
     min_track_frames: int = 2,
     gt_free: bool = False,
 ) -> tuple[list[EvalInstance], str]:
-    """Evaluation instances of an opened :class:`~pcc_ros.data.instances.InstanceCache`.
+    """Evaluation instances of an opened :class:`~pcc_ros.data.instance_cache.InstanceCache`.
 
     ``reference``: ``ground_truth`` uses the SynthCars shapes (``EvalShapes``, the only
     route to them) and keeps the instances that have one; ``aggregated`` uses the
     multi-frame aggregate of the instance's track, every observation of the track (this one
-    included) concatenated in the common canonical frame of its boxes (``aggregate_track``
-    mode ``box``: no ego poses needed, moving cars included), keeping instances whose track
+    included) concatenated in the common canonical frame of its boxes (``aggregate_instances``:
+    no ego poses needed, moving cars included), keeping instances whose track
     has at least ``min_track_frames`` observations; ``auto`` = ``ground_truth`` when any
     instance of the split has a shape, else ``aggregated``. Skipped instances are logged
     with a count. ``max_instances`` then draws a seeded subset.
@@ -160,7 +161,7 @@ def instances_from_cache(
         for i in usable:
             key = str(keys[i])
             if key not in aggregated:  # one aggregate per track, shared by its observations
-                aggregated[key] = aggregate_track(cache, tracks[key], mode="box")
+                aggregated[key] = aggregate_instances(cache, tracks[key])
             instances.append(_eval_instance(cache, keys, int(i), aggregated[key], False))
     if skipped:
         log.info("skipped %d instance(s) of split %r without a %s reference", skipped, split, reference)

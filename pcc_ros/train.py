@@ -1,19 +1,11 @@
 """Train a completion backend self-supervised from partial scans (``pcc train BACKEND``).
 
 The loop is generic. A trainable backend's class (``get_backend(BACKEND)``) owns its recipe:
-``cls.training_recipe(size, **options)`` returns an object with
-
-* ``build_completer(device) -> TorchCompleter`` (the network is its ``.model``),
-* ``training_data(cache, split, min_points)`` -> the backend's own training set, built
-  from an instance cache (partial observations only),
-* ``batches(data, batch_size, config, rng)`` -> endless iterator of batches with ``.to(device)``,
-* ``loss(net, batch) -> (loss tensor, {name: float})``,
-* ``describe() -> dict`` (stored in the checkpoint), and ``default_lr`` (optional).
-
-A recipe lives beside its network in ``models/``, which never imports ``data/`` or this module;
-one that reads caches declares a ``kit`` attribute, and :func:`load_recipe` sets it to
-:func:`training_kit` (``models.base.TrainingKit``: the cache loader, TraPCC's ground-truth
-pools, :func:`validation_instances` and :func:`validate`).
+``cls.training_recipe(size, **options)`` returns a :class:`~pcc_ros.models.recipe.TrainingRecipe`
+(the contract: what it must state, what it may override, and in which order this module
+calls it). A recipe lives beside its network in ``models/``, which never imports ``data/`` or
+this module; :func:`load_recipe` hands it :func:`training_kit` (``models.recipe.TrainingKit``:
+the cache loader, TraPCC's ground-truth pools, :func:`validation_instances` and :func:`validate`).
 
 This module owns everything else: seeds, devices, DistributedDataParallel under
 ``torchrun`` (``WORLD_SIZE`` / ``LOCAL_RANK``), the learning-rate schedule, tqdm, periodic
@@ -58,11 +50,12 @@ from tqdm import tqdm
 
 from pcc_ros.assignments import parse_assignments
 from pcc_ros.data import gt_pools
-from pcc_ros.data.instances import InstanceCache
+from pcc_ros.data.instance_cache import InstanceCache
 from pcc_ros.errors import CheckpointError, ConfigError, TrainingError
 from pcc_ros.evaluate import instances_from_cache, score_backend
-from pcc_ros.models.base import TrainingKit, select_device
+from pcc_ros.models.base import select_device
 from pcc_ros.models.checkpoint import load_checkpoint, make_config, save_checkpoint, validate_state
+from pcc_ros.models.recipe import TrainingKit, TrainingRecipe
 from pcc_ros.models.registry import get_backend
 
 log = logging.getLogger("pcc.train")
@@ -118,17 +111,19 @@ def parse_options(items: list[str]) -> dict[str, Any]:
     return options
 
 
-def load_recipe(backend: str, size: str, options: dict[str, Any]) -> Any:
-    """The backend's training recipe (``cls.training_recipe``); :class:`ConfigError` if it has none or
-    the options are wrong."""
+def load_recipe(backend: str, size: str, options: dict[str, Any]) -> TrainingRecipe:
+    """The backend's training recipe (``cls.training_recipe``) with the training kit handed over;
+    :class:`ConfigError` if it has none or the options are wrong."""
     cls = get_backend(backend)  # ConfigError for unknown names
     try:
         recipe = cls.training_recipe(size=size, **options)  # the base class refuses backends without weights
     except (TypeError, ValueError) as exc:  # an unknown key, or a value a recipe cannot convert
         raise ConfigError(f"backend {backend!r}: invalid training options {sorted(options)}: {exc}") from exc
-    check_option_types(getattr(recipe, "options", None), backend)
-    if hasattr(recipe, "kit"):  # a recipe that reads caches gets them (and validation) from here
-        recipe.kit = training_kit()
+    if not isinstance(recipe, TrainingRecipe):
+        raise ConfigError(f"backend {backend!r}: its recipe {type(recipe).__name__} is not a "
+                          "pcc_ros.models.recipe.TrainingRecipe")
+    check_option_types(recipe.options, backend)
+    recipe.kit = training_kit()
     return recipe
 
 
@@ -312,35 +307,6 @@ def machine_info() -> dict[str, Any]:
     return info
 
 
-def mix_real(
-    recipe: Any, data: list[Any], real_caches: list[Path], share: float, min_points: int
-) -> tuple[list[Any], dict[str, Any]]:
-    """Mix the training groups of real-scan caches into ``data`` at ``share`` of all groups.
-
-    Real scans are few, so their groups are repeated (references, no copies) until they make
-    up ``share`` of an epoch; what was mixed is returned for the checkpoint config.
-    """
-    if not real_caches:
-        return data, {"caches": [], "share": 0.0}
-    if not 0.0 < share < 1.0:
-        raise ConfigError(f"--real-share must be in (0, 1), got {share}")
-    real: list[Any] = []
-    per_cache = {}
-    for path in real_caches:
-        groups = recipe.training_data(InstanceCache.load(path), None, min_points=min_points)
-        per_cache[str(path)] = {"groups": len(groups), "observations": sum(len(g) for g in groups)}
-        real.extend(groups)
-    if not real:
-        raise ConfigError(f"--real-data {', '.join(map(str, real_caches))}: no usable real observations")
-    repeats = max(1, int(np.ceil(share * len(data) / ((1.0 - share) * len(real)))))
-    mixed = [*data, *(real * repeats)]
-    effective = len(real) * repeats / len(mixed)
-    log.info("real scans: %d groups x %d repeats = %.1f %% of the training groups", len(real), repeats,
-             100 * effective)
-    return mixed, {"caches": per_cache, "groups": len(real), "repeats": repeats, "share_requested": share,
-                   "share": round(effective, 4)}
-
-
 def plot_log(records: list[dict[str, Any]], path: Path, title: str, best: dict[str, Any] | None = None,
              select_key: str = "val_cd_l1") -> None:
     """Training loss (and its parts) and validation Chamfer-L1 against the step, as a PNG."""
@@ -380,220 +346,254 @@ def plot_log(records: list[dict[str, Any]], path: Path, title: str, best: dict[s
     plt.close(fig)
 
 
-# --------------------------------------------------------------------------- the loop
+# --------------------------------------------------------------------------- the run
+
+
+class TrainingRun:
+    """One ``pcc train`` run, in the order :func:`train` drives it: set-up (here), :meth:`resume`,
+    :meth:`load_data`, :meth:`loop`, :meth:`finish`; :meth:`save_weights` and :meth:`checkpoint`
+    write what the loop produces."""
+
+    def __init__(self, opts: TrainConfig) -> None:
+        """Set-up: the recipe, the process group and device, the completer, the optimizer, the run's
+        settings (what a resumed run must match) and its output directory."""
+        import torch
+
+        if opts.iterations < 1 or opts.batch_size < 1:
+            raise ConfigError("--iterations and --batch-size must be >= 1")
+        self.opts = opts
+        self.dist = Distributed.from_env()
+        if opts.threads:
+            torch.set_num_threads(opts.threads)
+        options = dict(opts.options)
+        if not opts.inpainting:
+            options["inpainting"] = False
+        if opts.stage:
+            options["stage"] = opts.stage
+        self.recipe = load_recipe(opts.backend, opts.size, options)
+        self.device = self._join_process_group(opts.device)
+        torch.manual_seed(opts.seed)  # same initial weights on every rank
+        self.completer = self.recipe.build_completer(self.device)
+        self.init = init_weights(self.completer, opts.init) if opts.init is not None and not opts.resume else None
+        self.net = self.completer.model
+        self.net.train()
+        self.lr = opts.lr if opts.lr is not None else float(self.recipe.default_lr)
+        self.decay_every = opts.lr_decay_every or max(1, opts.iterations // 4)
+        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=self.lr)
+        self.out: Path = opts.out
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.log_path = self.out / "log.jsonl"
+        self.settings: dict[str, Any] = {
+            "backend": opts.backend, "config": opts.size, "iterations": opts.iterations,
+            "batch_size": opts.batch_size, "world_size": self.dist.world, "lr": self.lr,
+            "lr_decay_every": self.decay_every, "seed": opts.seed, "data": str(opts.data), "split": opts.split,
+            "recipe": self.recipe.describe(),
+        }
+        if self.init is not None:
+            self.settings["init"] = self.init
+        self.step = 0
+        self.records: list[dict[str, Any]] = []
+        self.select_key = self.recipe.select_metric or f"val_{opts.select_by}"
+        self.lower_better = self.select_key != "val_fscore"
+        self.started = time.perf_counter()
+
+    def _join_process_group(self, request: str) -> str:
+        """The device of this process; under torchrun (``WORLD_SIZE`` > 1) the process group joined first."""
+        import torch
+
+        if self.dist.world <= 1:
+            return str(select_device(request))
+        backend = "nccl" if torch.cuda.is_available() and request != "cpu" else "gloo"
+        torch.distributed.init_process_group(backend=backend)
+        if backend == "nccl":
+            torch.cuda.set_device(self.dist.local_rank)
+            return f"cuda:{self.dist.local_rank}"
+        return "cpu"
+
+    # ---- resume
+
+    def resume(self) -> None:
+        """``--resume``: weights, optimizer, step and log of the saved run (its settings must match);
+        without it, an output directory holding a run is refused."""
+        opts, out = self.opts, self.out
+        if opts.resume:
+            self.step, previous = load_resume(out, opts.backend, self.completer, self.optimizer)
+            if opts.lr_decay_every is None and "lr_decay_every" in previous:
+                # a longer --iterations must not move the decay steps of the run being continued
+                self.decay_every = int(previous["lr_decay_every"])
+                self.settings["lr_decay_every"] = self.decay_every
+            changed = {k: (previous.get(k), v) for k, v in self.settings.items()
+                       if k not in ("iterations", "data") and previous.get(k) != v}
+            if changed:
+                raise ConfigError(f"--resume with different settings than the saved run: {changed}")
+            log.info("resumed %s at step %d", out / f"{RESUME_NAME}.safetensors", self.step)
+        elif (out / f"{RESUME_NAME}.json").exists():
+            raise ConfigError(f"{out} already holds a training run; pass --resume to continue or use another --out")
+        elif self.dist.main:
+            self.log_path.unlink(missing_ok=True)
+        if self.log_path.exists():
+            self.records = [json.loads(line) for line in self.log_path.read_text().splitlines() if line.strip()]
+
+    # ---- data
+
+    def load_data(self) -> None:
+        """The recipe's training set (real scans mixed in), the validation set, the recipe's preparation."""
+        opts, recipe = self.opts, self.recipe
+        source = recipe.open_data(opts.data)
+        t0 = time.perf_counter()
+        if opts.real_data:
+            recipe.use_real_data(list(opts.real_data), opts.real_share)
+        data = recipe.training_data(source, opts.split, min_points=opts.min_points)
+        self.total_views = sum(len(g) for g in data) if isinstance(data, list) else len(data)
+        log.info("training data: %d groups, %d observations of split %r (%.1f s)",
+                 len(data), self.total_views, opts.split, time.perf_counter() - t0)
+        self.data, self.settings["real_data"] = recipe.mix_real_data(data, opts.min_points)
+        self.val_data, self.reference = [], "none"
+        if self.dist.main:
+            self.val_data, self.reference = recipe.validation_data(source, opts.val_split, opts.val_instances,
+                                                                   opts.seed)
+            log.info("validation: %d instances of split %r against %s", len(self.val_data), opts.val_split,
+                     self.reference)
+        recipe.prepare(self.completer, self.data, self.val_data, opts.seed)
+
+    # ---- the loop
+
+    def emit(self, record: dict[str, Any]) -> None:
+        """Append a record to the log (main process only)."""
+        if not self.dist.main:
+            return
+        self.records.append(record)
+        with self.log_path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def validate(self) -> dict[str, Any]:
+        """Validate at the current step and log it."""
+        self.emit({"step": self.step, **self.recipe.validate(self.completer, self.val_data, self.opts.seed)})
+        return self.records[-1]
+
+    def loop(self) -> None:
+        """Steps until ``--iterations``: schedule, batch, loss, update; the log every 50 steps, validation
+        every ``--val-every`` (the best weights saved), the resume checkpoint every ``--checkpoint-every``."""
+        import torch
+
+        opts, dist = self.opts, self.dist
+        train_net: Any = self.net
+        if dist.world > 1:
+            from torch.nn.parallel import DistributedDataParallel
+
+            ids = [dist.local_rank] if self.device.startswith("cuda") else None
+            train_net = DistributedDataParallel(self.net, device_ids=ids)
+        # Batch sampling is a pure function of (seed, rank, start step): a resumed run is reproducible.
+        rng = np.random.default_rng([opts.seed, dist.rank, self.step])
+        batches = self.recipe.batches(self.data, opts.batch_size, self.completer.config, rng)
+        if dist.main and self.init is not None and self.step == 0 and self.val_data:
+            log.info("initial weights %s: %s", opts.init, self.validate())  # where the initial weights stand
+        window: dict[str, list[float]] = {}
+        window_start = time.perf_counter()
+        log_every = 50
+        bar = tqdm(total=opts.iterations, initial=self.step, desc=f"train {opts.backend}", unit="step",
+                   disable=not opts.progress or not dist.main)
+        try:
+            while self.step < opts.iterations:
+                current_lr = learning_rate(self.lr, self.step, self.decay_every)
+                for group in self.optimizer.param_groups:
+                    group["lr"] = current_lr
+                batch = next(batches).to(self.completer.device)
+                loss, stats = self.recipe.loss(train_net, batch)
+                if not torch.isfinite(loss):
+                    raise TrainingError(f"{opts.data}: non-finite training loss at step {self.step} ({stats})",
+                                        hint="the run diverged: lower --lr or resume from the last checkpoint")
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                self.optimizer.step()
+                self.step += 1
+                for k, v in stats.items():
+                    window.setdefault(k, []).append(v)
+                bar.update(1)
+                bar.set_postfix(loss=f"{stats['loss']:.4f}")
+                if self.step % log_every == 0 or self.step == opts.iterations:
+                    seconds = time.perf_counter() - window_start
+                    n = len(next(iter(window.values())))
+                    self.emit({"step": self.step, "lr": current_lr, **{k: float(np.mean(v)) for k, v in window.items()},
+                               "instances_per_s": round(n * opts.batch_size * dist.world / max(seconds, 1e-9), 1)})
+                    window, window_start = {}, time.perf_counter()
+                if dist.main and opts.val_every and self.step % opts.val_every == 0 and self.step < opts.iterations:
+                    log.info("step %d: %s", self.step, self.validate())
+                    self.keep_if_best(self.records[-1])
+                if self.step % opts.checkpoint_every == 0 and self.step < opts.iterations:
+                    self.checkpoint()
+        except KeyboardInterrupt:
+            log.warning("interrupted at step %d: writing the resume checkpoint", self.step)
+            self.checkpoint()
+            raise
+        finally:
+            bar.close()
+
+    def finish(self) -> dict[str, Any]:
+        """The final validation and checkpoint; the process group left."""
+        import torch
+
+        if self.dist.main:
+            log.info("final validation: %s", self.validate())
+            self.keep_if_best(self.records[-1])
+        self.checkpoint(final=True)
+        if self.dist.world > 1:
+            torch.distributed.destroy_process_group()
+        return {"step": self.step, "out": str(self.out), "validation": self.records[-1] if self.records else {}}
+
+    # ---- save
+
+    def best_record(self) -> dict[str, Any] | None:
+        """The validation record with the best selection metric (step 0, the initial weights, never)."""
+        key = self.select_key
+        vals = [r for r in self.records if key in r and np.isfinite(r[key]) and r["step"] > 0]
+        if not vals:
+            return None
+        return (min if self.lower_better else max)(vals, key=lambda r: r[key])
+
+    def save_weights(self, name: str, record: dict[str, Any]) -> None:
+        """``OUT/<name>.safetensors`` with the run's settings, the recipe's summaries and ``record``'s metrics."""
+        training = {
+            **self.settings, "steps": self.step, "groups": len(self.data), "observations": self.total_views,
+            "validation_reference": self.reference, "wall_seconds": round(time.perf_counter() - self.started, 1),
+            "device": str(self.device), "machine": machine_info(), "selected_by": self.select_key,
+            "selected_step": record.get("step", self.step),
+        }
+        data_summary = self.recipe.data_summary()
+        if data_summary:
+            training["data_summary"] = data_summary
+        with self.recipe.saving(self.completer, self.data):
+            training.update(self.recipe.summary())
+            self.completer.save(self.out / f"{name}.safetensors", training=training,
+                                metrics={k: v for k, v in record.items() if k.startswith("val_")})
+
+    def keep_if_best(self, record: dict[str, Any]) -> None:
+        """Save the weights when ``record`` is the best validation so far (the shipped checkpoint is the
+        best, not the last)."""
+        if self.dist.main and self.best_record() is record:
+            self.save_weights(self.opts.backend, record)
+            log.info("step %d: best %s so far (%.5f): wrote %s", self.step, self.select_key, record[self.select_key],
+                     self.out / f"{self.opts.backend}.safetensors")
+
+    def checkpoint(self, final: bool = False) -> None:
+        """The resume checkpoint and the curves' PNG; at the end also the last weights."""
+        if not self.dist.main:
+            return
+        backend = self.opts.backend
+        save_resume(self.out, backend, self.completer, self.optimizer, self.step, self.settings)
+        if final:
+            last_val = next((r for r in reversed(self.records) if self.select_key in r), {})
+            self.save_weights(f"{backend}_last", last_val)
+            if self.best_record() is None:  # no validation data: the last weights are all there is
+                self.save_weights(backend, last_val)
+        plot_log(self.records, self.out / "training.png", f"pcc train {backend} ({self.opts.size})",
+                 best=self.best_record(), select_key=self.select_key)
 
 
 def train(opts: TrainConfig) -> dict[str, Any]:
     """Run training as ``opts`` says; returns the final summary (also in the checkpoint)."""
-    import torch
-
-    if opts.iterations < 1 or opts.batch_size < 1:
-        raise ConfigError("--iterations and --batch-size must be >= 1")
-    dist = Distributed.from_env()
-    if opts.threads:
-        torch.set_num_threads(opts.threads)
-    options = dict(opts.options)
-    if not opts.inpainting:
-        options["inpainting"] = False
-    if opts.stage:
-        options["stage"] = opts.stage
-    recipe = load_recipe(opts.backend, opts.size, options)
-
-    if dist.world > 1:
-        backend = "nccl" if torch.cuda.is_available() and opts.device != "cpu" else "gloo"
-        torch.distributed.init_process_group(backend=backend)
-        device = f"cuda:{dist.local_rank}" if backend == "nccl" else "cpu"
-        if backend == "nccl":
-            torch.cuda.set_device(dist.local_rank)
-    else:
-        device = str(select_device(opts.device))
-
-    torch.manual_seed(opts.seed)  # same initial weights on every rank
-    completer = recipe.build_completer(device)
-    init = None
-    if opts.init is not None and not opts.resume:
-        init = init_weights(completer, opts.init)
-    net = completer.model
-    net.train()
-    lr = opts.lr if opts.lr is not None else float(getattr(recipe, "default_lr", 5e-4))
-    decay_every = opts.lr_decay_every or max(1, opts.iterations // 4)
-    optimizer = torch.optim.Adam(net.parameters(), lr=lr)
-
-    out: Path = opts.out
-    out.mkdir(parents=True, exist_ok=True)
-    run_settings = {
-        "backend": opts.backend, "config": opts.size, "iterations": opts.iterations,
-        "batch_size": opts.batch_size, "world_size": dist.world, "lr": lr, "lr_decay_every": decay_every,
-        "seed": opts.seed, "data": str(opts.data), "split": opts.split, "recipe": recipe.describe(),
-    }
-    if init is not None:
-        run_settings["init"] = init
-    step = 0
-    log_path = out / "log.jsonl"
-    if opts.resume:
-        step, previous = load_resume(out, opts.backend, completer, optimizer)
-        if opts.lr_decay_every is None and "lr_decay_every" in previous:
-            # a longer --iterations must not move the decay steps of the run being continued
-            decay_every = int(previous["lr_decay_every"])
-            run_settings["lr_decay_every"] = decay_every
-        changed = {k: (previous.get(k), v) for k, v in run_settings.items()
-                   if k not in ("iterations", "data") and previous.get(k) != v}
-        if changed:
-            raise ConfigError(f"--resume with different settings than the saved run: {changed}")
-        log.info("resumed %s at step %d", out / f"{RESUME_NAME}.safetensors", step)
-    elif (out / f"{RESUME_NAME}.json").exists():
-        raise ConfigError(f"{out} already holds a training run; pass --resume to continue or use another --out")
-    elif dist.main:
-        log_path.unlink(missing_ok=True)
-
-    # Optional recipe hooks (a backend whose data is not an instance cache, its own validation,
-    # a step between loading and training, a last transformation of saved weights):
-    # open_data, validation_data, validate, prepare, finalize, summary, select_metric.
-    cache = getattr(recipe, "open_data", InstanceCache.load)(opts.data)
-    if hasattr(cache, "check_finite"):
-        cache.check_finite()
-    t0 = time.perf_counter()
-    own_mixing = hasattr(recipe, "use_real_data")  # TraPCC mixes real caches itself (into its GT pools too)
-    if own_mixing and opts.real_data:
-        recipe.use_real_data([str(p) for p in opts.real_data], opts.real_share)
-    data = recipe.training_data(cache, opts.split, min_points=opts.min_points)
-    total_views = sum(len(g) for g in data) if isinstance(data, list) else len(data)
-    log.info("training data: %d groups, %d observations of split %r (%.1f s)",
-             len(data), total_views, opts.split, time.perf_counter() - t0)
-    if own_mixing:
-        mixing = recipe.data_summary()
-    else:
-        if opts.real_data and not isinstance(data, list):
-            raise ConfigError(f"backend {opts.backend!r} takes real-scan caches through its own option, "
-                              "not --real-data")
-        data, mixing = mix_real(recipe, data, opts.real_data, opts.real_share, opts.min_points)
-    run_settings["real_data"] = mixing
-    val_instances, reference = ([], "none")
-    if dist.main:
-        find_val = getattr(recipe, "validation_data", validation_instances)
-        val_instances, reference = find_val(cache, opts.val_split, opts.val_instances, opts.seed)
-        log.info("validation: %d instances of split %r against %s", len(val_instances), opts.val_split, reference)
-    validate_fn = getattr(recipe, "validate", validate)
-    if hasattr(recipe, "prepare"):
-        recipe.prepare(completer, data, val_instances, opts.seed)
-
-    train_net: Any = net
-    if dist.world > 1:
-        from torch.nn.parallel import DistributedDataParallel
-
-        train_net = DistributedDataParallel(net, device_ids=[dist.local_rank] if device.startswith("cuda") else None)
-
-    # Batch sampling is a pure function of (seed, rank, start step): a resumed run is reproducible.
-    rng = np.random.default_rng([opts.seed, dist.rank, step])
-    batches = recipe.batches(data, opts.batch_size, completer.config, rng)
-    records: list[dict[str, Any]] = []
-    if log_path.exists():
-        records = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
-
-    def emit(record: dict[str, Any]) -> None:
-        if not dist.main:
-            return
-        records.append(record)
-        with log_path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
-
-    select_key = getattr(recipe, "select_metric", None) or f"val_{opts.select_by}"
-    lower_better = select_key != "val_fscore"
-
-    def best_record() -> dict[str, Any] | None:
-        vals = [r for r in records if select_key in r and np.isfinite(r[select_key]) and r["step"] > 0]
-        if not vals:
-            return None
-        return (min if lower_better else max)(vals, key=lambda r: r[select_key])
-
-    def save_weights(name: str, record: dict[str, Any]) -> None:
-        training = {
-            **run_settings, "steps": step, "groups": len(data), "observations": total_views,
-            "validation_reference": reference, "wall_seconds": round(time.perf_counter() - started, 1),
-            "device": str(device), "machine": machine_info(), "selected_by": select_key,
-            "selected_step": record.get("step", step),
-        }
-        if hasattr(recipe, "data_summary"):  # what the backend trained on (e.g. TraPCC's real-data share)
-            training["data_summary"] = recipe.data_summary()
-        current = None
-        if hasattr(recipe, "finalize"):  # a last transformation of the saved weights only (AML's whitening)
-            current = {k: v.clone() for k, v in completer.model.state_dict().items()}
-            recipe.finalize(completer, data)
-        training.update(recipe.summary() if hasattr(recipe, "summary") else {})
-        completer.save(out / f"{name}.safetensors", training=training,
-                       metrics={k: v for k, v in record.items() if k.startswith("val_")})
-        if current is not None:
-            completer.model.load_state_dict(current)
-
-    def on_validation(record: dict[str, Any]) -> None:
-        """Keep the best weights by validation (the shipped checkpoint is the best, not the last)."""
-        if dist.main and best_record() is record:
-            save_weights(opts.backend, record)
-            log.info("step %d: best %s so far (%.5f): wrote %s", step, select_key, record[select_key],
-                     out / f"{opts.backend}.safetensors")
-
-    def checkpoint(final: bool = False) -> None:
-        if not dist.main:
-            return
-        save_resume(out, opts.backend, completer, optimizer, step, run_settings)
-        if final:
-            last_val = next((r for r in reversed(records) if select_key in r), {})
-            save_weights(f"{opts.backend}_last", last_val)
-            if best_record() is None:  # no validation data: the last weights are all there is
-                save_weights(opts.backend, last_val)
-        plot_log(records, out / "training.png", f"pcc train {opts.backend} ({opts.size})",
-                 best=best_record(), select_key=select_key)
-
-    started = time.perf_counter()
-    if dist.main and init is not None and step == 0 and val_instances:
-        emit({"step": 0, **validate_fn(completer, val_instances, opts.seed)})  # where the initial weights stand
-        log.info("initial weights %s: %s", opts.init, records[-1])
-    window: dict[str, list[float]] = {}
-    window_start = time.perf_counter()
-    log_every = 50
-    bar = tqdm(total=opts.iterations, initial=step, desc=f"train {opts.backend}", unit="step",
-               disable=not opts.progress or not dist.main)
-    try:
-        while step < opts.iterations:
-            current_lr = learning_rate(lr, step, decay_every)
-            for group in optimizer.param_groups:
-                group["lr"] = current_lr
-            batch = next(batches).to(completer.device)
-            loss, stats = recipe.loss(train_net, batch)
-            if not torch.isfinite(loss):
-                raise TrainingError(f"{opts.data}: non-finite training loss at step {step} ({stats})",
-                                    hint="the run diverged: lower --lr or resume from the last checkpoint")
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            step += 1
-            for k, v in stats.items():
-                window.setdefault(k, []).append(v)
-            bar.update(1)
-            bar.set_postfix(loss=f"{stats['loss']:.4f}")
-            if step % log_every == 0 or step == opts.iterations:
-                seconds = time.perf_counter() - window_start
-                n = len(next(iter(window.values())))
-                emit({"step": step, "lr": current_lr, **{k: float(np.mean(v)) for k, v in window.items()},
-                      "instances_per_s": round(n * opts.batch_size * dist.world / max(seconds, 1e-9), 1)})
-                window, window_start = {}, time.perf_counter()
-            if dist.main and opts.val_every and step % opts.val_every == 0 and step < opts.iterations:
-                emit({"step": step, **validate_fn(completer, val_instances, opts.seed)})
-                log.info("step %d: %s", step, records[-1])
-                on_validation(records[-1])
-            if step % opts.checkpoint_every == 0 and step < opts.iterations:
-                checkpoint()
-    except KeyboardInterrupt:
-        log.warning("interrupted at step %d: writing the resume checkpoint", step)
-        checkpoint()
-        raise
-    finally:
-        bar.close()
-    if dist.main:
-        emit({"step": step, **validate_fn(completer, val_instances, opts.seed)})
-        log.info("final validation: %s", records[-1])
-        on_validation(records[-1])
-    checkpoint(final=True)
-    if dist.world > 1:
-        torch.distributed.destroy_process_group()
-    return {"step": step, "out": str(out), "validation": records[-1] if records else {}}
+    run = TrainingRun(opts)
+    run.resume()
+    run.load_data()
+    run.loop()
+    return run.finish()

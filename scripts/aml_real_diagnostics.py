@@ -116,7 +116,7 @@ def main() -> int:
 
     import torch
 
-    from pcc_ros.data.instances import InstanceCache
+    from pcc_ros.data.instance_cache import InstanceCache
     from pcc_ros.evaluate_real import real_instances, scene_contexts
     from pcc_ros.models import load_completer
 

@@ -41,7 +41,7 @@ def main() -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pcc_ros.data.instances import InstanceCache
+    from pcc_ros.data.instance_cache import InstanceCache
     from pcc_ros.evaluate import EvalInstance, attach_contexts, instance_sizes, parse_checkpoints
     from pcc_ros.models import load_completer
 

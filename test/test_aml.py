@@ -471,7 +471,7 @@ def test_the_ml_baseline_is_found_by_name_in_a_fresh_process():
     import subprocess
     import sys
 
-    # aml_ml lives in pcc_ros/models/aml.py: the registry must find it without "aml" loaded first
+    # aml_ml lives beside aml in pcc_ros/models/aml/: the registry must find it without "aml" loaded first
     code = "from pcc_ros.models.registry import get_backend; print(get_backend('aml_ml').__name__)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "AMLMaximumLikelihood"

@@ -1,4 +1,4 @@
-"""Instance extraction, the cache format, training views and pseudo-ground-truth pools."""
+"""Instance extraction, the cache format, training views, track aggregation and the evenness test."""
 
 from __future__ import annotations
 
@@ -7,18 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from pcc_ros.data.instances import (
-    EvalShapes,
-    ExtractConfig,
-    InstanceCache,
-    aggregate_track,
-    evenness,
-    extract_instances,
-    multiview_groups,
-    partial_gt_pool,
-    sample_views,
-    whole_gt_pool,
-)
+from pcc_ros.data.gt_pools import PoolConfig, build_pools, candidate_score
+from pcc_ros.data.instance_cache import EvalShapes, InstanceCache, multiview_groups
+from pcc_ros.data.instances import ExtractConfig, extract_instances
+from pcc_ros.data.track_aggregate import aggregate_instances
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.types import Boxes, Sample
@@ -163,7 +155,7 @@ def test_corrupt_cache_is_reported(track_cache):
 def test_aggregation_of_consistent_track_lands_on_true_surface(track_cache):
     cache, surface, _ = track_cache
     (obs,) = cache.tracks().values()
-    merged = aggregate_track(cache, obs, mode="box")
+    merged = aggregate_instances(cache, obs)
     assert len(merged) == cache.meta["num_points"].sum()
     noise = 0.005
     d = nn_dist(merged.astype(np.float64), surface)
@@ -174,66 +166,34 @@ def test_aggregation_of_consistent_track_lands_on_true_surface(track_cache):
     assert cover(merged) > best_single + 0.15
 
 
-def test_pose_aggregation_of_parked_car(tmp_path):
-    # A parked car, the sensor drives by: with poses, clouds register through odom.
-    rng = np.random.default_rng(3)
-    surface = car_surface(20000, rng)
-    car_odom = np.array([10.0, 5.0, -0.9])
-    frames = []
-    for f in range(8):
-        pose = np.eye(4)
-        pose[0, 3] = 1.5 * f  # ego moves along x
-        center = car_odom - pose[:3, 3]
-        origin_c = to_canonical(np.zeros((1, 3)), center, 0.3, 4.0)[0]
-        pts_c = surface[visible(surface, origin_c)][::5]
-        car = from_canonical(pts_c, center, 0.3, 4.0).astype(np.float32)
-        boxes = Boxes([center + rng.normal(0, 0.05, 3)], [CAR], [0.3 + rng.normal(0, 0.02)], track_id=["1"])
-        frames.append(Sample(f, "velodyne", np.c_[car, np.zeros(len(car))].astype(np.float32), ground_truth=boxes,
-                            sequence="0001", index=f, pose=pose))
-    cache = extract_instances(frames, tmp_path / "p", ExtractConfig(ground_margin=0.0, margin=0.2), progress=False)
-    (obs,) = cache.tracks().values()
-    assert np.isfinite(cache.meta["pose"]).all()
-    by_pose = aggregate_track(cache, obs, mode="auto")  # static -> poses
-    by_box = aggregate_track(cache, obs, mode="box")
-    ref = int(np.argmax(cache.meta["num_points"][obs]))
-    i = obs[ref]
-    truth = to_canonical(from_canonical(surface, car_odom - frames[i].pose[:3, 3], 0.3, 4.0),
-                         cache.meta["box_center"][i], cache.meta["box_yaw"][i], 4.0)
-    assert np.median(nn_dist(by_pose.astype(np.float64), truth)) < np.median(nn_dist(by_box.astype(np.float64), truth))
-
-
-def test_multiview_groups_and_sampling(tmp_path):
+def test_multiview_groups(tmp_path):
     frames, _ = make_track_frames(n_frames=43)
     cache = extract_instances(frames, tmp_path / "m", progress=False)
     groups = multiview_groups(cache, group_size=20, min_views=4)
     assert [len(g) for g in groups] == [20, 23]  # a 3-observation tail joins the previous run
     for g in groups:
         assert (np.diff(cache.meta["frame"][g]) == 1).all()  # sequential observations
-    rng = np.random.default_rng(0)
-    views = sample_views(groups[0], 4, rng)
-    assert len(np.unique(views)) == 4 and set(views) <= set(groups[0])
-    with pytest.raises(DataError):
-        sample_views(groups[0][:3], 4, rng)
+    assert [len(g) for g in cache.multiview_groups(group_size=20, min_views=4)] == [20, 23]
 
 
 def test_evenness_and_pools(tmp_path):
     rng = np.random.default_rng(1)
     whole = car_surface(5000, rng)
     one_side = whole[whole[:, 1] < 0]
-    assert min(evenness(whole).values()) > 0.6
-    ev = evenness(one_side)
-    assert ev["top"] == 0.0 and ev["front"] == 0.0 and ev["side"] > 0.6
+    assert candidate_score(whole, 0.02)[0] > 0.6
+    score, ev = candidate_score(one_side, 0.02)
+    assert score == 0.0 and ev["top"] == 0.0 and ev["front"] == 0.0 and ev["side"] > 0.6
 
     frames, _ = make_track_frames(n_frames=24)  # a drive-by: sees front, side and back
     seen_one_side, _ = make_track_frames(n_frames=3, sequence="0002", track="3")
     cache = extract_instances(frames + seen_one_side, tmp_path / "g", progress=False)
-    whole_pool = whole_gt_pool(cache, split=None, min_points=1024, threshold=0.3)
-    assert [e.key for e in whole_pool] == ["0000/7"]
-    assert len(whole_pool[0].points) >= 1024
-    parts = partial_gt_pool(cache, split=None, min_points=200, threshold=0.3)
-    assert {(e.key, e.part) for e in parts} >= {("0000/7", "front"), ("0000/7", "back")}
-    front = next(e for e in parts if e.part == "front" and e.key == "0000/7")
-    assert (front.points[:, 0] >= 0).all()
+    pools = build_pools([cache], split=None, config=PoolConfig(min_points=1024, min_half_points=200))
+    assert pools.stats["whole"]["candidates"] == 2  # both tracks have enough points ...
+    assert pools.whole.key.tolist() == ["0:0000/7"]  # ... only the drive-by is even (Otsu cut)
+    assert pools.stats["whole"]["admitted"] == 1 and pools.whole.count[0] > 0
+    assert "0:0000/7" in pools.front.key.tolist() and "0:0000/7" in pools.back.key.tolist()
+    front = pools.front.cloud(pools.front.key.tolist().index("0:0000/7"))
+    assert (front[:, 0] >= 0).all()
 
 
 def test_synthcars_shapes_are_eval_only(tmp_path):
@@ -282,7 +242,7 @@ def test_real_kitti_tracking_produces_car_tracks(shared_data, tmp_path):
     for i in range(len(cache)):
         assert np.abs(cache.points(i)).max() <= 0.75  # inside the box, canonical units
     (tracks_obs,) = [v for v in tracks.values() if len(v) == max(len(x) for x in tracks.values())]
-    merged = aggregate_track(cache, tracks_obs)
+    merged = aggregate_instances(cache, tracks_obs)
     assert len(merged) > 3 * np.median(cache.meta["num_points"][tracks_obs])
 
 
@@ -290,7 +250,6 @@ def test_extract_node_crop_crops_as_completion_node(shared_data, tmp_path):
     """`pcc extract --node-crop`: training inputs cropped with the node's box_margin / ground_margin
     (the pipeline defaults), i.e. the same points the node completes."""
     from pcc_ros.cli.main import main
-    from pcc_ros.data.instances import InstanceCache
     from pcc_ros.data.sources import open_frames
     from pcc_ros.geometry.boxes import crop_canonical
     from pcc_ros.pipeline.config import PipelineConfig

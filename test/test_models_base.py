@@ -308,12 +308,13 @@ def test_backend_table_names_every_registered_class_and_owns_recipes_and_presets
 
     package = Path(__file__).resolve().parents[1] / "pcc_ros" / "models"
     decorated = {}
-    for path in package.glob("*.py"):
+    for path in package.rglob("*.py"):  # backends may live in a subpackage (models/aml/)
+        module = ".".join(("pcc_ros", "models", *path.relative_to(package).with_suffix("").parts))
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.ClassDef):
                 for deco in node.decorator_list:
                     if isinstance(deco, ast.Call) and getattr(deco.func, "id", "") == "register":
-                        decorated[deco.args[0].value] = f"pcc_ros.models.{path.stem}:{node.name}"
+                        decorated[deco.args[0].value] = f"{module}:{node.name}"
     assert decorated == BACKENDS
     for name in BACKENDS:
         assert get_backend(name).name == name
@@ -322,6 +323,22 @@ def test_backend_table_names_every_registered_class_and_owns_recipes_and_presets
     recipe = load_recipe("pointpncnet", "default", {"inpainting": False})
     assert type(recipe).__name__ == "PointPnCNetRecipe" and recipe.describe()["drop_prob"] == 0.0
     assert type(load_recipe("aml_ml", "default", {})) is type(get_backend("aml").training_recipe())
+
+
+def test_the_launch_file_help_names_every_backend():
+    """``ros2 launch ... --show-args`` is where a user looks for the backends: it names the registry's."""
+    import ast
+    import re
+    from pathlib import Path
+
+    from pcc_ros.models import BACKENDS
+
+    launch = Path(__file__).resolve().parents[1] / "launch" / "perception.launch.py"
+    tree = ast.parse(launch.read_text(encoding="utf-8"))
+    arguments = next(ast.literal_eval(node.value) for node in tree.body
+                     if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", "") == "ARGUMENTS")
+    help_text = dict((name, text) for name, _, text in arguments)["backend"]
+    assert set(BACKENDS) <= set(re.findall(r"\w+", help_text)), help_text
 
 
 @pytest.mark.parametrize("name", ["pointpncnet", "trapcc", "aml", "aml_ml"])

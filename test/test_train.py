@@ -191,3 +191,23 @@ def test_torchrun_two_processes_gloo(tiny_cache, tmp_path):
     assert config["training"]["world_size"] == 2 and config["training"]["steps"] == 4
     assert load_config(out / "pointpncnet.json")["training"]["selected_step"] in (2, 4)  # best by validation
     assert load_config(out / "resume.json")["resume"]["step"] == 4
+
+
+def test_every_trainable_backend_states_the_recipe_contract():
+    """`pcc train` drives a declared interface (models.recipe.TrainingRecipe), never probes a recipe."""
+    import ast
+
+    import pcc_ros.train
+    from pcc_ros.models import BACKENDS, get_backend
+    from pcc_ros.models.recipe import TrainingRecipe
+
+    trainable = [name for name in BACKENDS if get_backend(name).recipe_factory is not None]
+    assert set(trainable) >= {"pointpncnet", "trapcc", "aml", "aml_ml"}
+    for name in trainable:
+        recipe = load_recipe(name, "default", {})
+        assert isinstance(recipe, TrainingRecipe) and recipe.kit is not None
+    tree = ast.parse(open(pcc_ros.train.__file__, encoding="utf-8").read())
+    probes = [f"line {node.lineno}: {ast.unparse(node)}" for node in ast.walk(tree)
+              if isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("hasattr", "getattr")
+              and "recipe" in ast.unparse(node.args[0])]
+    assert not probes, probes

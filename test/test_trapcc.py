@@ -22,13 +22,8 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.models import SceneContext, create, load_completer
 from pcc_ros.models.base import aspect_scales, median_box_aspect
-from pcc_ros.models.trapcc import (
-    TrainOptions,
-    TraPCCRecipe,
-    nearest_neighbours,
-    neighbour_geometry,
-    training_recipe,
-)
+from pcc_ros.models.trapcc import nearest_neighbours, neighbour_geometry
+from pcc_ros.models.trapcc_recipe import TrainOptions, TraPCCRecipe, training_recipe
 from pcc_ros.train import load_recipe, training_kit
 from pcc_ros.types import Boxes, Sample
 
@@ -461,16 +456,27 @@ def test_pcc_train_trapcc_end_to_end_with_resume(train_cache, tmp_path, capsys, 
     assert summary["real_instances"] > 0 and summary["real_share_of_samples"] == 0.3
 
 
-def test_fast_evenness_matches_the_instances_definition():
+def _evenness_by_unique_rows(cloud, cell, center):
+    """The paper's quadrant test written plainly (unique 2-D cells per view): the reference
+    the 1-D cell keys of ``candidate_score`` must reproduce."""
+    out = {}
+    for name, u, v in (("side", 0, 2), ("front", 1, 2), ("top", 0, 1)):
+        cells = np.unique(np.floor(cloud[:, [u, v]] / cell).astype(np.int64), axis=0)
+        mid = (cells + 0.5) * cell
+        counts = np.bincount((mid[:, 0] >= center[u]).astype(int) + 2 * (mid[:, 1] >= center[v]), minlength=4)
+        out[name] = counts.min() / max(counts.max(), 1)
+    return out
+
+
+def test_fast_evenness_matches_the_plain_definition():
     from pcc_ros.data.gt_pools import candidate_score, thin
-    from pcc_ros.data.instances import evenness
 
     rng = np.random.default_rng(4)
     cloud = ellipsoid_surface(4000, ELLIPSOID, rng)[0]
     cloud = cloud[(cloud[:, 1] < 0.1) | (rng.random(len(cloud)) < 0.3)]
     for part, cx in (("whole", 0.0), ("front", 0.25), ("back", -0.25)):
         score, views = candidate_score(cloud, 0.02, part)
-        assert views == pytest.approx(evenness(cloud, 0.02, center=(cx, 0.0, 0.0)))
+        assert views == pytest.approx(_evenness_by_unique_rows(cloud, 0.02, (cx, 0.0, 0.0)))
         assert score == min(views.values())
     thinned = thin(cloud, 0.05)
     keys = np.floor(thinned / 0.05).astype(int)

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pcc_ros.data.instances import InstanceCache
+from pcc_ros.data.instance_cache import InstanceCache
 from pcc_ros.files import write_json
 from pcc_ros.geometry.canonical import from_canonical
 

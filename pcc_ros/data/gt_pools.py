@@ -4,13 +4,13 @@ No complete shape is ever used. The pools hold *real scans*: every track of an i
 cache (KITTI tracking, nuScenes, SynthCars, a converted bag with tracked boxes) is
 aggregated across its frames in the canonical car frame (each observation is already in
 its own box's canonical frame, so the box poses do the motion compensation; see
-:func:`~pcc_ros.data.instances.aggregate_track`, mode ``box``). Then (TraPCC §4.2):
+:func:`~pcc_ros.data.track_aggregate.aggregate_instances`). Then (TraPCC §4.2):
 
 1. **Candidates**: aggregates with at least ``min_points`` (1024) points.
 2. **Evenness** (the quadrant test): the aggregate is projected onto the side (x-z),
    front (y-z) and bird's-eye (x-y) planes, sampled evenly on a grid, and each view scores
    ``min / max`` of the occupied-cell counts of its four quadrants
-   (:func:`~pcc_ros.data.instances.evenness`); a candidate's score is the minimum over the
+   (:func:`candidate_score`); a candidate's score is the minimum over the
    three views (a car seen from one side only has an empty quadrant in the front and top
    views and scores 0).
 3. **Threshold by statistics**: the admission threshold is Otsu's threshold of the
@@ -55,7 +55,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from pcc_ros import files
-from pcc_ros.data.instances import VIEWS, aggregate_track
+from pcc_ros.data.track_aggregate import aggregate_instances
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.partitions import front_back_masks
 
@@ -63,6 +63,8 @@ log = logging.getLogger("pcc.gt_pools")
 
 POOL_VERSION = 1
 PARTS = ("whole", "front", "back")
+#: Projections of the evenness test: (name, axis u, axis v) in canonical (x, y, z).
+VIEWS = (("side", 0, 2), ("front", 1, 2), ("top", 0, 1))
 #: Canonical x of each half's centre (the quadrant split of the half's evenness test).
 HALF_CENTRE = {"front": 0.25, "back": -0.25}
 
@@ -133,10 +135,13 @@ def _subset(cloud: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarr
 
 
 def candidate_score(cloud: np.ndarray, cell: float, part: str = "whole") -> tuple[float, dict[str, float]]:
-    """The evenness score (minimum over side / front / top) and the per-view values.
+    """TraPCC's evenness score (minimum over side / front / top) and the per-view values.
 
-    Same definition as :func:`pcc_ros.data.instances.evenness` (quadrant counts of the
-    occupied cells of each projection, ``min / max``), computed on 1-D cell keys.
+    Each view projects the cloud onto a plane of the object's axes (side: x-z, front: y-z,
+    top: x-y) and counts the occupied cells of a ``cell`` grid (canonical units) in each of
+    the four quadrants, split at the part's centre (x = 0, or +-0.25 for a half): counting
+    cells rather than points keeps a dense near side from outweighing a sparse far side.
+    A view scores ``min / max`` of its quadrant counts: 1 balanced, 0 a quadrant empty.
     """
     center = (HALF_CENTRE.get(part, 0.0), 0.0, 0.0)
     pts = np.asarray(cloud, dtype=np.float64)
@@ -237,7 +242,7 @@ def track_candidates(cache: Any, split: str | None, config: PoolConfig, source: 
                          leave=False):
         if "/#" in key or len(obs) < config.min_observations:
             continue
-        cloud = aggregate_track(cache, obs, mode="box")
+        cloud = aggregate_instances(cache, obs)
         out.append({"key": f"{source}:{key}", "cloud": cloud, "size": np.median(cache.meta["box_size"][obs], axis=0),
                     "observations": len(obs)})
     return out

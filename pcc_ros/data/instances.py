@@ -1,29 +1,9 @@
-"""Car instances: extraction from frames, the on-disk instance cache, training views.
+"""Car instances: extraction from frames into the on-disk instance cache (``pcc extract``).
 
 ``pcc extract`` crops every car box of every frame, moves its points into the box's
-canonical car frame and stores one *instance* (observation) per box. Training and
-evaluation read the cache only through :class:`InstanceCache`.
-
-Cache layout (a directory; numpy only, no pickle; point shards memory-mappable)::
-
-    CACHE/index.json                      format, version, fingerprint of the inputs and
-                                          options, shard list, progress, complete flag
-    CACHE/shards/NNNNN.points.npy         float32 (P, 3) canonical points of the shard,
-                                          instances back to back (CSR values)
-    CACHE/shards/NNNNN.offsets.npy        int64 (n + 1,) instance i of the shard owns
-                                          points[offsets[i]:offsets[i + 1]]
-    CACHE/shards/NNNNN.meta.npz           per-instance columns (see COLUMNS)
-    CACHE/eval_shapes/SSSS/<track>.npy    SynthCars ground-truth canonical shapes, for
-                                          evaluation only (EvalShapes), never via the cache
-
-Ground-truth shapes are deliberately *not* reachable from :class:`InstanceCache` (it
-only has the boolean column ``has_shape``): training code cannot use them by accident;
-evaluation opens them explicitly with :class:`EvalShapes`.
-
-Training views built on the cache: PointPnCNet's multi-view groups (20 sequential
-observations of a track, four views sampled), per-track multi-frame aggregation in the
-track's canonical frame, and TraPCC's Whole-GT / Partial-GT pseudo-ground-truth pools
-with the quadrant evenness test.
+canonical car frame and stores one *instance* (observation) per box in the cache that
+:mod:`pcc_ros.data.instance_cache` describes and reads. Extraction is idempotent and
+resumable: the index records the fingerprint of the inputs and options and the frames done.
 """
 
 from __future__ import annotations
@@ -35,7 +15,7 @@ import os
 import shutil
 import zlib
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -43,39 +23,24 @@ import numpy as np
 from tqdm import tqdm
 
 from pcc_ros import files
+from pcc_ros.data.instance_cache import COLUMNS, FORMAT, VERSION, EvalShapes, InstanceCache, columns_to_arrays
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import crop_canonical, iou_3d
-from pcc_ros.geometry.canonical import from_canonical, to_canonical
-from pcc_ros.geometry.partitions import front_back_masks
-from pcc_ros.geometry.segments import positions_in_runs
-from pcc_ros.types import Boxes, Sample, class_mask
+from pcc_ros.geometry.canonical import to_canonical
+from pcc_ros.types import Sample, class_mask
+
+__all__ = [
+    "EvalShapes",
+    "ExtractConfig",
+    "InstanceCache",
+    "SynthCarsInfo",
+    "extract_instances",
+    "fingerprint",
+    "frame_instances",
+    "split_of",
+]
 
 log = logging.getLogger("pcc.extract")
-
-FORMAT = "pcc-instances"
-VERSION = 1
-SPLITS = ("train", "val", "test")
-
-#: Per-instance columns of ``meta.npz`` (name -> (dtype, trailing shape, meaning)).
-COLUMNS: dict[str, tuple[str, tuple[int, ...], str]] = {
-    "sequence": ("U", (), "sequence / scene name"),
-    "frame": ("int64", (), "frame index inside the sequence"),
-    "stamp_ns": ("int64", (), "scan time, ns"),
-    "track": ("U", (), "track id ('' when the boxes have none)"),
-    "label": ("U", (), "class name"),
-    "score": ("float64", (), "box score (1 for ground truth)"),
-    "box_center": ("float64", (3,), "box centre, sensor frame, m"),
-    "box_size": ("float64", (3,), "length, width, height, m"),
-    "box_yaw": ("float64", (), "yaw about +z, sensor frame, rad"),
-    "origin": ("float32", (3,), "sensor origin in the canonical frame"),
-    "distance": ("float32", (), "sensor-to-box-centre distance, m"),
-    "num_points": ("int64", (), "points of the observation"),
-    "split": ("U", (), "train / val / test (by track)"),
-    "pose": ("float64", (4, 4), "odom <- sensor pose, NaN without poses"),
-    "gt_track": ("U", (), "detections mode: track of the best-matching ground-truth box"),
-    "gt_iou": ("float32", (), "detections mode: best 3D IoU with a ground-truth box (NaN: none)"),
-    "has_shape": ("bool", (), "a SynthCars ground-truth shape exists (see EvalShapes)"),
-}
 
 
 @dataclass
@@ -255,16 +220,6 @@ def frame_instances(
     return kept, columns
 
 
-def _columns_to_arrays(columns: dict[str, list]) -> dict[str, np.ndarray]:
-    out = {}
-    for name, (dtype, shape, _) in COLUMNS.items():
-        values = columns[name]
-        if dtype == "U":
-            out[name] = np.array(values, dtype=str) if values else np.zeros(0, dtype="<U1")
-        else:
-            out[name] = np.array(values, dtype=dtype).reshape((len(values), *shape))
-    return out
-
 
 class _Writer:
     """Accumulates instances and writes shards; the index records progress after each."""
@@ -319,7 +274,7 @@ class _Writer:
             points = np.concatenate(self.shard.points).astype(np.float32).reshape(-1, 3)
             files.save_npy(shards / f"{name}.points.npy", points)
             files.save_npy(shards / f"{name}.offsets.npy", offsets)
-            files.save_npz(shards / f"{name}.meta.npz", **_columns_to_arrays(self.shard.columns))
+            files.save_npz(shards / f"{name}.meta.npz", **columns_to_arrays(self.shard.columns))
             self.index["shards"].append({"name": name, "instances": len(counts), "points": int(offsets[-1])})
             self.shard = _Shard()
         self.index["frames_done"] = frames_done
@@ -435,345 +390,3 @@ def extract_instances(
     if skipped:
         log.info("skipped: %s", ", ".join(f"{k}={v}" for k, v in sorted(skipped.items())))
     return InstanceCache.load(out)
-
-
-# --------------------------------------------------------------------------- reading
-
-
-class InstanceCache:
-    """Read-only view of an instance cache: metadata columns in memory, points memory-mapped.
-
-    Attributes:
-        root: the cache directory.
-        index: the parsed ``index.json``.
-        meta: column name -> ``(N, ...)`` array (see :data:`COLUMNS`).
-    """
-
-    def __init__(
-        self, root: Path, index: dict, meta: dict[str, np.ndarray], shards: list[tuple[np.ndarray, np.ndarray]]
-    ) -> None:
-        self.root = root
-        self.index = index
-        self.meta = meta
-        self._shards = shards
-        sizes = np.array([len(off) - 1 for _, off in shards], dtype=np.int64)
-        self._shard_of = np.repeat(np.arange(len(shards)), sizes)
-        self._row = positions_in_runs(sizes)
-
-    @classmethod
-    def load(cls, path: str | Path, mmap: bool = True) -> InstanceCache:
-        """Open a complete cache; :class:`DataError` naming the file when anything is off."""
-        root = Path(path)
-        index_path = root / "index.json"
-        if not index_path.is_file():
-            raise DataError(f"{root}: no index.json (not an instance cache; write one with `pcc extract`)")
-        try:
-            index = json.loads(index_path.read_text())
-        except (OSError, ValueError) as exc:
-            raise DataError(f"{index_path}: unreadable ({exc})") from exc
-        if index.get("format") != FORMAT or index.get("version") != VERSION:
-            raise DataError(f"{index_path}: format {index.get('format')} v{index.get('version')}, "
-                            f"expected {FORMAT} v{VERSION}")
-        if not index.get("complete"):
-            raise DataError(f"{root}: extraction did not finish (re-run `pcc extract` to resume)")
-        shards, metas = [], []
-        for shard in index["shards"]:
-            base = root / "shards" / shard["name"]
-            try:
-                points = np.load(f"{base}.points.npy", mmap_mode="r" if mmap else None, allow_pickle=False)
-                offsets = np.load(f"{base}.offsets.npy", allow_pickle=False)
-                with np.load(f"{base}.meta.npz", allow_pickle=False) as z:
-                    meta = {k: z[k] for k in COLUMNS}
-            except (OSError, ValueError, KeyError, EOFError) as exc:
-                raise DataError(f"{base}.*: unreadable shard ({exc})") from exc
-            n = shard["instances"]
-            if (points.ndim != 2 or points.shape[1] != 3 or len(offsets) != n + 1 or offsets[0] != 0
-                    or offsets[-1] != len(points) or np.any(np.diff(offsets) < 0)
-                    or any(len(v) != n for v in meta.values())):
-                raise DataError(f"{base}.*: shard is inconsistent (truncated or corrupt)")
-            shards.append((points, offsets))
-            metas.append(meta)
-        if metas:
-            meta = {k: np.concatenate([m[k] for m in metas]) for k in COLUMNS}
-        else:
-            meta = _columns_to_arrays({k: [] for k in COLUMNS})
-        return cls(root, index, meta, shards)
-
-    def __len__(self) -> int:
-        return len(self._shard_of)
-
-    def check_finite(self) -> None:
-        """:class:`DataError` naming the shard file and the instance when a point is NaN / inf
-        (a damaged or hand-edited cache would otherwise surface as a NaN loss much later)."""
-        for (points, offsets), shard in zip(self._shards, self.index["shards"]):
-            bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
-            if len(bad):
-                row = int(np.searchsorted(offsets, bad[0], side="right") - 1)
-                where = self.root / "shards" / f"{shard['name']}.points.npy"
-                raise DataError(f"{where}: instance {row} of the shard has {len(bad)} non-finite point(s)",
-                                hint="the cache is damaged; rebuild it with `pcc extract ... --force`")
-
-    def points(self, i: int) -> np.ndarray:
-        """Canonical float32 ``(n, 3)`` points of instance ``i`` (a view into the shard)."""
-        points, offsets = self._shards[self._shard_of[i]]
-        r = self._row[i]
-        return points[offsets[r] : offsets[r + 1]]
-
-    def __getattr__(self, name: str) -> np.ndarray:
-        meta = self.__dict__.get("meta")
-        if meta is not None and name in meta:
-            return meta[name]
-        raise AttributeError(name)
-
-    @property
-    def boxes(self) -> Boxes:
-        """All instances' boxes (sensor frame of their scan)."""
-        m = self.meta
-        return Boxes(m["box_center"], m["box_size"], m["box_yaw"], m["label"], m["score"], m["track"])
-
-    def indices(self, split: str | None = None, min_points: int = 0) -> np.ndarray:
-        """Instance indices of ``split`` (``None``: all) with at least ``min_points`` points."""
-        keep = self.meta["num_points"] >= min_points
-        if split is not None:
-            if split not in SPLITS:
-                raise DataError(f"unknown split {split!r}; expected one of {SPLITS}")
-            keep &= self.meta["split"] == split
-        return np.flatnonzero(keep)
-
-    def track_keys(self) -> np.ndarray:
-        """``sequence/track`` per instance; instances without a track get a unique key."""
-        seq, track = self.meta["sequence"], self.meta["track"]
-        own = np.char.add(np.char.add(seq, "/#"), np.arange(len(self)).astype(str))
-        return np.where(track != "", np.char.add(np.char.add(seq, "/"), track), own)
-
-    def tracks(self, indices: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """Track key -> its instance indices ordered by frame (optionally within ``indices``)."""
-        idx = np.arange(len(self)) if indices is None else np.asarray(indices)
-        keys = self.track_keys()[idx]
-        order = np.lexsort((self.meta["frame"][idx], keys))
-        idx, keys = idx[order], keys[order]
-        uniq, starts = np.unique(keys, return_index=True)
-        return dict(zip(uniq.tolist(), np.split(idx, starts[1:])))
-
-    def multiview_groups(
-        self, indices: np.ndarray | None = None, group_size: int = 20, min_views: int = 4
-    ) -> list[np.ndarray]:
-        """:func:`multiview_groups` of this cache (what a backend's training recipe calls, so
-        ``pcc_ros.models`` needs no import of the data layer)."""
-        return multiview_groups(self, indices, group_size, min_views)
-
-    def frame_groups(self, indices: np.ndarray | None = None) -> list[np.ndarray]:
-        """Instances grouped by (sequence, frame): the neighbours TraPCC's scene graph needs."""
-        idx = np.arange(len(self)) if indices is None else np.asarray(indices)
-        keys = np.char.add(np.char.add(self.meta["sequence"][idx], "/"), self.meta["frame"][idx].astype(str))
-        order = np.argsort(keys, kind="stable")
-        _, starts = np.unique(keys[order], return_index=True)
-        return np.split(idx[order], starts[1:])
-
-    def info(self) -> dict:
-        """Summary: counts per split, tracks, observations per track, points per observation."""
-        n = self.meta["num_points"]
-        tracks = self.tracks(np.flatnonzero(self.meta["track"] != ""))
-        obs = np.array([len(v) for v in tracks.values()]) if tracks else np.zeros(0, int)
-        return {
-            "instances": len(self),
-            "points": int(n.sum()),
-            "splits": {s: int((self.meta["split"] == s).sum()) for s in SPLITS},
-            "labels": dict(Counter(self.meta["label"].tolist())),
-            "sequences": len(np.unique(self.meta["sequence"])),
-            "tracks": len(tracks),
-            "observations_per_track": _stats(obs),
-            "points_per_observation": _stats(n),
-            "with_shape": int(self.meta["has_shape"].sum()),
-            "skipped": self.index.get("skipped", {}),
-            "config": self.index.get("config", {}),
-        }
-
-
-def _stats(values: np.ndarray) -> dict:
-    if len(values) == 0:
-        return {"min": 0, "median": 0, "mean": 0.0, "max": 0}
-    return {"min": int(values.min()), "median": float(np.median(values)), "mean": float(values.mean()),
-            "max": int(values.max())}
-
-
-class EvalShapes:
-    """SynthCars ground-truth shapes of a cache: for evaluation only.
-
-    Kept out of :class:`InstanceCache` and every training dataset on purpose; opening
-    this is an explicit act of evaluation code.
-    """
-
-    def __init__(self, root: Path) -> None:
-        self.root = Path(root) / "eval_shapes"
-
-    @classmethod
-    def load(cls, cache_root: str | Path) -> EvalShapes:
-        return cls(Path(cache_root))
-
-    def get(self, sequence: str, track: str) -> np.ndarray | None:
-        """The canonical float32 ``(M, 3)`` shape of a track, or ``None``."""
-        if not track:
-            return None
-        path = self.root / str(sequence) / f"{track}.npy"
-        if not path.exists():
-            return None
-        try:
-            shape = np.load(path, mmap_mode="r", allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise DataError(f"{path}: unreadable shape ({exc})") from exc
-        if shape.ndim != 2 or shape.shape[1] != 3:
-            raise DataError(f"{path}: expected (M, 3), got {shape.shape}")
-        return shape
-
-    def for_instance(self, cache: InstanceCache, i: int) -> np.ndarray | None:
-        return self.get(str(cache.meta["sequence"][i]), str(cache.meta["track"][i]))
-
-
-# --------------------------------------------------------------------------- training views
-
-
-def multiview_groups(
-    cache: InstanceCache, indices: np.ndarray | None = None, group_size: int = 20, min_views: int = 4
-) -> list[np.ndarray]:
-    """PointPnCNet's groups: each track's observations in frame order, cut into runs of
-    ``group_size`` sequential observations; runs shorter than ``min_views`` are dropped
-    (a short tail joins the previous run when that keeps it within 1.5 x ``group_size``)."""
-    groups: list[np.ndarray] = []
-    for key, obs in cache.tracks(indices).items():  # loop over tracks, vectorised inside
-        if "/#" in key or len(obs) < min_views:
-            continue
-        runs = [obs[s : s + group_size] for s in range(0, len(obs), group_size)]
-        if len(runs) > 1 and len(runs[-1]) < min_views and len(runs[-2]) + len(runs[-1]) <= 1.5 * group_size:
-            tail = runs.pop()
-            runs[-1] = np.concatenate([runs[-1], tail])
-        groups.extend(r for r in runs if len(r) >= min_views)
-    return groups
-
-
-def sample_views(group: np.ndarray, views: int, rng: np.random.Generator) -> np.ndarray:
-    """``views`` distinct observations of a group (the paper samples four of twenty)."""
-    if len(group) < views:
-        raise DataError(f"group of {len(group)} observations cannot give {views} views")
-    return np.sort(rng.choice(group, views, replace=False))
-
-
-def aggregate_track(cache: InstanceCache, indices: np.ndarray, mode: str = "auto",
-                    static_threshold: float = 0.5) -> np.ndarray:
-    """Observations of one track merged in the track's canonical frame (float32 ``(M, 3)``).
-
-    ``mode="box"``: every observation is already in its own box's canonical frame, and
-    a rigid car's canonical frame is the same in every frame, so the clouds simply
-    concatenate; no ego poses needed (moving cars included).
-    ``mode="pose"``: observations go sensor -> odom with the frame poses, then into the
-    canonical frame of the track's most complete observation: for parked cars whose
-    per-frame boxes are noisy, where poses register better than boxes.
-    ``mode="auto"``: ``pose`` when every observation has a pose and the box centres in
-    odom move less than ``static_threshold`` metres, else ``box``.
-    """
-    idx = np.asarray(indices)
-    if len(idx) == 0:
-        return np.zeros((0, 3), np.float32)
-    clouds = [cache.points(i) for i in idx]
-    poses = cache.meta["pose"][idx]
-    has_pose = np.isfinite(poses).all(axis=(1, 2))
-    if mode == "auto":
-        mode = "box"
-        if has_pose.all():
-            centres = np.einsum("nij,nj->ni", poses[:, :3, :3], cache.meta["box_center"][idx]) + poses[:, :3, 3]
-            if np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() < static_threshold:
-                mode = "pose"
-    if mode == "box":
-        return np.concatenate(clouds).astype(np.float32, copy=False)
-    if mode != "pose":
-        raise DataError(f"aggregation mode must be auto, box or pose, got {mode!r}")
-    if not has_pose.all():
-        raise DataError("pose aggregation needs a pose for every observation")
-    ref = int(np.argmax([len(c) for c in clouds]))
-    r = idx[ref]
-    inv_ref = np.linalg.inv(poses[ref])
-    out = []
-    for k, i in enumerate(idx):  # loop over observations of one track (tens)
-        sensor = from_canonical(clouds[k], cache.meta["box_center"][i], cache.meta["box_yaw"][i],
-                                cache.meta["box_size"][i, 0])
-        moved = sensor @ (inv_ref @ poses[k])[:3, :3].T + (inv_ref @ poses[k])[:3, 3]
-        out.append(to_canonical(moved, cache.meta["box_center"][r], cache.meta["box_yaw"][r],
-                                cache.meta["box_size"][r, 0]))
-    return np.concatenate(out).astype(np.float32)
-
-
-#: Projections of the evenness test: (name, axis u, axis v) in canonical (x, y, z).
-VIEWS = (("side", 0, 2), ("front", 1, 2), ("top", 0, 1))
-
-
-def evenness(canonical: np.ndarray, cell: float = 0.02, center: tuple[float, float, float] = (0.0, 0.0, 0.0)
-             ) -> dict[str, float]:
-    """TraPCC's evenness per view: min / max occupied-cell count over the four quadrants.
-
-    Each view projects the cloud onto a plane of the object's axes (side: x-z, front:
-    y-z, top: x-y) and samples it evenly on a grid of ``cell`` (canonical units), so a
-    dense near side does not outweigh a sparse far side; the quadrants are split at
-    ``center``. 1 = perfectly balanced, 0 = a quadrant is empty.
-    """
-    pts = np.asarray(canonical, dtype=np.float64)[:, :3]
-    out = {}
-    for name, u, v in VIEWS:
-        if len(pts) == 0:
-            out[name] = 0.0
-            continue
-        cells = np.unique(np.floor(pts[:, [u, v]] / cell).astype(np.int64), axis=0)
-        mid = (cells + 0.5) * cell
-        quadrant = (mid[:, 0] >= center[u]).astype(int) + 2 * (mid[:, 1] >= center[v])
-        counts = np.bincount(quadrant, minlength=4)
-        out[name] = float(counts.min() / max(counts.max(), 1))
-    return out
-
-
-@dataclass
-class PoolEntry:
-    """A pseudo-ground-truth cloud: a whole aggregated track, or its front / back half."""
-
-    key: str
-    part: str  # "whole", "front" or "back"
-    points: np.ndarray
-    evenness: dict[str, float]
-    instances: np.ndarray
-
-
-def _pool_tracks(cache: InstanceCache, split: str | None, min_observations: int) -> Iterator[tuple[str, np.ndarray]]:
-    for key, obs in cache.tracks(cache.indices(split)).items():
-        if "/#" not in key and len(obs) >= min_observations:
-            yield key, obs
-
-
-def whole_gt_pool(cache: InstanceCache, split: str | None = "train", min_points: int = 1024,
-                  threshold: float = 0.3, min_observations: int = 2, cell: float = 0.02) -> list[PoolEntry]:
-    """TraPCC's Whole-GT pool: aggregated tracks with >= ``min_points`` points whose side,
-    front and top projections all pass the evenness test (>= ``threshold``)."""
-    pool = []
-    for key, obs in _pool_tracks(cache, split, min_observations):
-        cloud = aggregate_track(cache, obs)
-        if len(cloud) < min_points:
-            continue
-        score = evenness(cloud, cell)
-        if min(score.values()) >= threshold:
-            pool.append(PoolEntry(key, "whole", cloud, score, obs))
-    return pool
-
-
-def partial_gt_pool(cache: InstanceCache, split: str | None = "train", min_points: int = 512,
-                    threshold: float = 0.3, min_observations: int = 2, cell: float = 0.02) -> list[PoolEntry]:
-    """TraPCC's Partial-GT pool: fronts and backs of aggregated tracks, each with
-    >= ``min_points`` points and even in its own quadrants (split at the half's centre)."""
-    pool = []
-    for key, obs in _pool_tracks(cache, split, min_observations):
-        cloud = aggregate_track(cache, obs)
-        front, back = front_back_masks(cloud)
-        for part, mask, cx in (("front", front, 0.25), ("back", back, -0.25)):
-            half = cloud[mask]
-            if len(half) < min_points:
-                continue
-            score = evenness(half, cell, center=(cx, 0.0, 0.0))
-            if min(score.values()) >= threshold:
-                pool.append(PoolEntry(key, part, half, score, obs))
-    return pool

@@ -20,8 +20,8 @@ aggregate is called a *partial* ground truth: it holds only what some frame saw.
 
 ``voxel_downsample`` thins the aggregate to one point per voxel, so the many near, dense
 frames do not outweigh a far side seen once when a metric averages over reference points.
-The instance cache has its own cache-based variant (``pcc_ros.data.instances.aggregate_track``);
-both concatenate canonical crops and agree exactly in its ``box`` mode.
+An instance cache stores the same canonical crops, so :func:`aggregate_instances` merges a
+track's cached observations with the same :func:`aggregate_clouds`.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import logging
 from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -106,6 +107,12 @@ def aggregate_clouds(clouds: Iterable[np.ndarray], voxel: float | None = None) -
     parts = [np.asarray(c, dtype=np.float32).reshape(-1, 3) for c in clouds]
     merged = np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
     return merged if voxel is None else voxel_downsample(merged, voxel)
+
+
+def aggregate_instances(cache: Any, indices: Iterable[int], voxel: float | None = None) -> np.ndarray:
+    """The observations ``indices`` of an instance cache (:class:`~pcc_ros.data.instance_cache.InstanceCache`)
+    merged in the canonical frame: its crops are already compensated by their boxes."""
+    return aggregate_clouds((cache.points(int(i)) for i in indices), voxel)
 
 
 def frame_observations(

@@ -47,6 +47,15 @@ from pcc_ros.models.checkpoint import (
     save_checkpoint,
     validate_state,
 )
+from pcc_ros.models.recipe import (  # noqa: F401 - re-exported: the backends' recipes build on these
+    CacheRecipe,
+    CacheTrainOptions,
+    TrainingKit,
+    TrainingRecipe,
+    cache_origin,
+    check_held_out,
+    median_box_aspect,
+)
 from pcc_ros.types import Boxes
 
 if TYPE_CHECKING:  # torch is imported lazily so baselines and metrics stay torch-free
@@ -232,134 +241,6 @@ def resample_cloud(cloud: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     return cloud[index]
 
 
-# --------------------------------------------------------------------------- training
-
-
-@dataclass(frozen=True)
-class TrainingKit:
-    """What a training recipe uses from the layers beside and above ``models/``.
-
-    ``models/`` never imports ``data/`` or ``pcc_ros.train`` (docs/ARCHITECTURE.md, layers):
-    :mod:`pcc_ros.train`, which sits above both, builds the kit (``train.training_kit()``) and
-    hands it to the recipe (``recipe.kit``) before it opens data. A recipe that reads caches
-    declares a ``kit`` attribute; :meth:`require` names the recipe when it was not handed one.
-    """
-
-    #: ``path -> instance cache`` (``data.instances.InstanceCache.load``).
-    open_cache: Callable[[Any], Any]
-    #: ``(cache, split, count, seed) -> (instances, reference)`` (``train.validation_instances``).
-    validation_instances: Callable[[Any, str, int, int], tuple[list[Any], str]]
-    #: ``(completer, instances, seed) -> {val_metric: value}`` (``train.validate``).
-    validate: Callable[[Any, list[Any], int], dict[str, float]]
-    #: TraPCC's ground-truth pools (``data.gt_pools``): the options' type, ``load_or_build_pools``,
-    #: ``load_or_assign``.
-    pool_config: Callable[..., Any]
-    load_or_build_pools: Callable[..., tuple[Any, Path]]
-    load_or_assign: Callable[..., dict[str, np.ndarray]]
-
-    @staticmethod
-    def require(kit: TrainingKit | None, who: str) -> TrainingKit:
-        """``kit``, or a :class:`ConfigError` naming ``who`` (a recipe used outside ``pcc train``)."""
-        if kit is None:
-            raise ConfigError(f"{who}: the recipe reads its data through the training layer; set "
-                              "recipe.kit = pcc_ros.train.training_kit() (pcc train does)")
-        return kit
-
-
-def cache_origin(cache: Any) -> dict[str, Any]:
-    """Where an instance cache came from and how it was cropped (its ``pcc extract`` record)."""
-    config = cache.index.get("config") or {}
-    return {"source": cache.index.get("source"),
-            "crop": {k: config.get(k) for k in ("boxes", "margin", "ground_margin", "min_points")}}
-
-
-def check_held_out(caches: Sequence[Any], held_out: Sequence[str], who: str) -> dict[str, Any]:
-    """Refuse caches extracted from a held-out source; what was held out, for the checkpoint.
-
-    A cache's source (its ``pcc extract`` record) is held out when it resolves to, or lies
-    inside, one of ``held_out`` (paths; the evaluation's own datasets). ``who`` (the recipe's
-    backend) starts the :class:`ConfigError`.
-    """
-    held = [Path(h).resolve() for h in held_out]
-    for c in caches:
-        source = cache_origin(c)["source"]
-        if source is None:
-            continue
-        src = Path(source).resolve()
-        for h in held:
-            if src == h or h in src.parents or src in h.parents:
-                raise ConfigError(f"{who}: cache {c.root} was extracted from {source}, which is held out "
-                                  f"({h}); train without it")
-    return {"sources": [str(h) for h in held], "checked_caches": [str(c.root) for c in caches]}
-
-
-@dataclass
-class CacheTrainOptions:
-    """The training options of every recipe that trains on instance caches (PointPnCNet's and
-    TraPCC's ``TrainOptions`` extend it; all are stored in the checkpoint's ``training.recipe``)."""
-
-    #: train in the box-aspect frame (:attr:`Completer.box_aspect`, what the pipeline completes in):
-    #: every training input and target scaled in y / z so its own box has the median aspect of the
-    #: main training data's boxes (:func:`aspect_scales`), that reference recorded in the checkpoint
-    box_aspect: bool = False
-    #: source datasets (paths) that must not reach training (the real evaluation's own data, e.g.
-    #: what ``pcc eval --real`` scores): a cache extracted from one of them is refused
-    #: (:func:`check_held_out`); recorded in the checkpoint
-    held_out: list[str] = field(default_factory=list)
-    #: cap on training input points (``None``: the model's ``max_input_points``): a lower cap makes
-    #: CPU training steps cheaper, and the max-pooled encoders care little about density
-    input_points: int | None = None
-
-
-class CacheRecipe:
-    """What the recipes that train on instance caches share: the size and options, the reference
-    aspect of the box-aspect frame, the held-out check, ``describe()`` and ``prepare()``.
-
-    A subclass names its backend (:attr:`name`), adds its own settings to ``describe()`` through
-    :meth:`settings`, and calls :meth:`fix_aspect` on its main training data's box sizes
-    and :meth:`check_held_out` on every cache it trains from.
-    """
-
-    #: the backend, in errors and the held-out check
-    name: ClassVar[str] = ""
-
-    def __init__(self, size: str, options: CacheTrainOptions) -> None:
-        self.size = size
-        self.options = options
-        #: the reference aspect (width / length, height / length), from the first training data
-        self.aspect: tuple[float, float] | None = None
-
-    def settings(self) -> dict[str, Any]:
-        """What ``describe()`` records between the size and the options (a subclass's own)."""
-        return {}
-
-    def describe(self) -> dict[str, Any]:
-        out = {"size": self.size, **self.settings(), **self.options.__dict__}
-        if self.aspect is not None:
-            out["reference_aspect"] = list(self.aspect)
-        return out
-
-    def aspect_record(self) -> list[float] | None:
-        """The reference aspect as the checkpoint's data summary records it."""
-        return None if self.aspect is None else list(self.aspect)
-
-    def fix_aspect(self, sizes: np.ndarray) -> tuple[float, float] | None:
-        """With ``box_aspect``: the reference aspect, fixed by the first call (the main training data's
-        ``(N, 3)`` box ``sizes``) for every cache mixed in later; ``None`` without ``box_aspect``."""
-        if self.options.box_aspect and self.aspect is None:
-            self.aspect = median_box_aspect(sizes)
-        return self.aspect
-
-    def check_held_out(self, caches: Sequence[Any]) -> dict[str, Any]:
-        """:func:`check_held_out` of ``caches`` against the ``held_out`` option, in this backend's name."""
-        return check_held_out(caches, self.options.held_out, self.name)
-
-    def prepare(self, completer: TorchCompleter, data: Any, val_instances: Any, seed: int) -> None:
-        """The completer validates (and is saved) in the frame it is trained in."""
-        if self.options.box_aspect:
-            completer.box_aspect = self.aspect
-
-
 # --------------------------------------------------------------------------- completers
 
 
@@ -489,14 +370,6 @@ class Completer(abc.ABC):
 
 #: Largest ``decode_density`` (a 2x2 folding grid becomes 9x9: 20x the points).
 MAX_DECODE_DENSITY = 8
-
-
-def median_box_aspect(sizes: np.ndarray) -> tuple[float, float]:
-    """The median ``(width / length, height / length)`` of ``(N, 3)`` box sizes (a training set's)."""
-    size = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
-    if not len(size):
-        raise DataError("median_box_aspect: no boxes")
-    return float(np.median(size[:, 1] / size[:, 0])), float(np.median(size[:, 2] / size[:, 0]))
 
 
 def _cast_floating_inputs(dtype):

@@ -35,8 +35,8 @@ BACKENDS: dict[str, str] = {
     "densify": "pcc_ros.models.baselines:DensifyCompleter",
     "pointpncnet": "pcc_ros.models.pointpncnet:PointPnCNet",
     "trapcc": "pcc_ros.models.trapcc:TraPCC",
-    "aml": "pcc_ros.models.aml:AML",
-    "aml_ml": "pcc_ros.models.aml:AMLMaximumLikelihood",
+    "aml": "pcc_ros.models.aml.completer:AML",
+    "aml_ml": "pcc_ros.models.aml.completer:AMLMaximumLikelihood",
 }
 
 #: Classes registered so far (the table's, once imported, and any added at run time).

@@ -518,7 +518,8 @@ def _bounded_crop(points: np.ndarray, boxes: Boxes, cfg: PipelineConfig):
 
     One :class:`~pcc_ros.geometry.boxes.BoxCandidates` pass gives the work bound (its
     ``pairs_per_box``, known before any pair is formed) and then the crops of the boxes that
-    fit. (``benchmarks/_reference.py`` swaps this function for the crop of 93cd59e.)"""
+    fit. (``benchmarks/_reference.py`` swaps this function for the previous crop, the baseline of
+    ``pcc bench crop`` and ``pcc bench pipeline``.)"""
     candidates = BoxCandidates(points, boxes, cfg.box_margin, cfg.ground_margin)
     work = candidates.pairs_per_box
     fits = crop_budget(work, boxes, cfg.max_crop_work)

@@ -1,0 +1,86 @@
+"""The figure tables of the README and docs are rendered from committed result JSON
+(``scripts/render_figures.py``), never typed: a table that differs from its JSON fails here."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("render_figures", ROOT / "scripts" / "render_figures.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is made
+    spec.loader.exec_module(module)
+    return module
+
+
+figures = _load()
+
+
+def test_every_figure_matches_its_json():
+    problems = figures.check(ROOT)
+    assert not problems, "\n".join(problems) + "\n(run `python scripts/render_figures.py` to re-render)"
+
+
+def test_every_result_names_its_command_commit_and_date():
+    results = sorted((ROOT / figures.RESULTS).glob("*.json"))
+    assert results
+    for path in results:
+        provenance = json.loads(path.read_text())["provenance"]
+        assert provenance["command"] and provenance["commit"] and provenance["date"][:4].isdigit(), path
+
+
+@pytest.fixture
+def copy(tmp_path):
+    """The README, docs and results of this checkout, in a scratch folder."""
+    shutil.copy(ROOT / "README.md", tmp_path / "README.md")
+    shutil.copytree(ROOT / "docs", tmp_path / "docs")
+    return tmp_path
+
+
+def test_a_retyped_table_or_a_changed_json_is_caught_and_re_rendered(copy):
+    doc = next(p for p in figures.documents(copy) if "<!-- figure: bench-crop -->" in p.read_text())
+    text = doc.read_text()
+    start = text.index("<!-- figure: bench-crop -->")
+    row = text.index("| 30 |", start)
+    doc.write_text(text[:row] + "| 31 |" + text[row + len("| 30 |"):])  # a hand edit in the table
+    assert any("'bench-crop' differs" in p for p in figures.check(copy))
+    assert figures.render_all(copy) == [f"{doc.relative_to(copy)}: bench-crop"]
+    assert doc.read_text() == text and not figures.check(copy)
+
+    result = copy / figures.RESULTS / "bench-crop.json"
+    data = json.loads(result.read_text())
+    data["rows"][0]["cropped_points"] += 1  # a new run: the table must follow it
+    result.write_text(json.dumps(data))
+    assert any("'bench-crop' differs" in p for p in figures.check(copy))
+
+
+def test_unknown_unclosed_and_unused_figures_are_named(copy):
+    readme = copy / "README.md"
+    readme.write_text(readme.read_text() + "\n<!-- figure: no-such-table -->\n<!-- /figure -->\n")
+    assert any("README.md" in p and "unknown figure 'no-such-table'" in p for p in figures.check(copy))
+    readme.write_text(readme.read_text().replace("<!-- figure: no-such-table -->\n<!-- /figure -->\n",
+                                                 "<!-- figure: bench-crop -->\n"))
+    assert any("never closed" in p for p in figures.check(copy))
+    for doc in figures.documents(copy):  # no block left for bench-crop
+        doc.write_text(doc.read_text().replace("<!-- figure: bench-crop -->", "<!-- bench-crop -->"))
+    assert "figure 'bench-crop' appears in no document" in figures.check(copy)
+
+
+def test_store_records_the_provenance(tmp_path):
+    result = tmp_path / "crop.json"
+    result.write_text(json.dumps({"rows": [], "cpu_count": 2,
+                                  "run": {"commit": "abc1234", "utc": "2026-11-28 14:31:40",
+                                          "other_processes_cores": 0.004}}))
+    stored = json.loads(figures.store(tmp_path, "bench-x", result, "pcc bench crop").read_text())
+    assert stored["provenance"] == {"command": "pcc bench crop", "commit": "abc1234", "date": "2026-11-28 14:31",
+                                    "machine": {"cpu_count": 2, "other_processes_cores": 0.004}}
+    assert "idle)" in figures.provenance(stored, "bench-x")
