@@ -141,6 +141,16 @@ def _none_rejected(before, after) -> None:
     assert _ids(before, "detections_rejected") and _ids(after, "detections_rejected") == []
 
 
+def _decides(kept: str = "", rejected: str = ""):
+    """A check: detection ``kept`` was rejected and is kept now, ``rejected`` was kept and is rejected now."""
+    def check(before, after) -> None:
+        for i, was, now in ((kept, "detections_rejected", "detections_filtered"),
+                            (rejected, "detections_filtered", "detections_rejected")):
+            if i:
+                assert i in _ids(before, was) and i in _ids(after, now), (i, _ids(before, was), _ids(after, now))
+    return check
+
+
 TRAPCC_RULE = {"rule": "trapcc", "backend": "input"}
 #: The shape-mismatch knobs: the TraPCC rule on densify's completions (points beside the crop's:
 #: a mismatch above 0; the mirror's and the input's contain the crop and its side view, scoring 0).
@@ -179,12 +189,15 @@ CASES: dict[str, Case] = {
     "w_mismatch": Case("filter", 3.0, base={"backend": "input"}),
     "reject_threshold": Case("filter", 1e-6, base={"backend": "input"}, check=_all_rejected),
     "sensor": Case("filter", "hdl32", base={"backend": "input"}),
-    "w_above": Case("filter", 0.0, base={"backend": "input"}, pole=True),  # the pole's returns over box c
-    "w_fill": Case("filter", 3.0, base={"backend": "input"}),
-    "w_spill": Case("filter", 3.0, base={"backend": "input"}),  # the returns beside car a
-    "w_overlap": Case("filter", 0.0, base={"backend": "input"}, duplicate=True),  # box d on car a's
-    "w_depth": Case("filter", 0.0, base={"backend": "input"}),  # returns deep in the boxes, not on a face
-    "w_top": Case("filter", 3.0, base={"backend": "input"}),
+    # each profile term decides a box here (besides moving every box's log-odds by weight x term):
+    # the pole's returns over box c; car a's returns over part of its silhouette, car b's none
+    # outside its box; box d mostly on car a's; returns deep in the boxes (not on a face); car a's top
+    "w_above": Case("filter", 0.0, base={"backend": "input"}, pole=True, check=_decides(kept="c")),
+    "w_fill": Case("filter", 3.0, base={"backend": "input"}, check=_decides(rejected="a")),
+    "w_spill": Case("filter", 3.0, base={"backend": "input"}, check=_decides(kept="b")),
+    "w_overlap": Case("filter", 0.0, base={"backend": "input"}, duplicate=True, check=_decides(kept="d")),
+    "w_depth": Case("filter", 0.0, base={"backend": "input"}, check=_decides(kept="b")),
+    "w_top": Case("filter", 3.0, base={"backend": "input"}, check=_decides(rejected="a")),
     # past max_instances boxes b and c are not completed: their mismatch term reads mismatch_mean
     "mismatch_mean": Case("filter", 1.0, base={"backend": "input", "w_mismatch": 3.0, "max_instances": 1}),
     "filter_backend": Case("filter", "densify", base={"backend": "input", "w_mismatch": 3.0}),
