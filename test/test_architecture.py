@@ -57,7 +57,7 @@ def test_folder_map_lists_every_module_and_only_existing_ones():
 
 def test_the_map_parser_sees_a_missing_and_a_stale_entry():
     text = (ROOT / "docs" / "ARCHITECTURE.md").read_text(encoding="utf-8")
-    assert "geometry/voxels" in mapped_modules(text) and "train" in mapped_modules(text)
+    assert "geometry/voxels" in mapped_modules(text) and "workflows/train" in mapped_modules(text)
     edited = text.replace(" · voxels (AML's grids)", " · voxel_grids (AML's grids)", 1)
     mapped = mapped_modules(edited)
     assert "geometry/voxels" not in mapped and "geometry/voxel_grids" in mapped

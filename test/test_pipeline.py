@@ -166,7 +166,7 @@ def test_shipped_backend_scores_false_detections_higher_on_synthcars(tmp_path):
     """With the shipped PointPnCNet, detections on clutter / empty space mismatch more than cars."""
     from pcc_ros.data.kitti import KittiTracking
     from pcc_ros.data.synthetic import generate
-    from pcc_ros.demo import truly_vehicle
+    from pcc_ros.workflows.demo import truly_vehicle
 
     generate(tmp_path, sequences=1, frames=3, seed=11, progress=False)
     config = PipelineConfig(device="cpu", min_points=5, max_instances=64, filter=FilterConfig(rule="trapcc"))
