@@ -37,15 +37,9 @@ from pcc_ros.pipeline.config import (
     pipeline_config,
     unknown_parameters,
 )
-from pcc_ros.pipeline.core import (
-    DETECTION_OUTPUTS,
-    MARKER_OUTPUTS,
-    FrameResult,
-    Pipeline,
-    build_outputs,
-    needs_completion,
-)
+from pcc_ros.pipeline.core import FrameResult, Pipeline, needs_completion
 from pcc_ros.pipeline.filter import DECISIONS, decision_counts
+from pcc_ros.pipeline.outputs import DETECTION_OUTPUTS, MARKER_OUTPUTS, build_outputs
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.diagnostics import (
     Health,
