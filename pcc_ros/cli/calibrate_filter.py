@@ -17,8 +17,8 @@ import numpy as np
 from pcc_ros.data.kitti import split_dir
 from pcc_ros.errors import ConfigError
 from pcc_ros.files import write_json, write_text
-from pcc_ros.pipeline.config import CHOICES
 from pcc_ros.pipeline.filter import TERMS, FilterConfig
+from pcc_ros.pipeline.parameters import CHOICES
 from pcc_ros.workflows.detection_eval import default_config, load_kitti, parse_frames
 from pcc_ros.workflows.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
 from pcc_ros.workflows.filter_sensors import DEFAULT_SENSORS, SENSOR_TERMS, parse_terms
