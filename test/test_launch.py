@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from pcc_ros.pipeline.config import read_parameters
-from pcc_ros.runtime.node import OUTPUTS, node_parameters
+from pcc_ros.pipeline.config import node_parameters, read_parameters
+from pcc_ros.runtime.node import OUTPUTS
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH_FILE = REPO / "launch" / "perception.launch.py"

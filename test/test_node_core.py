@@ -14,19 +14,12 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.msg.typestore import get_typestore
-from pcc_ros.pipeline.config import check_value, parameter_table
+from pcc_ros.pipeline.config import check_value, node_parameters, parameter_table, unknown_parameters
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig
 from pcc_ros.pipeline.outputs import build_outputs
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, QoS, Transform
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
-from pcc_ros.runtime.node import (
-    OUTPUTS,
-    NodeCore,
-    node_parameters,
-    output_names,
-    pipeline_stages,
-    unknown_parameters,
-)
+from pcc_ros.runtime.node import OUTPUTS, NodeCore, output_names, pipeline_stages
 from pcc_ros.types import Boxes
 
 CLOUD = "sensor_msgs/msg/PointCloud2"

@@ -438,6 +438,22 @@ def node_parameters(values: dict[str, Any] | None = None, overrides: dict[str, A
     return merged
 
 
+def changed_parameters(current: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """The checked values of ``changes`` that differ from ``current``, as a running node takes a
+    change: an unknown name, a bad value or a read-only parameter (fixed once the node runs) is a
+    :class:`ConfigError` naming it, and then nothing of ``changes`` applies."""
+    unknown = unknown_parameters(changes)
+    if unknown:
+        raise ConfigError(f"unknown parameter(s) {unknown}")
+    specs = parameter_specs()
+    checked = {name: check_value(specs[name], value) for name, value in changes.items()}
+    changed = {name: value for name, value in checked.items() if value != current[name]}
+    fixed = sorted(name for name in changed if specs[name].read_only)
+    if fixed:
+        raise ConfigError(f"{fixed} cannot change while the node runs: restart the node")
+    return changed
+
+
 def pipeline_config(values: dict[str, Any]) -> PipelineConfig:
     """The :class:`PipelineConfig` of checked node parameters (:func:`node_parameters`); the
     node-only ones (pairing, QoS, frames) are left to the node."""
