@@ -269,13 +269,38 @@ def render_demo(d: dict[str, Any]) -> list[str]:
     return [*completion, "", *filtering]
 
 
+def _setting(name: str) -> str:
+    """``workers 1`` -> ```workers` 1``: the parameter names of a scale row as code."""
+    if name == "shipped":
+        return name
+    return " + ".join(f"`{part.split()[0]}` {' '.join(part.split()[1:])}" for part in name.split(" + "))
+
+
+def render_bench_scale(d: dict[str, Any]) -> list[str]:
+    """docs/nodes.md: the shipped filter node on a 64-beam and a 128-beam frame, and the settings
+    that trade speed for something else; then the benchmark's own verdict."""
+    rows = [[_setting(r["setting"]), f"{r['points']:,} / {r['cars']} / {r['boxes']}",
+             f"{r['p50_ms']:.0f} / {r['p95_ms']:.0f}", f"{r['cpu_p50_ms']:.0f}", f"{r['cpu_bound_hz']:.1f}",
+             *(f"{r[stage]:.1f}" for stage in ("decode", "crop", "complete", "filter", "uncanonical", "encode")),
+             f"{r['judged']} / {r['passed_on']}", f"{r['peak_rss_mb']:.0f} (+{r['rss_growth_mb']:.0f})"]
+            for r in d["rows"]]
+    header = ["setting", "points / cars / boxes", "wall p50 / p95 ms (lower is better)", "cpu ms (lower is better)",
+              "cpu Hz (higher is better)", "decode", "crop", "complete", "filter", "uncanonical", "encode",
+              "judged / passed on", "peak RSS MB (growth)"]
+    return [*table(header, rows), "", f"Verdict of this run: {d['verdict']}"]
+
+
 #: Every figure block of the README and docs: marker id -> its result file and renderer.
 FIGURES: dict[str, Figure] = {
     "bench-table": Figure(tuple(f"bench-{name}" for name in BENCH_ROWS), render_bench_table),
     "bench-messages": one("bench-messages", render_bench_messages),
     "bench-crop": one("bench-crop", render_bench_crop),
     "demo": one("demo", render_demo),
+    "bench-scale": one("bench-scale", render_bench_scale),
 }
+#: The benchmarks ``store-bench`` keeps (as ``bench-NAME``): the README table's and those with a figure of their own.
+STORED_BENCHMARKS = {*BENCH_ROWS, *(figure_id.removeprefix("bench-") for figure_id in FIGURES
+                                    if figure_id.startswith("bench-") and figure_id != "bench-table")}
 
 
 # --------------------------------------------------------------------------- the engine
@@ -419,7 +444,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.action == "store-bench":
         for result in sorted(args.folder.glob("*.json")):
-            if result.stem in BENCH_ROWS:
+            if result.stem in STORED_BENCHMARKS:
                 print(store(ROOT, f"bench-{result.stem}", result))
         return 0
     if args.check:
