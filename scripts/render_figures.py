@@ -290,6 +290,40 @@ def render_bench_scale(d: dict[str, Any]) -> list[str]:
     return [*table(header, rows), "", f"Verdict of this run: {d['verdict']}"]
 
 
+def _filter_frame(scan: str, rows: list[dict[str, Any]]) -> str:
+    points = rows[0]["points"]
+    boxes = " / ".join(str(r["boxes"]) for r in rows)
+    if scan == "synthcars":
+        return f"SynthCars {points // 1000}k points, {boxes} cars"
+    return f"KITTI {scan.split()[-1]}, {boxes} boxes"
+
+
+def _by_scan(d: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
+    scans: dict[str, list[dict[str, Any]]] = {}
+    for r in d["rows"]:
+        scans.setdefault(r["scan"], []).append(r)
+    return scans
+
+
+def render_filter_terms(d: dict[str, Any]) -> list[str]:
+    """docs/filter.md: what each part of the filter's measurement costs (medians, one thread)."""
+    columns = ("beams_ms", "profile_ms", "all_terms_ms", "rule_terms_ms")
+    rows = [[_filter_frame(scan, rs), *(" / ".join(f"{r[c]:.1f}" for r in rs) for c in columns)]
+            for scan, rs in _by_scan(d).items()]
+    return table(["frame (ms, lower is better)", *(f"`{c}`" for c in columns)], rows)
+
+
+def render_bench_filter(d: dict[str, Any]) -> list[str]:
+    """docs/filter.md: the scan measurements against the previous filter, interleaved call by call."""
+    rows = [["SynthCars" if r["scan"] == "synthcars" else f"KITTI {r['scan'].split()[-1]}",
+             f"{r['points'] // 1000}k", r["boxes"], f"{r['ours_min']:.1f} / {r['ours_ms']:.1f} ms",
+             f"{r['ours2_min']:.1f} / {r['ours2_ms']:.1f} ms", f"{r['ref_min']:.1f} / {r['ref_ms']:.1f} ms",
+             ratio(r["speedup"]), r["outputs"]] for r in d["rows"]]
+    header = ["scan", "points", "boxes", "ours min / median", "ours, workers 2, min / median",
+              "previous filter min / median", "speedup, medians (higher is better)", "outputs"]
+    return table(header, rows)
+
+
 #: Every figure block of the README and docs: marker id -> its result file and renderer.
 FIGURES: dict[str, Figure] = {
     "bench-table": Figure(tuple(f"bench-{name}" for name in BENCH_ROWS), render_bench_table),
@@ -297,10 +331,12 @@ FIGURES: dict[str, Figure] = {
     "bench-crop": one("bench-crop", render_bench_crop),
     "demo": one("demo", render_demo),
     "bench-scale": one("bench-scale", render_bench_scale),
+    "bench-filter": one("bench-filter", render_bench_filter),
+    "bench-filter-terms": one("bench-filter", render_filter_terms),
 }
 #: The benchmarks ``store-bench`` keeps (as ``bench-NAME``): the README table's and those with a figure of their own.
-STORED_BENCHMARKS = {*BENCH_ROWS, *(figure_id.removeprefix("bench-") for figure_id in FIGURES
-                                    if figure_id.startswith("bench-") and figure_id != "bench-table")}
+STORED_BENCHMARKS = {source.removeprefix("bench-") for figure in FIGURES.values() for source in figure.sources
+                     if source.startswith("bench-")}
 
 
 # --------------------------------------------------------------------------- the engine
