@@ -135,13 +135,13 @@ class BoxCandidates:
         self._entry_row = self._entry_box = np.zeros(0, np.int64)
         self._n_rows = 0
         self.pairs_per_box = np.zeros(nb, dtype=np.int64)
+        self._dt = dt = np.float32 if pts.dtype == np.float32 else np.float64
         if nb == 0 or len(pts) == 0:
             self._hit_row = np.zeros(0, np.int64)
             return
         # The test runs in the scan's precision (float32 for sensor data); the z bounds are
         # rounded outward-exactly to it, so the bottom / top tests (where the ground returns
         # sit, right at the boundary) agree with an exact float64 test.
-        self._dt = dt = np.float32 if pts.dtype == np.float32 else np.float64
         half_z = boxes.size[:, 2] / 2.0
         self._zlo = round_up_to(boxes.center[:, 2] - half_z - self.margin + self.ground_margin, dt)
         self._zhi = round_down_to(boxes.center[:, 2] + half_z + self.margin, dt)
@@ -276,12 +276,8 @@ class BoxCandidates:
         pts, dt = self.points, self._dt
         if not pts.flags.c_contiguous:  # np.take would copy the whole array for every chunk
             pts = np.ascontiguousarray(pts[:, :3])
-        boxes, margin = self.boxes, self.margin
-        half = boxes.size / 2.0
-        values = np.stack([  # one row per box
-            self._zlo, self._zhi, boxes.center[:, 0], boxes.center[:, 1], np.cos(boxes.yaw), np.sin(boxes.yaw),
-            half[:, 0] + margin, half[:, 1] + margin,
-        ], axis=1).astype(dt)
+        boxes = self.boxes
+        values = self._box_values()
         # In chunks of pairs, every temporary in this thread's work arrays: they stay in cache
         # and mapped (a fresh array of this size is page-faulted in afresh on every frame).
         ends = np.cumsum(count).tolist()
@@ -327,6 +323,32 @@ class BoxCandidates:
         lx, ly, dz = (np.concatenate(c) for c in zip(*local_parts))
         dz -= np.repeat(boxes.center[:, 2].astype(dt), np.diff(starts))
         return np.take(pp, kept), starts, (lx, ly, dz)
+
+    def _box_values(self) -> np.ndarray:
+        """Per box, the exact test's row in the test's precision: ``(zlo, zhi, cx, cy, cos, sin,
+        half length + margin, half width + margin)``."""
+        boxes, margin = self.boxes, self.margin
+        half = boxes.size / 2.0
+        return np.stack([
+            self._zlo, self._zhi, boxes.center[:, 0], boxes.center[:, 1], np.cos(boxes.yaw), np.sin(boxes.yaw),
+            half[:, 0] + margin, half[:, 1] + margin,
+        ], axis=1).astype(self._dt)
+
+    def candidate_test(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The candidates and the exact test's inputs, for a compiled loop that tests and uses
+        each pair in one visit instead of :meth:`pairs` gathering them into arrays first:
+        ``(pair_point, pair_box, points, values)``. The pairs in point order (a box's points
+        ascending); the scan's x, y, z in the test's precision (no copy when already in it);
+        per box the row of :meth:`_box_values`. A pair is inside when ``zlo <= z <= zhi``,
+        ``|cos dx + sin dy| <= hl`` and ``|cos dy - sin dx| <= hw`` (``dx, dy``: the point minus
+        the centre), every operation rounded in that precision, as :meth:`pairs` tests it."""
+        pp, pb = self._candidates(None)
+        pts = self.points[:, :3]
+        if pts.dtype != self._dt:
+            pts = pts.astype(self._dt)
+        if not len(pp):
+            return np.zeros(0, np.int64), np.zeros(0, np.uint8), pts, np.zeros((len(self.boxes), 8), self._dt)
+        return pp, pb, pts, self._box_values()
 
     def _candidates(self, keep: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """(point, box) candidate pairs in point order: each point meets the boxes of its cell."""

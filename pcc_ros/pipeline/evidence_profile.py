@@ -104,19 +104,17 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
     size[:, 2] += ABOVE_REACH
     centre[:, 2] += ABOVE_REACH / 2
     grown = Boxes(centre, size, boxes.yaw)
-    candidates = BoxCandidates(points, grown)
-    pair_point, starts, (lx, ly, lz) = candidates.pairs(local=True)
+    pair_point, pair_box, pts, test = BoxCandidates(points, grown).candidate_test()
     cos, sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
     cx, cy, cz = boxes.center.T
     origin = np.ascontiguousarray(np.stack(to_box_local(0.0, 0.0, 0.0, cx, cy, cz, cos, sin), axis=1))
     centre_az = np.arctan2(cy, cx)
-    pts = candidates.points
-    px, py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
     out = np.zeros((n, 7))
     from pcc_ros.pipeline import profile_kernels as kernels  # numba: heavy, only when measuring
 
-    kernels.profile_pairs(lx, ly, lz, px, py, pair_point, starts, np.ascontiguousarray(boxes.size / 2), origin,
-                          centre_az, ABOVE_REACH / 2, FACE_MARGIN, EVIDENCE_GROUND, out)
+    kernels.profile_pairs(pair_point, pair_box, pts, test, grown.center[:, 2].astype(test.dtype),
+                          np.ascontiguousarray(boxes.size / 2), origin, centre_az, ABOVE_REACH / 2, FACE_MARGIN,
+                          EVIDENCE_GROUND, out)
     n_body, n_above, n_shell = out[:, kernels.BODY], out[:, kernels.ABOVE], out[:, kernels.SHELL]
     has = n_body > 0
     az_lo, az_hi, *_ = angular_window(boxes)
