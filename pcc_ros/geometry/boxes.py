@@ -544,13 +544,29 @@ def _pairwise_bev_intersection(a: Boxes, b: Boxes) -> np.ndarray:
     out = np.zeros((na, nb))
     if na == 0 or nb == 0:
         return out
-    # Only pairs whose circumscribed circles meet can intersect: skip the rest.
+    ia, ib = np.nonzero(circles_meet(a, b))  # only these pairs can intersect
+    out[ia, ib] = polygon_intersection_area(ca[ia], cb[ib])
+    return out
+
+
+def circles_meet(a: Boxes, b: Boxes) -> np.ndarray:
+    """``(len(a), len(b))``: whether the circumscribed BEV circles of two boxes meet (only such
+    pairs can intersect: the BEV overlaps clip the polygons of those only)."""
     ra = np.linalg.norm(a.size[:, :2], axis=1) / 2.0
     rb = np.linalg.norm(b.size[:, :2], axis=1) / 2.0
     dist = np.linalg.norm(a.center[:, None, :2] - b.center[None, :, :2], axis=2)
-    ia, ib = np.nonzero(dist <= ra[:, None] + rb[None, :])
-    out[ia, ib] = polygon_intersection_area(ca[ia], cb[ib])
-    return out
+    return dist <= ra[:, None] + rb[None, :]
+
+
+def iou_bev_pairs(boxes: Boxes, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """BEV IoU of the pairs ``(boxes[i[k]], boxes[j[k]])``: the entries ``[i, j]`` of
+    ``iou_bev(boxes, boxes)`` for pairs whose circles meet (:func:`circles_meet`), bit for bit,
+    without clipping the polygons of every other pair (a frame's boxes rarely meet)."""
+    corners = _bev_corners(boxes)
+    inter = polygon_intersection_area(corners[i], corners[j])
+    area = boxes.size[:, 0] * boxes.size[:, 1]
+    union = area[i] + area[j] - inter
+    return inter / np.maximum(union, 1e-12)
 
 
 def iou_bev(a: Boxes, b: Boxes) -> np.ndarray:

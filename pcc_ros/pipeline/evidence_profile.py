@@ -32,7 +32,7 @@ from collections.abc import Collection
 import numpy as np
 
 from pcc_ros.geometry.beams import SensorModel
-from pcc_ros.geometry.boxes import BoxCandidates, iou_bev
+from pcc_ros.geometry.boxes import BoxCandidates, circles_meet, iou_bev_pairs
 from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, angular_window
 from pcc_ros.types import Boxes
@@ -61,17 +61,20 @@ def covered_share(boxes: Boxes) -> np.ndarray:
     """Per box, the largest share of its BEV footprint that a box with a higher score (ties:
     an earlier box) covers: the duplicate check an NMS would make, measured, not applied."""
     n = len(boxes)
+    share = np.zeros(n)
     if n < 2:
-        return np.zeros(n)
-    iou = iou_bev(boxes, boxes)
-    area = boxes.size[:, 0] * boxes.size[:, 1]
-    # intersection from IoU: I = IoU * (A_i + A_j) / (1 + IoU)
-    inter = iou * (area[:, None] + area[None, :]) / (1.0 + iou)
+        return share
     score = np.nan_to_num(np.asarray(boxes.score, dtype=np.float64), nan=-np.inf)
     idx = np.arange(n)
     better = (score[None, :] > score[:, None]) | ((score[None, :] == score[:, None]) & (idx[None, :] < idx[:, None]))
-    share = np.where(better, inter / np.maximum(area[:, None], 1e-12), 0.0)
-    return np.clip(share.max(axis=1), 0.0, 1.0)
+    i, j = np.nonzero(better & circles_meet(boxes, boxes))  # only these pairs can cover anything
+    if len(i):
+        iou = iou_bev_pairs(boxes, i, j)
+        area = boxes.size[:, 0] * boxes.size[:, 1]
+        # intersection from IoU: I = IoU * (A_i + A_j) / (1 + IoU)
+        inter = iou * (area[i] + area[j]) / (1.0 + iou)
+        np.maximum.at(share, i, inter / np.maximum(area[i], 1e-12))
+    return np.clip(share, 0.0, 1.0)
 
 
 def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
@@ -114,21 +117,22 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
 
     kernels.profile_pairs(pair_point, pair_box, pts, test, grown.center[:, 2].astype(test.dtype),
                           np.ascontiguousarray(boxes.size / 2), origin, centre_az, ABOVE_REACH / 2, FACE_MARGIN,
-                          EVIDENCE_GROUND, out)
+                          EVIDENCE_GROUND, "fill" in wanted, out)
     n_body, n_above, n_shell = out[:, kernels.BODY], out[:, kernels.ABOVE], out[:, kernels.SHELL]
     has = n_body > 0
-    az_lo, az_hi, *_ = angular_window(boxes)
-    step = np.deg2rad(sensor.azimuth_resolution_deg)
-    span = out[:, kernels.AZ_MAX] - out[:, kernels.AZ_MIN]
-    fill = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
+    terms = {}
+    if "fill" in wanted:
+        az_lo, az_hi, *_ = angular_window(boxes)
+        step = np.deg2rad(sensor.azimuth_resolution_deg)
+        span = out[:, kernels.AZ_MAX] - out[:, kernels.AZ_MIN]
+        terms["fill"] = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
     top = np.where(has, (out[:, kernels.TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0)
-    terms = {
+    terms.update({
         "above": n_above / (n_above + n_body + 1.0),
-        "fill": fill,
         "spill": np.log((n_shell + 1.0) / (n_body + 1.0)),
         "depth": (out[:, kernels.DEPTH_SUM] + 0.5) / (n_body + 1.0),
         "top": top,
-    }
+    })
     out_terms.update({k: v for k, v in terms.items() if k in wanted})
     out_terms.update({"n_body": n_body, "n_above": n_above})
     if "spill" in wanted:

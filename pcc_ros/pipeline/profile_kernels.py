@@ -22,7 +22,8 @@ BODY, ABOVE, SHELL, AZ_MIN, AZ_MAX, DEPTH_SUM, TOP = range(7)
 
 
 @compiled()
-def profile_pairs(pair_point, pair_box, pts, test, cz, half, origin, centre_az, z_shift, face_margin, ground, out):
+def profile_pairs(pair_point, pair_box, pts, test, cz, half, origin, centre_az, z_shift, face_margin, ground, azimuth,
+                  out):
     """The profile counts of every box from the candidate pairs of the grown boxes
     (:meth:`pcc_ros.geometry.boxes.BoxCandidates.candidate_test`: ``pair_point``, ``pair_box``,
     the scan ``pts`` and each grown box's ``test`` row in the test's precision, ``cz`` its centre
@@ -33,7 +34,8 @@ def profile_pairs(pair_point, pair_box, pts, test, cz, half, origin, centre_az, 
     counts of body, above and shell returns, the min / max azimuth of the body returns relative to
     ``centre_az[b]``, the sum of their depth shares behind the near face (summed in point order),
     the highest body return (rows of ``out``, columns :data:`BODY` ...; ``out`` zeroed by the
-    caller, ``AZ_MIN`` / ``AZ_MAX`` / ``TOP`` are set only where a body return exists)."""
+    caller, ``AZ_MIN`` / ``AZ_MAX`` / ``TOP`` are set only where a body return exists; the
+    azimuths, an ``atan2`` per body return, only with ``azimuth``: ``fill`` alone reads them)."""
     nb = len(half)
     az_min = np.full(nb, np.inf)
     az_max = np.full(nb, -np.inf)
@@ -59,13 +61,14 @@ def profile_pairs(pair_point, pair_box, pts, test, cz, half, origin, centre_az, 
         in_band = zlo <= z <= hz
         if over and in_band:
             out[b, BODY] += 1
-            a = math.atan2(np.float64(pts[i, 1]), np.float64(pts[i, 0])) - centre_az[b]
-            if a > math.pi:
-                a -= 2 * math.pi
-            elif a < -math.pi:
-                a += 2 * math.pi
-            az_min[b] = min(az_min[b], a)
-            az_max[b] = max(az_max[b], a)
+            if azimuth:
+                a = math.atan2(np.float64(pts[i, 1]), np.float64(pts[i, 0])) - centre_az[b]
+                if a > math.pi:
+                    a -= 2 * math.pi
+                elif a < -math.pi:
+                    a += 2 * math.pi
+                az_min[b] = min(az_min[b], a)
+                az_max[b] = max(az_max[b], a)
             top[b] = max(top[b], z)
             # the ray from the sensor (t = 0) to the return (t = 1): where it enters and
             # leaves the box (slabs), and how deep between the two the return lies
