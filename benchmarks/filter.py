@@ -125,6 +125,8 @@ def run(args: argparse.Namespace) -> dict:
         reference = reference_evidence(points, boxes, sensor, reach=fixed).as_dict()
         check_equal(evidence(points, boxes, sensor, reach=fixed).as_dict(), reference)
         check_equal(evidence(points, boxes, sensor, workers=2, reach=fixed).as_dict(), reference)
+        check_equal(filter_terms(points, boxes, rule, sensor=sensor, weighted_only=True, workers=2),
+                    filter_terms(points, boxes, rule, sensor=sensor, weighted_only=True), "one thread's filter_terms")
         for measure in (None, rule_profile):  # every profile term, and those the shipped rule weighs
             check_equal(profile_terms(points, boxes, sensor, measure=measure),
                         reference_profile(points, boxes, sensor, measure=measure), "24858c5's profile pass")
@@ -139,7 +141,9 @@ def run(args: argparse.Namespace) -> dict:
                              "93cd59e": lambda p=points, b=boxes: reference_evidence(p, b, sensor, reach=fixed),
                              "terms_all": lambda p=points, b=boxes: filter_terms(p, b, rule, sensor=sensor),
                              "terms_rule": lambda p=points, b=boxes: filter_terms(p, b, rule, sensor=sensor,
-                                                                                  weighted_only=True)},
+                                                                                  weighted_only=True),
+                             "terms_rule_2": lambda p=points, b=boxes: filter_terms(p, b, rule, sensor=sensor,
+                                                                                    weighted_only=True, workers=2)},
                             repeat=args.repeat, warmup=3)
         ours, two, ref = (summary_ms(times[k]) for k in ("ours", "ours_2", "93cd59e"))
         beams, profile = summary_ms(times["ours_beams"]), summary_ms(times["profile"])
@@ -151,6 +155,7 @@ def run(args: argparse.Namespace) -> dict:
                      "profile_ms": profile["median_ms"], "profile_rule_ms": profile_rule["median_ms"],
                      "profile_24858c5_ms": profile_before["median_ms"], "all_terms_ms": every["median_ms"],
                      "rule_terms_ms": weighted["median_ms"],
+                     "rule_terms_2_ms": summary_ms(times["terms_rule_2"])["median_ms"],
                      "ref_min": ref["min_ms"], "ref_ms": ref["median_ms"], "ref_max": ref["max_ms"],
                      "speedup": ref["median_ms"] / ours["median_ms"], "outputs": "identical"})
     print_table(f"evidence filter measurements, ms ({args.repeat} interleaved calls each: min / median / max); "
@@ -162,7 +167,8 @@ def run(args: argparse.Namespace) -> dict:
                 "the same by the profile pass of 24858c5 (pair arrays first; outputs checked identical); ref = main "
                 "at 93cd59e; all_terms = every term of the rule "
                 "(filter_terms, one thread: calibration's measurement), rule_terms = only those the shipped rule "
-                "weighs (weighted_only: what the pipeline measures)", rows)
+                "weighs (weighted_only: what the pipeline measures), rule_terms_2 = the same on two threads (the "
+                "profile pass on the second, as the pipeline's workers >= 2; outputs checked identical)", rows)
     grain = thread_grain(args.grain_repeat) if args.grain_repeat > 0 else []
     if grain:
         print_table(f"thread grain: the same numpy work on one thread and split over two, ms ({args.grain_repeat} "
