@@ -119,6 +119,12 @@ def run(args: argparse.Namespace) -> dict:
     fixed = GROUND_REACH  # 93cd59e's ground reach: the outputs compared bit for bit
     rule = FilterConfig(sensor="hdl64")  # the shipped rule
     rule_profile = set(rule.weighted_terms) & set(PROFILE_TERMS)
+
+    def rule_terms_24858c5(points, boxes):
+        """filter_terms(weighted_only=True, workers=2) as at 24858c5: the evidence on two threads
+        (what the shipped rule weighs: rays, expected returns, ground), then its profile pass."""
+        evidence(points, boxes, sensor, workers=2)
+        return reference_profile(points, boxes, sensor, measure=rule_profile)
     rows = []
     for scan, points, boxes in _frames(args):
         check_equal(evidence(points, boxes, sensor).as_dict(), reference_evidence(points, boxes, sensor).as_dict())
@@ -143,7 +149,8 @@ def run(args: argparse.Namespace) -> dict:
                              "terms_rule": lambda p=points, b=boxes: filter_terms(p, b, rule, sensor=sensor,
                                                                                   weighted_only=True),
                              "terms_rule_2": lambda p=points, b=boxes: filter_terms(p, b, rule, sensor=sensor,
-                                                                                    weighted_only=True, workers=2)},
+                                                                                    weighted_only=True, workers=2),
+                             "terms_rule_24858c5_2": lambda p=points, b=boxes: rule_terms_24858c5(p, b)},
                             repeat=args.repeat, warmup=3)
         ours, two, ref = (summary_ms(times[k]) for k in ("ours", "ours_2", "93cd59e"))
         beams, profile = summary_ms(times["ours_beams"]), summary_ms(times["profile"])
@@ -156,6 +163,7 @@ def run(args: argparse.Namespace) -> dict:
                      "profile_24858c5_ms": profile_before["median_ms"], "all_terms_ms": every["median_ms"],
                      "rule_terms_ms": weighted["median_ms"],
                      "rule_terms_2_ms": summary_ms(times["terms_rule_2"])["median_ms"],
+                     "rule_terms_24858c5_2_ms": summary_ms(times["terms_rule_24858c5_2"])["median_ms"],
                      "ref_min": ref["min_ms"], "ref_ms": ref["median_ms"], "ref_max": ref["max_ms"],
                      "speedup": ref["median_ms"] / ours["median_ms"], "outputs": "identical"})
     print_table(f"evidence filter measurements, ms ({args.repeat} interleaved calls each: min / median / max); "
@@ -168,7 +176,9 @@ def run(args: argparse.Namespace) -> dict:
                 "at 93cd59e; all_terms = every term of the rule "
                 "(filter_terms, one thread: calibration's measurement), rule_terms = only those the shipped rule "
                 "weighs (weighted_only: what the pipeline measures), rule_terms_2 = the same on two threads (the "
-                "profile pass on the second, as the pipeline's workers >= 2; outputs checked identical)", rows)
+                "profile pass on the second, as the pipeline's workers >= 2; outputs checked identical), "
+                "rule_terms_24858c5_2 = the same work as 24858c5 did it (the evidence on two threads, then its "
+                "profile pass)", rows)
     grain = thread_grain(args.grain_repeat) if args.grain_repeat > 0 else []
     if grain:
         print_table(f"thread grain: the same numpy work on one thread and split over two, ms ({args.grain_repeat} "
