@@ -201,7 +201,6 @@ def test_pairs_tested_in_chunks_give_the_same_crops(monkeypatch, chunk):
     points, boxes = random_scene(rng, n_points=6000)
     expected = crop_canonical(points, boxes, 0.1, 0.05)
     monkeypatch.setattr(boxes_module, "_PAIR_CHUNK", chunk)  # chunk borders inside boxes, boxes inside chunks
-    monkeypatch.setattr(boxes_module, "_SCAN_BLOCK", chunk)  # and the scan in blocks of as many points
     indices, canon = crop_canonical(points, boxes, 0.1, 0.05)
     slow = slow_points_in_boxes(points, boxes, 0.1, 0.05)
     for a, b, s in zip(indices, expected[0], slow):

@@ -53,7 +53,6 @@ def box_corners(boxes: Boxes) -> np.ndarray:
 
 CELL_FRACTION = 0.25  # default BEV hash cell as a fraction of the median box width
 _PAIR_CHUNK = 16384  # candidate pairs tested at a time
-_SCAN_BLOCK = 32768  # scan points hashed at a time (their temporaries stay in L2)
 
 
 def _bev_corners(boxes: Boxes) -> np.ndarray:
@@ -104,8 +103,8 @@ class BoxCandidates:
       pairs inside, grouped by box (ascending), points ascending within a box, and
       optionally the points' box-frame coordinates.
 
-    Cost: ten contiguous passes over the scan (two of them strided reads of x and y, in
-    float32, into per-thread work arrays), then work proportional to the candidates. The
+    Cost: one compiled pass over the scan (:mod:`pcc_ros.geometry.box_kernels`; the cell in
+    float32), then work proportional to the candidates. The
     exact test runs in the scan's precision (float32 sensor data stays float32) with the
     z bounds rounded outward-exactly, so it agrees with an exact float64 test. NaN points
     fall in the grid's empty border: never candidates, never inside.
@@ -219,39 +218,19 @@ class BoxCandidates:
 
     def _scan(self, pts: np.ndarray, grid: tuple, row_of: np.ndarray, n_rows: int, row_dtype: type) -> None:
         """The cell of every point (float32, clipped onto the grid) looked up in the table:
-        the points in cells that some box reaches, and their rows."""
+        the points in cells that some box reaches and within the boxes' union z range, and
+        their rows (one compiled pass, :func:`pcc_ros.geometry.box_kernels.scan_cells`)."""
+        from pcc_ros.geometry.box_kernels import scan_cells  # numba: heavy, only when a scan is met
+
         ox, oy, cell, nx, ny = grid
         n = len(pts)
-        inv = np.float32(1.0 / cell)
-        block = min(n, _SCAN_BLOCK)
-        g = _SCRATCH("cell", block, np.float32)
-        key = _SCRATCH("key", block, np.int32)
-        gy = _SCRATCH("key_y", block, np.int32)
-        row = _SCRATCH("row", n, row_dtype)
-        for lo in range(0, n, block):  # blocks of the scan: the temporaries stay in cache
-            hi = min(lo + block, n)
-            if hi - lo < block:
-                g, key, gy = g[:hi - lo], key[:hi - lo], gy[:hi - lo]
-            with np.errstate(invalid="ignore", over="ignore"):
-                for axis, origin, size, out in ((0, ox, nx, key), (1, oy, ny, gy)):
-                    np.subtract(pts[lo:hi, axis], np.float32(origin), out=g, dtype=np.float32)
-                    g *= inv
-                    np.clip(g, np.float32(0.0), np.float32(size - 1), out=g)
-                    # >= 0: truncation is the floor. NaN stays NaN through the clip and converts to
-                    # INT_MIN (x86) or 0 (ARM): the cell below is then negative or in column 0,
-                    # both the empty border (a NaN point anywhere would still fail the exact test).
-                    np.copyto(out, g, casting="unsafe")
-                key *= np.int32(ny)
-                key += gy
-            np.take(row_of, key, out=row[lo:hi], mode="clip")  # clip: out-of-range (NaN) keys to the border
-        hit = np.flatnonzero(np.not_equal(row, 0, out=_SCRATCH("hit", n, bool)))
-        # points above or below every box are no candidates (walls, trees, kerbs under a far box)
-        z = pts[:, 2][hit]
-        with np.errstate(invalid="ignore"):
-            between = z >= self._zlo.min()
-            between &= z <= self._zhi.max()
-        self._hit = hit = hit[between]
-        self._hit_row = np.take(row, hit)
+        if pts.dtype not in (np.float32, np.float64):
+            pts = pts.astype(np.float64)
+        hit, rows = _SCRATCH("hit_index", n, np.int64), _SCRATCH("row", n, row_dtype)
+        zmin, zmax = self._zlo.min(), self._zhi.max()
+        m = scan_cells(pts, np.float32(ox), np.float32(oy), np.float32(1.0 / cell), nx, ny, row_of,
+                       zmin, zmax, hit, rows)
+        self._hit, self._hit_row = hit[:m].copy(), rows[:m].copy()
 
     def pairs(self, keep: np.ndarray | None = None, local: bool = False):
         """The (point, box) pairs with the point inside the box, for every box or for the boxes
@@ -400,6 +379,16 @@ class BoxCandidates:
         if len(points) == 1:
             return points[0], boxes[0]
         return np.concatenate(points), np.concatenate(boxes)
+
+
+def warm_up() -> None:
+    """Compile :class:`BoxCandidates`' scan pass for both scan precisions (numba, on first use;
+    loaded from its disk cache after the first run on a machine), so a node's first frame does
+    not pay for it. Idempotent and cheap once done."""
+    boxes = Boxes(np.array([[10.0, 0.0, -0.8]]), np.array([[4.0, 1.8, 1.5]]), np.zeros(1))
+    scan = np.array([[10.0, 0.0, -0.8], [0.0, 0.0, 0.0]])
+    for dtype in (np.float32, np.float64):
+        BoxCandidates(scan.astype(dtype), boxes)
 
 
 def _pairs_in_boxes(points, boxes, margin, ground_margin, cell, local=True):
