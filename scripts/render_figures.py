@@ -200,8 +200,11 @@ def _row_filter(d: dict[str, Any]) -> list[str]:
     at20 = next(r for r in rows if r["scan"] == "synthcars" and r["boxes"] == 20)
     figure = (f"{min(speedups):.1f}-{max(speedups):.1f}x the previous filter (`benchmarks/_reference.py`), outputs "
               f"{'identical' if all(r['outputs'] == 'identical' for r in rows) else '**differ**'}; 20 cars: "
-              f"{at20['ours_ms']:.2f} ms on one thread, {at20['ours2_ms']:.2f} ms with a second "
-              "([docs/filter.md](docs/filter.md#cost-pcc-bench-filter))")
+              f"{at20['ours_ms']:.2f} ms on one thread, {at20['ours2_ms']:.2f} ms with a second")
+    if "rule_terms_24858c5_2_ms" in at20:  # the shipped rule's whole measurement, before / after, interleaved
+        figure += (f"; the shipped rule's whole measurement (profile terms included) {at20['rule_terms_2_ms']:.2f} "
+                   f"ms on two threads against {at20['rule_terms_24858c5_2_ms']:.2f} ms as 24858c5 made it")
+    figure += " ([docs/filter.md](docs/filter.md#cost-pcc-bench-filter))"
     return ["`pcc bench filter` (the evidence filter's scan measurements, SynthCars 120k points, 1-100 cars; "
             "real KITTI scan)", figure, "see the pipeline row", "-"]
 

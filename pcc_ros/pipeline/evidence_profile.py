@@ -20,9 +20,10 @@ around each box (definitions in ``docs/filter.md``, "Profile terms"):
   through; only the order of the scores is used, never their scale.
 
 All four are dimensionless and read the scan geometry only through the sensor's azimuth step
-(the beam model's), so one weight set serves every sensor. One vectorised pass of
+(the beam model's), so one weight set serves every sensor. One pass of
 :class:`pcc_ros.geometry.boxes.BoxCandidates` over the scan against the boxes grown by the
-shell and the reach above.
+shell and the reach above, then one compiled loop that tests each candidate pair and uses it
+in the same visit (:mod:`pcc_ros.pipeline.profile_kernels`).
 """
 
 from __future__ import annotations
