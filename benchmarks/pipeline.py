@@ -167,7 +167,7 @@ def frame_messages(base, cars: int, points: int, seed: int, classes=None):
 def one_frame(pipeline, cloud, dets, classes=None) -> tuple[dict[str, float], object]:
     """Run one frame as a node does, every output built (a node with a viewer subscribed) in the
     message ``classes`` of the received ones (:func:`node_classes`); per-stage and total ms."""
-    from pcc_ros.pipeline.core import build_outputs
+    from pcc_ros.pipeline.outputs import build_outputs
 
     tic = time.perf_counter()
     result, originals = pipeline.process_messages(cloud, dets)

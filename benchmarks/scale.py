@@ -130,7 +130,7 @@ def shipped_pipeline(**overrides):
 
 def node_frame(pipeline, cloud, dets, classes) -> tuple[dict[str, float], object]:
     """One frame as the filter node runs it without a viewer: per-stage and total ms, and the result."""
-    from pcc_ros.pipeline.core import build_outputs
+    from pcc_ros.pipeline.outputs import build_outputs
 
     cpu = time.process_time()
     tic = time.perf_counter()

@@ -104,7 +104,7 @@ def plot_examples(
 ) -> None:
     """A PNG grid: one row per example instance, columns input / each backend / reference.
 
-    ``instances``: :class:`pcc_ros.evaluate.EvalInstance` (``partial``, ``reference``, ``key``,
+    ``instances``: :class:`pcc_ros.workflows.evaluate.EvalInstance` (``partial``, ``reference``, ``key``,
     ``distance``, ``num_points``). ``picks`` are instance indices (``evaluate.example_indices``
     spreads them over the distance range so near and far cars both appear);
     ``completions[name][i]`` is backend ``name``'s completion of instance ``i`` (a list or a

@@ -117,8 +117,8 @@ def main() -> int:
     import torch
 
     from pcc_ros.data.instance_cache import InstanceCache
-    from pcc_ros.evaluate_real import real_instances, scene_contexts
     from pcc_ros.models import load_completer
+    from pcc_ros.workflows.evaluate_real import real_instances, scene_contexts
 
     torch.set_num_threads(1)
     instances, _ = real_instances([Path(s) for s in args.real_sources.split(",") if s])

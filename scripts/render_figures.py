@@ -272,13 +272,85 @@ def render_demo(d: dict[str, Any]) -> list[str]:
     return [*completion, "", *filtering]
 
 
+def _setting(name: str) -> str:
+    """``workers 1`` -> ```workers` 1``: the parameter names of a scale row as code."""
+    if name == "shipped":
+        return name
+    return " + ".join(f"`{part.split()[0]}` {' '.join(part.split()[1:])}" for part in name.split(" + "))
+
+
+def render_bench_scale(d: dict[str, Any]) -> list[str]:
+    """docs/nodes.md: the shipped filter node on a 64-beam and a 128-beam frame, and the settings
+    that trade speed for something else; then the benchmark's own verdict."""
+    rows = [[_setting(r["setting"]), f"{r['points']:,} / {r['cars']} / {r['boxes']}",
+             f"{r['p50_ms']:.0f} / {r['p95_ms']:.0f}", f"{r['cpu_p50_ms']:.0f}", f"{r['cpu_bound_hz']:.1f}",
+             *(f"{r[stage]:.1f}" for stage in ("decode", "crop", "complete", "filter", "uncanonical", "encode")),
+             f"{r['judged']} / {r['passed_on']}", f"{r['peak_rss_mb']:.0f} (+{r['rss_growth_mb']:.0f})"]
+            for r in d["rows"]]
+    header = ["setting", "points / cars / boxes", "wall p50 / p95 ms (lower is better)", "cpu ms (lower is better)",
+              "cpu Hz (higher is better)", "decode", "crop", "complete", "filter", "uncanonical", "encode",
+              "judged / passed on", "peak RSS MB (growth)"]
+    return [*table(header, rows), "", f"Verdict of this run: {d['verdict']}"]
+
+
+def _filter_frame(scan: str, rows: list[dict[str, Any]]) -> str:
+    points = rows[0]["points"]
+    boxes = " / ".join(str(r["boxes"]) for r in rows)
+    if scan == "synthcars":
+        return f"SynthCars {points // 1000}k points, {boxes} cars"
+    return f"KITTI {scan.split()[-1]}, {boxes} boxes"
+
+
+def _by_scan(d: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
+    scans: dict[str, list[dict[str, Any]]] = {}
+    for r in d["rows"]:
+        scans.setdefault(r["scan"], []).append(r)
+    return scans
+
+
+def render_filter_terms(d: dict[str, Any]) -> list[str]:
+    """docs/filter.md: what each part of the filter's measurement costs (medians), with the
+    profile pass and the shipped rule's measurement as 24858c5 made them in parentheses
+    (interleaved in the same run) where the result has them."""
+    columns: tuple[tuple[str, str | None], ...] = (("beams_ms", None), ("profile_ms", None), ("all_terms_ms", None),
+                                                   ("rule_terms_ms", None))
+    if "rule_terms_24858c5_2_ms" in d["rows"][0]:
+        columns = (("beams_ms", None), ("profile_rule_ms", "profile_24858c5_ms"), ("all_terms_ms", None),
+                   ("rule_terms_ms", None), ("rule_terms_2_ms", "rule_terms_24858c5_2_ms"))
+
+    def cell(r: dict[str, Any], c: str, before: str | None) -> str:
+        return f"{r[c]:.1f}" + (f" ({r[before]:.1f})" if before else "")
+
+    rows = [[_filter_frame(scan, rs), *(" / ".join(cell(r, c, b) for r in rs) for c, b in columns)]
+            for scan, rs in _by_scan(d).items()]
+    return table(["frame (ms, lower is better)", *(f"`{c}`" + (" (at 24858c5)" if b else "") for c, b in columns)],
+                 rows)
+
+
+def render_bench_filter(d: dict[str, Any]) -> list[str]:
+    """docs/filter.md: the scan measurements against the previous filter, interleaved call by call."""
+    rows = [["SynthCars" if r["scan"] == "synthcars" else f"KITTI {r['scan'].split()[-1]}",
+             f"{r['points'] // 1000}k", r["boxes"], f"{r['ours_min']:.1f} / {r['ours_ms']:.1f} ms",
+             f"{r['ours2_min']:.1f} / {r['ours2_ms']:.1f} ms", f"{r['ref_min']:.1f} / {r['ref_ms']:.1f} ms",
+             ratio(r["speedup"]), r["outputs"]] for r in d["rows"]]
+    header = ["scan", "points", "boxes", "ours min / median", "ours, workers 2, min / median",
+              "previous filter min / median", "speedup, medians (higher is better)", "outputs"]
+    return table(header, rows)
+
+
 #: Every figure block of the README and docs: marker id -> its result file and renderer.
 FIGURES: dict[str, Figure] = {
     "bench-table": Figure(tuple(f"bench-{name}" for name in BENCH_ROWS), render_bench_table),
     "bench-messages": one("bench-messages", render_bench_messages),
     "bench-crop": one("bench-crop", render_bench_crop),
     "demo": one("demo", render_demo),
+    "bench-scale": one("bench-scale", render_bench_scale),
+    "bench-filter": one("bench-filter", render_bench_filter),
+    "bench-filter-terms": one("bench-filter", render_filter_terms),
 }
+#: The benchmarks ``store-bench`` keeps (as ``bench-NAME``): the README table's and those with a figure of their own.
+STORED_BENCHMARKS = {source.removeprefix("bench-") for figure in FIGURES.values() for source in figure.sources
+                     if source.startswith("bench-")}
 
 
 # --------------------------------------------------------------------------- the engine
@@ -422,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.action == "store-bench":
         for result in sorted(args.folder.glob("*.json")):
-            if result.stem in BENCH_ROWS:
+            if result.stem in STORED_BENCHMARKS:
                 print(store(ROOT, f"bench-{result.stem}", result))
         return 0
     if args.check:

@@ -42,8 +42,8 @@ def main() -> int:
     import matplotlib.pyplot as plt
 
     from pcc_ros.data.instance_cache import InstanceCache
-    from pcc_ros.evaluate import EvalInstance, attach_contexts, instance_sizes, parse_checkpoints
     from pcc_ros.models import load_completer
+    from pcc_ros.workflows.evaluate import EvalInstance, attach_contexts, instance_sizes, parse_checkpoints
 
     picked = []
     for path in args.caches:

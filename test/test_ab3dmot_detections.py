@@ -52,7 +52,7 @@ def test_a_malformed_line_names_file_and_line(shared_data, tmp_path):
 
 
 def test_eval_detections_loader_reads_the_per_sequence_file_alike(shared_data, tmp_path):
-    from pcc_ros.detection_eval import load_kitti
+    from pcc_ros.workflows.detection_eval import load_kitti
 
     root = shared_data / "kitti_tracking"
     _ab3dmot_file(root / "detections" / "pointrcnn" / "0000", tmp_path / "0000.txt")

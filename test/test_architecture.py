@@ -57,7 +57,29 @@ def test_folder_map_lists_every_module_and_only_existing_ones():
 
 def test_the_map_parser_sees_a_missing_and_a_stale_entry():
     text = (ROOT / "docs" / "ARCHITECTURE.md").read_text(encoding="utf-8")
-    assert "geometry/voxels" in mapped_modules(text) and "train" in mapped_modules(text)
+    assert "geometry/voxels" in mapped_modules(text) and "workflows/train" in mapped_modules(text)
     edited = text.replace(" · voxels (AML's grids)", " · voxel_grids (AML's grids)", 1)
     mapped = mapped_modules(edited)
     assert "geometry/voxels" not in mapped and "geometry/voxel_grids" in mapped
+
+
+#: The house rule: a module longer than this is split by concern (docs/ARCHITECTURE.md).
+MAX_LINES = 600
+
+
+def long_modules(package: Path, limit: int = MAX_LINES) -> dict[str, int]:
+    """``folder/module.py`` -> line count of every module of ``package`` over ``limit`` lines."""
+    counts = {p.relative_to(package).as_posix(): len(p.read_text(encoding="utf-8").splitlines())
+              for p in package.rglob("*.py")}
+    return {name: n for name, n in sorted(counts.items()) if n > limit}
+
+
+def test_no_module_is_over_the_line_limit():
+    assert not long_modules(PACKAGE), f"split by concern (at most {MAX_LINES} lines): {long_modules(PACKAGE)}"
+
+
+def test_the_line_limit_sees_a_long_module(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "long.py").write_text("x = 1\n" * (MAX_LINES + 1))
+    (tmp_path / "short.py").write_text("x = 1\n" * MAX_LINES)
+    assert long_modules(tmp_path) == {"sub/long.py": MAX_LINES + 1}

@@ -74,7 +74,7 @@ def test_consistency_pairs_consecutive_frames_of_one_track():
 
 
 def test_summary_rows_use_the_generated_points_and_the_bars():
-    from pcc_ros.evaluate_real import criteria, summary_markdown, summary_rows
+    from pcc_ros.workflows.evaluate_real import criteria, summary_markdown, summary_rows
 
     def row(completeness, balance, consistency, learned=True):
         o = {"completeness": completeness, "far_completeness": completeness * 1.2, "lateral_offset": balance,

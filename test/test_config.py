@@ -160,8 +160,8 @@ def test_calibrate_filter_writes_every_weight(tmp_path):
     """pcc calibrate-filter's YAML names every term weight, those it fitted at 0 too."""
     import numpy as np
 
-    from pcc_ros.filter_calibration import preset_yaml
     from pcc_ros.pipeline.filter import RULE_WEIGHTS, TERMS
+    from pcc_ros.workflows.filter_calibration import preset_yaml
 
     base = tmp_path / "base.yaml"
     base.write_text("/**/detection_filter_node:\n  ros__parameters:\n    backend: input\n")

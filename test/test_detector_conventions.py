@@ -16,8 +16,9 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.msg.detections import detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.pipeline.config import PipelineConfig, parse_class_map
-from pcc_ros.pipeline.core import Pipeline, build_outputs
+from pcc_ros.pipeline.core import Pipeline
 from pcc_ros.pipeline.filter import UNJUDGED_CLASS_ID
+from pcc_ros.pipeline.outputs import build_outputs
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
 from pcc_ros.runtime.node import NodeCore

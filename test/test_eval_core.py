@@ -10,7 +10,7 @@ import pytest
 from shapes import car_with_cabin
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.evaluate import (
+from pcc_ros.workflows.evaluate import (
     EvalInstance,
     evaluate,
     example_indices,
@@ -127,8 +127,8 @@ def test_cli_helpers():
 
 def test_checkpoint_stamp_is_the_loaded_checkpoint_s_weights_and_aspect():
     """The stamp a resumed pcc eval compares: what the completer was loaded from, not a second read."""
-    from pcc_ros.evaluate import checkpoint_stamp
     from pcc_ros.models.registry import default_checkpoint, load_completer
+    from pcc_ros.workflows.evaluate import checkpoint_stamp
 
     config = json.loads(default_checkpoint("pointpncnet").with_suffix(".json").read_text())
     stamp = checkpoint_stamp(load_completer("pointpncnet", device="cpu"))

@@ -12,11 +12,11 @@ import pytest
 
 from pcc_ros import paths
 from pcc_ros.cli.main import main
-from pcc_ros.detection_eval import build_pipeline, default_config, load_kitti, operating_curve, removed_at
 from pcc_ros.errors import DataError
-from pcc_ros.filter_calibration import calibrate, fit_logistic, predict
 from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.filter import FilterConfig
+from pcc_ros.workflows.detection_eval import build_pipeline, default_config, load_kitti, operating_curve, removed_at
+from pcc_ros.workflows.filter_calibration import calibrate, fit_logistic, predict
 
 
 @pytest.fixture(scope="module")

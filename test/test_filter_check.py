@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from pcc_ros.cli.main import main
-from pcc_ros.filter_check import CAR_SIZE, constructed_boxes
 from pcc_ros.geometry.boxes import iou_bev
+from pcc_ros.workflows.filter_check import CAR_SIZE, constructed_boxes
 
 
 @pytest.fixture()

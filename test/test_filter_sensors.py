@@ -8,9 +8,9 @@ import json
 import numpy as np
 
 from pcc_ros.cli.main import main
-from pcc_ros.filter_sensors import Rows, calibrate_sensors
 from pcc_ros.pipeline.core import PipelineConfig
 from pcc_ros.pipeline.filter import TERMS
+from pcc_ros.workflows.filter_sensors import Rows, calibrate_sensors
 
 
 def test_sensor_path_needs_no_labelled_frames_and_reproduces(tmp_path):

@@ -108,8 +108,8 @@ def test_pipeline_measures_weighted_terms_evaluation_all(scan):
 def test_calibration_and_checks_measure_every_term():
     """The rows calibration fits on come from a pipeline that measures every term (a term the
     current rule gives weight 0 must still be measured to be fitted)."""
-    from pcc_ros.detection_eval import build_pipeline
-    from pcc_ros.filter_sensors import measuring_pipeline
+    from pcc_ros.workflows.detection_eval import build_pipeline
+    from pcc_ros.workflows.filter_sensors import measuring_pipeline
 
     assert measuring_pipeline("", shape=False).all_terms
     assert build_pipeline(None, {"backend": "input"}).all_terms

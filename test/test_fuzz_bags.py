@@ -27,7 +27,7 @@ from pcc_ros.data.bag_writer import write_bag
 from pcc_ros.errors import BagError
 from pcc_ros.msg.typestore import get_typestore
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig
-from pcc_ros.runtime.bag import replay_bag
+from pcc_ros.runtime.bag_replay import replay_bag
 
 POINTS, DETECTIONS = "sensor_msgs/msg/PointCloud2", "vision_msgs/msg/Detection3DArray"
 

@@ -13,8 +13,8 @@ Layers, lowest first — a module may import its own layer and the ones below, n
    ``metrics/``; ``data`` and ``models`` are siblings that never import each other;
 4. ``pipeline/``: config (the parameter table), core, filter;
 5. ``runtime/``: the seam, the node logic, pairing, replay over a bag;
-6. the doors: ``nodes/``, ``cli/``, ``train``, ``evaluate``, ``evaluate_real``,
-   ``detection_eval``, ``filter_calibration``, ``filter_sensors``, ``filter_check``, ``demo``.
+6. the doors: ``nodes/``, ``cli/``, ``workflows/`` (``train``, ``evaluate``, ``evaluate_real``,
+   ``detection_eval``, ``filter_calibration``, ``filter_sensors``, ``filter_check``, ``demo``).
 
 Also: ``rclpy`` (and the rest of a ROS install: ``rclpy``, ``tf2_ros``, ``rosidl_runtime_py``)
 is imported only under ``pcc_ros/nodes/``, and nothing imports ``pcc_ros.cli``.
@@ -47,14 +47,6 @@ EXACT = {
     "pcc_ros.assignments": 0,
     "pcc_ros.lograte": 0,  # which occurrences of a repeating warning are logged
     "pcc_ros.plotting": 0,  # matplotlib helpers of the PNGs (box labels)
-    "pcc_ros.train": 6,
-    "pcc_ros.evaluate": 6,
-    "pcc_ros.evaluate_real": 6,
-    "pcc_ros.detection_eval": 6,
-    "pcc_ros.filter_calibration": 6,  # pcc calibrate-filter
-    "pcc_ros.filter_sensors": 6,  # pcc calibrate-filter across simulated sensors
-    "pcc_ros.filter_check": 6,  # pcc eval detections --nuscenes: the cross-sensor check
-    "pcc_ros.demo": 6,
 }
 PREFIXES = {
     "pcc_ros.geometry.": 1,
@@ -67,6 +59,7 @@ PREFIXES = {
     "pcc_ros.runtime.": 5,
     "pcc_ros.nodes.": 6,
     "pcc_ros.cli.": 6,
+    "pcc_ros.workflows.": 6,  # the libraries of the pcc commands (train, evaluate, demo, ...)
 }
 #: Sibling folders of one layer that must not import each other.
 SIBLINGS = (("pcc_ros.data", "pcc_ros.models"),)

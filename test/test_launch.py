@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from pcc_ros.pipeline.config import read_parameters
-from pcc_ros.runtime.node import OUTPUTS, node_parameters
+from pcc_ros.pipeline.config import node_parameters, read_parameters
+from pcc_ros.runtime.node import OUTPUTS
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH_FILE = REPO / "launch" / "perception.launch.py"
@@ -172,7 +172,7 @@ def test_rviz_argument_asks_for_rviz_with_the_shipped_config(recorded_launch):
 def test_rviz_config_shows_the_node_outputs_with_their_fields():
     import yaml
 
-    from pcc_ros.pipeline.core import COMPLETED_CLOUD_DTYPE
+    from pcc_ros.pipeline.outputs import COMPLETED_CLOUD_DTYPE
 
     config = yaml.safe_load((REPO / "config" / "pcc_ros.rviz").read_text())
     manager = config["Visualization Manager"]

@@ -304,7 +304,7 @@ def test_backend_table_names_every_registered_class_and_owns_recipes_and_presets
     from pathlib import Path
 
     from pcc_ros.models import BACKENDS, get_backend
-    from pcc_ros.train import load_recipe
+    from pcc_ros.workflows.train import load_recipe
 
     package = Path(__file__).resolve().parents[1] / "pcc_ros" / "models"
     decorated = {}

@@ -14,18 +14,12 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
 from pcc_ros.msg.typestore import get_typestore
-from pcc_ros.pipeline.config import check_value, parameter_table
-from pcc_ros.pipeline.core import Pipeline, PipelineConfig, build_outputs
+from pcc_ros.pipeline.config import check_value, node_parameters, parameter_table, unknown_parameters
+from pcc_ros.pipeline.core import Pipeline, PipelineConfig
+from pcc_ros.pipeline.outputs import build_outputs
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA, QoS, Transform
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
-from pcc_ros.runtime.node import (
-    OUTPUTS,
-    NodeCore,
-    node_parameters,
-    output_names,
-    pipeline_stages,
-    unknown_parameters,
-)
+from pcc_ros.runtime.node import OUTPUTS, NodeCore, output_names, pipeline_stages
 from pcc_ros.types import Boxes
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
@@ -156,6 +150,7 @@ def test_a_node_builds_only_what_it_publishes(graph, monkeypatch, mode, outputs)
     does not publish are never built: a completion node neither copies nor moves the detection
     messages (here in another frame than the scan), a filter node makes no completed cloud."""
     import pcc_ros.pipeline.core as core_module
+    import pcc_ros.pipeline.outputs as outputs_module
 
     graph.set_transform("velodyne", "base_link", Transform((1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
     cloud, dets = _messages(1_000_000_000, frame="base_link")
@@ -168,9 +163,10 @@ def test_a_node_builds_only_what_it_publishes(graph, monkeypatch, mode, outputs)
     assert set(expected) == {*OUTPUTS["completion"], *OUTPUTS["filter"]}
 
     built: list[str] = []
-    for name in ("transform_detections", "completed_cloud_array", "filter_texts"):
-        original = getattr(core_module, name)
-        monkeypatch.setattr(core_module, name, lambda *a, _f=original, _n=name, **k: built.append(_n) or _f(*a, **k))
+    for module, name in ((core_module, "transform_detections"), (outputs_module, "completed_cloud_array"),
+                         (outputs_module, "filter_texts")):
+        original = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, _f=original, _n=name, **k: built.append(_n) or _f(*a, **k))
     core = NodeCore(LocalRuntime(graph, f"{mode}_node"), f"{mode}_node", mode, {"backend": "mirror"}, threaded=False,
                     outputs=outputs)
     got = {name: _tap(graph, f"/{name}", msgtype) for name, msgtype in core.outputs.items()}

@@ -175,7 +175,7 @@ def _frames_with_a_shifted_detection():
 
 
 def test_real_instances_from_detections_move_the_reference_into_the_detection_frame(monkeypatch, tmp_path):
-    import pcc_ros.evaluate_real as evaluate_real
+    import pcc_ros.workflows.evaluate_real as evaluate_real
     from pcc_ros.geometry.canonical import from_canonical
 
     frames = _frames_with_a_shifted_detection()

@@ -15,9 +15,9 @@ from pcc_ros.pipeline.core import (
     SOURCE_OBSERVED,
     Pipeline,
     PipelineConfig,
-    build_outputs,
 )
 from pcc_ros.pipeline.filter import FilterConfig
+from pcc_ros.pipeline.outputs import build_outputs
 from pcc_ros.types import Boxes
 
 REPO_CONFIG = __import__("pathlib").Path(__file__).resolve().parents[1] / "config"
@@ -166,7 +166,7 @@ def test_shipped_backend_scores_false_detections_higher_on_synthcars(tmp_path):
     """With the shipped PointPnCNet, detections on clutter / empty space mismatch more than cars."""
     from pcc_ros.data.kitti import KittiTracking
     from pcc_ros.data.synthetic import generate
-    from pcc_ros.demo import truly_vehicle
+    from pcc_ros.workflows.demo import truly_vehicle
 
     generate(tmp_path, sequences=1, frames=3, seed=11, progress=False)
     config = PipelineConfig(device="cpu", min_points=5, max_instances=64, filter=FilterConfig(rule="trapcc"))
@@ -223,7 +223,7 @@ def test_completed_cloud_colours_scores_and_raw_points():
     score; a raw scan point (instance -1) is grey with a NaN score; every field as given."""
     from types import SimpleNamespace
 
-    from pcc_ros.pipeline.core import INSTANCE_PALETTE, RAW_POINT_RGB, completed_cloud_array
+    from pcc_ros.pipeline.outputs import INSTANCE_PALETTE, RAW_POINT_RGB, completed_cloud_array
 
     instance = np.array([-1, 0, 1, 11, -1], dtype=np.int32)
     result = SimpleNamespace(

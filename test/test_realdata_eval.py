@@ -125,7 +125,7 @@ def test_pcc_eval_real_missing_source_is_a_clear_error(tmp_path, caplog):
 
 
 def test_context_backends_get_the_other_cars_of_the_same_frame():
-    from pcc_ros.evaluate_real import scene_contexts
+    from pcc_ros.workflows.evaluate_real import scene_contexts
 
     def inst(frame: str, x: float) -> dict:
         return {"frame_key": frame, "center": np.array([x, 5.0, -0.8]), "size": np.array([4.0, 1.8, 1.5]),
@@ -143,7 +143,7 @@ def test_context_backends_get_the_other_cars_of_the_same_frame():
 def test_detector_mode_contexts_hold_every_box_the_node_completes(shared_data):
     """With detector boxes the node gives a context backend every completed detection of the frame,
     false positives included; the evaluation does the same (not only the matched, scored ones)."""
-    from pcc_ros.evaluate_real import node_crop, real_instances, scene_contexts
+    from pcc_ros.workflows.evaluate_real import node_crop, real_instances, scene_contexts
 
     instances, report = real_instances([shared_data / "kitti_tracking"], boxes="detections",
                                        detections_dir=shared_data / "kitti_tracking/detections/pointrcnn")
@@ -167,7 +167,7 @@ def test_matched_labels_are_the_detector_rows_observations_with_label_boxes(shar
     """--real-matched-labels: the observations the detector found, cropped from their labelled
     boxes, so labelled and detector rows can be compared on the same cars."""
     from pcc_ros.errors import ConfigError
-    from pcc_ros.evaluate_real import real_instances
+    from pcc_ros.workflows.evaluate_real import real_instances
 
     src, det_dir = shared_data / "kitti_tracking", shared_data / "kitti_tracking/detections/pointrcnn"
     labels, _ = real_instances([src])
@@ -189,7 +189,7 @@ def test_a_named_backend_that_does_not_load_is_an_error_not_a_skip(tmp_path, mon
     """`--backends pointpncnet --checkpoint pointpncnet=PATH` with a missing or damaged PATH fails
     naming it (it used to print empty tables and exit 0); only the default 'every available
     backend' run skips a backend whose shipped weights do not load."""
-    import pcc_ros.evaluate_real as er
+    import pcc_ros.workflows.evaluate_real as er
     from pcc_ros.errors import CheckpointError
 
     missing = {"pointpncnet": tmp_path / "nope.safetensors"}

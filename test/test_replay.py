@@ -16,7 +16,7 @@ from pcc_ros.msg.pointcloud2 import read_xyz
 from pcc_ros.msg.typestore import get_typestore
 from pcc_ros.pipeline.config import load_config
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig
-from pcc_ros.runtime.bag import replay_bag
+from pcc_ros.runtime.bag_replay import replay_bag
 
 
 @pytest.fixture(scope="module", params=["mcap", "sqlite3"])
@@ -57,7 +57,7 @@ def test_replay_writes_node_topics_matching_the_pipeline(kitti_bag, tmp_path):
 
 def test_replay_opens_the_bag_once(kitti_bag, tmp_path, monkeypatch):
     """Topic check, transforms and messages come from one open reader."""
-    import pcc_ros.runtime.bag as replay_module
+    import pcc_ros.runtime.bag_replay as replay_module
 
     opened = []
     real_open = replay_module.open_bag
@@ -86,7 +86,7 @@ def test_cli_replay_refuses_an_out_named_like_a_storage_file_before_loading_the_
                                                                                          caplog, monkeypatch):
     """`--out y.mcap` made a folder y.mcap/ holding y.mcap.mcap; now refused, and (like an existing
     --out without --force) before the backend loads or the bag is read."""
-    import pcc_ros.runtime.bag as replay_module
+    import pcc_ros.runtime.bag_replay as replay_module
 
     def loaded(*args, **kwargs):
         raise AssertionError("the pipeline was built before --out was checked")
@@ -138,7 +138,7 @@ def test_a_bag_without_tf_loads_no_transforms_and_warns_nothing(kitti_bag, caplo
     rosbags reads *every* topic when asked for an empty list of connections; replay and the
     demo then decoded each scan as a transform and warned once per message."""
     from pcc_ros.data.bag import iter_messages, open_bag
-    from pcc_ros.runtime.bag import load_transforms
+    from pcc_ros.runtime.bag_replay import load_transforms
     from pcc_ros.runtime.local import LocalGraph
 
     caplog.set_level("WARNING")

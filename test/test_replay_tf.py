@@ -23,7 +23,7 @@ from pcc_ros.geometry.rotations import quaternion_from_yaw, rotation_z
 from pcc_ros.geometry.transforms import Transform, transform_boxes
 from pcc_ros.msg.detections import boxes_from_detection_array, detection_array_from_boxes
 from pcc_ros.msg.pointcloud2 import create_cloud, read_xyz
-from pcc_ros.msg.transforms import TransformBuffer
+from pcc_ros.msg.tf_buffer import TransformBuffer
 from pcc_ros.msg.typestore import get_typestore
 from pcc_ros.pipeline.config import load_parameters
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA

@@ -107,7 +107,7 @@ def test_pipeline_completes_from_the_accumulated_crops():
 
 def test_real_evaluation_feeds_the_frames_in_order_and_causally():
     from pcc_ros.errors import ConfigError
-    from pcc_ros.evaluate_real import track_memory_inputs
+    from pcc_ros.workflows.evaluate_real import track_memory_inputs
 
     def inst(frame: int, track: str, x: float, n: int) -> dict:
         return {"frame_key": f"src:0000:{frame}", "frame": frame, "track": track, "center": np.array([x, 0.0, 0.0]),

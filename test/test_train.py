@@ -13,7 +13,7 @@ from pcc_ros.cli.main import main
 from pcc_ros.errors import ConfigError
 from pcc_ros.models import load_completer
 from pcc_ros.models.checkpoint import load_config
-from pcc_ros.train import learning_rate, load_recipe, optimizer_tensors, parse_options, restore_optimizer
+from pcc_ros.workflows.train import learning_rate, load_recipe, optimizer_tensors, parse_options, restore_optimizer
 
 
 def _argv(tiny_cache, out, *extra):
@@ -46,7 +46,7 @@ def test_train_validate_checkpoint_and_resume(tiny_cache, tmp_path, capsys, capl
     # Not only what the run wrote about itself: the weights in the file, scored again on the same
     # validation instances, give the recorded figure (the file holds the weights that scored it).
     from pcc_ros.data.instances import InstanceCache
-    from pcc_ros.train import validate, validation_instances
+    from pcc_ros.workflows.train import validate, validation_instances
 
     instances, _ = validation_instances(InstanceCache.load(tiny_cache), "test", 6, 0)
     rescored = validate(load_completer("pointpncnet", out / "pointpncnet.safetensors", device="cpu"), instances, 0)
@@ -197,7 +197,7 @@ def test_every_trainable_backend_states_the_recipe_contract():
     """`pcc train` drives a declared interface (models.recipe.TrainingRecipe), never probes a recipe."""
     import ast
 
-    import pcc_ros.train
+    import pcc_ros.workflows.train
     from pcc_ros.models import BACKENDS, get_backend
     from pcc_ros.models.recipe import TrainingRecipe
 
@@ -206,7 +206,7 @@ def test_every_trainable_backend_states_the_recipe_contract():
     for name in trainable:
         recipe = load_recipe(name, "default", {})
         assert isinstance(recipe, TrainingRecipe) and recipe.kit is not None
-    tree = ast.parse(open(pcc_ros.train.__file__, encoding="utf-8").read())
+    tree = ast.parse(open(pcc_ros.workflows.train.__file__, encoding="utf-8").read())
     probes = [f"line {node.lineno}: {ast.unparse(node)}" for node in ast.walk(tree)
               if isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("hasattr", "getattr")
               and "recipe" in ast.unparse(node.args[0])]

@@ -24,8 +24,8 @@ from pcc_ros.models import SceneContext, create, load_completer
 from pcc_ros.models.base import aspect_scales, median_box_aspect
 from pcc_ros.models.trapcc import nearest_neighbours, neighbour_geometry
 from pcc_ros.models.trapcc_recipe import TrainOptions, TraPCCRecipe, training_recipe
-from pcc_ros.train import load_recipe, training_kit
 from pcc_ros.types import Boxes, Sample
+from pcc_ros.workflows.train import load_recipe, training_kit
 
 ELLIPSOID = np.array([4.0, 1.8, 1.5])
 BOXY = np.array([4.1, 1.8, 1.5])
@@ -290,7 +290,7 @@ def test_training_data_never_touches_complete_shapes_and_has_neighbours(train_ca
 
 
 def test_recipe_without_the_training_kit_names_itself(train_cache, tmp_path):
-    """models/ never imports data/: the caches and pools come from pcc_ros.train (load_recipe sets the kit)."""
+    """models/ never imports data/: caches and pools come from pcc_ros.workflows.train (load_recipe sets the kit)."""
     recipe = training_recipe(gt_dir=str(tmp_path / "gt"), **TINY)
     with pytest.raises(ConfigError, match=r"trapcc: .*training_kit"):
         recipe.training_data(train_cache, "train")

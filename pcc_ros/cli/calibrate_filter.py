@@ -1,6 +1,6 @@
 """Fit the detection filter's evidence weights and reject threshold (SynthCars + real frames).
 
-The command half of :mod:`pcc_ros.filter_calibration` (which says what is fitted and how):
+The command half of :mod:`pcc_ros.workflows.filter_calibration` (which says what is fitted and how):
 flags in; the calibration rows, weights, figures, the node YAML (``--out``) and JSON out.
 """
 
@@ -15,13 +15,13 @@ from typing import Any
 import numpy as np
 
 from pcc_ros.data.kitti import split_dir
-from pcc_ros.detection_eval import default_config, load_kitti, parse_frames
 from pcc_ros.errors import ConfigError
 from pcc_ros.files import write_json, write_text
-from pcc_ros.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
-from pcc_ros.filter_sensors import DEFAULT_SENSORS, SENSOR_TERMS, parse_terms
-from pcc_ros.pipeline.config import CHOICES
 from pcc_ros.pipeline.filter import TERMS, FilterConfig
+from pcc_ros.pipeline.parameters import CHOICES
+from pcc_ros.workflows.detection_eval import default_config, load_kitti, parse_frames
+from pcc_ros.workflows.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
+from pcc_ros.workflows.filter_sensors import DEFAULT_SENSORS, SENSOR_TERMS, parse_terms
 
 log = logging.getLogger(__name__)
 

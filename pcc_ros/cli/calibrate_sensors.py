@@ -1,6 +1,6 @@
 """``pcc calibrate-filter --sim-sensors ...`` / ``--sensor X``: one rule across sensors.
 
-The command half of :mod:`pcc_ros.filter_sensors` (which says what is fitted and how): the
+The command half of :mod:`pcc_ros.workflows.filter_sensors` (which says what is fitted and how): the
 simulated sets are generated (once, cached), every detection measured, the rule fitted and
 cross-validated by sensor and by sequence, the ablation run; the node YAML (``--out``) and the
 report (``--json``) written.
@@ -15,11 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.detection_eval import default_config, load_kitti, parse_frames
 from pcc_ros.errors import ConfigError
 from pcc_ros.files import write_json, write_text
-from pcc_ros.filter_calibration import preset_yaml
-from pcc_ros.filter_sensors import (
+from pcc_ros.pipeline.filter import TERMS
+from pcc_ros.workflows.detection_eval import default_config, load_kitti, parse_frames
+from pcc_ros.workflows.filter_calibration import preset_yaml
+from pcc_ros.workflows.filter_sensors import (
     SENSOR_TERMS,
     Rows,
     calibrate_sensors,
@@ -29,7 +30,6 @@ from pcc_ros.filter_sensors import (
     synth_dataset,
     synth_rows,
 )
-from pcc_ros.pipeline.filter import TERMS
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """``pcc demo``: the whole product on a SynthCars sequence, then on real KITTI frames.
 
-The command half of :mod:`pcc_ros.demo`: the flags and the :class:`~pcc_ros.demo.DemoConfig`
+The command half of :mod:`pcc_ros.workflows.demo`: the flags and the :class:`~pcc_ros.workflows.demo.DemoConfig`
 built from them.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pcc_ros.demo import DemoConfig, demo
+from pcc_ros.workflows.demo import DemoConfig, demo
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

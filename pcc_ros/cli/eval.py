@@ -1,8 +1,8 @@
 """Evaluate completion backends on an instance cache, or on real labelled frames (``pcc eval``).
 
-The command half of :mod:`pcc_ros.evaluate` (and of :mod:`pcc_ros.evaluate_real` with
-``--real``): the flags, the :class:`~pcc_ros.evaluate.EvalConfig` (with ``--real``:
-:class:`~pcc_ros.evaluate_real.RealEvalConfig`) built from them, and the tables printed.
+The command half of :mod:`pcc_ros.workflows.evaluate` (and of :mod:`pcc_ros.workflows.evaluate_real` with
+``--real``): the flags, the :class:`~pcc_ros.workflows.evaluate.EvalConfig` (with ``--real``:
+:class:`~pcc_ros.workflows.evaluate_real.RealEvalConfig`) built from them, and the tables printed.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import argparse
 from pathlib import Path
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.evaluate import EvalConfig, evaluate_cache, parse_checkpoints, print_tables
-from pcc_ros.evaluate_real import RealEvalConfig, run_real
+from pcc_ros.workflows.evaluate import EvalConfig, evaluate_cache, parse_checkpoints, print_tables
+from pcc_ros.workflows.evaluate_real import RealEvalConfig, run_real
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,6 +1,6 @@
 """Detection AP and the filter's operating curve against points-in-box and score (``pcc eval detections``).
 
-The command half of :mod:`pcc_ros.detection_eval` (which says what is measured): flags in,
+The command half of :mod:`pcc_ros.workflows.detection_eval` (which says what is measured): flags in,
 the library's loading, evaluation, report, plot and JSON out.
 """
 
@@ -12,7 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pcc_ros.detection_eval import (
+from pcc_ros.files import write_json
+from pcc_ros.pipeline.config import CONFIG_FILES
+from pcc_ros.workflows.detection_eval import (
     build_pipeline,
     evaluate_detections,
     load_kitti,
@@ -21,8 +23,6 @@ from pcc_ros.detection_eval import (
     print_report,
     to_json,
 )
-from pcc_ros.files import write_json
-from pcc_ros.pipeline.config import CONFIG_FILES
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _nuscenes(args: argparse.Namespace, pipeline) -> int:
-    from pcc_ros.filter_check import check_json, nuscenes_check, plot_check, print_check
+    from pcc_ros.workflows.filter_check import check_json, nuscenes_check, plot_check, print_check
 
     result = nuscenes_check(args.nuscenes, pipeline, args.score, args.ground_boxes, args.seed, args.max_lost,
                             nms_iou=args.nms_iou)

@@ -1,7 +1,7 @@
 """``pcc replay``: the node core itself over a bag — what a live node would publish, recorded.
 
-The command half of :mod:`pcc_ros.runtime.bag`: the flags, the
-:class:`~pcc_ros.runtime.bag.ReplayConfig` built from them, and the timing table.
+The command half of :mod:`pcc_ros.runtime.bag_replay`: the flags, the
+:class:`~pcc_ros.runtime.bag_replay.ReplayConfig` built from them, and the timing table.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pcc_ros.runtime.bag import ReplayConfig, replay
+from pcc_ros.runtime.bag_replay import ReplayConfig, replay
 from pcc_ros.tables import print_table
 
 

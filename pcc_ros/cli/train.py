@@ -1,6 +1,6 @@
 """Train a completion backend self-supervised from partial scans (``pcc train BACKEND``).
 
-The command half of :mod:`pcc_ros.train`: the flags, the :class:`~pcc_ros.train.TrainConfig`
+The command half of :mod:`pcc_ros.workflows.train`: the flags, the :class:`~pcc_ros.workflows.train.TrainConfig`
 built from them, and the summary printed by rank 0.
 """
 
@@ -11,7 +11,7 @@ import contextlib
 import json
 from pathlib import Path
 
-from pcc_ros.train import Distributed, TrainConfig, parse_options, train
+from pcc_ros.workflows.train import Distributed, TrainConfig, parse_options, train
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

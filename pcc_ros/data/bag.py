@@ -10,7 +10,7 @@ whether the bag came from ``pcc convert`` or from ``ros2 bag record``:
   whose header stamp they carry; boxes in another frame than the scan are moved into the
   scan's frame at that stamp, as the node core moves them (a frame whose transform is
   unknown is skipped as malformed);
-- ``/tf`` and ``/tf_static`` go into a :class:`~pcc_ros.msg.transforms.TransformBuffer`, the
+- ``/tf`` and ``/tf_static`` go into a :class:`~pcc_ros.msg.tf_buffer.TransformBuffer`, the
   tf tree the nodes and ``pcc replay`` use: the pose is its ``odom <- sensor`` at the scan's
   stamp (a ``/tf`` sample at that stamp, or the interpolation of the two around it; ``None``
   when odom is not reachable then), and ``extras["sensor_to_base"]`` is the static
@@ -62,7 +62,7 @@ from pcc_ros.errors import BagError, DataError, PccError
 from pcc_ros.msg.detections import decode_detection_array
 from pcc_ros.msg.pointcloud2 import read_xyz
 from pcc_ros.msg.stamps import stamp_to_ns
-from pcc_ros.msg.transforms import TransformBuffer, same_frame
+from pcc_ros.msg.tf_buffer import TransformBuffer, same_frame
 from pcc_ros.msg.typestore import get_typestore
 from pcc_ros.types import Sample
 

@@ -353,7 +353,7 @@ def inpainting_loss(
 class PointPnCNetRecipe(CacheRecipe):
     """What ``pcc train pointpncnet`` needs: model, loss and batch sampler.
 
-    ``pcc_ros.train`` is generic: it asks the backend class for ``training_recipe(...)``
+    ``pcc_ros.workflows.train`` is generic: it asks the backend class for ``training_recipe(...)``
     (:meth:`PointPnCNet.training_recipe`) and drives any object with this shape.
     """
 
@@ -467,5 +467,5 @@ class PointPnCNetRecipe(CacheRecipe):
 
 @PointPnCNet.trains_with
 def training_recipe(size: str = "default", inpainting: bool = True, **options: Any) -> PointPnCNetRecipe:
-    """The training recipe ``pcc train pointpncnet`` uses (see :mod:`pcc_ros.train`)."""
+    """The training recipe ``pcc train pointpncnet`` uses (see :mod:`pcc_ros.workflows.train`)."""
     return PointPnCNetRecipe(size, inpainting, TrainOptions(**options))

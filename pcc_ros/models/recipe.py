@@ -2,8 +2,8 @@
 :class:`TrainingKit` (what a recipe gets from the layers above ``models/``) and
 :class:`CacheRecipe` (what the recipes that train on instance caches share).
 
-``models/`` never imports ``data/`` or :mod:`pcc_ros.train` (docs/ARCHITECTURE.md, layers):
-``pcc_ros.train`` sits above both, builds the kit and hands it to the recipe.
+``models/`` never imports ``data/`` or :mod:`pcc_ros.workflows.train` (docs/ARCHITECTURE.md, layers):
+``pcc_ros.workflows.train`` sits above both, builds the kit and hands it to the recipe.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ log = logging.getLogger("pcc.train")
 class TrainingKit:
     """What a training recipe uses from the layers beside and above ``models/``.
 
-    ``models/`` never imports ``data/`` or ``pcc_ros.train`` (docs/ARCHITECTURE.md, layers):
-    :mod:`pcc_ros.train`, which sits above both, builds the kit (``train.training_kit()``) and
+    ``models/`` never imports ``data/`` or ``pcc_ros.workflows.train`` (docs/ARCHITECTURE.md, layers):
+    :mod:`pcc_ros.workflows.train`, which sits above both, builds the kit (``train.training_kit()``) and
     hands it to the recipe (``recipe.kit``) before it opens data; :meth:`require` names the
     recipe when it was not handed one (a recipe used outside ``pcc train``).
     """
@@ -53,15 +53,15 @@ class TrainingKit:
         """``kit``, or a :class:`ConfigError` naming ``who`` (a recipe used outside ``pcc train``)."""
         if kit is None:
             raise ConfigError(f"{who}: the recipe reads its data through the training layer; set "
-                              "recipe.kit = pcc_ros.train.training_kit() (pcc train does)")
+                              "recipe.kit = pcc_ros.workflows.train.training_kit() (pcc train does)")
         return kit
 
 
 class TrainingRecipe(abc.ABC):
-    """The contract between a trainable backend and :mod:`pcc_ros.train` (``pcc train``).
+    """The contract between a trainable backend and :mod:`pcc_ros.workflows.train` (``pcc train``).
 
     A backend's recipe function (decorated ``@Backend.trains_with``) returns an instance of a
-    subclass. ``pcc_ros.train`` owns seeds, devices, DistributedDataParallel, the optimizer
+    subclass. ``pcc_ros.workflows.train`` owns seeds, devices, DistributedDataParallel, the optimizer
     and its schedule, resuming, logging and saving; it calls, in this order:
 
     1. :meth:`open_data` on ``--data``; :meth:`use_real_data` when ``--real-data`` is given;
@@ -73,7 +73,7 @@ class TrainingRecipe(abc.ABC):
        :meth:`saving` around :meth:`summary` and the write.
 
     The four abstract methods are what every recipe states; the rest have defaults that read
-    instance caches through :attr:`kit`, which ``pcc_ros.train`` sets before any data is opened.
+    instance caches through :attr:`kit`, which ``pcc_ros.workflows.train`` sets before any data is opened.
     """
 
     #: the backend, in errors
@@ -85,7 +85,7 @@ class TrainingRecipe(abc.ABC):
     #: the training options, a dataclass whose annotations ``pcc train`` checks every ``--option``
     #: against (``None``: the recipe takes keyword arguments and checks them itself)
     options: Any = None
-    #: what the recipe uses from ``data/`` and ``pcc_ros.train`` (models/ imports neither)
+    #: what the recipe uses from ``data/`` and ``pcc_ros.workflows.train`` (models/ imports neither)
     kit: TrainingKit | None = None
     #: ``--real-data`` caches and ``--real-share`` (:meth:`use_real_data`)
     real_caches: tuple[Any, ...] = ()

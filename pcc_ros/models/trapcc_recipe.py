@@ -1,4 +1,4 @@
-"""``pcc train trapcc``: TraPCC's training recipe (driven by :mod:`pcc_ros.train`).
+"""``pcc train trapcc``: TraPCC's training recipe (driven by :mod:`pcc_ros.workflows.train`).
 
 The data: every training observation with the pseudo ground truth retrieved for it from the
 Whole-GT / Partial-GT pools (:mod:`pcc_ros.data.gt_pools`, through the training kit) and its
@@ -123,7 +123,7 @@ class TrainBatch:
 
 
 class TraPCCRecipe(CacheRecipe):
-    """What ``pcc train trapcc`` needs (see :mod:`pcc_ros.train`)."""
+    """What ``pcc train trapcc`` needs (see :mod:`pcc_ros.workflows.train`)."""
 
     name = "trapcc"
     default_lr = 5e-4

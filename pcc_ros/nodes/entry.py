@@ -10,7 +10,7 @@ import importlib
 import sys
 
 from pcc_ros.pipeline.config import CONFIG_FILES, parameter_table
-from pcc_ros.pipeline.core import COMPLETED_CLOUD_DTYPE
+from pcc_ros.pipeline.outputs import COMPLETED_CLOUD_DTYPE
 from pcc_ros.runtime.node import DIAGNOSTICS_TOPIC, INPUTS, OUTPUTS
 
 

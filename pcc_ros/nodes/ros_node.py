@@ -35,9 +35,9 @@ from rclpy.utilities import remove_ros_args
 
 from pcc_ros.errors import ConfigError, PccError
 from pcc_ros.nodes.tf_listener import transform_source
-from pcc_ros.pipeline.config import ParameterSpec, parameter_table, read_parameters
+from pcc_ros.pipeline.config import ParameterSpec, parameter_table, read_parameters, unknown_parameters
 from pcc_ros.runtime.base import QoS, Transform
-from pcc_ros.runtime.node import DIAGNOSTICS_TOPIC, INPUTS, NodeCore, node_at_work, unknown_parameters
+from pcc_ros.runtime.node import DIAGNOSTICS_TOPIC, INPUTS, NodeCore, node_at_work
 
 _TYPES = {
     "bool": ParameterType.PARAMETER_BOOL,

@@ -3,7 +3,7 @@
 A ROS 2 install has tf2_ros: its ``Buffer`` and ``TransformListener`` answer. The ROS 2 Jazzy
 wheels from PyPI do not ship tf2_ros, only what ``scripts/setup_ros.sh`` builds (tf2_msgs):
 there :class:`pcc_ros.runtime.tf.TransformListener` subscribes to ``/tf`` and ``/tf_static``
-itself and looks transforms up in :class:`pcc_ros.msg.transforms.TransformBuffer`, the buffer
+itself and looks transforms up in :class:`pcc_ros.msg.tf_buffer.TransformBuffer`, the buffer
 ``pcc replay`` uses. Both are a :class:`pcc_ros.runtime.tf.TransformSource`; neither blocks
 (the node core holds a frame whose transform has not arrived for ``tf_timeout``).
 """

@@ -10,7 +10,7 @@ The clock is the wall clock, or — with ``LocalGraph(simulated=True)`` — a si
 that only moves through :meth:`LocalGraph.advance_to` (``use_sim_time`` for offline work:
 timers fire when simulated time passes their deadline, so diagnostics of a replayed
 bag are reproducible). Transforms come from the graph's
-:class:`~pcc_ros.msg.transforms.TransformBuffer` (:meth:`LocalGraph.set_transform`, or a
+:class:`~pcc_ros.msg.tf_buffer.TransformBuffer` (:meth:`LocalGraph.set_transform`, or a
 bag's ``/tf`` and ``/tf_static`` loaded by ``pcc replay``), looked up through the tree as tf2 does.
 
 Uses: the node-core tests (a real runtime, no mock of ROS), benchmarks that separate node
@@ -27,7 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from pcc_ros.msg.transforms import TransformBuffer
+from pcc_ros.msg.tf_buffer import TransformBuffer
 from pcc_ros.msg.typestore import rosbags_classes
 from pcc_ros.runtime.base import QoS, Transform
 

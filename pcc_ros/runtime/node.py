@@ -29,23 +29,10 @@ from pcc_ros.geometry.transforms import transform_boxes
 from pcc_ros.lograte import worth_logging
 from pcc_ros.msg.detections import transform_detections
 from pcc_ros.msg.stamps import make_header, stamp_to_ns
-from pcc_ros.pipeline.config import (
-    BACKEND_PARAMETERS,
-    check_value,
-    node_parameters,
-    parameter_specs,
-    pipeline_config,
-    unknown_parameters,
-)
-from pcc_ros.pipeline.core import (
-    DETECTION_OUTPUTS,
-    MARKER_OUTPUTS,
-    FrameResult,
-    Pipeline,
-    build_outputs,
-    needs_completion,
-)
+from pcc_ros.pipeline.config import BACKEND_PARAMETERS, changed_parameters, node_parameters, pipeline_config
+from pcc_ros.pipeline.core import FrameResult, Pipeline, needs_completion
 from pcc_ros.pipeline.filter import DECISIONS, decision_counts
+from pcc_ros.pipeline.outputs import DETECTION_OUTPUTS, MARKER_OUTPUTS, build_outputs
 from pcc_ros.runtime.base import RELIABLE, QoS, Runtime
 from pcc_ros.runtime.diagnostics import (
     Health,
@@ -315,18 +302,10 @@ class NodeCore:
         changed): unknown names, wrong types, values outside their range, read-only
         parameters (QoS, queue size), a backend that does not load.
         """
-        specs = parameter_specs()
         changes = {k: v for k, v in changes.items() if k not in ("use_sim_time",)}
         with self._parameter_lock:
             try:
-                unknown = unknown_parameters(changes)
-                if unknown:
-                    raise ConfigError(f"unknown parameter(s) {unknown}")
-                checked = {name: check_value(specs[name], value) for name, value in changes.items()}
-                changed = {n: v for n, v in checked.items() if v != self.parameters[n]}
-                fixed = sorted(n for n in changed if specs[n].read_only)
-                if fixed:
-                    raise ConfigError(f"{fixed} cannot change while the node runs: restart the node")
+                changed = changed_parameters(self.parameters, changes)
                 if not changed:
                     return SetResult(True, "")
                 values = {**self.parameters, **changed}

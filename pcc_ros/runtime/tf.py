@@ -1,4 +1,4 @@
-"""``/tf`` and ``/tf_static`` into the package's :class:`~pcc_ros.msg.transforms.TransformBuffer`, on any runtime.
+"""``/tf`` and ``/tf_static`` into the package's :class:`~pcc_ros.msg.tf_buffer.TransformBuffer`, on any runtime.
 
 Where tf2_ros is not installed (the ROS 2 Jazzy wheels from PyPI ship only its messages, which
 ``scripts/setup_ros.sh`` builds), a node still needs the transforms a tracker or a map-frame
@@ -18,7 +18,7 @@ import threading
 from typing import Protocol
 
 from pcc_ros.geometry.transforms import Transform
-from pcc_ros.msg.transforms import TransformBuffer
+from pcc_ros.msg.tf_buffer import TransformBuffer
 from pcc_ros.runtime.base import QoS, Runtime
 
 TF_TOPIC = "/tf"

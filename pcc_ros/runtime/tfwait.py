@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pcc_ros.msg.stamps import stamp_to_ns
-from pcc_ros.msg.transforms import frame_name, same_frame
+from pcc_ros.msg.tf_buffer import frame_name, same_frame
 
 #: Frames held at most (at 20 Hz, 0.4 s of scans; each holds its cloud, ~2-4 MB).
 CAPACITY = 8

@@ -102,7 +102,7 @@ def select_lambda(completer: AML, instances: Sequence[Any], lambdas: Sequence[fl
         raise ConfigError("aml: --option lambdas is empty")
     table = {}
     clouds = [inst.partial for inst in instances]
-    contexts = [getattr(inst, "context", None) for inst in instances]  # attached by pcc_ros.evaluate
+    contexts = [getattr(inst, "context", None) for inst in instances]  # attached by pcc_ros.workflows.evaluate
     with torch.inference_mode():
         observed = [completer.observe(clouds[s:s + 32], contexts[s:s + 32]) for s in range(0, len(clouds), 32)]
     x = torch.cat([o[0] for o in observed])

@@ -1,4 +1,4 @@
-"""``pcc train aml --stage prior|encoder``: the training recipe (driven by :mod:`pcc_ros.train`)."""
+"""``pcc train aml --stage prior|encoder``: the training recipe (driven by :mod:`pcc_ros.workflows.train`)."""
 
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ class Observations:
 
 
 class AMLRecipe(TrainingRecipe):
-    """``pcc train aml --stage prior|encoder`` (driven by :mod:`pcc_ros.train`).
+    """``pcc train aml --stage prior|encoder`` (driven by :mod:`pcc_ros.workflows.train`).
 
     * ``prior``: ``--data`` is a SynthCars root; the VAE learns the voxelised complete shapes
       of its train sequences (90 % / 10 % hash split into train / validation shapes).
@@ -302,5 +302,5 @@ class AMLRecipe(TrainingRecipe):
 
 @AML.trains_with
 def training_recipe(size: str = "default", **options: Any) -> AMLRecipe:
-    """The training recipe ``pcc train aml`` uses (see :mod:`pcc_ros.train`)."""
+    """The training recipe ``pcc train aml`` uses (see :mod:`pcc_ros.workflows.train`)."""
     return AMLRecipe(size=size, **options)

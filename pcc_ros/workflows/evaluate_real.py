@@ -37,7 +37,6 @@ from pcc_ros.data.layouts import download_hint
 from pcc_ros.data.sources import open_frames
 from pcc_ros.data.track_aggregate import collect_tracks
 from pcc_ros.errors import BackendError, CheckpointError, ConfigError, DataError
-from pcc_ros.evaluate import DISTANCE_BANDS, POINT_BANDS, write_results
 from pcc_ros.geometry.boxes import crop_canonical, iou_3d
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.metrics.balance import track_consistency
@@ -48,6 +47,7 @@ from pcc_ros.pipeline.core import PipelineConfig
 from pcc_ros.pipeline.track_memory import TrackMemory
 from pcc_ros.tables import metric_cell, print_table
 from pcc_ros.types import Boxes, class_mask
+from pcc_ros.workflows.evaluate import DISTANCE_BANDS, POINT_BANDS, write_results
 
 log = logging.getLogger("pcc.eval.real")
 

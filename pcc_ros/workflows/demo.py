@@ -38,7 +38,7 @@ from pcc_ros.pipeline.config import load_config, shipped_config_dir
 from pcc_ros.pipeline.core import Pipeline
 from pcc_ros.pipeline.filter import FilterConfig
 from pcc_ros.plotting import label_boxes
-from pcc_ros.runtime.bag import replay_bag
+from pcc_ros.runtime.bag_replay import replay_bag
 from pcc_ros.tables import print_table
 from pcc_ros.types import Boxes, class_mask
 

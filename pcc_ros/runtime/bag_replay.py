@@ -7,7 +7,7 @@ dropped for lack of time). So replay pairs with the node's own pairer and parame
 (``sync_slop``, ``queue_size``), publishes the node's topic table
 (:data:`pcc_ros.runtime.node.OUTPUTS`; ``--filter`` records the completion outputs as well),
 and takes the node's one tf path: the bag's ``/tf`` and ``/tf_static`` are loaded into the
-graph's :class:`~pcc_ros.msg.transforms.TransformBuffer`, so detections in another frame
+graph's :class:`~pcc_ros.msg.tf_buffer.TransformBuffer`, so detections in another frame
 than the scan are moved as tf2 moves them for a live node.
 
 Failures: the output bag is written next to ``--out`` and renamed into place only after

@@ -35,16 +35,16 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.detection_eval import (
+from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
+from pcc_ros.pipeline.filter import EVIDENCE_GROUND, TERMS, FilterConfig, filter_terms, local_ground, term_matrix
+from pcc_ros.types import Boxes, class_mask
+from pcc_ros.workflows.detection_eval import (
     auc,
     detection_truth,
     operating_curve,
     removed_at,
 )
-from pcc_ros.errors import ConfigError, DataError
-from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
-from pcc_ros.pipeline.filter import EVIDENCE_GROUND, TERMS, FilterConfig, filter_terms, local_ground, term_matrix
-from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ clearly right nor clearly wrong). The filter runs through the node's own pipelin
 gives its operating curve (false removed vs true lost) against the points-in-box count, the
 removal per group at the configured threshold, and whether each car with at least 20 returns
 was kept. SynthCars runs (``--kitti`` over a SynthCars root whose detections carry ``.kind``
-files) get the same per-group table by false-positive kind (:func:`pcc_ros.detection_eval.compare`).
+files) get the same per-group table by false-positive kind (:func:`pcc_ros.workflows.detection_eval.compare`).
 """
 
 from __future__ import annotations
@@ -41,11 +41,11 @@ from typing import Any
 
 import numpy as np
 
-from pcc_ros.detection_eval import compare, print_groups
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.pipeline.filter import false_probability, local_ground
 from pcc_ros.types import Boxes
+from pcc_ros.workflows.detection_eval import compare, print_groups
 
 log = logging.getLogger(__name__)
 

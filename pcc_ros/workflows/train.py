@@ -52,11 +52,11 @@ from pcc_ros.assignments import parse_assignments
 from pcc_ros.data import gt_pools
 from pcc_ros.data.instance_cache import InstanceCache
 from pcc_ros.errors import CheckpointError, ConfigError, TrainingError
-from pcc_ros.evaluate import instances_from_cache, score_backend
 from pcc_ros.models.base import select_device
 from pcc_ros.models.checkpoint import load_checkpoint, make_config, save_checkpoint, validate_state
 from pcc_ros.models.recipe import TrainingKit, TrainingRecipe
 from pcc_ros.models.registry import get_backend
+from pcc_ros.workflows.evaluate import instances_from_cache, score_backend
 
 log = logging.getLogger("pcc.train")
 

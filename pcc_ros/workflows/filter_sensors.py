@@ -14,7 +14,7 @@ Every row is measured by the node's own pipeline (:class:`pcc_ros.pipeline.core.
 completion skipped, ``max_instances`` lifted so that every box is judged) with the simulated
 sensor's beam model; the shape ``mismatch`` comes from a car-constrained completion
 (``filter_backend``, TraPCC by default). Fit: the L2 logistic regression of
-:mod:`pcc_ros.filter_calibration`, each sensor's rows and the real rows weighing the same.
+:mod:`pcc_ros.workflows.filter_calibration`, each sensor's rows and the real rows weighing the same.
 Threshold: the smallest that loses at most ``max_lost`` of the training rows' true detections.
 
 Honesty: leave-one-group-out cross-validation **by sensor** (fit on the other sensors and the
@@ -36,10 +36,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pcc_ros.detection_eval import auc, detection_truth, load_kitti, operating_curve, removed_at
 from pcc_ros.errors import ConfigError
-from pcc_ros.filter_calibration import fit_logistic, predict, threshold_for
 from pcc_ros.pipeline.filter import TERMS, term_matrix
+from pcc_ros.workflows.detection_eval import auc, detection_truth, load_kitti, operating_curve, removed_at
+from pcc_ros.workflows.filter_calibration import fit_logistic, predict, threshold_for
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +95,7 @@ def synth_dataset(root: Path, layout: str, seed: int, sequences: int, frames: in
 def measuring_pipeline(filter_backend: str, shape: bool = True, device: str = "cpu"):
     """The node's pipeline set to measure every term of every box (no completion of its own);
     ``shape``: also the mismatch against ``filter_backend``'s completion (else NaN, read as 0)."""
-    from pcc_ros.detection_eval import build_pipeline
+    from pcc_ros.workflows.detection_eval import build_pipeline
 
     pipeline = build_pipeline(None, {"backend": "input", "device": device, "w_mismatch": 1.0 if shape else 0.0,
                                      "filter_backend": filter_backend})
