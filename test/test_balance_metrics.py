@@ -13,7 +13,7 @@ from pcc_ros.metrics.balance import (
     symmetric_chamfer_l1,
     track_consistency,
 )
-from pcc_ros.metrics.realdata import real_instance_metrics
+from pcc_ros.metrics.realdata import real_instance_metrics, symmetric_reference
 from pcc_ros.metrics.suite import instance_metrics
 
 
@@ -53,6 +53,23 @@ def test_one_sided_completion_is_lopsided_and_misses_the_far_half():
     assert synth["far_coverage"] > synth["coverage"] and synth["lateral_offset"] > 0.1
 
 
+def test_symmetric_reference_scores_the_flank_a_one_sided_aggregate_lacks():
+    rng = np.random.default_rng(1)
+    shape = _box_surface(rng)
+    origin = np.array([0.0, 4.0, 0.3])  # sensor on +y: the aggregate holds the left flank only
+    one_sided = shape[shape[:, 1] > -0.1]
+    size = np.array([4.0, 1.8, 1.5])
+    lopsided = real_instance_metrics(one_sided, one_sided, one_sided, size, origin)
+    whole = real_instance_metrics(shape, one_sided, one_sided, size, origin)
+    # the plain one-sided reference cannot tell the two apart on completeness ...
+    assert whole["completeness"] == pytest.approx(lopsided["completeness"], abs=1e-9)
+    # ... the symmetric one sees the missing right flank, overall and in the unseen half
+    assert lopsided["completeness_sym"] > 0.1 > whole["completeness_sym"]
+    assert lopsided["far_completeness_sym"] > 0.2 > whole["far_completeness_sym"]
+    assert len(symmetric_reference(one_sided)) == 2 * len(one_sided)
+    assert np.allclose(symmetric_reference(one_sided)[len(one_sided):, 1], -one_sided[:, 1])
+
+
 def test_consistency_pairs_consecutive_frames_of_one_track():
     rng = np.random.default_rng(1)
     a = _box_surface(rng, 500)
@@ -78,6 +95,7 @@ def test_summary_rows_use_the_generated_points_and_the_bars():
 
     def row(completeness, balance, consistency, learned=True):
         o = {"completeness": completeness, "far_completeness": completeness * 1.2, "lateral_offset": balance,
+             "completeness_sym": completeness * 1.5, "far_completeness_sym": completeness * 2.0,
              "consistency": consistency, "consistency_pairs": 3, "count": 4, "fidelity": 0.0,
              "fidelity_generated": 0.1, "spacing": 0.1}
         return {"overall": o, "learned": learned}
@@ -95,4 +113,6 @@ def test_summary_rows_use_the_generated_points_and_the_bars():
     assert verdict["net"]["completeness_ok"] and not verdict["net"]["generated_ok"]
     assert verdict["net"]["balance_ok"]
     table = summary_markdown(list(rows.values()))
-    assert table.count("\n") == 4 and "| net | 0.050 | 0.070 (30.0 %) | 0.084 | 0.050 | 0.040 |" in table
+    assert rows["net"]["completeness_sym"] == pytest.approx(0.075) and rows["net"]["far_completeness_sym"] == 0.14
+    assert table.count("\n") == 4
+    assert "| net | 0.050 | 0.075 | 0.070 (30.0 %) | 0.084 | 0.140 | 0.050 | 0.040 |" in table

@@ -26,6 +26,12 @@ Per instance, all in metres (sensor frame; canonical values times the box length
 * ``far_completeness``: ``completeness`` restricted to the reference's points in the box half away
   from the sensor (the unseen half, :func:`~pcc_ros.metrics.balance.far_completeness`; NaN when the
   reference has none there).
+* ``completeness_sym`` / ``far_completeness_sym``: the same two against the *symmetric
+  reference*, the aggregated partial GT united with its reflection about the box's x-z plane
+  (:func:`symmetric_reference`). Cars are left / right symmetric, so where a track was seen
+  from one flank only (a car passed on one side), the mirrored points stand for the flank the
+  sensor never saw, and a completion that fills it is not scored as if it had invented points;
+  the plain reference stays the primary one (it holds only measured points).
 * ``consistency``: symmetric Chamfer-L1 between the completions of the same track in consecutive
   frames, box frame (:func:`~pcc_ros.metrics.balance.track_consistency`); filled in by the
   evaluation, which knows the tracks (NaN for a track's first frame).
@@ -40,6 +46,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pcc_ros.geometry.canonical import mirror_y
 from pcc_ros.metrics.balance import far_completeness, lateral_offset
 from pcc_ros.metrics.chamfer import nearest_distances
 from pcc_ros.metrics.gtfree import side_view_cd
@@ -61,6 +68,8 @@ REAL_METRICS: dict[str, tuple[str, bool | None, str]] = {
     "top_gap": ("m", True, "99th percentile of completion z -> box top (positive: short of the top)"),
     "lateral_offset": ("m", True, "lateral balance: |mean y| of the completion (front-view left/right balance)"),
     "far_completeness": ("m", True, "aggregated GT's points in the box half away from the sensor -> completion"),
+    "completeness_sym": ("m", True, "aggregated GT united with its left/right reflection -> completion"),
+    "far_completeness_sym": ("m", True, "the symmetric reference's points in the unseen half -> completion"),
     "consistency": ("m", True, "symmetric Chamfer-L1 between a track's completions in consecutive frames"),
     "points": ("count", None, "output points per instance"),
 }
@@ -73,6 +82,15 @@ def input_spacing(partial: np.ndarray) -> float:
         return float("nan")
     d, _ = cKDTree(pts).query(pts, k=2)
     return float(d[:, 1].mean())
+
+
+def symmetric_reference(reference: np.ndarray) -> np.ndarray:
+    """The aggregated partial GT united with its reflection ``y -> -y`` (canonical box frame).
+
+    Not re-thinned: each point and its reflection count once, so a flank seen only from one
+    side weighs as much as the seen one, and where both flanks were seen both are doubled alike."""
+    ref = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
+    return np.concatenate([ref, mirror_y(ref)])
 
 
 def real_instance_metrics(
@@ -97,6 +115,10 @@ def real_instance_metrics(
     out["completeness"] = float(nearest_distances(reference, comp).mean()) * length
     out["far_completeness"] = (far_completeness(reference, comp, origin) * length if origin is not None
                                else float("nan"))
+    sym = symmetric_reference(reference)
+    out["completeness_sym"] = float(nearest_distances(sym, comp).mean()) * length
+    out["far_completeness_sym"] = (far_completeness(sym, comp, origin) * length if origin is not None
+                                   else float("nan"))
     out["fidelity"] = float(nearest_distances(part, comp).mean()) * length
     copies = nearest_distances(comp, part) <= COPY_TOLERANCE
     generated = comp[~copies]

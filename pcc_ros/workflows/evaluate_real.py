@@ -52,7 +52,8 @@ from pcc_ros.workflows.evaluate import DISTANCE_BANDS, POINT_BANDS, write_result
 log = logging.getLogger("pcc.eval.real")
 
 #: Tables printed, in order (``spacing`` is printed with fidelity for comparison).
-TABLE_METRICS = ("completeness", "far_completeness", "fidelity", "fidelity_generated", "side_cd", "inside_box",
+TABLE_METRICS = ("completeness", "far_completeness", "completeness_sym", "far_completeness_sym", "fidelity",
+                 "fidelity_generated", "side_cd", "inside_box",
                  "bottom_gap", "top_gap", "lateral_offset", "consistency", "points")
 REFERENCE_ROW = "aggregated GT"
 
@@ -353,7 +354,9 @@ def summary_rows(results: dict[str, Any]) -> list[dict[str, Any]]:
     """One row per backend, the README's real-data table: published completeness, and on the
     generated points alone (a learned backend's ``NAME/generated`` row; a baseline's whole output)
     completeness, its gain over mirror's, the unseen half's completeness, the lateral balance and
-    the consistency between consecutive frames (metres, overall means)."""
+    the consistency between consecutive frames (metres, overall means). The two ``*_sym`` columns
+    score the published completeness and the generated points' unseen half against the symmetric
+    reference (the aggregate united with its left / right reflection), beside the plain ones."""
     mirror = results.get("mirror", {}).get("overall", {}).get("completeness")
     rows = []
     for name, res in results.items():
@@ -362,9 +365,11 @@ def summary_rows(results: dict[str, Any]) -> list[dict[str, Any]]:
         gen = results.get(name + GENERATED_SUFFIX, res)["overall"]
         rows.append({
             "backend": name, "completeness": res["overall"]["completeness"],
+            "completeness_sym": res["overall"].get("completeness_sym"),
             "generated_completeness": gen["completeness"],
             "generated_gain_vs_mirror": None if not mirror else 1.0 - gen["completeness"] / mirror,
-            "far_completeness": gen["far_completeness"], "lateral_balance": gen["lateral_offset"],
+            "far_completeness": gen["far_completeness"], "far_completeness_sym": gen.get("far_completeness_sym"),
+            "lateral_balance": gen["lateral_offset"],
             "consistency": gen["consistency"], "consistency_pairs": gen.get("consistency_pairs"),
             "instances": res["overall"]["count"],
         })
@@ -376,12 +381,15 @@ def summary_markdown(rows: list[dict[str, Any]]) -> str:
     def cell(value: Any, fmt: str = "{:.3f}") -> str:
         return "-" if value is None else fmt.format(value)
 
-    lines = ["| backend | completeness | generated-only completeness (below mirror) | unseen half, generated "
-             "| lateral balance, generated | consistency, generated |", "| --- | --- | --- | --- | --- | --- |"]
+    lines = ["| backend | completeness | completeness, symmetric ref. | generated-only completeness (below mirror) "
+             "| unseen half, generated | unseen half, generated, symmetric ref. | lateral balance, generated "
+             "| consistency, generated |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         gain = "" if r["generated_gain_vs_mirror"] is None else f" ({100 * r['generated_gain_vs_mirror']:.1f} %)"
-        lines.append(f"| {r['backend']} | {cell(r['completeness'])} | {cell(r['generated_completeness'])}{gain} | "
-                     f"{cell(r['far_completeness'])} | {cell(r['lateral_balance'])} | {cell(r['consistency'])} |")
+        lines.append(f"| {r['backend']} | {cell(r['completeness'])} | {cell(r.get('completeness_sym'))} | "
+                     f"{cell(r['generated_completeness'])}{gain} | {cell(r['far_completeness'])} | "
+                     f"{cell(r.get('far_completeness_sym'))} | {cell(r['lateral_balance'])} | "
+                     f"{cell(r['consistency'])} |")
     return "\n".join(lines) + "\n"
 
 
@@ -424,7 +432,7 @@ def print_real_tables(results: dict[str, Any]) -> None:
         for name, res in scored.items():
             if name == REFERENCE_ROW and key in ("completeness", "far_completeness", "fidelity", "fidelity_generated",
                                                  "side_cd", "consistency"):
-                continue  # trivially zero / undefined for the reference itself
+                continue  # trivially zero / undefined for the reference itself (its *_sym rows: how one-sided it is)
             row = {"backend": name, "overall": res["overall"][key]}
             row.update({b: res["by_distance"][b][key] for b, _, _ in DISTANCE_BANDS})
             row.update({b: res["by_points"][b][key] for b, _, _ in POINT_BANDS})
