@@ -61,12 +61,13 @@ def _frames(args: argparse.Namespace):
             yield "kitti 0000/0", points[:, :3], box_set(points, labelled, n, rng)
 
 
-def check_equal(ours: dict[str, np.ndarray], theirs: dict[str, np.ndarray]) -> None:
+def check_equal(ours: dict[str, np.ndarray], theirs: dict[str, np.ndarray], reference: str = "the 93cd59e reference"
+                ) -> None:
     """Every measurement and term bit-identical (NaN where NaN); raises SystemExit otherwise."""
     for key in theirs:
         if not np.array_equal(ours[key], theirs[key], equal_nan=True):
             worst = float(np.nanmax(np.abs(ours[key] - theirs[key])))
-            raise SystemExit(f"evidence differs from the 93cd59e reference in {key!r} (max |diff| {worst:.3g})")
+            raise SystemExit(f"evidence differs from {reference} in {key!r} (max |diff| {worst:.3g})")
 
 
 def thread_grain(repeat: int) -> list[dict]:
@@ -109,36 +110,60 @@ def thread_grain(repeat: int) -> list[dict]:
 
 def run(args: argparse.Namespace) -> dict:
     from benchmarks._reference import evidence as reference_evidence
-    from pcc_ros.pipeline.evidence_profile import profile_terms
+    from benchmarks._reference_profile import profile_terms as reference_profile
+    from pcc_ros.pipeline.evidence_profile import PROFILE_TERMS, profile_terms
     from pcc_ros.pipeline.filter import GROUND_REACH, SENSOR_PRESETS, FilterConfig, evidence, filter_terms
 
     load_before = load_average()
     sensor = SENSOR_PRESETS["hdl64"]
     fixed = GROUND_REACH  # 93cd59e's ground reach: the outputs compared bit for bit
     rule = FilterConfig(sensor="hdl64")  # the shipped rule
+    rule_profile = set(rule.weighted_terms) & set(PROFILE_TERMS)
+
+    def rule_terms_24858c5(points, boxes):
+        """filter_terms(weighted_only=True, workers=2) as at 24858c5: the evidence on two threads
+        (what the shipped rule weighs: rays, expected returns, ground), then its profile pass."""
+        evidence(points, boxes, sensor, workers=2)
+        return reference_profile(points, boxes, sensor, measure=rule_profile)
     rows = []
     for scan, points, boxes in _frames(args):
         check_equal(evidence(points, boxes, sensor).as_dict(), reference_evidence(points, boxes, sensor).as_dict())
         reference = reference_evidence(points, boxes, sensor, reach=fixed).as_dict()
         check_equal(evidence(points, boxes, sensor, reach=fixed).as_dict(), reference)
         check_equal(evidence(points, boxes, sensor, workers=2, reach=fixed).as_dict(), reference)
+        check_equal(filter_terms(points, boxes, rule, sensor=sensor, weighted_only=True, workers=2),
+                    filter_terms(points, boxes, rule, sensor=sensor, weighted_only=True), "one thread's filter_terms")
+        for measure in (None, rule_profile):  # every profile term, and those the shipped rule weighs
+            check_equal(profile_terms(points, boxes, sensor, measure=measure),
+                        reference_profile(points, boxes, sensor, measure=measure), "24858c5's profile pass")
         times = interleaved({"ours": lambda p=points, b=boxes: evidence(p, b, sensor, reach=fixed),
                              "ours_2": lambda p=points, b=boxes: evidence(p, b, sensor, workers=2, reach=fixed),
                              "ours_beams": lambda p=points, b=boxes: evidence(p, b, sensor),
                              "profile": lambda p=points, b=boxes: profile_terms(p, b, sensor),
+                             "profile_rule": lambda p=points, b=boxes: profile_terms(p, b, sensor,
+                                                                                     measure=rule_profile),
+                             "profile_24858c5": lambda p=points, b=boxes: reference_profile(p, b, sensor,
+                                                                                             measure=rule_profile),
                              "93cd59e": lambda p=points, b=boxes: reference_evidence(p, b, sensor, reach=fixed),
                              "terms_all": lambda p=points, b=boxes: filter_terms(p, b, rule, sensor=sensor),
                              "terms_rule": lambda p=points, b=boxes: filter_terms(p, b, rule, sensor=sensor,
-                                                                                  weighted_only=True)},
+                                                                                  weighted_only=True),
+                             "terms_rule_2": lambda p=points, b=boxes: filter_terms(p, b, rule, sensor=sensor,
+                                                                                    weighted_only=True, workers=2),
+                             "terms_rule_24858c5_2": lambda p=points, b=boxes: rule_terms_24858c5(p, b)},
                             repeat=args.repeat, warmup=3)
         ours, two, ref = (summary_ms(times[k]) for k in ("ours", "ours_2", "93cd59e"))
         beams, profile = summary_ms(times["ours_beams"]), summary_ms(times["profile"])
+        profile_rule, profile_before = summary_ms(times["profile_rule"]), summary_ms(times["profile_24858c5"])
         every, weighted = summary_ms(times["terms_all"]), summary_ms(times["terms_rule"])
         rows.append({"scan": scan, "points": len(points), "boxes": len(boxes),
                      "ours_min": ours["min_ms"], "ours_ms": ours["median_ms"], "ours_max": ours["max_ms"],
                      "ours2_min": two["min_ms"], "ours2_ms": two["median_ms"], "beams_ms": beams["median_ms"],
-                     "profile_ms": profile["median_ms"], "all_terms_ms": every["median_ms"],
+                     "profile_ms": profile["median_ms"], "profile_rule_ms": profile_rule["median_ms"],
+                     "profile_24858c5_ms": profile_before["median_ms"], "all_terms_ms": every["median_ms"],
                      "rule_terms_ms": weighted["median_ms"],
+                     "rule_terms_2_ms": summary_ms(times["terms_rule_2"])["median_ms"],
+                     "rule_terms_24858c5_2_ms": summary_ms(times["terms_rule_24858c5_2"])["median_ms"],
                      "ref_min": ref["min_ms"], "ref_ms": ref["median_ms"], "ref_max": ref["max_ms"],
                      "speedup": ref["median_ms"] / ours["median_ms"], "outputs": "identical"})
     print_table(f"evidence filter measurements, ms ({args.repeat} interleaved calls each: min / median / max); "
@@ -146,9 +171,14 @@ def run(args: argparse.Namespace) -> dict:
                 "pipeline's workers >= 2), both with 93cd59e's fixed ground reach; beams = one thread, the ground "
                 "reach the pipeline uses (widened with the beam model's ring spacing); profile = the profile terms "
                 "(above, fill, spill, overlap, depth, top: one more pass, no 93cd59e counterpart, not compared), "
-                "which the pipeline adds to beams; ref = main at 93cd59e; all_terms = every term of the rule "
+                "which the pipeline adds to beams; profile_rule = those the shipped rule weighs, profile_24858c5 = "
+                "the same by the profile pass of 24858c5 (pair arrays first; outputs checked identical); ref = main "
+                "at 93cd59e; all_terms = every term of the rule "
                 "(filter_terms, one thread: calibration's measurement), rule_terms = only those the shipped rule "
-                "weighs (weighted_only: what the pipeline measures)", rows)
+                "weighs (weighted_only: what the pipeline measures), rule_terms_2 = the same on two threads (the "
+                "profile pass on the second, as the pipeline's workers >= 2; outputs checked identical), "
+                "rule_terms_24858c5_2 = the same work as 24858c5 did it (the evidence on two threads, then its "
+                "profile pass)", rows)
     grain = thread_grain(args.grain_repeat) if args.grain_repeat > 0 else []
     if grain:
         print_table(f"thread grain: the same numpy work on one thread and split over two, ms ({args.grain_repeat} "

@@ -200,8 +200,11 @@ def _row_filter(d: dict[str, Any]) -> list[str]:
     at20 = next(r for r in rows if r["scan"] == "synthcars" and r["boxes"] == 20)
     figure = (f"{min(speedups):.1f}-{max(speedups):.1f}x the previous filter (`benchmarks/_reference.py`), outputs "
               f"{'identical' if all(r['outputs'] == 'identical' for r in rows) else '**differ**'}; 20 cars: "
-              f"{at20['ours_ms']:.2f} ms on one thread, {at20['ours2_ms']:.2f} ms with a second "
-              "([docs/filter.md](docs/filter.md#cost-pcc-bench-filter))")
+              f"{at20['ours_ms']:.2f} ms on one thread, {at20['ours2_ms']:.2f} ms with a second")
+    if "rule_terms_24858c5_2_ms" in at20:  # the shipped rule's whole measurement, before / after, interleaved
+        figure += (f"; the shipped rule's whole measurement (profile terms included) {at20['rule_terms_2_ms']:.2f} "
+                   f"ms on two threads against {at20['rule_terms_24858c5_2_ms']:.2f} ms as 24858c5 made it")
+    figure += " ([docs/filter.md](docs/filter.md#cost-pcc-bench-filter))"
     return ["`pcc bench filter` (the evidence filter's scan measurements, SynthCars 120k points, 1-100 cars; "
             "real KITTI scan)", figure, "see the pipeline row", "-"]
 
@@ -306,11 +309,22 @@ def _by_scan(d: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
 
 
 def render_filter_terms(d: dict[str, Any]) -> list[str]:
-    """docs/filter.md: what each part of the filter's measurement costs (medians, one thread)."""
-    columns = ("beams_ms", "profile_ms", "all_terms_ms", "rule_terms_ms")
-    rows = [[_filter_frame(scan, rs), *(" / ".join(f"{r[c]:.1f}" for r in rs) for c in columns)]
+    """docs/filter.md: what each part of the filter's measurement costs (medians), with the
+    profile pass and the shipped rule's measurement as 24858c5 made them in parentheses
+    (interleaved in the same run) where the result has them."""
+    columns: tuple[tuple[str, str | None], ...] = (("beams_ms", None), ("profile_ms", None), ("all_terms_ms", None),
+                                                   ("rule_terms_ms", None))
+    if "rule_terms_24858c5_2_ms" in d["rows"][0]:
+        columns = (("beams_ms", None), ("profile_rule_ms", "profile_24858c5_ms"), ("all_terms_ms", None),
+                   ("rule_terms_ms", None), ("rule_terms_2_ms", "rule_terms_24858c5_2_ms"))
+
+    def cell(r: dict[str, Any], c: str, before: str | None) -> str:
+        return f"{r[c]:.1f}" + (f" ({r[before]:.1f})" if before else "")
+
+    rows = [[_filter_frame(scan, rs), *(" / ".join(cell(r, c, b) for r in rs) for c, b in columns)]
             for scan, rs in _by_scan(d).items()]
-    return table(["frame (ms, lower is better)", *(f"`{c}`" for c in columns)], rows)
+    return table(["frame (ms, lower is better)", *(f"`{c}`" + (" (at 24858c5)" if b else "") for c, b in columns)],
+                 rows)
 
 
 def render_bench_filter(d: dict[str, Any]) -> list[str]:

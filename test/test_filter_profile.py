@@ -88,3 +88,18 @@ def test_no_boxes_and_no_points():
     assert empty["fill"][0] == 0.0 and empty["depth"][0] == 0.5 and empty["above"][0] == 0.0
     none = profile_terms(cast([CAR]), Boxes(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)), SENSOR)
     assert all(len(v) == 0 for v in none.values())
+
+
+def test_two_threads_give_the_same_terms():
+    """The profile pass on the filter's second thread beside the evidence: the same values."""
+    config = FilterConfig()
+    scan = cast([CAR, POLE])
+    shift = np.array([[0.5, 0.2, 0.0]])
+    boxes = Boxes(np.r_[BOX.center, BOX.center + shift], np.r_[BOX.size, BOX.size], np.r_[BOX.yaw, 0.3],
+                  score=np.array([0.9, 0.8]))
+    one = filter_terms(scan, boxes, config, sensor=SENSOR, weighted_only=True)
+    two = filter_terms(scan, boxes, config, sensor=SENSOR, weighted_only=True, workers=2)
+    assert one.keys() == two.keys() and {"depth", "above", "overlap"} <= one.keys()
+    for k in one:
+        np.testing.assert_array_equal(one[k], two[k])
+    assert two["overlap"][1] > 0  # the second box is covered by the better-scored first

@@ -189,16 +189,16 @@ def test_filter_measures_on_as_many_threads_as_the_completion(monkeypatch, worke
     threads when ``workers`` is 1; its terms do not depend on that."""
     import torch
 
-    import pcc_ros.pipeline.filter as filter_module
+    import pcc_ros.pipeline.core as core_module
 
     calls = []
-    measure = filter_module.evidence
+    measure = core_module.filter_terms
 
-    def spy(points, boxes, sensor=None, workers=1, **measured):
+    def spy(*args, workers=1, **kwargs):
         calls.append(workers)
-        return measure(points, boxes, sensor, workers=workers, **measured)
+        return measure(*args, workers=workers, **kwargs)
 
-    monkeypatch.setattr(filter_module, "evidence", spy)
+    monkeypatch.setattr(core_module, "filter_terms", spy)
     points, boxes = make_frame()
     cfg = PipelineConfig(backend="input", min_points=10, workers=workers)
     previous = torch.get_num_threads()

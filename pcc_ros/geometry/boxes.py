@@ -53,7 +53,6 @@ def box_corners(boxes: Boxes) -> np.ndarray:
 
 CELL_FRACTION = 0.25  # default BEV hash cell as a fraction of the median box width
 _PAIR_CHUNK = 16384  # candidate pairs tested at a time
-_SCAN_BLOCK = 32768  # scan points hashed at a time (their temporaries stay in L2)
 
 
 def _bev_corners(boxes: Boxes) -> np.ndarray:
@@ -104,8 +103,8 @@ class BoxCandidates:
       pairs inside, grouped by box (ascending), points ascending within a box, and
       optionally the points' box-frame coordinates.
 
-    Cost: ten contiguous passes over the scan (two of them strided reads of x and y, in
-    float32, into per-thread work arrays), then work proportional to the candidates. The
+    Cost: one compiled pass over the scan (:mod:`pcc_ros.geometry.box_kernels`; the cell in
+    float32), then work proportional to the candidates. The
     exact test runs in the scan's precision (float32 sensor data stays float32) with the
     z bounds rounded outward-exactly, so it agrees with an exact float64 test. NaN points
     fall in the grid's empty border: never candidates, never inside.
@@ -135,13 +134,13 @@ class BoxCandidates:
         self._entry_row = self._entry_box = np.zeros(0, np.int64)
         self._n_rows = 0
         self.pairs_per_box = np.zeros(nb, dtype=np.int64)
+        self._dt = dt = np.float32 if pts.dtype == np.float32 else np.float64
         if nb == 0 or len(pts) == 0:
             self._hit_row = np.zeros(0, np.int64)
             return
         # The test runs in the scan's precision (float32 for sensor data); the z bounds are
         # rounded outward-exactly to it, so the bottom / top tests (where the ground returns
         # sit, right at the boundary) agree with an exact float64 test.
-        self._dt = dt = np.float32 if pts.dtype == np.float32 else np.float64
         half_z = boxes.size[:, 2] / 2.0
         self._zlo = round_up_to(boxes.center[:, 2] - half_z - self.margin + self.ground_margin, dt)
         self._zhi = round_down_to(boxes.center[:, 2] + half_z + self.margin, dt)
@@ -219,39 +218,19 @@ class BoxCandidates:
 
     def _scan(self, pts: np.ndarray, grid: tuple, row_of: np.ndarray, n_rows: int, row_dtype: type) -> None:
         """The cell of every point (float32, clipped onto the grid) looked up in the table:
-        the points in cells that some box reaches, and their rows."""
+        the points in cells that some box reaches and within the boxes' union z range, and
+        their rows (one compiled pass, :func:`pcc_ros.geometry.box_kernels.scan_cells`)."""
+        from pcc_ros.geometry.box_kernels import scan_cells  # numba: heavy, only when a scan is met
+
         ox, oy, cell, nx, ny = grid
         n = len(pts)
-        inv = np.float32(1.0 / cell)
-        block = min(n, _SCAN_BLOCK)
-        g = _SCRATCH("cell", block, np.float32)
-        key = _SCRATCH("key", block, np.int32)
-        gy = _SCRATCH("key_y", block, np.int32)
-        row = _SCRATCH("row", n, row_dtype)
-        for lo in range(0, n, block):  # blocks of the scan: the temporaries stay in cache
-            hi = min(lo + block, n)
-            if hi - lo < block:
-                g, key, gy = g[:hi - lo], key[:hi - lo], gy[:hi - lo]
-            with np.errstate(invalid="ignore", over="ignore"):
-                for axis, origin, size, out in ((0, ox, nx, key), (1, oy, ny, gy)):
-                    np.subtract(pts[lo:hi, axis], np.float32(origin), out=g, dtype=np.float32)
-                    g *= inv
-                    np.clip(g, np.float32(0.0), np.float32(size - 1), out=g)
-                    # >= 0: truncation is the floor. NaN stays NaN through the clip and converts to
-                    # INT_MIN (x86) or 0 (ARM): the cell below is then negative or in column 0,
-                    # both the empty border (a NaN point anywhere would still fail the exact test).
-                    np.copyto(out, g, casting="unsafe")
-                key *= np.int32(ny)
-                key += gy
-            np.take(row_of, key, out=row[lo:hi], mode="clip")  # clip: out-of-range (NaN) keys to the border
-        hit = np.flatnonzero(np.not_equal(row, 0, out=_SCRATCH("hit", n, bool)))
-        # points above or below every box are no candidates (walls, trees, kerbs under a far box)
-        z = pts[:, 2][hit]
-        with np.errstate(invalid="ignore"):
-            between = z >= self._zlo.min()
-            between &= z <= self._zhi.max()
-        self._hit = hit = hit[between]
-        self._hit_row = np.take(row, hit)
+        if pts.dtype not in (np.float32, np.float64):
+            pts = pts.astype(np.float64)
+        hit, rows = _SCRATCH("hit_index", n, np.int64), _SCRATCH("row", n, row_dtype)
+        zmin, zmax = self._zlo.min(), self._zhi.max()
+        m = scan_cells(pts, np.float32(ox), np.float32(oy), np.float32(1.0 / cell), nx, ny, row_of,
+                       zmin, zmax, hit, rows)
+        self._hit, self._hit_row = hit[:m].copy(), rows[:m].copy()
 
     def pairs(self, keep: np.ndarray | None = None, local: bool = False):
         """The (point, box) pairs with the point inside the box, for every box or for the boxes
@@ -276,12 +255,8 @@ class BoxCandidates:
         pts, dt = self.points, self._dt
         if not pts.flags.c_contiguous:  # np.take would copy the whole array for every chunk
             pts = np.ascontiguousarray(pts[:, :3])
-        boxes, margin = self.boxes, self.margin
-        half = boxes.size / 2.0
-        values = np.stack([  # one row per box
-            self._zlo, self._zhi, boxes.center[:, 0], boxes.center[:, 1], np.cos(boxes.yaw), np.sin(boxes.yaw),
-            half[:, 0] + margin, half[:, 1] + margin,
-        ], axis=1).astype(dt)
+        boxes = self.boxes
+        values = self._box_values()
         # In chunks of pairs, every temporary in this thread's work arrays: they stay in cache
         # and mapped (a fresh array of this size is page-faulted in afresh on every frame).
         ends = np.cumsum(count).tolist()
@@ -327,6 +302,32 @@ class BoxCandidates:
         lx, ly, dz = (np.concatenate(c) for c in zip(*local_parts))
         dz -= np.repeat(boxes.center[:, 2].astype(dt), np.diff(starts))
         return np.take(pp, kept), starts, (lx, ly, dz)
+
+    def _box_values(self) -> np.ndarray:
+        """Per box, the exact test's row in the test's precision: ``(zlo, zhi, cx, cy, cos, sin,
+        half length + margin, half width + margin)``."""
+        boxes, margin = self.boxes, self.margin
+        half = boxes.size / 2.0
+        return np.stack([
+            self._zlo, self._zhi, boxes.center[:, 0], boxes.center[:, 1], np.cos(boxes.yaw), np.sin(boxes.yaw),
+            half[:, 0] + margin, half[:, 1] + margin,
+        ], axis=1).astype(self._dt)
+
+    def candidate_test(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The candidates and the exact test's inputs, for a compiled loop that tests and uses
+        each pair in one visit instead of :meth:`pairs` gathering them into arrays first:
+        ``(pair_point, pair_box, points, values)``. The pairs in point order (a box's points
+        ascending); the scan's x, y, z in the test's precision (no copy when already in it);
+        per box the row of :meth:`_box_values`. A pair is inside when ``zlo <= z <= zhi``,
+        ``|cos dx + sin dy| <= hl`` and ``|cos dy - sin dx| <= hw`` (``dx, dy``: the point minus
+        the centre), every operation rounded in that precision, as :meth:`pairs` tests it."""
+        pp, pb = self._candidates(None)
+        pts = self.points[:, :3]
+        if pts.dtype != self._dt:
+            pts = pts.astype(self._dt)
+        if not len(pp):
+            return np.zeros(0, np.int64), np.zeros(0, np.uint8), pts, np.zeros((len(self.boxes), 8), self._dt)
+        return pp, pb, pts, self._box_values()
 
     def _candidates(self, keep: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """(point, box) candidate pairs in point order: each point meets the boxes of its cell."""
@@ -378,6 +379,16 @@ class BoxCandidates:
         if len(points) == 1:
             return points[0], boxes[0]
         return np.concatenate(points), np.concatenate(boxes)
+
+
+def warm_up() -> None:
+    """Compile :class:`BoxCandidates`' scan pass for both scan precisions (numba, on first use;
+    loaded from its disk cache after the first run on a machine), so a node's first frame does
+    not pay for it. Idempotent and cheap once done."""
+    boxes = Boxes(np.array([[10.0, 0.0, -0.8]]), np.array([[4.0, 1.8, 1.5]]), np.zeros(1))
+    scan = np.array([[10.0, 0.0, -0.8], [0.0, 0.0, 0.0]])
+    for dtype in (np.float32, np.float64):
+        BoxCandidates(scan.astype(dtype), boxes)
 
 
 def _pairs_in_boxes(points, boxes, margin, ground_margin, cell, local=True):
@@ -522,13 +533,29 @@ def _pairwise_bev_intersection(a: Boxes, b: Boxes) -> np.ndarray:
     out = np.zeros((na, nb))
     if na == 0 or nb == 0:
         return out
-    # Only pairs whose circumscribed circles meet can intersect: skip the rest.
+    ia, ib = np.nonzero(circles_meet(a, b))  # only these pairs can intersect
+    out[ia, ib] = polygon_intersection_area(ca[ia], cb[ib])
+    return out
+
+
+def circles_meet(a: Boxes, b: Boxes) -> np.ndarray:
+    """``(len(a), len(b))``: whether the circumscribed BEV circles of two boxes meet (only such
+    pairs can intersect: the BEV overlaps clip the polygons of those only)."""
     ra = np.linalg.norm(a.size[:, :2], axis=1) / 2.0
     rb = np.linalg.norm(b.size[:, :2], axis=1) / 2.0
     dist = np.linalg.norm(a.center[:, None, :2] - b.center[None, :, :2], axis=2)
-    ia, ib = np.nonzero(dist <= ra[:, None] + rb[None, :])
-    out[ia, ib] = polygon_intersection_area(ca[ia], cb[ib])
-    return out
+    return dist <= ra[:, None] + rb[None, :]
+
+
+def iou_bev_pairs(boxes: Boxes, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """BEV IoU of the pairs ``(boxes[i[k]], boxes[j[k]])``: the entries ``[i, j]`` of
+    ``iou_bev(boxes, boxes)`` for pairs whose circles meet (:func:`circles_meet`), bit for bit,
+    without clipping the polygons of every other pair (a frame's boxes rarely meet)."""
+    corners = _bev_corners(boxes)
+    inter = polygon_intersection_area(corners[i], corners[j])
+    area = boxes.size[:, 0] * boxes.size[:, 1]
+    union = area[i] + area[j] - inter
+    return inter / np.maximum(union, 1e-12)
 
 
 def iou_bev(a: Boxes, b: Boxes) -> np.ndarray:

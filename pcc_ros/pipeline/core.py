@@ -20,6 +20,7 @@ import numpy as np
 
 from pcc_ros.errors import MessageError
 from pcc_ros.geometry.boxes import BoxCandidates, canonical_crops
+from pcc_ros.geometry.boxes import warm_up as warm_up_crop
 from pcc_ros.geometry.canonical import from_canonical
 from pcc_ros.lograte import worth_logging
 from pcc_ros.models.base import SceneContext
@@ -156,6 +157,7 @@ class Pipeline:
         self.completer = completer if self.completes else None
         if not self.completes:
             check_backend_name(config.backend)  # not loaded, but a misspelt name is still refused
+        warm_up_crop()  # the crop's compiled scan pass, before the first frame
         if filters and config.filter.rule == "evidence":
             warm_up()  # the filter's compiled kernels, before the first frame
         #: the filter's beam model: a preset, or estimated from the scans (sensor: auto)

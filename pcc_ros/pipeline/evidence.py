@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import contextvars
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import lru_cache, partial
 
 import numpy as np
 
@@ -365,6 +365,12 @@ def _side_pool() -> ThreadPoolExecutor:
         return _SIDE_POOL
 
 
+def beside(fn, *args) -> Future:
+    """``fn(*args)`` submitted to the filter's second thread (in a copy of this thread's context:
+    a line logged there is the calling node's): its future. The thread's jobs run in order."""
+    return _side_pool().submit(contextvars.copy_context().run, fn, *args)
+
+
 def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1,
              reach: float | np.ndarray | None = None, rays: bool = True, expected: bool = True,
              ground: bool = True) -> Evidence:
@@ -393,17 +399,15 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     nan = np.full(n, np.nan)
     reach = ground_reach(boxes, sensor) if reach is None and ground else reach
     # A second thread only when the work splits: the rays here, the rest there.
-    pool = _side_pool() if workers > 1 and rays and (ground or expected) else None
+    pool = workers > 1 and rays and (ground or expected)
     # The side thread's jobs, in order: the ground (it needs only the scan and the boxes, so it
     # starts before the box-level setup below), then the expected returns; the two take about
     # as long as the rays do here.
-    # (each in a copy of this thread's context: a line logged there is the calling node's)
-    ground_job = pool.submit(contextvars.copy_context().run, _ground, x, y, z, boxes, reach, 0.05,
-                             _SCRATCH) if pool and ground else None
+    ground_job = beside(_ground, x, y, z, boxes, reach, 0.05, _SCRATCH) if pool and ground else None
     window = angular_window(boxes) if rays or expected else None
     table = _BoxTable(boxes) if rays or expected else None
-    expected_job = pool.submit(contextvars.copy_context().run, _expected_beams, boxes, sensor, *window,
-                               table=table) if pool and expected else None
+    expected_job = beside(partial(_expected_beams, table=table), boxes, sensor, *window) \
+        if pool and expected else None
     if rays:
         n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
     else:

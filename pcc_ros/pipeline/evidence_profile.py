@@ -20,9 +20,10 @@ around each box (definitions in ``docs/filter.md``, "Profile terms"):
   through; only the order of the scores is used, never their scale.
 
 All four are dimensionless and read the scan geometry only through the sensor's azimuth step
-(the beam model's), so one weight set serves every sensor. One vectorised pass of
+(the beam model's), so one weight set serves every sensor. One pass of
 :class:`pcc_ros.geometry.boxes.BoxCandidates` over the scan against the boxes grown by the
-shell and the reach above.
+shell and the reach above, then one compiled loop that tests each candidate pair and uses it
+in the same visit (:mod:`pcc_ros.pipeline.profile_kernels`).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from collections.abc import Collection
 import numpy as np
 
 from pcc_ros.geometry.beams import SensorModel
-from pcc_ros.geometry.boxes import BoxCandidates, iou_bev
+from pcc_ros.geometry.boxes import BoxCandidates, circles_meet, iou_bev_pairs
 from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, angular_window
 from pcc_ros.types import Boxes
@@ -61,17 +62,20 @@ def covered_share(boxes: Boxes) -> np.ndarray:
     """Per box, the largest share of its BEV footprint that a box with a higher score (ties:
     an earlier box) covers: the duplicate check an NMS would make, measured, not applied."""
     n = len(boxes)
+    share = np.zeros(n)
     if n < 2:
-        return np.zeros(n)
-    iou = iou_bev(boxes, boxes)
-    area = boxes.size[:, 0] * boxes.size[:, 1]
-    # intersection from IoU: I = IoU * (A_i + A_j) / (1 + IoU)
-    inter = iou * (area[:, None] + area[None, :]) / (1.0 + iou)
+        return share
     score = np.nan_to_num(np.asarray(boxes.score, dtype=np.float64), nan=-np.inf)
     idx = np.arange(n)
     better = (score[None, :] > score[:, None]) | ((score[None, :] == score[:, None]) & (idx[None, :] < idx[:, None]))
-    share = np.where(better, inter / np.maximum(area[:, None], 1e-12), 0.0)
-    return np.clip(share.max(axis=1), 0.0, 1.0)
+    i, j = np.nonzero(better & circles_meet(boxes, boxes))  # only these pairs can cover anything
+    if len(i):
+        iou = iou_bev_pairs(boxes, i, j)
+        area = boxes.size[:, 0] * boxes.size[:, 1]
+        # intersection from IoU: I = IoU * (A_i + A_j) / (1 + IoU)
+        inter = iou * (area[i] + area[j]) / (1.0 + iou)
+        np.maximum.at(share, i, inter / np.maximum(area[i], 1e-12))
+    return np.clip(share, 0.0, 1.0)
 
 
 def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
@@ -104,33 +108,32 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
     size[:, 2] += ABOVE_REACH
     centre[:, 2] += ABOVE_REACH / 2
     grown = Boxes(centre, size, boxes.yaw)
-    candidates = BoxCandidates(points, grown)
-    pair_point, starts, (lx, ly, lz) = candidates.pairs(local=True)
+    pair_point, pair_box, pts, test = BoxCandidates(points, grown).candidate_test()
     cos, sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
     cx, cy, cz = boxes.center.T
     origin = np.ascontiguousarray(np.stack(to_box_local(0.0, 0.0, 0.0, cx, cy, cz, cos, sin), axis=1))
     centre_az = np.arctan2(cy, cx)
-    pts = candidates.points
-    px, py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
     out = np.zeros((n, 7))
     from pcc_ros.pipeline import profile_kernels as kernels  # numba: heavy, only when measuring
 
-    kernels.profile_pairs(lx, ly, lz, px, py, pair_point, starts, np.ascontiguousarray(boxes.size / 2), origin,
-                          centre_az, ABOVE_REACH / 2, FACE_MARGIN, EVIDENCE_GROUND, out)
+    kernels.profile_pairs(pair_point, pair_box, pts, test, grown.center[:, 2].astype(test.dtype),
+                          np.ascontiguousarray(boxes.size / 2), origin, centre_az, ABOVE_REACH / 2, FACE_MARGIN,
+                          EVIDENCE_GROUND, "fill" in wanted, out)
     n_body, n_above, n_shell = out[:, kernels.BODY], out[:, kernels.ABOVE], out[:, kernels.SHELL]
     has = n_body > 0
-    az_lo, az_hi, *_ = angular_window(boxes)
-    step = np.deg2rad(sensor.azimuth_resolution_deg)
-    span = out[:, kernels.AZ_MAX] - out[:, kernels.AZ_MIN]
-    fill = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
+    terms = {}
+    if "fill" in wanted:
+        az_lo, az_hi, *_ = angular_window(boxes)
+        step = np.deg2rad(sensor.azimuth_resolution_deg)
+        span = out[:, kernels.AZ_MAX] - out[:, kernels.AZ_MIN]
+        terms["fill"] = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
     top = np.where(has, (out[:, kernels.TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0)
-    terms = {
+    terms.update({
         "above": n_above / (n_above + n_body + 1.0),
-        "fill": fill,
         "spill": np.log((n_shell + 1.0) / (n_body + 1.0)),
         "depth": (out[:, kernels.DEPTH_SUM] + 0.5) / (n_body + 1.0),
         "top": top,
-    }
+    })
     out_terms.update({k: v for k, v in terms.items() if k in wanted})
     out_terms.update({"n_body": n_body, "n_above": n_above})
     if "spill" in wanted:
