@@ -29,9 +29,9 @@ from __future__ import annotations
 import json
 import logging
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -54,8 +54,29 @@ CANDIDATES = 48  # seeded placements tried per simulated false detection
 CAMERA_HALF_FOV = np.deg2rad(40.0)  # KITTI's colour camera sees about +-40 deg
 
 
+class FeatureRows:
+    """Rows of a dataclass whose first fields are ``x (N, len(TERMS))`` (the terms) and ``false``
+    (1 = false detection), then label columns (object arrays, one value a row): joined and
+    selected field by field, so each calibration keeps its own labels and one copy of this."""
+
+    x: np.ndarray
+    false: np.ndarray
+
+    @classmethod
+    def concatenate(cls, parts: list[Self]) -> Self:
+        parts = [p for p in parts if len(p.false)]
+        names = [f.name for f in fields(cls)]
+        if not parts:
+            labels = (np.zeros(0, object) for _ in names[2:])
+            return cls(np.zeros((0, len(TERMS))), np.zeros(0, bool), *labels)
+        return cls(*(np.concatenate([getattr(p, name) for p in parts]) for name in names))
+
+    def subset(self, mask: np.ndarray) -> Self:
+        return type(self)(*(getattr(self, f.name)[mask] for f in fields(self)))
+
+
 @dataclass
-class Table:
+class Table(FeatureRows):
     """Evidence rows: features ``x (N, len(TERMS))``, labels (1 = false detection), frame group,
     source ("real" / "synth" / "object") and the real false-box statistics when from ``real``."""
 
@@ -63,16 +84,6 @@ class Table:
     false: np.ndarray
     group: np.ndarray
     source: np.ndarray
-
-    @classmethod
-    def concatenate(cls, parts: list[Table]) -> Table:
-        parts = [p for p in parts if len(p.false)]
-        if not parts:
-            return cls(np.zeros((0, len(TERMS))), np.zeros(0, bool), np.zeros(0, object), np.zeros(0, object))
-        return cls(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("x", "false", "group", "source")))
-
-    def subset(self, mask: np.ndarray) -> Table:
-        return Table(self.x[mask], self.false[mask], self.group[mask], self.source[mask])
 
 
 @dataclass

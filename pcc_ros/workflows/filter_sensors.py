@@ -39,7 +39,7 @@ from tqdm import tqdm
 from pcc_ros.errors import ConfigError
 from pcc_ros.pipeline.filter import TERMS, term_matrix
 from pcc_ros.workflows.detection_eval import auc, detection_truth, load_kitti, operating_curve, removed_at
-from pcc_ros.workflows.filter_calibration import fit_logistic, predict, threshold_for
+from pcc_ros.workflows.filter_calibration import FeatureRows, fit_logistic, predict, threshold_for
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ def parse_terms(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:
 
 
 @dataclass
-class Rows:
+class Rows(FeatureRows):
     """One row per detection: features over :data:`TERMS`, label (1 = false), kind, sensor,
     group (the cross-validation unit: a SynthCars sequence or a block of real frames)."""
 
@@ -70,16 +70,6 @@ class Rows:
     kind: np.ndarray
     sensor: np.ndarray
     group: np.ndarray
-
-    @classmethod
-    def concatenate(cls, parts: list[Rows]) -> Rows:
-        parts = [p for p in parts if len(p.false)]
-        if not parts:
-            return cls(np.zeros((0, len(TERMS))), *(np.zeros(0, t) for t in (bool, object, object, object)))
-        return cls(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("x", "false", "kind", "sensor", "group")))
-
-    def subset(self, mask: np.ndarray) -> Rows:
-        return Rows(self.x[mask], self.false[mask], self.kind[mask], self.sensor[mask], self.group[mask])
 
 
 def synth_dataset(root: Path, layout: str, seed: int, sequences: int, frames: int) -> Path:
