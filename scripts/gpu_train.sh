@@ -45,6 +45,10 @@ train() { timeout -s INT -k 20 "$1" "$PY" -m pcc_ros.cli train "${@:2}"; }
 
 log "carry $CARRY, work $WORK, out $OUT, device $DEVICE"
 nvidia-smi --query-gpu=name,memory.used,memory.total --format=csv,noheader 2>/dev/null || true
+# AML's completions (its validation) need scikit-image's marching cubes; without it the encoder
+# trains unvalidated and its last weights are the result.
+AML_VAL=96
+"$PY" -c "import skimage" 2>/dev/null || { AML_VAL=0; log "scikit-image missing: AML encoder without validation"; }
 REAL=(--real-data "$CARRY/real_node_kitti_object" --real-data "$CARRY/real_node_nuscenes_mini")
 HELD='held_out=["../shared/data/kitti_tracking"]'
 
@@ -87,7 +91,7 @@ PID_TRAPCC=$!
       --threads 3 --no-progress --iterations "$AML_ITER" --lr 5e-4 --lr-decay-every 1500 --batch-size 16 --seed 3 \
       --option "prior=\"$WORK/aml_prior/aml.safetensors\"" --option "encoder_init=\"$W/aml.safetensors\"" \
       --option lam=10 --option "real=\"$CARRY/A_det,$CARRY/real_node_kitti_object,$CARRY/real_node_nuscenes_mini\"" \
-      --option real_repeat=2 --val-every 500 --checkpoint-every 500 --val-instances 96 --max-minutes "$ENCODER_MIN"
+      --option real_repeat=2 --val-every 500 --checkpoint-every 500 --val-instances "$AML_VAL" --max-minutes "$ENCODER_MIN"
     echo "encoder exit $?"
   fi
 ) > "$WORK/aml.log" 2>&1 &

@@ -137,16 +137,18 @@ def test_readme_rosdep_line_skips_every_pip_key_of_package_xml():
 
 
 def test_a_named_command_imports_only_its_own_module(tmp_path):
-    """``pcc train ...`` runs where the bag libraries (rosbags, mcap) or open3d are missing, as on
-    a lent training machine: only the named command's module is imported."""
+    """``pcc train ...`` runs where the bag libraries (rosbags, mcap), open3d, matplotlib or
+    scikit-image are missing, as on a lent training machine: only the named command's module is
+    imported."""
     blocker = tmp_path / "sitecustomize.py"
-    blocker.write_text(
-        "import importlib.abc, sys\n"
-        "class _Block(importlib.abc.MetaPathFinder):\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        "        if name.split('.')[0] in ('rosbags', 'mcap', 'open3d', 'rclpy'):\n"
-        "            raise ImportError('blocked: ' + name)\n"
-        "sys.meta_path.insert(0, _Block())\n")
+    blocker.write_text(  # those packages look not installed (find_spec -> None)
+        "from importlib.machinery import PathFinder\n"
+        "_find = PathFinder.find_spec\n"
+        "def _hide(name, path=None, target=None):\n"
+        "    if name.split('.')[0] in ('rosbags', 'mcap', 'open3d', 'rclpy', 'matplotlib', 'skimage'):\n"
+        "        return None\n"
+        "    return _find(name, path, target)\n"
+        "PathFinder.find_spec = staticmethod(_hide)\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).resolve().parents[1])])}
     out = subprocess.run([sys.executable, "-m", "pcc_ros.cli", "train", "--help"], capture_output=True, text=True,
                          env=env)

@@ -181,9 +181,7 @@ class Distributed:
     local_rank: int = 0
     world: int = 1
 
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
+    main = property(lambda self: self.rank == 0, doc="rank 0: the process that validates and writes")
 
     @classmethod
     def from_env(cls) -> Distributed:
@@ -304,9 +302,11 @@ def machine_info() -> dict[str, Any]:
 
 def plot_log(records: list[dict[str, Any]], path: Path, title: str, best: dict[str, Any] | None = None,
              select_key: str = "val_cd_l1") -> None:
-    """Training loss (and its parts) and validation Chamfer-L1 against the step, as a PNG."""
-    import matplotlib
-
+    """Loss and validation curves against the step as a PNG; none where matplotlib is missing (log.jsonl)."""
+    try:
+        import matplotlib
+    except ImportError:
+        return log.info("matplotlib not installed: no %s (the curves are in log.jsonl)", path.name)
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
