@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 from test_filter_evidence import BOX, CAR_HI, CAR_LO, GROUND_Z, SENSOR, cast
 
-from pcc_ros.pipeline.evidence_profile import covered_share, profile_terms
+from pcc_ros.pipeline.evidence_profile import (
+    ABOVE_PRIOR_RETURNS,
+    DEPTH_PRIOR,
+    DEPTH_PRIOR_RETURNS,
+    covered_share,
+    profile_terms,
+)
 from pcc_ros.pipeline.filter import FilterConfig, false_probability, filter_terms
 from pcc_ros.types import Boxes
 
@@ -22,6 +28,11 @@ def terms(targets, boxes=BOX):
     return profile_terms(cast(targets), boxes, SENSOR)
 
 
+def with_prior(share: float, n_body: float) -> float:
+    """``depth`` of ``n_body`` returns at ``share`` of the box depth, with the term's prior returns."""
+    return (share * n_body + DEPTH_PRIOR * DEPTH_PRIOR_RETURNS) / (n_body + DEPTH_PRIOR_RETURNS)
+
+
 def test_above_is_zero_over_a_car_and_most_returns_over_a_pole():
     car, pole = terms([CAR]), terms([POLE])
     assert car["above"][0] == 0.0 and car["n_body"][0] > 100
@@ -30,7 +41,11 @@ def test_above_is_zero_over_a_car_and_most_returns_over_a_pole():
     z = 16.0 * np.tan(SENSOR.ring_elevations())
     top = GROUND_Z + 1.5
     over, body = ((z > top) & (z <= top + 1.5)).sum(), ((z >= GROUND_Z + 0.3) & (z <= top)).sum()
-    assert over > 3 and pole["above"][0] == pytest.approx(over / (over + body), abs=0.05)
+    assert over > 3 and pole["n_above"][0] / (pole["n_above"][0] + pole["n_body"][0]) == pytest.approx(
+        over / (over + body), abs=0.05)
+    # with the term's prior returns at body height
+    n = pole["n_above"][0] + pole["n_body"][0]
+    assert pole["above"][0] == pytest.approx(pole["n_above"][0] / (n + ABOVE_PRIOR_RETURNS))
 
 
 def test_depth_is_near_the_surface_for_a_car_and_deep_for_a_column():
@@ -38,9 +53,14 @@ def test_depth_is_near_the_surface_for_a_car_and_deep_for_a_column():
     # the car's faces are the box's faces: its returns lie where the rays enter the box
     assert car["depth"][0] < 0.05
     # the column's near face is 0.25 m before the box centre along a ray of 4.2 m of box
-    assert column["depth"][0] == pytest.approx((2.1 - 0.25) / 4.2, abs=0.05)
-    # an empty box: undecided
-    assert terms([])["depth"][0] == 0.5
+    assert column["n_body"][0] > 20
+    assert column["depth"][0] == pytest.approx(with_prior((2.1 - 0.25) / 4.2, column["n_body"][0]), abs=0.05)
+    assert column["depth"][0] > 0.3
+    # an empty box: a car's value, the term says nothing (the ray terms judge it)
+    assert terms([])["depth"][0] == DEPTH_PRIOR
+    # a handful of deep returns moves it little, dozens move it most of the way
+    few = with_prior(0.5, 3)
+    assert few < 0.26 < with_prior(0.5, 60)
 
 
 def test_fill_covers_the_car_silhouette_and_a_sliver_of_it_for_a_pole():
@@ -60,7 +80,8 @@ def test_boxes_shifted_off_their_car():
     assert off["n_shell"][0] > 3 * off["n_body"][0] > 0 and off["spill"][0] > on["spill"][0] + 6
     # 2.5 m along, towards the sensor: the car's face (x = 14) lies 2.5 m behind the box's (11.5)
     along = Boxes([[13.6, 0.0, GROUND_Z + 0.75]], [[4.2, 1.8, 1.5]], [0.0], ["Car"], [0.3])
-    assert terms([CAR], along)["depth"][0] == pytest.approx((2.5 - 0.1) / 4.2, abs=0.05)
+    shifted = terms([CAR], along)
+    assert shifted["depth"][0] == pytest.approx(with_prior((2.5 - 0.1) / 4.2, shifted["n_body"][0]), abs=0.05)
 
 
 def test_overlap_is_the_footprint_share_a_higher_scored_box_covers():
@@ -85,7 +106,7 @@ def test_shipped_rule_rejects_the_pole_box_and_keeps_the_car():
 
 def test_no_boxes_and_no_points():
     empty = profile_terms(np.zeros((0, 3), np.float32), BOX, SENSOR)
-    assert empty["fill"][0] == 0.0 and empty["depth"][0] == 0.5 and empty["above"][0] == 0.0
+    assert empty["fill"][0] == 0.0 and empty["depth"][0] == DEPTH_PRIOR and empty["above"][0] == 0.0
     none = profile_terms(cast([CAR]), Boxes(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)), SENSOR)
     assert all(len(v) == 0 for v in none.values())
 
