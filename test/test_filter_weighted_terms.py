@@ -86,7 +86,7 @@ def test_zero_weights_skip_their_passes(scan, calls):
 
 def test_shipped_rule_skips_what_it_does_not_weigh(scan):
     config = replace(FilterConfig(), sensor="hdl64")
-    assert set(config.weighted_terms) == {"density", "free_space", "ground_gap", "above", "overlap", "depth", "through"}
+    assert set(config.weighted_terms) == {"density", "free_space", "ground_gap", "above", "overlap", "depth"}
     terms = filter_terms(scan, BOXES, config, weighted_only=True)
     assert not {"fill", "spill", "top", "score", "n_shell"} & set(terms)
     assert set(PROFILE_TERMS) - {"fill", "spill", "top"} <= set(terms)

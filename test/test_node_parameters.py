@@ -191,16 +191,17 @@ CASES: dict[str, Case] = {
     "w_mismatch": Case("filter", 3.0, base={"backend": "input"}),
     "reject_threshold": Case("filter", 1e-6, base={"backend": "input"}, check=_all_rejected),
     "sensor": Case("filter", "hdl32", base={"backend": "input"}),
-    # each profile term decides a box here (besides moving every box's log-odds by weight x term):
+    # each profile term decides a box here (besides moving every box's log-odds by weight x term; a
+    # negative weight where the other terms alone would still reject the box):
     # the pole's returns over box c; car a's returns over part of its silhouette, car b's none
     # outside its box; box d mostly on car a's; returns deep in the boxes (not on a face); car a's top
-    "w_above": Case("filter", 0.0, base={"backend": "input"}, pole=True, check=_decides(kept="c")),
+    "w_above": Case("filter", -3.0, base={"backend": "input"}, pole=True, check=_decides(kept="c")),
     "w_fill": Case("filter", 6.0, base={"backend": "input"}, check=_decides(rejected="a")),
     "w_spill": Case("filter", 3.0, base={"backend": "input"}, check=_decides(kept="b")),
-    "w_overlap": Case("filter", 0.0, base={"backend": "input"}, duplicate=True, check=_decides(kept="d")),
+    "w_overlap": Case("filter", -2.0, base={"backend": "input"}, duplicate=True, check=_decides(kept="d")),
     "w_depth": Case("filter", 0.0, base={"backend": "input"}, check=_decides(kept="b")),
     "w_top": Case("filter", 3.0, base={"backend": "input"}, check=_decides(rejected="a")),
-    "w_through": Case("filter", 0.0, base={"backend": "input"}),
+    "w_through": Case("filter", 20.0, base={"backend": "input"}),
     # past max_instances boxes b and c are not completed: their mismatch term reads mismatch_mean
     "mismatch_mean": Case("filter", 1.0, base={"backend": "input", "w_mismatch": 3.0, "max_instances": 1}),
     "filter_backend": Case("filter", "densify", base={"backend": "input", "w_mismatch": 3.0}),
