@@ -77,32 +77,6 @@ def test_floating_box_has_a_ground_gap():
     assert ev.terms["ground_gap"][0] == pytest.approx(2.0, abs=0.1)
 
 
-def test_sunk_box_has_no_ground_gap():
-    """A box whose bottom lies below the local ground: no evidence against it (where no beam
-    reaches the road the lowest returns around a car are kerbs and bodies, above its bottom)."""
-    sunk = Boxes([[16.1, 0.0, GROUND_Z - 0.25]], [[4.2, 1.8, 1.5]], [0.0])
-    ev = evidence(cast([]), sunk)
-    assert ev.ground_z[0] == pytest.approx(GROUND_Z, abs=0.05) and ev.terms["ground_gap"][0] == 0.0
-
-
-def test_through_is_the_share_of_a_cars_returns_that_pass():
-    """``through``: 0 on a car and on a box no ray reaches; on an empty box the rays through
-    its core over what a car would return, whatever the sensor's resolution."""
-    car = evidence(cast([(CAR_LO, CAR_HI)]), BOX)
-    assert car.terms["through"][0] == 0.0
-    wall = ((8.0, -4.0, GROUND_Z), (8.3, 4.0, 3.0))
-    assert evidence(cast([wall]), BOX).terms["through"][0] == 0.0
-    shares = []
-    for name in ("hdl64", "vlp16", "os1_64"):
-        sensor = SENSOR_PRESETS[name]
-        empty = evidence(cast([], sensor), BOX, sensor)
-        expect = empty.n_pass[0] / (empty.expected[0] + 1.0)  # nothing occludes it
-        assert empty.terms["through"][0] == pytest.approx(expect) and empty.n_pass[0] > 0
-        shares.append(empty.terms["through"][0])
-    # the core is 0.8 x 0.8 x 0.4 of the box: about a third of the beams that meet the box
-    assert all(0.15 < v < 0.6 for v in shares), shares
-
-
 def test_expected_returns_follow_the_beam_geometry():
     """Twice the range: about half the rings and half the columns cross the box."""
     near = Boxes([[15.0, 0.0, GROUND_Z + 0.75]], [[4.0, 1.8, 1.5]], [np.pi / 2])  # broadside

@@ -1,5 +1,6 @@
 """The filter's profile terms (pcc_ros.pipeline.evidence_profile) on ray-cast scenes where each
-term's value is known: a car in its box against a pole, a box shifted off its car, a duplicate."""
+term's value is known: a car in its box against a pole, a box shifted off its car, a duplicate;
+and the ray terms' readings on boxes without evidence (a sunk box, one no ray reaches)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from pcc_ros.pipeline.evidence_profile import (
     covered_share,
     profile_terms,
 )
-from pcc_ros.pipeline.filter import FilterConfig, false_probability, filter_terms
+from pcc_ros.pipeline.filter import SENSOR_PRESETS, FilterConfig, evidence, false_probability, filter_terms
 from pcc_ros.types import Boxes
 
 CAR = (CAR_LO, CAR_HI)
@@ -124,3 +125,32 @@ def test_two_threads_give_the_same_terms():
     for k in one:
         np.testing.assert_array_equal(one[k], two[k])
     assert two["overlap"][1] > 0  # the second box is covered by the better-scored first
+
+
+# ---- the ray terms' evidence-only readings (pcc_ros.pipeline.evidence)
+
+def test_sunk_box_has_no_ground_gap():
+    """A box whose bottom lies below the local ground: no evidence against it (where no beam
+    reaches the road the lowest returns around a car are kerbs and bodies, above its bottom)."""
+    sunk = Boxes([[16.1, 0.0, GROUND_Z - 0.25]], [[4.2, 1.8, 1.5]], [0.0])
+    ev = evidence(cast([]), sunk)
+    assert ev.ground_z[0] == pytest.approx(GROUND_Z, abs=0.05) and ev.terms["ground_gap"][0] == 0.0
+
+
+def test_through_is_the_share_of_a_cars_returns_that_pass():
+    """``through``: 0 on a car and on a box no ray reaches; on an empty box the rays through
+    its core over what a car would return, whatever the sensor's resolution."""
+    car = evidence(cast([CAR]), BOX)
+    assert car.terms["through"][0] == 0.0
+    wall = ((8.0, -4.0, GROUND_Z), (8.3, 4.0, 3.0))
+    assert evidence(cast([wall]), BOX).terms["through"][0] == 0.0
+    shares = []
+    for name in ("hdl64", "vlp16", "os1_64"):
+        sensor = SENSOR_PRESETS[name]
+        empty = evidence(cast([], sensor), BOX, sensor)
+        expect = empty.n_pass[0] / (empty.expected[0] + 1.0)  # nothing occludes it
+        assert empty.terms["through"][0] == pytest.approx(expect) and empty.n_pass[0] > 0
+        shares.append(empty.terms["through"][0])
+    # the core is 0.8 x 0.8 x 0.4 of the box: about a third of the beams that meet the box
+    assert all(0.15 < v < 0.6 for v in shares), shares
+
