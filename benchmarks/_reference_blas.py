@@ -92,3 +92,17 @@ def uncached(module) -> Iterator[None]:
     finally:
         for d, cache in zip(found, saved):
             d._cache = cache
+
+
+@contextlib.contextmanager
+def routed(route) -> Iterator[None]:
+    """The compiled loops' products on ``route`` inside the block (:func:`pcc_ros.models.blas.route`
+    swapped: process-wide, so a benchmark sets it between calls, never while another thread runs)."""
+    from pcc_ros.models import blas
+
+    before = blas.route
+    blas.route = lambda: route
+    try:
+        yield
+    finally:
+        blas.route = before
