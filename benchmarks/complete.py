@@ -22,6 +22,13 @@ is recorded):
    network's largest layer on a chunk (1024 x 128 @ 128 x 256) and at 1024^3, each with a
    fresh and with a reused output, timed in the same rounds with the same threads; the
    ceiling is the fastest of the four.
+2b. The BLAS routes (:mod:`pcc_ros.models.blas`): the one compiled call with its matrix
+   products on the route this machine takes (``fast``: MKL's CBLAS where the ``mkl`` wheel
+   loads), on SciPy's BLAS (``fast_dot``) and on libtorch's ``sgemm_`` bound by symbol name, as
+   the kernels were before the public routes (``fast_libtorch``, ``benchmarks/_reference_blas.py``;
+   left out with the reason where this torch has none), 1 thread, at least 40 interleaved
+   rounds per density, outputs checked equal first; wall time and the thread's CPU time per
+   call, the ratios of the CPU-time medians (:func:`blas_routes` says why).
 3. Batch sizes 1 .. 64 with the fastest thread setting: the batch size that maximises
    instances/s.
 4. Every other registered learned backend (and the ``mirror`` baseline) at that setting, at
@@ -49,7 +56,8 @@ is recorded):
    call inflates the many small operators, so the shares, not the sums, are the figure.
 
 Targets (issue #19): fast >= 2x the original path's instances/s at batch 32, and >= 80 % of
-the matmul ceiling.
+the matmul ceiling; at 1 thread, >= 90 % of the throughput of the kernels before the
+public BLAS routes (section 2b, density 1).
 """
 
 from __future__ import annotations
@@ -217,6 +225,79 @@ def ceiling_rates(calls: dict[str, tuple[Callable[[], object], float]],
     return median, fastest
 
 
+def blas_routes(completer, batch: list, densities: list[int], rounds: int) -> dict[str, Any]:
+    """Section 2b: the one compiled call (the ``compiled`` path) with its products on each BLAS
+    route (:mod:`pcc_ros.models.blas`), 1 thread, ``rounds`` interleaved rounds per decode
+    density: ``fast`` on the route this machine takes, ``fast_dot`` on SciPy's BLAS (where that
+    is not it) and ``fast_libtorch`` on libtorch's ``sgemm_`` as the kernels were bound before the
+    public routes (``benchmarks/_reference_blas.py``; left out, with the reason, where this torch
+    has none). Outputs are checked equal first. Each call's wall time and its thread's CPU time
+    are taken; the ratios (``of_libtorch``, ``dot_of_libtorch``: throughput against the old
+    kernels) are of the CPU-time medians: with one thread the calling thread does all the work
+    (MKL sequential, one OpenBLAS thread, one torch thread), and its CPU time leaves out the
+    time it waited for other processes on a shared machine, which wall time counts unevenly."""
+    import torch
+
+    from benchmarks import _reference_blas as old_blas
+    from pcc_ros.models import blas, kernels
+    from pcc_ros.models.layers import set_decode_density
+
+    torch.set_num_threads(1)
+    fast_route = blas.route()
+    routes: dict[str, Any] = {"fast": fast_route}
+    if not isinstance(fast_route, blas.NumpyDot):
+        routes["fast_dot"] = blas.NumpyDot()
+    left_out = old_blas.available()
+    if left_out is None:
+        routes["fast_libtorch"] = old_blas.LibtorchSgemm()
+    else:
+        print(f"fast_libtorch (the kernels before the public BLAS routes) left out: {left_out}")
+
+    def on(route) -> None:
+        with old_blas.routed(route):
+            completer.complete(batch)
+
+    rows = []
+    for density in densities:
+        set_decode_density(completer.model, density)
+        outs = {}
+        for name, route in routes.items():  # the reference route compiles without entering the kernel cache
+            uncached = old_blas.uncached(kernels) if isinstance(route, old_blas.LibtorchSgemm) else nullcontext()
+            with old_blas.routed(route), uncached:
+                outs[name] = completer.complete(batch)
+        diff = max(float(np.abs(a - b).max()) for out in outs.values() for a, b in zip(out, outs["fast"]))
+        if diff > 1e-4:
+            raise SystemExit(f"decode density {density}: the BLAS routes disagree: max |diff| {diff:.2e} (canonical)")
+        cpu: dict[str, np.ndarray] = {}
+        wall = interleaved({name: lambda r=route: on(r) for name, route in routes.items()}, rounds, cpu_times=cpu)
+        row: dict[str, Any] = {"density": density, "max_abs_diff": diff}
+        for name in routes:
+            on_cpu = summary_ms(cpu[name])
+            row[f"{name}_ms"] = summary_ms(wall[name])["median_ms"]
+            row[f"{name}_cpu_ms"], row[f"{name}_cpu_min_ms"] = on_cpu["median_ms"], on_cpu["min_ms"]
+        dot = "fast_dot" if "fast_dot" in routes else "fast"  # without MKL the fast path is the np.dot route
+        if "fast_libtorch" in routes:
+            row["of_libtorch"] = row["fast_libtorch_cpu_ms"] / row["fast_cpu_ms"]
+            row["dot_of_libtorch"] = row["fast_libtorch_cpu_ms"] / row[f"{dot}_cpu_ms"]
+            row["of_libtorch_wall"] = row["fast_libtorch_ms"] / row["fast_ms"]
+            row["dot_of_libtorch_wall"] = row["fast_libtorch_ms"] / row[f"{dot}_ms"]
+        rows.append(row)
+    set_decode_density(completer.model, 1)
+    print_table(f"the compiled call's products on each BLAS route, 1 thread, batch {len(batch)} (median of {rounds} "
+                "interleaved rounds; ms per batch, wall and the thread's CPU time)", rows)
+    print(f"fast: on {type(fast_route).__name__} (this machine's route, pcc_ros.models.blas); fast_dot: numba's np.dot "
+          "(SciPy's BLAS); fast_libtorch: libtorch's sgemm_, bound by symbol as the kernels were before the public "
+          "BLAS routes (benchmarks/_reference_blas.py); of_libtorch, dot_of_libtorch: throughput against it (CPU-time "
+          "medians; _wall: wall-time medians)")
+    for row in rows:
+        if "of_libtorch" in row:
+            met = "met" if row["of_libtorch"] >= TARGET_OF_LIBTORCH else "NOT met"
+            print(f"decode density {row['density']}: fast at {row['of_libtorch']:.0%} of the old kernels' 1-thread "
+                  f"throughput (wall {row['of_libtorch_wall']:.0%}), SciPy's BLAS at {row['dot_of_libtorch']:.0%} "
+                  f"(target >= {TARGET_OF_LIBTORCH:.0%}: {met}); outputs equal (max |diff| {row['max_abs_diff']:.1e})")
+    return {"route": type(fast_route).__name__, "rounds": rounds, "libtorch_left_out": left_out, "rows": rows}
+
+
 def _load_pointpncnet(checkpoint: Path | None, batch_size: int):
     import torch
 
@@ -266,23 +347,6 @@ def run(args: argparse.Namespace) -> dict:
         with inference_path(completer, "compiled_layers"):  # the layers' compiled loops, Python between them
             run_with(setting, completer.complete, batch)
 
-    # the compiled call with its products on the other routes: SciPy's BLAS where the fast path
-    # takes MKL, and the kernels before the public routes (libtorch's sgemm_), where this torch has it
-    from benchmarks import _reference_blas as old_blas
-    from pcc_ros.models import blas, kernels
-
-    fast_route = blas.route()
-    other_routes = {} if isinstance(fast_route, blas.NumpyDot) else {"fast_dot": blas.NumpyDot()}
-    no_libtorch = old_blas.available()
-    if no_libtorch is None:
-        other_routes["fast_libtorch"] = old_blas.LibtorchSgemm()
-    else:
-        print(f"fast_libtorch (the kernels before the public BLAS routes) left out: {no_libtorch}")
-
-    def on_route(name: str, setting: tuple[int, int], batch: list) -> None:
-        with old_blas.routed(other_routes[name]):
-            run_with(setting, completer.complete, batch)
-
     settings = parse_threads(args.threads)
     densities = [int(d) for d in args.densities.split(",") if d.strip()]
     rows, per_setting, counts = [], {}, {}
@@ -302,16 +366,11 @@ def run(args: argparse.Namespace) -> dict:
             executed = sum(2 * m * k * n for m, k, n in recorded_matmuls(lambda: completer.complete(batch32)))
         with inference_path(completer, "compiled_layers"):
             layers_out = completer.complete(batch32)
-        route_outs = []
-        for route in other_routes.values():  # the reference route compiles without entering the kernel cache
-            uncached = old_blas.uncached(kernels) if isinstance(route, old_blas.LibtorchSgemm) else nullcontext()
-            with old_blas.routed(route), uncached:
-                route_outs.append(completer.complete(batch32))
-        max_diff = max(max_diff, *(float(np.abs(a - b).max()) for out in (ops_out, layers_out, *route_outs)
+        max_diff = max(max_diff, *(float(np.abs(a - b).max()) for out in (ops_out, layers_out)
                                    for a, b in zip(out, ref_out)))
         if max_diff > 1e-4:
-            raise SystemExit(f"decode density {density}: the fast path's operator, layer-by-layer or other-BLAS runs "
-                             f"disagree with the original path: max |diff| {max_diff:.2e} (canonical)")
+            raise SystemExit(f"decode density {density}: the fast path's operator or layer-by-layer runs disagree "
+                             f"with the original path: max |diff| {max_diff:.2e} (canonical)")
         executed /= len(batch32)
         counts[density] = {"nominal_flops_per_instance": nominal, "executed_flops_per_instance": executed,
                            "output_points": int(completer.num_output_points), "output_max_abs_diff": max_diff}
@@ -321,7 +380,6 @@ def run(args: argparse.Namespace) -> dict:
                 "fast": lambda s=setting: run_with(s, completer.complete, batch32),
                 "fast_ops": lambda s=setting: operators(s, batch32),
                 "fast_layers": lambda s=setting: layer_by_layer(s, batch32),
-                **{name: lambda s=setting, name=name: on_route(name, s, batch32) for name in other_routes},
             }
             ceiling_set = ceiling_calls(setting)  # fresh output and a reused one: the faster counts
             alts.update({name: call for name, (call, _) in ceiling_set.items()})
@@ -330,9 +388,6 @@ def run(args: argparse.Namespace) -> dict:
             ceiling = max(mm_rates.values())
             orig, fast, ops = summary_ms(times["original"]), summary_ms(times["fast"]), summary_ms(times["fast_ops"])
             layered = summary_ms(times["fast_layers"])
-            routes = {name: summary_ms(times[name]) for name in other_routes}
-            dot = routes.get("fast_dot", fast)  # without MKL the fast path is the np.dot route
-            old = routes.get("fast_libtorch")
             fast_gflops = executed * len(batch32) / (fast["median_ms"] / 1e3) / 1e9
             # least-disturbed rounds: the fastest network call against the fastest ceiling call
             # (on a shared machine the median absorbs other jobs' load unevenly: a ceiling call is
@@ -351,15 +406,10 @@ def run(args: argparse.Namespace) -> dict:
                 "mm_gflop_s": ceiling,
                 "of_ceiling": fast_gflops / ceiling,
                 "of_ceiling_min": best_of_ceiling,
-                "fast_dot_ms": dot["median_ms"],
-                "fast_libtorch_ms": old["median_ms"] if old else None,
-                # throughput against the kernels before the public BLAS routes (medians)
-                "of_libtorch": old["median_ms"] / fast["median_ms"] if old else None,
-                "dot_of_libtorch": old["median_ms"] / dot["median_ms"] if old else None,
             }
             rows.append(row)
             per_setting[f"d{density}/{row['threads']}"] = {"original": orig, "fast": fast, "fast_ops": ops,
-                                                          "fast_layers": layered, **routes,
+                                                          "fast_layers": layered,
                                                           "matmul_gflop_s": mm_rates,
                                                           "matmul_gflop_s_min_time": mm_best, **row}
     set_decode_density(completer.model, 1)
@@ -370,18 +420,15 @@ def run(args: argparse.Namespace) -> dict:
         f"(median of {args.repeat} interleaved rounds; ms per batch; GFLOP/s of the FLOPs the fast path executes)",
         rows,
         ["density", "points", "threads", "original_ms", "fast_ops_ms", "fast_layers_ms", "fast_ms", "fast_min_ms",
-         "fast_max_ms", "fast_dot_ms", "fast_libtorch_ms", "of_libtorch", "dot_of_libtorch", "original_inst_s",
-         "fast_inst_s", "speedup", "gflop_s", "mm_gflop_s", "of_ceiling", "of_ceiling_min"],
+         "fast_max_ms", "original_inst_s", "fast_inst_s", "speedup", "gflop_s", "mm_gflop_s", "of_ceiling",
+         "of_ceiling_min"],
     )
     print("fast_ops: the fast path as torch operators (inference_path operators): the same steps as the compiled "
           "CPU loops; fast_layers: the loops, the layers called one by one from Python (inference_path "
           "compiled_layers; not in PointPnCNet's single compiled call); of_ceiling: medians; of_ceiling_min: the "
           "fastest round of the "
           "network against the fastest of the ceiling's matrix products")
-    print(f"fast: the products on {type(fast_route).__name__} (pcc_ros.models.blas); fast_dot: on numba's np.dot "
-          "(SciPy's BLAS); fast_libtorch: on libtorch's sgemm_, bound by symbol as the kernels were before the public "
-          "BLAS routes (benchmarks/_reference_blas.py); of_libtorch, dot_of_libtorch: throughput of fast, fast_dot "
-          "against it")
+    routes = blas_routes(completer, batch32, densities, max(40, 3 * args.repeat))
     for density, c in counts.items():
         print(f"decode density {density} ({c['output_points']} points): {c['executed_flops_per_instance'] / 1e6:.1f} "
               f"MFLOP per instance executed by the fast path (its matrix products), "
@@ -473,15 +520,11 @@ def run(args: argparse.Namespace) -> dict:
     }
     met = bool(at1["speedup"] >= TARGET_SPEEDUP and at1["of_ceiling"] >= TARGET_CEILING)
     results["targets"] = {"speedup_b32_min": TARGET_SPEEDUP, "of_ceiling_min": TARGET_CEILING, "met": met}
-    results.update({"blas_route": type(fast_route).__name__, "of_libtorch_kernels": at1["of_libtorch"],
-                    "dot_of_libtorch_kernels": at1["dot_of_libtorch"], "libtorch_kernels_left_out": no_libtorch})
-    if at1["of_libtorch"] is not None:
+    results["blas_routes"] = routes
+    one = next((r for r in routes["rows"] if r["density"] == 1), {})
+    if one.get("of_libtorch") is not None:
         results["targets"].update({"of_libtorch_kernels_min": TARGET_OF_LIBTORCH,
-                                   "of_libtorch_kernels_met": bool(at1["of_libtorch"] >= TARGET_OF_LIBTORCH)})
-        print(f"threads {at1['threads']}: fast ({type(fast_route).__name__}) at {at1['of_libtorch']:.0%} of the "
-              f"throughput of the kernels before the public BLAS routes (libtorch's sgemm_), np.dot route at "
-              f"{at1['dot_of_libtorch']:.0%} (target >= {TARGET_OF_LIBTORCH:.0%}: "
-              f"{'met' if at1['of_libtorch'] >= TARGET_OF_LIBTORCH else 'NOT met'})")
+                                   "of_libtorch_kernels_met": bool(one["of_libtorch"] >= TARGET_OF_LIBTORCH)})
     print(f"\n{executed / 1e6:.1f} MFLOP per instance executed ({flops / 1e6:.1f} nominal); outputs equal "
           f"(max |diff| {max_diff:.1e}).")
     print(f"threads {at1['threads']}: {at1['speedup']:.2f}x the original path at batch 32, "
