@@ -6,7 +6,8 @@ BLAS, both through public interfaces, chosen by what the machine has.
   llvmlite and called from the compiled code as an external function, on MKL's sequential
   threading layer (one thread per calling thread: the completer's ``workers`` give the
   parallelism) and its 32-bit-integer interface, both set through MKL's documented
-  ``MKL_Set_Threading_Layer`` / ``MKL_Set_Interface_Layer``.
+  ``MKL_Set_Threading_Layer`` / ``MKL_Set_Interface_Layer`` (settings of that library in the
+  process: another user of the same ``libmkl_rt`` there runs sequential too).
 * :class:`NumpyDot`: ``np.dot`` inside the compiled code, which numba hands to SciPy's BLAS
   (``scipy.linalg.cython_blas``; OpenBLAS in the pip wheels), wherever SciPy runs.
 
@@ -19,7 +20,8 @@ both give the same values within float rounding (``test/test_blas.py``).
 
 A route is a value the kernels take as an argument: its type selects the product at compile
 time (:func:`gemm`), so each route's kernels are compiled and cached apart, and a process without
-MKL never loads code that calls it.
+MKL never loads code that calls it. Routes are empty tuples, all equal to each other: tell them
+apart by type.
 """
 
 from __future__ import annotations
