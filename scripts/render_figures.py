@@ -187,7 +187,8 @@ def _row_complete(d: dict[str, Any]) -> list[str]:
     routes = d.get("blas_routes") or {}
     at1 = next((r for r in routes.get("rows", []) if r["density"] == 1 and "of_libtorch" in r), None)
     if at1:  # the products' route against the kernels' old libtorch binding
-        figure += (f"; products on {routes['route']}: {at1['of_libtorch']:.0%} of the 1-thread throughput of the "
+        route = {"Cblas": "MKL's CBLAS", "NumpyDot": "SciPy's BLAS"}.get(routes["route"], routes["route"])
+        figure += (f"; products on {route}: {at1['of_libtorch']:.0%} of the 1-thread throughput of the "
                    f"kernels bound to libtorch's `sgemm_` (SciPy's BLAS: {at1['dot_of_libtorch']:.0%}; CPU-time "
                    f"medians of {routes['rounds']} interleaved rounds)")
     if "trapcc" in others:
