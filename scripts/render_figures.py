@@ -351,6 +351,89 @@ def render_bench_filter(d: dict[str, Any]) -> list[str]:
     return table(header, rows)
 
 
+# ---- docs/filter.md: the detection filter across sensors and detectors
+
+FILTER_SENSORS = ("hdl64", "vlp16", "vlp32c", "os1_64")
+
+
+def pct(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.1f} %"
+
+
+def render_filter_synth(results: dict[str, dict[str, Any]]) -> list[str]:
+    """Per false-positive kind and held-out simulated sensor: removed at the configured threshold
+    (the filter and points-in-box at their best threshold for <= 2 % lost), and the true cars lost."""
+    kinds = {s: results[f"filter-synth-{s}"]["per_kind"] for s in FILTER_SENSORS}
+
+    def cell(k: dict[str, Any], kind: str) -> str:
+        n = k["configured"]["per_group_count"].get(kind)
+        if not n:
+            return "none"
+        best, pib = (k["methods"][m]["per_group_removed"][kind] for m in ("filter", "points-in-box"))
+        return f"{pct(k['configured']['per_group_removed'][kind])} ({pct(best)} / {pct(pib)}) of {n}"
+
+    rows = [[kind, *(cell(kinds[s], kind) for s in FILTER_SENSORS)] for kind in ("confusion", "ghost", "far",
+                                                                               "misplaced")]
+    rows.append(["all false", *(f"{pct(k['configured']['false_removed'])} "
+                                f"({pct(k['methods']['filter']['false_removed_at_0.02_lost'])} / "
+                                f"{pct(k['methods']['points-in-box']['false_removed_at_0.02_lost'])})"
+                                for k in kinds.values())])
+    rows.append(["**true cars lost** (by kind label)", *(f"**{k['configured']['true_lost_count']} / {k['true']}** "
+                                                          f"({pct(k['configured']['true_lost'])})"
+                                                          for k in kinds.values())])
+    return table(["kind: configured (filter at the budget / points-in-box)", *FILTER_SENSORS], rows)
+
+
+def render_filter_nuscenes(d: dict[str, Any]) -> list[str]:
+    """The nuScenes check per group: removed at the configured threshold, and by the filter and by
+    points-in-box at their best threshold for <= 2 % of the cars lost; then the headline figures."""
+    conf, methods = d["configured"], d["methods"]
+    rows = [[g, conf["per_group_count"][g], pct(conf["per_group_removed"][g]),
+             pct(methods["filter"]["per_group_removed"][g]), pct(methods["points-in-box"]["per_group_removed"][g])]
+            for g in sorted(conf["per_group_count"])]
+    cars = "; ".join(f"car with {c['returns']} returns at {c['range_m']} m: p_false {c['p_false']:.3f}, {c['status']}"
+                     for c in d["well_seen_cars"])
+    return [*table(["false group", "boxes", "configured", "filter, best for <= 2 % lost", "points-in-box, same"],
+                   rows), "",
+            f"Non-vehicle boxes removed at the configured threshold: **{pct(conf['non_vehicle_removed'])}** "
+            f"({pct(conf.get('non_vehicle_removed_without_overlap'))} without the `overlap` term); free ground "
+            f"{pct(conf['free_ground_removed'])}; cars lost {conf['true_lost_count']} / {d['true']}; {cars}."]
+
+
+def render_filter_calibration(results: dict[str, dict[str, Any]]) -> list[str]:
+    """``pcc calibrate-filter --sim-sensors``: weights, leave-one-sensor-out and leave-one-sequence-out
+    figures at each fold's own threshold, the ablation; beside it the same fit offered the shape term."""
+    d, shape = results["filter-calibration"], results["filter-calibration-shape"]
+
+    def weights(r: dict[str, Any]) -> str:
+        return ", ".join(f"{t} {w:+.2f}" for t, w in r["weights"].items() if w) + f"; bias {r['bias']:+.2f}, " \
+            f"threshold {r['threshold']:.3f}"
+
+    def folds(r: dict[str, Any]) -> str:
+        return "; ".join(f"{s}: {pct(f['false_removed'])} removed at {pct(f['true_lost'])} lost, confusions "
+                         f"{pct(f['per_kind'].get('confusion', {}).get('removed'))}"
+                         for s, f in r["cv_by_sensor"]["folds"].items())
+
+    def kinds(r: dict[str, Any]) -> str:
+        p = r["cv_by_sequence"]["pooled"]
+        return ", ".join(f"{k} {pct(v['removed'])}" for k, v in p["per_kind"].items()) + \
+            f" ({pct(p['true_lost'])} true lost; AUC {p['auc_false_above_true']:.3f})"
+
+    m = shape["mismatch"]
+    rows = [["weights", weights(d), weights(shape)],
+            ["held-out sensor (fold threshold)", folds(d), folds(shape)],
+            ["held-out sequences, per kind", kinds(d), kinds(shape)],
+            ["held-out real KITTI frames", pct(d["cv_real_frames"]["false_removed"]) + " removed, "
+             + pct(d["cv_real_frames"]["true_lost"]) + " lost", pct(shape["cv_real_frames"]["false_removed"])
+             + " removed, " + pct(shape["cv_real_frames"]["true_lost"]) + " lost"],
+            ["ablation: held-out AUC the term brings", ", ".join(f"{t} {a['auc_change']:+.3f}"
+                                                                 for t, a in d["ablation"].items()),
+             f"mismatch {m['confusion_auc_contribution']:+.3f} on confusions ({m['confusion_auc_held_out_without']:.3f}"
+             f" -> {m['confusion_auc_held_out_with']:.3f}); alone {m['auc_alone_confusion_vs_true']:.3f}"]]
+    return table(["", "shipped rule (`--terms " + ",".join(d["terms"]) + "`)", "offered the shape (`+mismatch`)"],
+                 rows)
+
+
 #: Every figure block of the README and docs: marker id -> its result file and renderer.
 FIGURES: dict[str, Figure] = {
     "bench-table": Figure(tuple(f"bench-{name}" for name in BENCH_ROWS), render_bench_table),
@@ -360,6 +443,9 @@ FIGURES: dict[str, Figure] = {
     "bench-scale": one("bench-scale", render_bench_scale),
     "bench-filter": one("bench-filter", render_bench_filter),
     "bench-filter-terms": one("bench-filter", render_filter_terms),
+    "filter-synth": Figure(tuple(f"filter-synth-{s}" for s in FILTER_SENSORS), render_filter_synth),
+    "filter-nuscenes": one("filter-nuscenes", render_filter_nuscenes),
+    "filter-calibration": Figure(("filter-calibration", "filter-calibration-shape"), render_filter_calibration),
 }
 #: The benchmarks ``store-bench`` keeps (as ``bench-NAME``): the README table's and those with a figure of their own.
 STORED_BENCHMARKS = {source.removeprefix("bench-") for figure in FIGURES.values() for source in figure.sources
