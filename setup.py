@@ -60,9 +60,9 @@ setup(
     # Runtime libraries. requirements.txt pins the exact versions the tests run against (torch:
     # the CPU wheel 2.13.0); here the range the code supports, so colcon/rosdep installs are not
     # over-constrained. torch: no private symbols or version-specific internals are used (the
-    # compiled CPU loops reach BLAS through numba and SciPy); 2.3 is the first release whose
-    # wheels run with numpy 2 and has every operator the layers call (scatter_reduce amax,
-    # segment_reduce, inference_mode).
+    # compiled CPU loops reach BLAS through numba and SciPy, or MKL's public CBLAS); 2.3 is the
+    # first release whose wheels run with numpy 2 and has every operator the layers call
+    # (scatter_reduce amax, segment_reduce, inference_mode).
     install_requires=[
         "numpy>=1.26,<3",  # apt's Jazzy (Ubuntu 24.04) has numpy 1.26: a ROS workspace keeps it
         "torch>=2.3,<3",
@@ -80,6 +80,9 @@ setup(
         "pyyaml>=6",
         "pyarrow>=14",  # Argoverse 2 feather tables (imported only when one is read)
     ],
+    # MKL (x86-64): the compiled loops' products through its public CBLAS (pcc_ros/models/blas.py),
+    # which they use when it is installed; without it, SciPy's BLAS (0.8x the network's throughput).
+    extras_require={"mkl": ['mkl>=2021; platform_machine == "x86_64"']},
     zip_safe=False,  # weights and configs are found through __file__
     maintainer="pcc_ros maintainers",
     maintainer_email="maintainers@pcc-ros.dev",

@@ -38,22 +38,28 @@ def median_ms(fn: Callable[[], object], repeat: int = 30, warmup: int = 3) -> fl
 
 
 def interleaved(
-    alternatives: dict[str, Callable[[], object]], repeat: int, warmup: int = 2
+    alternatives: dict[str, Callable[[], object]], repeat: int, warmup: int = 2,
+    cpu_times: dict[str, np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
     """Seconds per call of each alternative, timed round-robin (one call of each per round).
 
     Interleaving makes machine load (this is a shared machine) hit every alternative alike,
-    and no alternative runs with caches warmed by a block of its own repeats.
+    and no alternative runs with caches warmed by a block of its own repeats. ``cpu_times``:
+    filled with the calling thread's CPU seconds of each call too (single-threaded work).
     """
     for _ in range(warmup):
         for fn in alternatives.values():
             fn()
     times = {k: np.empty(repeat) for k in alternatives}
+    cpu = {k: np.empty(repeat) for k in alternatives}
     for r in range(repeat):
         for name, fn in alternatives.items():
-            tic = time.perf_counter()
+            tic, cpu_tic = time.perf_counter(), time.thread_time()
             fn()
             times[name][r] = time.perf_counter() - tic
+            cpu[name][r] = time.thread_time() - cpu_tic
+    if cpu_times is not None:
+        cpu_times.update(cpu)
     return times
 
 

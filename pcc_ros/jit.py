@@ -70,11 +70,21 @@ def _candidates() -> list[Path]:
     return folders
 
 
+#: A module's global naming the other source files, relative to its folder, that its kernels
+#: compile code from (numba overloads defined elsewhere): they key its cache folder too, since
+#: numba checks only the kernel's own file.
+CACHE_DEPENDS = "CACHE_DEPENDS"
+
+
 @functools.cache
-def _source_key(py_file: str) -> str:
-    """The cache folder of one version of a module: its name and a hash of its source."""
+def _source_key(py_file: str, depends: tuple[str, ...] = ()) -> str:
+    """The cache folder of one version of a module: its name and a hash of its source and of
+    the ``depends`` files beside it."""
     path = Path(py_file)
-    return f"{path.stem}-{hashlib.sha256(path.read_bytes()).hexdigest()[:16]}"
+    digest = hashlib.sha256(path.read_bytes())
+    for name in depends:
+        digest.update((path.parent / name).read_bytes())
+    return f"{path.stem}-{digest.hexdigest()[:16]}"
 
 
 @functools.cache
@@ -114,7 +124,8 @@ class PackageCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheL
         self._py_file = py_file
         self._lineno = py_func.__code__.co_firstlineno
         path = Path(py_file).resolve()
-        self._cache_path = str(root / path.parent.relative_to(PACKAGE_DIR.parent) / _source_key(str(path)))
+        depends = tuple(py_func.__globals__.get(CACHE_DEPENDS, ()))
+        self._cache_path = str(root / path.parent.relative_to(PACKAGE_DIR.parent) / _source_key(str(path), depends))
 
     def get_cache_path(self) -> str:
         return self._cache_path

@@ -39,3 +39,24 @@ def test_backend_names_strip_check_and_allow_an_empty_none_where_asked():
         backend_names("", "--baselines")
     with pytest.raises(ConfigError, match="unknown completion backend 'nope'"):
         backend_names("input,nope", empty_ok=True)
+
+
+def test_the_benchmarks_libtorch_route_compiles_outside_the_kernel_cache():
+    """A cache index naming the benchmark-only route type could not be read by a node (it cannot
+    import ``benchmarks``): the reference kernels compile with every kernel's disk cache off,
+    and the caches are back after."""
+    from numba.core.caching import NullCache
+    from numba.core.dispatcher import Dispatcher
+
+    from pcc_ros.cli.bench import benchmarks_package
+    from pcc_ros.models import kernels
+
+    benchmarks_package()
+    from benchmarks import _reference_blas
+
+    dispatchers = [d for d in vars(kernels).values() if isinstance(d, Dispatcher)]
+    before = [d._cache for d in dispatchers]
+    assert any(not isinstance(c, NullCache) for c in before)  # the package's kernels cache on disk
+    with _reference_blas.uncached(kernels):
+        assert all(isinstance(d._cache, NullCache) for d in dispatchers)
+    assert [d._cache for d in dispatchers] == before

@@ -15,6 +15,10 @@ The paths (all give the same values within float rounding; ``pcc bench complete`
   intermediates), kept for the speed comparison and the equality tests;
 * ``auto`` (the default): ``compiled`` where it can run (CPU, float32, numba and SciPy's BLAS
   importable: :func:`kernels_available`), else ``operators``.
+
+The compiled loops' matrix products go to MKL's public CBLAS where it loads, else to SciPy's
+BLAS (:mod:`pcc_ros.models.blas`): a capability of the machine, not a setting; both give the
+same values within float rounding.
 """
 
 from __future__ import annotations

@@ -3,9 +3,11 @@
 Why: in eager PyTorch every step of a chunk is an operator call (5-10 us of dispatch) and a
 pass through memory: the max-pooling scatters, the ReLUs, the folding decoder's broadcast adds
 and its 3-wide output layer (a matrix product at a fifth of the matmul rate) took a fifth of
-the network's time (``pcc bench complete``). Here a chunk's matrix products are ``np.dot``
-inside the compiled code, which numba hands to SciPy's BLAS (``scipy.linalg.cython_blas``, a
-supported route on every CPU SciPy ships for), and the work between them is fused loops over
+the network's time (``pcc bench complete``). Here a chunk's matrix products are calls into a
+BLAS from inside the compiled code (:func:`pcc_ros.models.blas.gemm`: MKL's public
+``cblas_sgemm`` where the ``mkl`` wheel is installed, else ``np.dot``, which numba hands to
+SciPy's BLAS; every kernel takes the route as its ``blas`` argument, :func:`pcc_ros.models.blas.route`),
+and the work between them is fused loops over
 the chunk's rows while they are in cache (bias, ReLU, max-pooling, broadcast add, the 3-wide
 output layer with its residual), with no Python between them.
 
@@ -26,8 +28,9 @@ Used on CPU float32 inference by a completer whose inference path allows it
 (:func:`pcc_ros.jit.compiled`; :func:`warm_up` at model load).
 
 BLAS threads: the kernels are called from each worker thread with one BLAS thread each
-(parallelism comes from the completer's ``workers``): ``import pcc_ros`` sets
-``OPENBLAS_NUM_THREADS=1`` unless the user set a count (why: :mod:`pcc_ros`).
+(parallelism comes from the completer's ``workers``): MKL runs on its sequential layer
+(:mod:`pcc_ros.models.blas`), and ``import pcc_ros`` sets ``OPENBLAS_NUM_THREADS=1`` unless the
+user set a count (why: :mod:`pcc_ros`).
 """
 
 from __future__ import annotations
@@ -38,6 +41,11 @@ import numpy as np
 from numba import njit
 
 from pcc_ros.jit import compiled
+from pcc_ros.models import blas as blas_routes
+from pcc_ros.models.blas import gemm
+
+#: Kernels here compile :func:`gemm`'s overloads from this file too (:data:`pcc_ros.jit.CACHE_DEPENDS`).
+CACHE_DEPENDS = ("blas.py",)
 
 
 def _load_blas() -> bool:
@@ -135,7 +143,7 @@ def _carve(work, offset, rows, cols):
 
 
 @compiled()
-def pcn_encode(points, counts, weights, out, layer0, layer1, hidden, last, pooled1, segment_half):
+def pcn_encode(points, counts, weights, out, layer0, layer1, hidden, last, pooled1, segment_half, blas):
     """The PCN encoder's composed inference path (points sorted by segment, ``counts`` per
     segment) on chunks of whole segments of about ``weights.chunk_rows`` rows:
     ``t = relu(p W0^T + b0)``, ``g = max_seg(t W1^T)``, ``h = relu(t Wc + (g Ws + const)[seg])``,
@@ -162,7 +170,7 @@ def pcn_encode(points, counts, weights, out, layer0, layer1, hidden, last, poole
                 row[j] = max(x0 * w.layer0_t[0, j] + x1 * w.layer0_t[1, j] + x2 * w.layer0_t[2, j]
                              + w.layer0_bias[j], np.float32(0.0))
         ff = layer1[:r]
-        np.dot(tt, w.layer1_t, ff)
+        gemm(blas, tt, w.layer1_t, ff)
         gg = pooled1[: shi - slo]
         for s in range(slo, shi):
             acc = gg[s - slo]
@@ -172,9 +180,9 @@ def pcn_encode(points, counts, weights, out, layer0, layer1, hidden, last, poole
                 for j in range(c1):
                     acc[j] = max(acc[j], row[j])
         gpc = segment_half[: shi - slo]
-        np.dot(gg, w.segment_half_t, gpc)
+        gemm(blas, gg, w.segment_half_t, gpc)
         hh = hidden[:r]
-        np.dot(tt, w.point_half_t, hh)
+        gemm(blas, tt, w.point_half_t, hh)
         for s in range(slo, shi):
             seg = gpc[s - slo]
             for j in range(hp):
@@ -184,7 +192,7 @@ def pcn_encode(points, counts, weights, out, layer0, layer1, hidden, last, poole
                 for j in range(hp):
                     row[j] = max(row[j] + seg[j], np.float32(0.0))
         yy = last[:r]
-        np.dot(hh, w.last_t, yy)
+        gemm(blas, hh, w.last_t, yy)
         for s in range(slo, shi):
             acc = out[s]
             if starts[s + 1] == starts[s]:
@@ -201,7 +209,7 @@ def pcn_encode(points, counts, weights, out, layer0, layer1, hidden, last, poole
 
 
 @compiled(fastmath=True)
-def fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, hidden_in, hidden_out):
+def fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, hidden_in, hidden_out, blas):
     """The folding step (one hidden layer): for every code ``s``, coarse point ``k`` and grid
     point ``g``, ``out = (coarse[s, k] + b2) + W2 relu(W1 h + b1)`` with ``h = relu(coarse[s, k]
     Wp^T + code_proj[s] + grid_proj[g])``, into ``out[s // m, (s % m) K G + k G + g]`` (``m``:
@@ -230,7 +238,7 @@ def fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, hidden
                         hr[j] = max(base[j] + gr[j], np.float32(0.0))
                     row += 1
         xs = hidden_out[:r]
-        np.dot(hidden_in[:r], w.hidden_t, xs)
+        gemm(blas, hidden_in[:r], w.hidden_t, xs)
         row = 0
         for s in range(start, stop):
             q, p0 = s // m, (s % m) * k_points * g_points
@@ -254,7 +262,7 @@ def fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, hidden
 
 
 @compiled()
-def dense(x, weights, out, work):
+def dense(x, weights, out, work, blas):
     """``x`` through fully connected layers (:class:`DenseWeights`), ReLU after every layer but
     the last, which writes ``out``. ``work``: at least :func:`_dense_floats` floats (the hidden
     layers' outputs)."""
@@ -267,7 +275,7 @@ def dense(x, weights, out, work):
             dst = out
         else:  # the hidden layers alternate between the two halves of work
             dst, _ = _carve(work, (layer % 2) * (len(work) // 2), rows, n)
-        np.dot(src, weights.weights_t[wo: wo + k * n].reshape((k, n)), dst)
+        gemm(blas, src, weights.weights_t[wo: wo + k * n].reshape((k, n)), dst)
         bias = weights.biases[bo: bo + n]
         relu = layer < layers - 1
         for i in range(rows):
@@ -312,7 +320,7 @@ def _encoder_floats(weights, counts):
 
 
 @njit(inline="always")
-def _encode(weights, points, counts, pooled, work):
+def _encode(weights, points, counts, pooled, work, blas):
     """:func:`pcn_encode` with its work arrays carved from ``work``."""
     w = weights
     most = max(w.chunk_rows, counts.max()) if len(counts) else w.chunk_rows
@@ -322,7 +330,7 @@ def _encode(weights, points, counts, pooled, work):
     last, o = _carve(work, o, most, w.last_t.shape[1])
     pooled1, o = _carve(work, o, len(counts), w.layer1_t.shape[1])
     segment_half, o = _carve(work, o, len(counts), w.point_half_t.shape[1])
-    pcn_encode(points, counts, w, pooled, layer0, layer1, hidden, last, pooled1, segment_half)
+    pcn_encode(points, counts, w, pooled, layer0, layer1, hidden, last, pooled1, segment_half, blas)
 
 
 @compiled()
@@ -332,10 +340,10 @@ def encoder_floats(weights, counts):
 
 
 @compiled()
-def encode(weights, points, counts, pooled, work):
+def encode(weights, points, counts, pooled, work, blas):
     """:func:`pcn_encode` on its own (``PCNEncoder``'s compiled path, its layers called one by
     one), its work arrays carved from ``work`` (:func:`encoder_floats` floats)."""
-    _encode(weights, points, counts, pooled, work)
+    _encode(weights, points, counts, pooled, work, blas)
 
 
 @njit(inline="always")
@@ -347,13 +355,13 @@ def _fold_floats(weights, codes, coarse_points, codes_per_chunk):
 
 
 @njit(inline="always")
-def _fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, work):
+def _fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, work, blas):
     """:func:`fold` with its work arrays carved from ``work``."""
     w = weights
     rows = min(codes_per_chunk, coarse.shape[0]) * coarse.shape[1] * w.grid_proj.shape[0]
     hidden_in, o = _carve(work, 0, rows, w.point_t.shape[1])
     hidden_out, o = _carve(work, o, rows, w.hidden_t.shape[1])
-    fold(coarse, code_proj, w, out, codes_per_row, codes_per_chunk, hidden_in, hidden_out)
+    fold(coarse, code_proj, w, out, codes_per_row, codes_per_chunk, hidden_in, hidden_out, blas)
 
 
 @compiled()
@@ -363,10 +371,10 @@ def fold_floats(weights, codes, coarse_points, codes_per_chunk):
 
 
 @compiled()
-def fold_into(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, work):
+def fold_into(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, work, blas):
     """:func:`fold` on its own (``FoldingDecoder``'s compiled path, the layers called one by one),
     its work arrays carved from ``work`` (:func:`fold_floats` floats)."""
-    _fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, work)
+    _fold(coarse, code_proj, weights, out, codes_per_row, codes_per_chunk, work, blas)
 
 
 @njit(inline="always")
@@ -379,16 +387,16 @@ def _decoder_floats(weights, codes):
 
 
 @njit(inline="always")
-def _decode(weights, code, codes_per_row, out, work):
+def _decode(weights, code, codes_per_row, out, work, blas):
     """A folding decoder from ``code`` into ``out``."""
     w = weights
     s, k = code.shape[0], w.coarse_points
     coarse, o = _carve(work, 0, s, 3 * k)
     code_proj, o = _carve(work, o, s, w.code_proj.widths[-1])
     rest = work[(o + ALIGN - 1) // ALIGN * ALIGN:]
-    dense(code, w.coarse, coarse, rest)
-    dense(code, w.code_proj, code_proj, rest)
-    _fold(coarse.reshape((s, k, 3)), code_proj, w.fold, out, codes_per_row, w.codes_per_chunk, rest)
+    dense(code, w.coarse, coarse, rest, blas)
+    dense(code, w.code_proj, code_proj, rest, blas)
+    _fold(coarse.reshape((s, k, 3)), code_proj, w.fold, out, codes_per_row, w.codes_per_chunk, rest, blas)
 
 
 @compiled()
@@ -406,7 +414,7 @@ def network_floats(weights, counts, local_counts, gathered):
 
 
 @compiled()
-def pointpncnet_infer(points, counts, point_index, local_counts, weights, out, present, work):
+def pointpncnet_infer(points, counts, point_index, local_counts, weights, out, present, work, blas):
     """PointPnCNet's whole inference (``PointPnCNetNet.forward`` on the compiled path) in one
     call, no Python between its steps: the global encoder over ``points`` (``counts`` per
     instance, sorted), the local one over the gathered ``points[point_index]`` (``local_counts``
@@ -426,15 +434,15 @@ def pointpncnet_infer(points, counts, point_index, local_counts, weights, out, p
     local_points, o = _carve(work, o, len(point_index), 3)
     phase = work[(o + ALIGN - 1) // ALIGN * ALIGN:]  # each step's own work memory
 
-    _encode(w.global_encoder, points, counts, e_g, phase)
+    _encode(w.global_encoder, points, counts, e_g, phase, blas)
     for i in range(len(point_index)):
         if not 0 <= point_index[i] < len(points):
             raise IndexError("pointpncnet_infer: a point index out of range")
         local_points[i] = points[point_index[i]]
-    _encode(w.local_encoder, local_points, local_counts, e_l, phase)
+    _encode(w.local_encoder, local_points, local_counts, e_l, phase, blas)
 
     # attention over the present octants (a softmax), its weighted code max-fused with the global one
-    dense(e_l, w.attention, logits, phase)
+    dense(e_l, w.attention, logits, phase, blas)
     fused[:] = e_g
     octant_weights = np.empty(REGIONS, np.float32)
     for s in range(b):
@@ -465,8 +473,8 @@ def pointpncnet_infer(points, counts, point_index, local_counts, weights, out, p
             row[embed:] = 0.0
             row[embed + r] = 1.0
     global_points = w.global_decoder.coarse_points * w.global_decoder.fold.grid_proj.shape[0]
-    _decode(w.global_decoder, fused, 1, out[:, :global_points], phase)
-    _decode(w.local_decoder, code, REGIONS, out[:, global_points:], phase)
+    _decode(w.global_decoder, fused, 1, out[:, :global_points], phase, blas)
+    _decode(w.local_decoder, code, REGIONS, out[:, global_points:], phase, blas)
 
 
 @compiled()
@@ -518,13 +526,15 @@ def octant_pairs(points, lengths, overlap):
     return point_index, local
 
 
-def warm_up() -> None:
+def warm_up(blas=None) -> None:
     """Compile every kernel for the argument types inference passes (numba compiles on first
     call, or loads its disk cache: seconds the first time on a machine, about 0.3 s after), on
     tiny arrays, so a model's first real batch does not pay for it: ``fold_into`` for an output of
-    its own and for a view of a bigger one (PointPnCNet's global points and octants)."""
+    its own and for a view of a bigger one (PointPnCNet's global points and octants), with the
+    products on ``blas``'s route (default: :func:`pcc_ros.models.blas.route`)."""
     if not AVAILABLE:
         return
+    blas = blas_routes.route() if blas is None else blas
     f32 = np.float32
     rng = np.random.default_rng(0)
     points = rng.normal(size=(6, 3)).astype(f32)
@@ -535,7 +545,7 @@ def warm_up() -> None:
         return rng.normal(size=shape).astype(f32)
 
     encoder = EncoderWeights(w(3, 2), w(2), w(2, 3), w(2, 3), w(3, 3), w(3), w(3, 4), w(4), 4)
-    encode(encoder, points, counts, np.empty((2, 4), f32), np.empty(encoder_floats(encoder, counts), f32))
+    encode(encoder, points, counts, np.empty((2, 4), f32), np.empty(encoder_floats(encoder, counts), f32), blas)
     folding = FoldWeights(w(2, 5), w(3, 5), w(5, 4), w(4), w(3, 4), w(3))
     for out in (np.empty((2, 4, 3), f32), np.empty((2, 9, 3), f32)[:, 5:]):
-        fold_into(w(2, 2, 3), w(2, 5), folding, out, 1, 1, np.empty(fold_floats(folding, 2, 2, 1), f32))
+        fold_into(w(2, 2, 3), w(2, 5), folding, out, 1, 1, np.empty(fold_floats(folding, 2, 2, 1), f32), blas)

@@ -308,7 +308,7 @@ class PCNEncoder(nn.Module):
             return None
         pool = np.empty((num_segments, self.out_dim), np.float32)
         work = kernels.work_memory(_SCRATCH, "encoder", kernels.encoder_floats(weights, counts))
-        kernels.encode(weights, as_numpy(points), counts, pool, work)
+        kernels.encode(weights, as_numpy(points), counts, pool, work, kernels.blas_routes.route())
         return torch.from_numpy(pool)
 
     def kernel_weights(self):
@@ -552,7 +552,8 @@ class FoldingDecoder(nn.Module):
         weights = self._fold_weights()
         need = kernels.fold_floats(weights, coarse.shape[0], coarse.shape[1], step)
         work = kernels.work_memory(_SCRATCH, "fold", need)
-        kernels.fold_into(as_numpy(coarse), as_numpy(self.fold_code(code)), weights, out.numpy(), m, step, work)
+        kernels.fold_into(as_numpy(coarse), as_numpy(self.fold_code(code)), weights, out.numpy(), m, step, work,
+                          kernels.blas_routes.route())
         return out
 
 

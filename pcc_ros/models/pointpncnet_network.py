@@ -210,7 +210,7 @@ class PointPnCNetNet(nn.Module):
         work = kernels.work_memory(SCRATCH, "network",
                                    kernels.network_floats(weights, counts, local_counts, len(point_index)))
         kernels.pointpncnet_infer(as_numpy(points), counts, point_index.numpy(), local_counts, weights, out.numpy(),
-                                  present, work)
+                                  present, work, kernels.blas_routes.route())
         return torch.from_numpy(present)
 
 
