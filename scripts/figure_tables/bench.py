@@ -241,6 +241,71 @@ def render_bench_filter(d: dict[str, Any]) -> list[str]:
 
 
 
+# ---- docs/nodes.md's `pcc bench pipeline` and docs/filter.md's cost sentences
+
+_THREADS = {"1": "1", "2": "2 (intra-op)", "2x1": "2x1 (`workers` 2)"}
+
+
+def render_pipeline_threads(d: dict[str, Any]) -> list[str]:
+    """Each thread setting: the three alternatives' p50 / p95, interleaved frame by frame; then the
+    headline, best against best."""
+    rows = []
+    for name, t in d["threads"].items():
+        fast = t["fast"]
+        best = "**" if name == d["best_threads"] else ""
+        rows.append([_THREADS.get(name, name), f"{t['original_p50']:.1f} / {t['original_p95']:.1f} ms",
+                     f"{t['orig_net_p50']:.1f} ms",
+                     f"{fast['min_ms']:.1f} / {best}{fast['median_ms']:.1f}{best} / {fast['p95_ms']:.1f} / "
+                     f"{fast['max_ms']:.1f} ms", ratio(t["speedup_p50"]), ratio(t["speedup_vs_orig_net"])])
+    header = ["threads", "original p50 / p95 (lower is better)", "orig_net p50", "fast min / p50 / p95 / max",
+              "fast vs original (higher is better)", "fast vs orig_net"]
+    headline = (f"Headline (each alternative at its own best setting; fast at `{d['best_threads']}`, the original "
+                f"at `{d['original_threads']}`): **{ratio(d['speedup_p50'])}** today's pipeline "
+                f"({d['original_p50_ms']:.1f} -> {d['p50_ms']:.1f} ms), **{ratio(d['speedup_vs_orig_net_p50'])}** "
+                f"the network-only reference ({d['orig_net_p50_ms']:.1f} ms); completed clouds equal within "
+                f"{d['output_max_abs_diff_m']:.1e} m; {d['cars']} cars, {d['points']:,} points, {d['backend']}.")
+    return [*table(header, rows), "", headline]
+
+
+def render_pipeline_stages(d: dict[str, Any]) -> list[str]:
+    """The stages' medians of the three alternatives at their best settings."""
+    stages = [r["stage"].removesuffix("_ms") for r in d["stages_ms"]]
+    cells = [" / ".join(f"{r[k]:.1f}" for k in ("original_p50", "orig_net_p50", "fast_p50")) for r in d["stages_ms"]]
+    return table([f"{s} (ms: original / orig_net / fast)" if i == 0 else s for i, s in enumerate(stages)], [cells])
+
+
+def render_pipeline_scaling(d: dict[str, Any]) -> list[str]:
+    """The fast path over cars and points (medians, ms)."""
+    stages = ("decode", "crop", "complete", "filter", "uncanonical", "encode")
+    rows = [[r["cars"], f"{r['points'] // 1000}k", f"{r['p50_ms']:.1f}", f"{r['p95_ms']:.1f}",
+             *(f"{r[s]:.1f}" for s in stages)] for r in d["scaling"]]
+    return table(["cars", "points", "p50 ms (lower is better)", "p95", *stages], rows)
+
+
+def render_pipeline_share(d: dict[str, Any]) -> list[str]:
+    """docs/filter.md: the filter stage's share of the completion stage, the target and the verdict."""
+    stages = {r["stage"]: r["fast_p50"] for r in d["stages_ms"]}
+    t = d["targets"]
+    verdict = "met" if t["filter_share_met"] else "not met"
+    return [f"The filter stage takes {stages['filter_ms']:.1f} ms against the completion's "
+            f"{stages['complete_ms']:.1f} ms at the best setting of the run (`{d['best_threads']}`; {d['cars']} cars, "
+            f"{d['points']:,} points, shipped {d['backend']}): **{d['filter_share_of_complete']:.0%} of the "
+            f"completion; the target of at most {t['filter_share_max']:.0%} is {verdict}**."]
+
+
+def render_filter_profile_gain(d: dict[str, Any]) -> list[str]:
+    """docs/filter.md: the profile pass and the rule's whole measurement against 24858c5, interleaved."""
+    rows = {(r["scan"], r["boxes"]): r for r in d["rows"]}
+    r20 = rows[("synthcars", 20)]
+    others = [r["profile_24858c5_ms"] / r["profile_rule_ms"] for key, r in rows.items() if key != ("synthcars", 20)]
+    return [f"The profile pass the shipped rule needs, against the same work as 24858c5 did it: 20 cars "
+            f"{r20['profile_rule_ms']:.1f} against {r20['profile_24858c5_ms']:.1f} ms "
+            f"({ratio(r20['profile_24858c5_ms'] / r20['profile_rule_ms'])}; {ratio(min(others))}-"
+            f"{ratio(max(others))} on the other frames), with the same values bit for bit; the shipped rule's "
+            f"whole measurement on two threads {r20['rule_terms_2_ms']:.1f} against "
+            f"{r20['rule_terms_24858c5_2_ms']:.1f} ms."]
+
+
 FIGURES: dict[str, Figure] = {
     "bench-table": Figure(tuple(f"bench-{name}" for name in BENCH_ROWS), render_bench_table),
     "bench-messages": one("bench-messages", render_bench_messages),
@@ -249,4 +314,9 @@ FIGURES: dict[str, Figure] = {
     "bench-scale": one("bench-scale", render_bench_scale),
     "bench-filter": one("bench-filter", render_bench_filter),
     "bench-filter-terms": one("bench-filter", render_filter_terms),
+    "bench-filter-profile-gain": one("bench-filter", render_filter_profile_gain),
+    "bench-pipeline-share": one("bench-pipeline", render_pipeline_share),
+    "bench-pipeline-threads": one("bench-pipeline", render_pipeline_threads),
+    "bench-pipeline-stages": one("bench-pipeline", render_pipeline_stages),
+    "bench-pipeline-scaling": one("bench-pipeline", render_pipeline_scaling),
 }
