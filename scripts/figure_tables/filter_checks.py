@@ -257,6 +257,36 @@ def render_term_auc(results: dict[str, dict[str, Any]]) -> list[str]:
     return table(header, [row(term) for term in AUC_TERMS])
 
 
+def render_spill_fill(results: dict[str, dict[str, Any]]) -> list[str]:
+    """The shipped rule refitted with ``spill`` and ``fill`` against the rule itself, held out by sequence."""
+    d, shipped = results["calibrate-default-spill-fill"], results["calibrate-default"]
+    new, old = d["cv_by_sequence"]["pooled"], shipped["cv_by_sequence"]["pooled"]
+    return [f"Refitted with them (`--terms {','.join(d['terms'])}`), their weights come out "
+            f"{d['weights']['spill']:+.3f} (`spill`) and {d['weights']['fill']:+.3f} (`fill`); held out by sequence, "
+            f"confusions removed {pct(new['per_kind']['confusion']['removed'])} against "
+            f"{pct(old['per_kind']['confusion']['removed'])} without them "
+            f"(of {old['per_kind']['confusion']['count']}), "
+            f"AUC {new['auc_false_above_true']:.3f} against {old['auc_false_above_true']:.3f}."]
+
+
+def render_shape_term(results: dict[str, dict[str, Any]]) -> list[str]:
+    """The rule fitted with the shape mismatch (TraPCC's car-constrained completion) against the same
+    terms without it."""
+    d = results["calibrate-shape"]
+    m, ablation = d["mismatch"], d["ablation"]["mismatch"]
+    removed_with = d["cv_by_sequence"]["pooled"][BUDGET + "_best"]
+    folds = d["cv_by_sensor"]["folds"]
+    per_sensor = " / ".join(pct(f["per_kind"].get("confusion", {}).get("removed", 0), 0) for f in folds.values())
+    return [f"`w_mismatch` **{m['weight']:+.3f}** ({_weights(d)}; threshold {d['threshold']:.3f}, `mismatch_mean` "
+            f"{d['mismatch_mean']:.3f}, the training mean); alone the mismatch ranks confusions above true cars at "
+            f"AUC {m['auc_alone_confusion_vs_true']:.3f}; held out, the rule's AUC on confusions is "
+            f"{m['confusion_auc_held_out_with']:.3f} with it and {m['confusion_auc_held_out_without']:.3f} without "
+            f"(**{m['confusion_auc_contribution']:+.3f}**), over all false boxes {ablation['auc_change']:+.3f}; its "
+            f"removal at <= 2 % lost {100 * ablation['removed_at_0.02_change']:+.1f} points ({pct(removed_with)} "
+            f"with it, {pct(ablation['removed_at_0.02_without'])} without); per held-out sensor confusions removed "
+            f"{per_sensor} ({' / '.join(folds)})."]
+
+
 # --------------------------------------------------------------------------- pcc eval detections on KITTI and SynthCars
 
 
@@ -333,6 +363,8 @@ FIGURES: dict[str, Figure] = {
     "filter-calibration-default": Figure(("calibrate-default", "calibrate-default-ray-terms"),
                                          render_calibration_default),
     "filter-term-auc": Figure(("calibrate-default", "calibrate-s99"), render_term_auc),
+    "filter-spill-fill": Figure(("calibrate-default-spill-fill", "calibrate-default"), render_spill_fill),
+    "filter-shape-term": Figure(("calibrate-shape",), render_shape_term),
     "filter-eval-kitti": Figure(("filter-kitti", *(f"filter-kitti-trapcc-{b}" for b in TRAPCC_BACKENDS)),
                                 render_eval_kitti),
     "filter-eval-synthcars": Figure(("filter-synthcars-kitti-preset", "filter-synthcars-calibrated"),
