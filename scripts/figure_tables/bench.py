@@ -306,6 +306,39 @@ def render_filter_profile_gain(d: dict[str, Any]) -> list[str]:
             f"{r20['rule_terms_24858c5_2_ms']:.1f} ms."]
 
 
+# ---- docs/datasets.md's and docs/reliability.md's benchmark tables
+
+
+def render_bench_convert(d: dict[str, Any]) -> list[str]:
+    """Bag write / read throughput and size per storage and compression."""
+    raw = d["configs"]["mcap none"]["mb_per_frame"]
+    rows = [[f"**{name}**" if "default" in name else name, f"{c['write_frames_per_s']:.0f}",
+             f"{c['read_frames_per_s']:.0f}", f"{c['mb_per_frame']:.2f}", f"{c['mb_per_frame'] / raw:.2f}"]
+            for name, c in d["configs"].items()]
+    t = d["targets"]
+    header = ["config", "write frames/s (higher is better)", "read frames/s (higher is better)",
+              "MB/frame (lower is better)", "size vs. raw MCAP"]
+    verdict = (f"Targets: >= {t['write_frames_per_s']:.0f} frames/s written and >= {t['read_frames_per_s']:.0f} "
+               f"frames/s read with the default: {'met' if d['targets_met'] else '**not met**'} "
+               f"({d['write_frames_per_s']:.0f} / {d['read_frames_per_s']:.0f}); {d['source']}, "
+               f"{d['points_per_frame']:,.0f} points per frame.")
+    return [*table(header, rows), "", verdict]
+
+
+def render_bench_hostile(d: dict[str, Any]) -> list[str]:
+    """The work bound against none: time, memory and what the frame's boxes became."""
+    rows = []
+    for key, label in (("max_crop_work default", "`max_crop_work` default"), ("unbounded", "bound switched off")):
+        r = d[key]
+        skipped = ", ".join(f"{why} {n}" for why, n in r["skipped"].items()) or "-"
+        rows.append([label, f"{r['s_per_frame']:.3f}", f"{r['peak_alloc_mb']:.1f} MB", r["boxes_judged"],
+                     r["boxes_completed"], r["boxes_unjudged"], skipped])
+    header = [f"pipeline ({d['boxes']} boxes of {d['size_m']:.0f} m, {d['points']:,} points)",
+              "s per frame (lower is better)", "peak allocations (lower is better)", "judged", "completed",
+              "unjudged", "skipped (why: count)"]
+    return table(header, rows)
+
+
 FIGURES: dict[str, Figure] = {
     "bench-table": Figure(tuple(f"bench-{name}" for name in BENCH_ROWS), render_bench_table),
     "bench-messages": one("bench-messages", render_bench_messages),
@@ -319,4 +352,6 @@ FIGURES: dict[str, Figure] = {
     "bench-pipeline-threads": one("bench-pipeline", render_pipeline_threads),
     "bench-pipeline-stages": one("bench-pipeline", render_pipeline_stages),
     "bench-pipeline-scaling": one("bench-pipeline", render_pipeline_scaling),
+    "bench-convert": one("bench-convert", render_bench_convert),
+    "bench-hostile": one("bench-hostile", render_bench_hostile),
 }
