@@ -20,6 +20,7 @@ Usage (from the repository root)::
     python scripts/render_figures.py --check        # list the blocks that differ; exit 1 if any
     python scripts/render_figures.py store bench-crop RESULT.json --command "pcc bench crop --repeat 30"
     python scripts/render_figures.py store-bench    # every benchmarks/results/NAME.json as bench-NAME
+    python scripts/render_figures.py rerun 'filter-*'  # rerun the recorded commands, store, render
     make figures                                    # make bench, store-bench, render
 
 Adding a figure: run the command with ``--json``, ``store`` the file under a new name, write a
@@ -30,13 +31,18 @@ two markers where the table goes, and run the script.
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import json
+import os
 import re
+import shlex
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from figure_tables import FIGURES  # the renderers, beside this script
@@ -144,6 +150,9 @@ def check(root: Path = ROOT) -> list[str]:
             continue
         problems += [f"{where}: figure {figure_id!r} differs from its JSON" for figure_id in changed]
     problems += [f"figure {figure_id!r} appears in no document" for figure_id in sorted(set(FIGURES) - used)]
+    sources = {source for figure in FIGURES.values() for source in figure.sources}
+    problems += [f"{RESULTS / path.name} is rendered by no figure" for path in sorted((root / RESULTS).glob("*.json"))
+                 if path.stem not in sources]
     return problems
 
 
@@ -190,6 +199,40 @@ def store(root: Path, name: str, result: Path, command: str | None = None) -> Pa
     return out
 
 
+def json_output(command: str) -> Path | None:
+    """The file the last ``--json FILE`` of a recorded command writes (None: the command names none, as a
+    benchmark's recorded command does)."""
+    words = shlex.split(command.replace("&&", " && "))
+    outs = [words[i + 1] for i, word in enumerate(words[:-1]) if word == "--json"]
+    return Path(outs[-1]) if outs else None
+
+
+def rerun(root: Path, patterns: list[str]) -> list[Path]:
+    """Run again the recorded command of every stored result whose name matches one of ``patterns``
+    (fnmatch; none: every result that is not a benchmark's, which ``make figures`` refreshes) and store
+    what it writes under the same name, with a fresh provenance. The commands run in ``root`` with
+    this interpreter's ``pcc`` first on the PATH and ``root`` first on the PYTHONPATH."""
+    names = sorted(p.stem for p in (root / RESULTS).glob("*.json"))
+    chosen = [n for n in names if any(fnmatch.fnmatch(n, pat) for pat in patterns)] if patterns else [
+        n for n in names if not n.startswith("bench-") and n != "demo"]
+    if not chosen:
+        raise SystemExit(f"no stored result matches {patterns} (stored: {', '.join(names)})")
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    stored = []
+    for name in tqdm(chosen, desc="rerun", unit="result"):
+        command = load_result(root, name)["provenance"]["command"]
+        out = json_output(command)
+        run = command
+        if out is None:  # a benchmark: its recorded command leaves the output out
+            out = Path("out/figures") / f"{name}.json"
+            run = f"{command} --json {shlex.quote(str(out))}"
+        print(f"{name}: {run}", flush=True)
+        subprocess.run(["bash", "-c", f"set -e; {run}"], cwd=root, env=env, check=True)
+        stored.append(store(root, name, root / out, command))
+    return stored
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--check", action="store_true", help="list the blocks that differ from their JSON; exit 1")
@@ -202,7 +245,14 @@ def main(argv: list[str] | None = None) -> int:
     benches = sub.add_parser("store-bench", help="store every benchmark result of a folder as bench-NAME")
     benches.add_argument("folder", type=Path, nargs="?", default=Path("benchmarks/results"),
                          help="where `make bench` wrote them (default benchmarks/results)")
+    again = sub.add_parser("rerun", help="run stored results' recorded commands again and store their output")
+    again.add_argument("patterns", nargs="*", help="result names or fnmatch patterns (default: every result that "
+                       "is not a benchmark's; `make figures` refreshes those)")
     args = parser.parse_args(argv)
+    if args.action == "rerun":
+        rerun(ROOT, args.patterns)
+        print("\n".join(render_all(ROOT)) or "every figure was already up to date")
+        return 0
     if args.action == "store":
         print(store(ROOT, args.name, args.result, args.command))
         return 0
