@@ -7,11 +7,11 @@ Each module exposes ``FIGURES``: marker id -> :class:`base.Figure` (the result f
 
 from __future__ import annotations
 
-from . import bench, evaluation, filter_checks, nodes
+from . import bench, completion, evaluation, filter_checks, nodes
 from .base import Figure
 
 FIGURES: dict[str, Figure] = {}
-for _module in (bench, evaluation, filter_checks, nodes):
+for _module in (bench, completion, evaluation, filter_checks, nodes):
     _clash = FIGURES.keys() & _module.FIGURES.keys()
     if _clash:
         raise ValueError(f"figure ids defined twice: {sorted(_clash)}")

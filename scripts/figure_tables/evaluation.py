@@ -99,7 +99,8 @@ FAMILY_TABLES = (("cd_l1", "CD-L1 by family"), ("lateral_offset", "lateral balan
 
 def render_families(d: dict[str, Any]) -> list[str]:
     """Per vehicle family and backend (metres, lower is better): CD-L1, lateral balance, the unseen half."""
-    by_family = {backend: r["by_family"] for backend, r in d["backends"].items()}
+    names = sorted(d["backends"], key=lambda n: ORDER.index(n) if n in ORDER else len(ORDER))
+    by_family = {backend: d["backends"][backend]["by_family"] for backend in names}
     first = next(iter(by_family.values()))
     families = sorted(first)
     out = [f"{d['instances']} test instances of `{d['data']}`, reference `{d['reference']}`"
@@ -109,7 +110,11 @@ def render_families(d: dict[str, Any]) -> list[str]:
         if key == "cd_l1":
             rows.insert(0, ["instances", *(str(first[f]["count"]) for f in families)])
         out += [*table([f"{title} (m, lower is better)", *families], rows), ""]
-    return out[:-1]
+    overall = {n: d["backends"][n]["overall"] for n in names}
+    out.append("Overall (m): " + "; ".join(
+        f"{n} CD-L1 {_m(o.get('cd_l1'))}, unseen half {_m(o.get('far_coverage'))}, consistency "
+        f"{_m(o.get('consistency'))}" for n, o in overall.items()) + ".")
+    return out
 
 
 FIGURES: dict[str, Figure] = {
