@@ -117,6 +117,25 @@ def render_families(d: dict[str, Any]) -> list[str]:
     return out
 
 
+def render_labels_against_detections(results: dict[str, dict[str, Any]]) -> list[str]:
+    """docs/aml.md: published completeness with the labelled boxes and with the detector's, each against
+    mirror on the same observations."""
+    labels, detections = results["eval-real"], results["eval-real-detections"]
+
+    def cells(d: dict[str, Any], name: str) -> list[str]:
+        row, mirror = d["backends"].get(name), d["backends"]["mirror"]["overall"]["completeness"]
+        if row is None:
+            return ["-", ""]
+        value = row["overall"]["completeness"]
+        return [_m(value), "" if name == "mirror" else f"{100 * (value / mirror - 1):+.0f} %"]
+
+    names = ("mirror", "pointpncnet", "trapcc", "aml", "aml/generated")
+    rows = [[f"{n} (published)" if n in LEARNED else n, *cells(labels, n), *cells(detections, n)] for n in names]
+    header = ["completeness (m, lower is better)", f"labelled boxes ({labels['instances']} obs.)", "vs mirror",
+              f"detector boxes ({detections['instances']} matched obs.)", "vs mirror"]
+    return table(header, rows)
+
+
 FIGURES: dict[str, Figure] = {
     "eval-real": one("eval-real", render_real),
     "eval-real-bands": one("eval-real", render_bands),
@@ -125,4 +144,5 @@ FIGURES: dict[str, Figure] = {
     "eval-real-detections": one("eval-real-detections", render_bands_with_bars),
     "eval-real-matched-labels": one("eval-real-matched-labels", render_bands),
     "eval-families": one("eval-families", render_families),
+    "eval-real-labels-vs-detections": Figure(("eval-real", "eval-real-detections"), render_labels_against_detections),
 }
