@@ -150,6 +150,26 @@ def test_cuda_completions_match_the_cpu(half_precision):
 
 
 @pytest.mark.skipif(not CUDA, reason=NO_CUDA)
+@pytest.mark.parametrize("backend", ["trapcc", "aml"])
+@pytest.mark.parametrize("half_precision", [False, True])
+def test_cuda_completes_the_other_shipped_backends_like_the_cpu(backend, half_precision):
+    """TraPCC and AML (shipped weights) on ``device: cuda``: each completion within a small
+    Chamfer-L1 of the CPU's (order-free: AML samples its decoded surface)."""
+    from pcc_ros.metrics.chamfer import chamfer_batch
+    from pcc_ros.models import load_completer
+
+    clouds = [c for c in _clouds(6) if len(c) >= 9]
+    cpu = load_completer(backend, device="cpu", batch_size=4)
+    gpu = load_completer(backend, device="cuda", batch_size=4, half_precision=half_precision)
+    torch.manual_seed(0)
+    want = cpu.complete(clouds)
+    torch.manual_seed(0)
+    got = gpu.complete(clouds)
+    assert all(g.dtype == np.float32 and len(g) == len(w) for g, w in zip(got, want))
+    assert chamfer_batch(got, want)["cd_l1"].max() < (0.02 if half_precision else 1e-3)
+
+
+@pytest.mark.skipif(not CUDA, reason=NO_CUDA)
 def test_cuda_refuses_the_compiled_path_and_runs_beside_a_cpu_completer():
     with pytest.raises(ConfigError, match="CPU in float32 only"):
         create("pointpncnet", device="cuda", inference_path="compiled")
