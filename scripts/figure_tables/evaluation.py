@@ -136,6 +136,30 @@ def render_labels_against_detections(results: dict[str, dict[str, Any]]) -> list
     return table(header, rows)
 
 
+def render_synthcars_test(d: dict[str, Any]) -> list[str]:
+    """docs/aml.md: the SynthCars test split against the true shapes, the paper's accuracy / completeness."""
+    names = sorted(d["backends"], key=lambda n: ORDER.index(n) if n in ORDER else len(ORDER))
+    rows = []
+    for n in names:
+        r = d["backends"][n]
+        o = r["overall"]
+        rows.append([f"**{n}**" if n == "aml" else n, _m(o["cd_l1"], 4), _m(o["precision"]), _m(o["coverage"]),
+                     _m(o["fscore"]), f"{r['completion_ms_per_instance']:.3g}"])
+    header = ["backend (metres, lower is better; F-score higher)", "CD-L1", "accuracy (`precision`)",
+              "completeness (`coverage`)", "F-score@1 %", "ms per car (this run)"]
+    return [f"{d['instances']} test instances of `{d['data']}`, reference `{d['reference']}`.", "",
+            *table(header, rows)]
+
+
+def render_aml_against_ml(d: dict[str, Any]) -> list[str]:
+    """docs/aml.md: AML against its maximum-likelihood baseline on the same instances, and the speed ratio."""
+    aml, ml = d["backends"]["aml"], d["backends"]["aml_ml"]
+    speed = ml["completion_ms_per_instance"] / aml["completion_ms_per_instance"]
+    return [*render_synthcars_test(d), "",
+            f"AML is {speed:.0f}x faster than the ML baseline here ({aml['completion_ms_per_instance']:.3g} against "
+            f"{ml['completion_ms_per_instance']:.4g} ms per car)."]
+
+
 FIGURES: dict[str, Figure] = {
     "eval-real": one("eval-real", render_real),
     "eval-real-bands": one("eval-real", render_bands),
@@ -144,5 +168,7 @@ FIGURES: dict[str, Figure] = {
     "eval-real-detections": one("eval-real-detections", render_bands_with_bars),
     "eval-real-matched-labels": one("eval-real-matched-labels", render_bands),
     "eval-families": one("eval-families", render_families),
+    "eval-synthcars-test": one("eval-synthcars-test", render_synthcars_test),
+    "eval-aml-vs-ml": one("eval-aml-vs-ml", render_aml_against_ml),
     "eval-real-labels-vs-detections": Figure(("eval-real", "eval-real-detections"), render_labels_against_detections),
 }
