@@ -12,7 +12,9 @@ Its content comes from one JSON result file, ``docs/results/<source>.json`` (the
 command, the commit and the date), turned into markdown by the figure's renderer in
 :data:`FIGURES` (``scripts/figure_tables/``, one module per family of results).
 ``test/test_figures.py`` runs :func:`check`: a table that differs from its JSON, a marker with
-no renderer, an unclosed block or a result file without its provenance fails the test.
+no renderer, an unclosed block, a result file without its provenance or that no figure renders,
+and a table of measured values typed outside a block without saying it is a dated record fail
+the test.
 
 Usage (from the repository root)::
 
@@ -53,6 +55,10 @@ RESULTS = Path("docs/results")
 IDLE_CORES = 0.1
 BEGIN = re.compile(r"^<!-- figure: ([a-z0-9-]+) -->$")
 END = "<!-- /figure -->"
+#: A table cell that is a measured value: a decimal number, maybe bold, maybe with a unit.
+MEASURED = re.compile(r"^\**[-+]?\d+\.\d+\**( ?(ms|s|m|%|MB|x))?\**$")
+#: How a typed table of measured values says it is a dated record (in the lines just before it).
+RECORD = re.compile(r"dated record", re.IGNORECASE)
 
 
 def provenance(data: dict[str, Any], source: str) -> str:
@@ -124,6 +130,28 @@ def blocks(text: str, where: str) -> list[tuple[str, int, int]]:
     return out
 
 
+def typed_tables(text: str, where: str) -> list[str]:
+    """Markdown tables outside figure blocks that hold two or more measured values without saying, in
+    the eight lines before them, that they are a dated record: figures typed by hand."""
+    lines, problems, inside, i = text.split("\n"), [], False, 0
+    while i < len(lines):
+        line = lines[i].strip()
+        inside = bool(BEGIN.match(line)) or (inside and line != END)
+        if not lines[i].startswith("|"):
+            i += 1
+            continue
+        end = i
+        while end < len(lines) and lines[end].startswith("|"):
+            end += 1
+        cells = [c.strip() for row in lines[i + 2:end] for c in row.strip().strip("|").split("|")]
+        if not inside and sum(bool(MEASURED.match(c)) for c in cells) >= 2 \
+                and not RECORD.search("\n".join(lines[max(0, i - 8):i])):
+            problems.append(f"{where}:{i + 1}: a table of measured values typed by hand (render it from its "
+                            "JSON as a figure, or label it a dated record with its commit)")
+        i = end
+    return problems
+
+
 def render_text(root: Path, text: str, where: str) -> tuple[str, list[str]]:
     """``text`` with every figure block rendered afresh, and the ids of the blocks that changed."""
     lines = text.split("\n")
@@ -144,6 +172,7 @@ def check(root: Path = ROOT) -> list[str]:
         try:
             text = path.read_text(encoding="utf-8")
             used.update(figure_id for figure_id, _, _ in blocks(text, where))
+            problems += typed_tables(text, where)
             _, changed = render_text(root, text, where)
         except (OSError, ValueError, KeyError) as exc:
             problems.append(f"{where}: {exc}")

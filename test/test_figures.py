@@ -111,3 +111,14 @@ def test_rerun_runs_the_recorded_command_and_stores_its_output(tmp_path):
     assert stored["rows"] == [1, 2] and stored["provenance"]["command"] == command
     with pytest.raises(SystemExit, match="no stored result matches"):
         figures.rerun(tmp_path, ["nothing-*"])
+
+
+def test_a_typed_table_of_measurements_is_named_unless_a_dated_record(copy):
+    doc = copy / "docs" / "typed.md"
+    typed = "| backend | CD-L1 |\n| --- | --- |\n| a | 0.123 |\n| b | **4.5 ms** |\n"
+    doc.write_text("# x\n\n" + typed)
+    assert any("typed.md:3: a table of measured values typed by hand" in p for p in figures.check(copy))
+    doc.write_text("# x\n\nA dated record of commit abc1234:\n\n" + typed)
+    assert not any("typed.md" in p for p in figures.check(copy))
+    doc.write_text("# x\n\n| setting | default |\n| --- | --- |\n| `workers` | `2` |\n| `rate` | 0.5 |\n")
+    assert not any("typed.md" in p for p in figures.check(copy))  # one number is not a table of figures
