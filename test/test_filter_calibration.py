@@ -16,7 +16,7 @@ from pcc_ros.errors import DataError
 from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.filter import FilterConfig
 from pcc_ros.workflows.detection_eval import build_pipeline, default_config, load_kitti, operating_curve, removed_at
-from pcc_ros.workflows.filter_calibration import calibrate, fit_logistic, predict
+from pcc_ros.workflows.filter_calibration import calibrate, fit_logistic, predict, threshold_each, threshold_for
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +48,21 @@ def test_logistic_regression_recovers_a_known_model():
     bias, w = fit_logistic(x, y, l2=0.0)
     assert bias == pytest.approx(0.5, abs=0.15) and w == pytest.approx([2.0, -1.0], abs=0.2)
     assert predict(bias, w, np.zeros((1, 2)))[0] == pytest.approx(1 / (1 + np.exp(-bias)))
+
+
+def test_threshold_each_is_safe_on_the_worst_group():
+    """Two sensors: "a"'s true rows score low, "b"'s high. A threshold on the pooled rows losing 1 of
+    20 loses 1 of b's 10 (10 %); the per-group one loses at most max_lost of each."""
+    p = np.r_[np.linspace(0.0, 0.3, 10), np.linspace(0.5, 0.9, 10), [0.95, 0.97]]
+    false = np.r_[np.zeros(20, bool), [True, True]]
+    group = np.r_[["a"] * 10, ["b"] * 10, ["a", "b"]]
+    pooled = threshold_for(p, false, 0.05)
+    assert (p[(group == "b") & ~false] > pooled).sum() == 1
+    each = threshold_each(p, false, group, 0.05)
+    assert each == pytest.approx(0.9 + 1e-6) and not (p[~false] > each).any()
+    assert (p[false] > each).all()  # the false rows above every true one still go
+    # a group of false rows only sets nothing
+    assert threshold_each(p, false, np.r_[group[:20], ["c", "c"]], 0.05) == pytest.approx(each)
 
 
 def test_operating_curve_hand_computed():

@@ -1,5 +1,6 @@
 """The filter's profile terms (pcc_ros.pipeline.evidence_profile) on ray-cast scenes where each
-term's value is known: a car in its box against a pole, a box shifted off its car, a duplicate."""
+term's value is known: a car in its box against a pole, a box shifted off its car, a duplicate;
+and the ray terms' readings on boxes without evidence (a sunk box, one no ray reaches)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,14 @@ import numpy as np
 import pytest
 from test_filter_evidence import BOX, CAR_HI, CAR_LO, GROUND_Z, SENSOR, cast
 
-from pcc_ros.pipeline.evidence_profile import covered_share, profile_terms
-from pcc_ros.pipeline.filter import FilterConfig, false_probability, filter_terms
+from pcc_ros.pipeline.evidence_profile import (
+    ABOVE_PRIOR_RETURNS,
+    DEPTH_PRIOR,
+    DEPTH_PRIOR_RETURNS,
+    covered_share,
+    profile_terms,
+)
+from pcc_ros.pipeline.filter import SENSOR_PRESETS, FilterConfig, evidence, false_probability, filter_terms
 from pcc_ros.types import Boxes
 
 CAR = (CAR_LO, CAR_HI)
@@ -22,6 +29,11 @@ def terms(targets, boxes=BOX):
     return profile_terms(cast(targets), boxes, SENSOR)
 
 
+def with_prior(share: float, n_body: float) -> float:
+    """``depth`` of ``n_body`` returns at ``share`` of the box depth, with the term's prior returns."""
+    return (share * n_body + DEPTH_PRIOR * DEPTH_PRIOR_RETURNS) / (n_body + DEPTH_PRIOR_RETURNS)
+
+
 def test_above_is_zero_over_a_car_and_most_returns_over_a_pole():
     car, pole = terms([CAR]), terms([POLE])
     assert car["above"][0] == 0.0 and car["n_body"][0] > 100
@@ -30,7 +42,11 @@ def test_above_is_zero_over_a_car_and_most_returns_over_a_pole():
     z = 16.0 * np.tan(SENSOR.ring_elevations())
     top = GROUND_Z + 1.5
     over, body = ((z > top) & (z <= top + 1.5)).sum(), ((z >= GROUND_Z + 0.3) & (z <= top)).sum()
-    assert over > 3 and pole["above"][0] == pytest.approx(over / (over + body), abs=0.05)
+    assert over > 3 and pole["n_above"][0] / (pole["n_above"][0] + pole["n_body"][0]) == pytest.approx(
+        over / (over + body), abs=0.05)
+    # with the term's prior returns at body height
+    n = pole["n_above"][0] + pole["n_body"][0]
+    assert pole["above"][0] == pytest.approx(pole["n_above"][0] / (n + ABOVE_PRIOR_RETURNS))
 
 
 def test_depth_is_near_the_surface_for_a_car_and_deep_for_a_column():
@@ -38,9 +54,14 @@ def test_depth_is_near_the_surface_for_a_car_and_deep_for_a_column():
     # the car's faces are the box's faces: its returns lie where the rays enter the box
     assert car["depth"][0] < 0.05
     # the column's near face is 0.25 m before the box centre along a ray of 4.2 m of box
-    assert column["depth"][0] == pytest.approx((2.1 - 0.25) / 4.2, abs=0.05)
-    # an empty box: undecided
-    assert terms([])["depth"][0] == 0.5
+    assert column["n_body"][0] > 20
+    assert column["depth"][0] == pytest.approx(with_prior((2.1 - 0.25) / 4.2, column["n_body"][0]), abs=0.05)
+    assert column["depth"][0] > 0.3
+    # an empty box: a car's value, the term says nothing (the ray terms judge it)
+    assert terms([])["depth"][0] == DEPTH_PRIOR
+    # a handful of deep returns moves it little, dozens move it most of the way
+    few = with_prior(0.5, 3)
+    assert few < 0.26 < with_prior(0.5, 60)
 
 
 def test_fill_covers_the_car_silhouette_and_a_sliver_of_it_for_a_pole():
@@ -60,7 +81,8 @@ def test_boxes_shifted_off_their_car():
     assert off["n_shell"][0] > 3 * off["n_body"][0] > 0 and off["spill"][0] > on["spill"][0] + 6
     # 2.5 m along, towards the sensor: the car's face (x = 14) lies 2.5 m behind the box's (11.5)
     along = Boxes([[13.6, 0.0, GROUND_Z + 0.75]], [[4.2, 1.8, 1.5]], [0.0], ["Car"], [0.3])
-    assert terms([CAR], along)["depth"][0] == pytest.approx((2.5 - 0.1) / 4.2, abs=0.05)
+    shifted = terms([CAR], along)
+    assert shifted["depth"][0] == pytest.approx(with_prior((2.5 - 0.1) / 4.2, shifted["n_body"][0]), abs=0.05)
 
 
 def test_overlap_is_the_footprint_share_a_higher_scored_box_covers():
@@ -85,7 +107,7 @@ def test_shipped_rule_rejects_the_pole_box_and_keeps_the_car():
 
 def test_no_boxes_and_no_points():
     empty = profile_terms(np.zeros((0, 3), np.float32), BOX, SENSOR)
-    assert empty["fill"][0] == 0.0 and empty["depth"][0] == 0.5 and empty["above"][0] == 0.0
+    assert empty["fill"][0] == 0.0 and empty["depth"][0] == DEPTH_PRIOR and empty["above"][0] == 0.0
     none = profile_terms(cast([CAR]), Boxes(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)), SENSOR)
     assert all(len(v) == 0 for v in none.values())
 
@@ -103,3 +125,32 @@ def test_two_threads_give_the_same_terms():
     for k in one:
         np.testing.assert_array_equal(one[k], two[k])
     assert two["overlap"][1] > 0  # the second box is covered by the better-scored first
+
+
+# ---- the ray terms' evidence-only readings (pcc_ros.pipeline.evidence)
+
+def test_sunk_box_has_no_ground_gap():
+    """A box whose bottom lies below the local ground: no evidence against it (where no beam
+    reaches the road the lowest returns around a car are kerbs and bodies, above its bottom)."""
+    sunk = Boxes([[16.1, 0.0, GROUND_Z - 0.25]], [[4.2, 1.8, 1.5]], [0.0])
+    ev = evidence(cast([]), sunk)
+    assert ev.ground_z[0] == pytest.approx(GROUND_Z, abs=0.05) and ev.terms["ground_gap"][0] == 0.0
+
+
+def test_through_is_the_share_of_a_cars_returns_that_pass():
+    """``through``: 0 on a car and on a box no ray reaches; on an empty box the rays through
+    its core over what a car would return, whatever the sensor's resolution."""
+    car = evidence(cast([CAR]), BOX)
+    assert car.terms["through"][0] == 0.0
+    wall = ((8.0, -4.0, GROUND_Z), (8.3, 4.0, 3.0))
+    assert evidence(cast([wall]), BOX).terms["through"][0] == 0.0
+    shares = []
+    for name in ("hdl64", "vlp16", "os1_64"):
+        sensor = SENSOR_PRESETS[name]
+        empty = evidence(cast([], sensor), BOX, sensor)
+        expect = empty.n_pass[0] / (empty.expected[0] + 1.0)  # nothing occludes it
+        assert empty.terms["through"][0] == pytest.approx(expect) and empty.n_pass[0] > 0
+        shares.append(empty.terms["through"][0])
+    # the core is 0.8 x 0.8 x 0.4 of the box: about a third of the beams that meet the box
+    assert all(0.15 < v < 0.6 for v in shares), shares
+

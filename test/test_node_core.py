@@ -27,10 +27,13 @@ DETS = "vision_msgs/msg/Detection3DArray"
 
 
 def _scene(seed: int = 0):
-    """Two cars with LiDAR-like returns on their visible sides, one box with nothing in it."""
+    """Two cars with LiDAR-like returns on their visible sides (the faces towards the sensor at the
+    origin: car a's rear, car b's rear and right side), one box with nothing in it."""
     rng = np.random.default_rng(seed)
-    car1 = rng.uniform([-2, -0.85, -0.7], [2, 0.85, 0.7], size=(400, 3)) + np.array([10, 0, -0.8])
-    car2 = rng.uniform([-2, -0.8, -0.7], [2, 0.8, 0.7], size=(300, 3)) + np.array([6, 5, -0.8])
+    car1 = rng.uniform([-2, -0.85, -0.7], [-1.7, 0.85, 0.7], size=(400, 3)) + np.array([10, 0, -0.8])
+    rear = rng.uniform([-2, -0.8, -0.7], [-1.7, 0.8, 0.7], size=(150, 3))
+    side = rng.uniform([-2, -0.8, -0.7], [2, -0.5, 0.7], size=(150, 3))
+    car2 = np.concatenate([rear, side]) + np.array([6, 5, -0.8])
     ground = rng.uniform([0, -10, -1.7], [30, 10, -1.6], size=(500, 3))
     points = np.concatenate([car1, car2, ground]).astype(np.float32)
     boxes = Boxes(

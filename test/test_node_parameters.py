@@ -41,11 +41,13 @@ STAMP = 1_000_000_000
 DET_LAG = 10_000_000  # detections 10 ms after their scan: paired within the default sync_slop (50 ms)
 
 def _scene(rng: np.random.Generator, pole: bool = False, duplicate: bool = False) -> tuple[np.ndarray, Boxes]:
-    """Two cars (400 and 300 returns in their boxes, car a's on its right half only, as a sensor
-    beside it sees it; a few just beside car a), an empty box c, ground. ``pole``: a 4 m pole
+    """Two cars (400 and 300 returns in their boxes, car a's on its right half only and at its
+    face towards the sensor, as a sensor beside it sees it; car b's filling its box: returns deep
+    inside, no car's; a few just beside car a), an empty box c, ground. ``pole``: a 4 m pole
     (0.2 m square) stands in box c, its returns rising over the box top; ``duplicate``: a lower
-    scored box d, 1 m along from car a's, most of its footprint covered by a's."""
-    car1 = rng.uniform([-2, -0.85, -0.7], [2, 0.0, 0.7], size=(400, 3)) + np.array([10, 0, -0.8])
+    scored box d, 1 m along from car a's (towards the sensor: it holds a's returns), most of its
+    footprint covered by a's."""
+    car1 = rng.uniform([-2, -0.85, -0.7], [-1.5, 0.0, 0.7], size=(400, 3)) + np.array([10, 0, -0.8])
     car2 = rng.uniform([-2, -0.8, -0.7], [2, 0.8, 0.7], size=(300, 3)) + np.array([6, 5, -0.8])
     beside = rng.uniform([-2, -1.3, -0.7], [2, -0.95, 0.7], size=(60, 3)) + np.array([10, 0, -0.8])
     ground = rng.uniform([0, -10, -1.7], [30, 10, -1.6], size=(500, 3))
@@ -55,7 +57,7 @@ def _scene(rng: np.random.Generator, pole: bool = False, duplicate: bool = False
     boxes = Boxes([[10, 0, -0.8], [6, 5, -0.8], [20, -6, -0.8]], [[4.2, 1.8, 1.5], [4.2, 1.7, 1.5], [4.0, 1.7, 1.5]],
                   [0.0, 0.1, 0.0], ["Car", "Car", "Car"], [0.9, 0.8, 0.2], ["a", "b", "c"])
     if duplicate:
-        boxes = Boxes(np.vstack([boxes.center, [11, 0, -0.8]]), np.vstack([boxes.size, [4.2, 1.8, 1.5]]),
+        boxes = Boxes(np.vstack([boxes.center, [9, 0, -0.8]]), np.vstack([boxes.size, [4.2, 1.8, 1.5]]),
                       np.append(boxes.yaw, 0.0), [*boxes.label, "Car"], np.append(boxes.score, 0.5),
                       [*boxes.track_id, "d"])
     return np.concatenate(parts).astype(np.float32), boxes
@@ -189,15 +191,17 @@ CASES: dict[str, Case] = {
     "w_mismatch": Case("filter", 3.0, base={"backend": "input"}),
     "reject_threshold": Case("filter", 1e-6, base={"backend": "input"}, check=_all_rejected),
     "sensor": Case("filter", "hdl32", base={"backend": "input"}),
-    # each profile term decides a box here (besides moving every box's log-odds by weight x term):
+    # each profile term decides a box here (besides moving every box's log-odds by weight x term; a
+    # negative weight where the other terms alone would still reject the box):
     # the pole's returns over box c; car a's returns over part of its silhouette, car b's none
     # outside its box; box d mostly on car a's; returns deep in the boxes (not on a face); car a's top
-    "w_above": Case("filter", 0.0, base={"backend": "input"}, pole=True, check=_decides(kept="c")),
-    "w_fill": Case("filter", 3.0, base={"backend": "input"}, check=_decides(rejected="a")),
+    "w_above": Case("filter", -3.0, base={"backend": "input"}, pole=True, check=_decides(kept="c")),
+    "w_fill": Case("filter", 6.0, base={"backend": "input"}, check=_decides(rejected="a")),
     "w_spill": Case("filter", 3.0, base={"backend": "input"}, check=_decides(kept="b")),
-    "w_overlap": Case("filter", 0.0, base={"backend": "input"}, duplicate=True, check=_decides(kept="d")),
+    "w_overlap": Case("filter", -2.0, base={"backend": "input"}, duplicate=True, check=_decides(kept="d")),
     "w_depth": Case("filter", 0.0, base={"backend": "input"}, check=_decides(kept="b")),
     "w_top": Case("filter", 3.0, base={"backend": "input"}, check=_decides(rejected="a")),
+    "w_through": Case("filter", 20.0, base={"backend": "input"}),
     # past max_instances boxes b and c are not completed: their mismatch term reads mismatch_mean
     "mismatch_mean": Case("filter", 1.0, base={"backend": "input", "w_mismatch": 3.0, "max_instances": 1}),
     "filter_backend": Case("filter", "densify", base={"backend": "input", "w_mismatch": 3.0}),

@@ -56,6 +56,16 @@ SHELL = 0.6
 #: Metres beyond the box's sides that still count as in it: a detector's box is tight, and a
 #: car's near face lies on its boundary, half its returns a hair outside.
 FACE_MARGIN = 0.1
+#: ``depth`` of a car: the median share of a true car box's depth at which its returns lie
+#: (0.19-0.23 on every simulated sensor, docs/filter.md), and the number of such prior returns
+#: ``depth`` starts from. A box with a handful of returns (far, occluded) keeps a car's value
+#: until its own returns say otherwise: a few deep returns are noise, dozens are an object
+#: smaller than the box. The strength was chosen by leave-one-sensor-out cross-validation on
+#: the calibration sensors (1, 10, 20, 40 tried: 20-40 best, 1 worst).
+DEPTH_PRIOR = 0.2
+DEPTH_PRIOR_RETURNS = 20.0
+#: ``above``: prior returns at body height (none above the top), for the same reason.
+ABOVE_PRIOR_RETURNS = 10.0
 
 
 def covered_share(boxes: Boxes) -> np.ndarray:
@@ -85,9 +95,11 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
 
     ``depth``: how deep behind the box's near surface its body returns lie, as a share of the
     box's depth along each return's ray (0: where the ray enters the box, 1: its far side),
-    averaged with one prior return at 0.5 (no return: 0.5, undecided). A car fills its box: the
-    rays stop at its faces; a pole, a pedestrian or a bollard in a car box stops them deep
-    inside; a box shifted off its car holds the car's returns at its back. ``top``: the highest
+    averaged with :data:`DEPTH_PRIOR_RETURNS` prior returns at a car's :data:`DEPTH_PRIOR` (no
+    return: a car's value; the term then says nothing and the others judge). A car fills its
+    box: the rays stop at its faces; a pole, a pedestrian or a bollard in a car box stops them
+    deep inside; a box shifted off its car holds the car's returns at its back. ``above``
+    counts :data:`ABOVE_PRIOR_RETURNS` prior body returns. ``top``: the highest
     body return over the box bottom, as a share of the box height (0 without one).
 
     ``measure``: the terms wanted (default all); only they are returned, with the same values.
@@ -129,9 +141,9 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
         terms["fill"] = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
     top = np.where(has, (out[:, kernels.TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0)
     terms.update({
-        "above": n_above / (n_above + n_body + 1.0),
+        "above": n_above / (n_above + n_body + ABOVE_PRIOR_RETURNS),
         "spill": np.log((n_shell + 1.0) / (n_body + 1.0)),
-        "depth": (out[:, kernels.DEPTH_SUM] + 0.5) / (n_body + 1.0),
+        "depth": (out[:, kernels.DEPTH_SUM] + DEPTH_PRIOR * DEPTH_PRIOR_RETURNS) / (n_body + DEPTH_PRIOR_RETURNS),
         "top": top,
     })
     out_terms.update({k: v for k, v in terms.items() if k in wanted})

@@ -11,7 +11,9 @@ measured in the scan itself (documented with their derivation in ``docs/filter.m
   stopped in front of it (occlusion);
 * ``free_space``: log-odds of the rays through the box's solid core that return from
   *beyond* it (the box is see-through: empty) against those that end inside it;
-* ``ground_gap``: metres between the box bottom and the local ground (cars stand on it);
+* ``through``: the rays through the core returning from beyond it, as a share of the returns
+  a car there would give (0 for a car and for a box without rays: it grows with the evidence);
+* ``ground_gap``: metres the box bottom floats above the local ground (cars stand on it);
 * ``score``: the detector score as a logit, after the explicit ``score_mapping``;
 * ``mismatch``: TraPCC's shape mismatch (below) against the completion of ``filter_backend``
   (0 weight unless calibrated with a car-constrained backend);
@@ -81,23 +83,24 @@ class FilterConfig:
     # `pcc calibrate-filter --sim-sensors ...` into config/detection_filter.yaml (a test keeps the
     # two equal; docs/filter.md has the command): scan evidence only, no score term (an unknown
     # detector's score scale is unknown; the score must not reject a real car on its own).
-    w_bias: float = -4.2286
-    w_density: float = -0.8825
-    w_free_space: float = 0.3587
-    w_ground_gap: float = 3.1199
+    w_bias: float = -4.603
+    w_density: float = -0.8214
+    w_free_space: float = 0.4724
+    w_ground_gap: float = 4.5697
     w_score: float = 0.0
     w_mismatch: float = 0.0
     # profile terms (pcc_ros.pipeline.evidence_profile): where the returns lie in and around the box
-    w_above: float = 2.072
+    w_above: float = 3.8647
     w_fill: float = 0.0
     w_spill: float = 0.0
-    w_overlap: float = 11.4406
-    w_depth: float = 4.49
+    w_overlap: float = 12.4173
+    w_depth: float = 8.9004
     w_top: float = 0.0
+    w_through: float = 0.0  # rays through the core returning from beyond it / a car's returns there
     # the value a missing mismatch term takes (a detection whose shape was not completed): its
     # mean over the calibration detections, the first-order marginalisation of the term
     mismatch_mean: float = 0.0
-    reject_threshold: float = 0.6829
+    reject_threshold: float = 0.6772
     sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
@@ -243,7 +246,7 @@ def reject_mask(mismatch: np.ndarray, detection_scores: np.ndarray, config: Filt
 # ============================================================================ physics evidence
 
 #: The evidence terms, in the order of the logistic weights (:attr:`FilterConfig.weights`).
-TERMS = ("density", "free_space", "ground_gap", "score", "mismatch", *PROFILE_TERMS)
+TERMS = ("density", "free_space", "ground_gap", "score", "mismatch", *PROFILE_TERMS, "through")
 
 #: The term weights of the evidence rule: one calibrated whole (:func:`whole_rule`).
 RULE_WEIGHTS = tuple(f"w_{t}" for t in TERMS)
@@ -325,9 +328,9 @@ def filter_terms(
     Calibration and the evaluation tools measure every term (the default)."""
     sensor = sensor or sensor_for(config.sensor, points, rings)
     wanted = set(config.weighted_terms) if weighted_only else set(TERMS)
-    rays = bool(wanted & {"density", "free_space"})
+    rays = bool(wanted & {"density", "free_space", "through"})
     out: dict[str, np.ndarray] = {}
-    measured = {"rays": rays, "expected": "density" in wanted, "ground": "ground_gap" in wanted}
+    measured = {"rays": rays, "expected": bool(wanted & {"density", "through"}), "ground": "ground_gap" in wanted}
     profile = wanted & set(PROFILE_TERMS)
     # With two threads and both passes to make, the profile pass goes to the second thread and
     # the evidence (rays, ground, expected returns) runs on this one. At 20 cars the evidence

@@ -52,7 +52,9 @@ DESCRIPTIONS = {
     "w_bias": "evidence rule: logistic bias (pcc calibrate-filter)",
     "w_density": "evidence rule: weight of log((returns in box + 1) / (returns a car would give + 1))",
     "w_free_space": "evidence rule: weight of the log-odds of rays passing through the box core vs ending in it",
-    "w_ground_gap": "evidence rule: weight of the box bottom's distance to the local ground (m)",
+    "w_ground_gap": "evidence rule: weight of how far the box bottom floats above the local ground (m)",
+    "w_through": "evidence rule: weight of the rays through the box core returning from beyond it, as a share of "
+    "the returns a car there would give",
     "w_score": "evidence rule: weight of the detector score as a logit (after score_mapping)",
     "w_mismatch": "evidence rule: weight of the shape-mismatch score (0 unless calibrated with a car-constrained "
     "backend)",

@@ -434,7 +434,12 @@ def plot(results: dict[str, Any], path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     scores = results["_scores"]
-    terms = [t for t in ("density", "free_space", "ground_gap", "score") if t in scores["terms"]]
+    # the terms the configured rule weighs (the score too: a baseline), the ray terms first
+    config = results["filter_config"]
+    weighted = {k[2:] for k, v in config.items() if k.startswith("w_") and v} | {"density", "free_space", "ground_gap",
+                                                                                 "score"}
+    terms = [t for t in ("density", "free_space", "ground_gap", "score", "through", "depth", "above", "overlap",
+                         "mismatch", "fill", "spill", "top") if t in scores["terms"] and t in weighted]
     cols = 3
     rows = int(np.ceil((2 + len(terms)) / cols))
     fig, grid = plt.subplots(rows, cols, figsize=(5 * cols, 4.2 * rows), squeeze=False)
@@ -463,7 +468,7 @@ def plot(results: dict[str, Any], path: Path, title: str) -> None:
         ax.set_title(name)
         ax.legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.25 / (4.2 * rows)))  # room for the title over the top row
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -146,6 +146,17 @@ def threshold_for(p: np.ndarray, false: np.ndarray, max_lost: float) -> float:
     return float(min(max(t + 1e-6, 1e-6), 1 - 1e-6))
 
 
+def threshold_each(p: np.ndarray, false: np.ndarray, group: np.ndarray, max_lost: float) -> float:
+    """Smallest threshold losing at most ``max_lost`` of the true rows of *every* ``group`` (a
+    sensor, the real frames): the worst group decides. A threshold on the pooled rows loses
+    ``max_lost`` on average and more on the sensor with the most sparse, occluded true cars;
+    an unknown sensor may be that one."""
+    groups = np.unique(group[~false])
+    if not len(groups):
+        return threshold_for(p, false, max_lost)
+    return max(threshold_for(p[group == g], false[group == g], max_lost) for g in groups)
+
+
 # ----------------------------------------------------------------------------- data
 
 

@@ -15,7 +15,8 @@ completion skipped, ``max_instances`` lifted so that every box is judged) with t
 sensor's beam model; the shape ``mismatch`` comes from a car-constrained completion
 (``filter_backend``, TraPCC by default). Fit: the L2 logistic regression of
 :mod:`pcc_ros.workflows.filter_calibration`, each sensor's rows and the real rows weighing the same.
-Threshold: the smallest that loses at most ``max_lost`` of the training rows' true detections.
+Threshold: the smallest that loses at most ``max_lost`` of each sensor's true detections (and
+of the real frames'): safe on the worst sensor, not on the average.
 
 Honesty: leave-one-group-out cross-validation **by sensor** (fit on the other sensors and the
 real frames, judge the held-out sensor at the fold's own threshold, per false-positive kind) and
@@ -39,7 +40,7 @@ from tqdm import tqdm
 from pcc_ros.errors import ConfigError
 from pcc_ros.pipeline.filter import TERMS, term_matrix
 from pcc_ros.workflows.detection_eval import auc, detection_truth, load_kitti, operating_curve, removed_at
-from pcc_ros.workflows.filter_calibration import FeatureRows, fit_logistic, predict, threshold_for
+from pcc_ros.workflows.filter_calibration import FeatureRows, fit_logistic, predict, threshold_each
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +159,9 @@ def filled(x: np.ndarray, mismatch_mean: float) -> np.ndarray:
 def fit_rows(rows: Rows, terms: tuple[str, ...], max_lost: float, l2: float
              ) -> tuple[float, np.ndarray, float, float]:
     """(bias, weights over TERMS, threshold, mismatch_mean); every sensor's rows (and the real
-    ones) weigh the same; ``mismatch_mean``: the mean measured mismatch of these rows."""
+    ones) weigh the same; the threshold loses at most ``max_lost`` of each sensor's true rows
+    (:func:`~pcc_ros.workflows.filter_calibration.threshold_each`); ``mismatch_mean``: the mean
+    measured mismatch of these rows."""
     measured = rows.x[:, _MISMATCH][np.isfinite(rows.x[:, _MISMATCH])]
     mean = float(measured.mean()) if len(measured) and "mismatch" in terms else 0.0
     x = filled(rows.x, mean)
@@ -170,7 +173,7 @@ def fit_rows(rows: Rows, terms: tuple[str, ...], max_lost: float, l2: float
     bias, w = fit_logistic(x[:, cols], rows.false, weight, l2)
     weights = np.zeros(len(TERMS))
     weights[cols] = w
-    return bias, weights, threshold_for(predict(bias, weights, x), rows.false, max_lost), mean
+    return bias, weights, threshold_each(predict(bias, weights, x), rows.false, rows.sensor, max_lost), mean
 
 
 def figures(p: np.ndarray, rows: Rows, reject: np.ndarray) -> dict[str, Any]:

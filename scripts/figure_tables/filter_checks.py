@@ -6,21 +6,19 @@ from __future__ import annotations
 
 from typing import Any
 
-from .base import Figure, pct, table
+from .base import Figure, one, pct, table
 
 #: The simulated sensors of the per-kind check, in the docs' column order.
 SENSORS = ("hdl64", "vlp16", "vlp32c", "os1_64")
 #: The false-positive kinds of SynthCars' simulated detector, and the real frames' false detections.
 KINDS = ("confusion", "ghost", "far", "misplaced")
-#: The profile terms' AUC table: the terms in the docs' order, ``free_space`` last for scale.
-AUC_TERMS = ("depth", "above", "overlap", "spill", "fill", "top", "free_space")
 #: The trapcc rule's completion backends, as the eval-on-KITTI table lists them.
 TRAPCC_BACKENDS = ("pointpncnet", "trapcc", "aml")
 BUDGET = "false_removed_at_0.02_lost"
 
 
 def _synth(sensor: str) -> str:
-    return f"filter-synthcars-{sensor}"
+    return f"filter-synth-{sensor}"
 
 
 def _share(count: int, total: int) -> str:
@@ -48,83 +46,7 @@ def _nuscenes_summary(d: dict[str, Any]) -> str:
             f"{pct(d['methods']['points-in-box'][BUDGET])})")
 
 
-def render_nuscenes_groups(results: dict[str, dict[str, Any]]) -> list[str]:
-    """Per group of false boxes: removed at the configured threshold, by the filter and by the
-    points-in-box count at their best threshold for the loss budget; with the check's NMS rule and
-    without it (``--nms-iou 1``)."""
-    nms, every = results["filter-nuscenes"], results["filter-nuscenes-every-box"]
-    groups = sorted(set(nms["configured"]["per_group_count"]) | set(every["configured"]["per_group_count"]))
-
-    def cells(d: dict[str, Any], group: str) -> list[str]:
-        count = d["configured"]["per_group_count"].get(group)
-        if not count:
-            return ["0", "-", "-", "-"]
-        return [str(count), pct(d["configured"]["per_group_removed"][group]),
-                pct(d["methods"]["filter"]["per_group_removed"][group]),
-                pct(d["methods"]["points-in-box"]["per_group_removed"][group])]
-
-    rows = [[group, *cells(nms, group), *cells(every, group)] for group in groups]
-    rows.append(["all false", str(nms["false"] - sum(nms["suppressed_by_nms"].values())),
-                 pct(nms["configured"]["false_removed"]), pct(nms["methods"]["filter"][BUDGET]),
-                 pct(nms["methods"]["points-in-box"][BUDGET]), str(every["false"]),
-                 pct(every["configured"]["false_removed"]), pct(every["methods"]["filter"][BUDGET]),
-                 pct(every["methods"]["points-in-box"][BUDGET])])
-    rule = f"NMS rule (BEV IoU {nms['nms_iou']})"
-    header = ["false group (removed: higher is better)", f"{rule}: boxes", "configured", "filter at <= 2 % lost",
-              "points-in-box at <= 2 % lost", "every box (`--nms-iou 1`): boxes", "configured",
-              "filter at <= 2 % lost", "points-in-box at <= 2 % lost"]
-    dropped = ", ".join(f"{group} {n}" for group, n in sorted(nms["suppressed_by_nms"].items()))
-    kitti = results["filter-nuscenes-kitti-preset"]
-    preset = "; ".join(f"score {s}: {round(v['true_lost'] * kitti['true'])} / {kitti['true']}"
-                       for s, v in kitti["by_score"].items())
-    lines = [
-        f"{nms['frames']} frame, {nms['true']} annotated cars, {nms['false']} false boxes "
-        f"({nms['ground_boxes']} free-ground boxes asked for); the NMS rule dropped {dropped}.",
-        "",
-        *table(header, rows),
-        "",
-        f"With the NMS rule: {_nuscenes_summary(nms)}. Every box: non-vehicles "
-        f"{pct(every['configured']['non_vehicle_removed'])} configured, "
-        f"{pct(every['configured']['non_vehicle_removed_without_overlap'])} without `overlap` "
-        f"({every['configured']['non_vehicle_overlapping_another']} overlap another box; "
-        f"{nms['configured']['non_vehicle_overlapping_another']} with the rule).",
-        "",
-        f"Cars rejected with the KITTI preset (`{kitti['provenance']['command'].split('--config ')[1].split()[0]}`): "
-        f"{preset}.",
-    ]
-    return lines
-
-
 # --------------------------------------------------------------------------- SynthCars per kind
-
-
-def render_synthcars_kinds(results: dict[str, dict[str, Any]]) -> list[str]:
-    """Per false-positive kind and simulated sensor: removed at the configured threshold, and (in
-    parentheses) by the filter and by points-in-box at the loss budget."""
-    def cell(d: dict[str, Any], kind: str) -> str:
-        k = d["per_kind"]
-        count = k["configured"]["per_group_count"].get(kind)
-        if not count:
-            return "none"
-        return (f"{pct(k['configured']['per_group_removed'][kind])} "
-                f"({pct(k['methods']['filter']['per_group_removed'][kind])} / "
-                f"{pct(k['methods']['points-in-box']['per_group_removed'][kind])}) of {count}")
-
-    def every(d: dict[str, Any]) -> str:
-        k = d["per_kind"]
-        return (f"{pct(k['configured']['false_removed'])} ({pct(k['methods']['filter'][BUDGET])} / "
-                f"{pct(k['methods']['points-in-box'][BUDGET])})")
-
-    def lost(d: dict[str, Any]) -> str:
-        k = d["per_kind"]
-        return f"{k['configured']['true_lost_count']} / {k['true']}"
-
-    rows = [[kind, *(cell(results[_synth(s)], kind) for s in SENSORS)] for kind in KINDS]
-    rows.append(["all false", *(every(results[_synth(s)]) for s in SENSORS)])
-    rows.append(["true cars lost (lower is better)", *(lost(results[_synth(s)]) for s in SENSORS)])
-    header = ["kind: removed at the configured threshold (filter at <= 2 % lost / points-in-box); higher is better",
-              *SENSORS]
-    return table(header, rows)
 
 
 # --------------------------------------------------------------------------- what the shipped rule was checked on
@@ -141,7 +63,7 @@ def _held_out(d: dict[str, Any]) -> str:
 
 def render_checked_on(results: dict[str, dict[str, Any]]) -> list[str]:
     """The shipped rule on every set it was checked on: one row per data set."""
-    nus, default, kitti = results["filter-nuscenes"], results["calibrate-default"], results["calibrate-kitti"]
+    nus, default, kitti = results["filter-nuscenes"], results["filter-calibration"], results["calibrate-kitti"]
 
     def synth(field: str) -> str:
         return _by_sensor(results, lambda d: pct(d["per_kind"]["configured"][field]))
@@ -211,41 +133,13 @@ def _cv(d: dict[str, Any]) -> str:
     return f"{pct(d['false_removed'])} at {pct(d['true_lost'])} lost, AUC {d['auc_false_above_true']:.3f}"
 
 
-def render_calibration_default(results: dict[str, dict[str, Any]]) -> list[str]:
-    """The shipped default's calibration across simulated sensors: rows, weights, held out by sensor and
-    by sequence (with the ray terms alone beside), and the ablation."""
-    d, ray = results["calibrate-default"], results["calibrate-default-ray-terms"]
-    folds, ray_folds = d["cv_by_sensor"]["folds"], ray["cv_by_sensor"]["folds"]
-    by_sequence, ray_sequence = d["cv_by_sequence"]["pooled"], ray["cv_by_sequence"]["pooled"]
-
-    def kinds(pooled: dict[str, Any]) -> str:
-        return ", ".join(f"{k} {pct(v['removed'], 0)}" for k, v in pooled["per_kind"].items())
-
-    def sequences(pooled: dict[str, Any]) -> str:
-        return (f"{kinds(pooled)} ({pct(pooled['true_lost'])} true lost; pooled {pct(pooled['false_removed'])} "
-                f"removed, {pct(pooled[BUDGET + '_best'])} at the best <= 2 % threshold, AUC "
-                f"{pooled['auc_false_above_true']:.3f})")
-
-    ablation = sorted(d["ablation"].items(), key=lambda item: -item[1]["auc_change"])
-    rows = [
-        ["rows", ", ".join(f"{k} {v['true']} true / {v['false']} false" for k, v in d["rows"].items())],
-        ["weights", f"{_weights(d)}; threshold {d['threshold']:.3f}"],
-        ["held-out sensor: removed at the fold's threshold, true lost, AUC (ray terms only)",
-         "; ".join(f"{s}: {_cv(f)} ({_cv(ray_folds[s])})" for s, f in folds.items())],
-        ["held-out sequences, removed per kind",
-         f"{sequences(by_sequence)}. Ray terms only: {sequences(ray_sequence)}"],
-        ["ablation: held-out AUC (removed at <= 2 % lost) the term brings",
-         ", ".join(f"{term} {a['auc_change']:+.3f} ({100 * a['removed_at_0.02_change']:+.1f} points)"
-                   for term, a in ablation)],
-    ]
-    return table(["shipped default", "value"], rows)
-
-
 def render_term_auc(results: dict[str, dict[str, Any]]) -> list[str]:
     """Each measured term alone: AUC of a kind's boxes scoring above the true cars, on the calibration
     rows / on held-out rows of seed 99 (the real frames only in the first)."""
-    d, s99 = results["calibrate-default"], results["calibrate-s99"]
+    d, s99 = results["filter-calibration"], results["calibrate-s99"]
     real = "real false" in next(iter(d["term_auc"].values()))
+
+    terms = [t for t in d["term_auc"] if t not in ("density", "free_space", "ground_gap", "score", "mismatch")]
 
     def row(term: str) -> list[str]:
         label = f"(`{term}`, for scale)" if term == "free_space" else f"`{term}`"
@@ -254,37 +148,7 @@ def render_term_auc(results: dict[str, dict[str, Any]]) -> list[str]:
 
     header = ["term (AUC: 0.5 chance, 1 every false box above every true car)", *KINDS,
               *(["KITTI false"] if real else [])]
-    return table(header, [row(term) for term in AUC_TERMS])
-
-
-def render_spill_fill(results: dict[str, dict[str, Any]]) -> list[str]:
-    """The shipped rule refitted with ``spill`` and ``fill`` against the rule itself, held out by sequence."""
-    d, shipped = results["calibrate-default-spill-fill"], results["calibrate-default"]
-    new, old = d["cv_by_sequence"]["pooled"], shipped["cv_by_sequence"]["pooled"]
-    return [f"Refitted with them (`--terms {','.join(d['terms'])}`), their weights come out "
-            f"{d['weights']['spill']:+.3f} (`spill`) and {d['weights']['fill']:+.3f} (`fill`); held out by sequence, "
-            f"confusions removed {pct(new['per_kind']['confusion']['removed'])} against "
-            f"{pct(old['per_kind']['confusion']['removed'])} without them "
-            f"(of {old['per_kind']['confusion']['count']}), "
-            f"AUC {new['auc_false_above_true']:.3f} against {old['auc_false_above_true']:.3f}."]
-
-
-def render_shape_term(results: dict[str, dict[str, Any]]) -> list[str]:
-    """The rule fitted with the shape mismatch (TraPCC's car-constrained completion) against the same
-    terms without it."""
-    d = results["calibrate-shape"]
-    m, ablation = d["mismatch"], d["ablation"]["mismatch"]
-    removed_with = d["cv_by_sequence"]["pooled"][BUDGET + "_best"]
-    folds = d["cv_by_sensor"]["folds"]
-    per_sensor = " / ".join(pct(f["per_kind"].get("confusion", {}).get("removed", 0), 0) for f in folds.values())
-    return [f"`w_mismatch` **{m['weight']:+.3f}** ({_weights(d)}; threshold {d['threshold']:.3f}, `mismatch_mean` "
-            f"{d['mismatch_mean']:.3f}, the training mean); alone the mismatch ranks confusions above true cars at "
-            f"AUC {m['auc_alone_confusion_vs_true']:.3f}; held out, the rule's AUC on confusions is "
-            f"{m['confusion_auc_held_out_with']:.3f} with it and {m['confusion_auc_held_out_without']:.3f} without "
-            f"(**{m['confusion_auc_contribution']:+.3f}**), over all false boxes {ablation['auc_change']:+.3f}; its "
-            f"removal at <= 2 % lost {100 * ablation['removed_at_0.02_change']:+.1f} points ({pct(removed_with)} "
-            f"with it, {pct(ablation['removed_at_0.02_without'])} without); per held-out sensor confusions removed "
-            f"{per_sensor} ({' / '.join(folds)})."]
+    return table(header, [row(term) for term in (*terms, "free_space")])
 
 
 # --------------------------------------------------------------------------- pcc eval detections on KITTI and SynthCars
@@ -350,21 +214,98 @@ def render_eval_synthcars(results: dict[str, dict[str, Any]]) -> list[str]:
     return table(header, rows)
 
 
+# ---------------------------------------------------- the shipped rule's checks (per kind, nuScenes, calibration)
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else pct(value)
+
+
+def render_filter_synth(results: dict[str, dict[str, Any]]) -> list[str]:
+    """Per false-positive kind and held-out simulated sensor: removed at the configured threshold
+    (the filter and points-in-box at their best threshold for <= 2 % lost), and the true cars lost."""
+    kinds = {s: results[f"filter-synth-{s}"]["per_kind"] for s in SENSORS}
+
+    def cell(k: dict[str, Any], kind: str) -> str:
+        n = k["configured"]["per_group_count"].get(kind)
+        if not n:
+            return "none"
+        best, pib = (k["methods"][m]["per_group_removed"][kind] for m in ("filter", "points-in-box"))
+        return f"{_pct(k['configured']['per_group_removed'][kind])} ({_pct(best)} / {_pct(pib)}) of {n}"
+
+    rows = [[kind, *(cell(kinds[s], kind) for s in SENSORS)] for kind in ("confusion", "ghost", "far",
+                                                                               "misplaced")]
+    rows.append(["all false", *(f"{_pct(k['configured']['false_removed'])} "
+                                f"({_pct(k['methods']['filter']['false_removed_at_0.02_lost'])} / "
+                                f"{_pct(k['methods']['points-in-box']['false_removed_at_0.02_lost'])})"
+                                for k in kinds.values())])
+    rows.append(["**true cars lost** (by kind label)", *(f"**{k['configured']['true_lost_count']} / {k['true']}** "
+                                                          f"({_pct(k['configured']['true_lost'])})"
+                                                          for k in kinds.values())])
+    return table(["kind: configured (filter at the budget / points-in-box)", *SENSORS], rows)
+
+
+def render_filter_nuscenes(d: dict[str, Any]) -> list[str]:
+    """The nuScenes check per group: removed at the configured threshold, and by the filter and by
+    points-in-box at their best threshold for <= 2 % of the cars lost; then the headline figures."""
+    conf, methods = d["configured"], d["methods"]
+    rows = [[g, conf["per_group_count"][g], _pct(conf["per_group_removed"][g]),
+             _pct(methods["filter"]["per_group_removed"][g]), _pct(methods["points-in-box"]["per_group_removed"][g])]
+            for g in sorted(conf["per_group_count"])]
+    cars = "; ".join(f"car with {c['returns']} returns at {c['range_m']} m: p_false {c['p_false']:.3f}, {c['status']}"
+                     for c in d["well_seen_cars"])
+    return [*table(["false group", "boxes", "configured", "filter, best for <= 2 % lost", "points-in-box, same"],
+                   rows), "",
+            f"Non-vehicle boxes removed at the configured threshold: **{_pct(conf['non_vehicle_removed'])}** "
+            f"({_pct(conf.get('non_vehicle_removed_without_overlap'))} without the `overlap` term); free ground "
+            f"{_pct(conf['free_ground_removed'])}; cars lost {conf['true_lost_count']} / {d['true']}; {cars}."]
+
+
+def render_filter_calibration(results: dict[str, dict[str, Any]]) -> list[str]:
+    """``pcc calibrate-filter --sim-sensors``: weights, leave-one-sensor-out and leave-one-sequence-out
+    figures at each fold's own threshold, the ablation; beside it the same fit offered the shape term."""
+    d, shape = results["filter-calibration"], results["filter-calibration-shape"]
+
+    def weights(r: dict[str, Any]) -> str:
+        return ", ".join(f"{t} {w:+.2f}" for t, w in r["weights"].items() if w) + f"; bias {r['bias']:+.2f}, " \
+            f"threshold {r['threshold']:.3f}"
+
+    def folds(r: dict[str, Any]) -> str:
+        return "; ".join(f"{s}: {_pct(f['false_removed'])} removed at {_pct(f['true_lost'])} lost, confusions "
+                         f"{_pct(f['per_kind'].get('confusion', {}).get('removed'))}"
+                         for s, f in r["cv_by_sensor"]["folds"].items())
+
+    def kinds(r: dict[str, Any]) -> str:
+        p = r["cv_by_sequence"]["pooled"]
+        return ", ".join(f"{k} {_pct(v['removed'])}" for k, v in p["per_kind"].items()) + \
+            f" ({_pct(p['true_lost'])} true lost; AUC {p['auc_false_above_true']:.3f})"
+
+    m = shape["mismatch"]
+    rows = [["weights", weights(d), weights(shape)],
+            ["held-out sensor (fold threshold)", folds(d), folds(shape)],
+            ["held-out sequences, per kind", kinds(d), kinds(shape)],
+            ["held-out real KITTI frames", _pct(d["cv_real_frames"]["false_removed"]) + " removed, "
+             + _pct(d["cv_real_frames"]["true_lost"]) + " lost", _pct(shape["cv_real_frames"]["false_removed"])
+             + " removed, " + _pct(shape["cv_real_frames"]["true_lost"]) + " lost"],
+            ["ablation: held-out AUC the term brings", ", ".join(f"{t} {a['auc_change']:+.3f}"
+                                                                 for t, a in d["ablation"].items()),
+             f"mismatch {m['confusion_auc_contribution']:+.3f} on confusions ({m['confusion_auc_held_out_without']:.3f}"
+             f" -> {m['confusion_auc_held_out_with']:.3f}); alone {m['auc_alone_confusion_vs_true']:.3f}"]]
+    return table(["", "shipped rule (`--terms " + ",".join(d["terms"]) + "`)", "offered the shape (`+mismatch`)"],
+                 rows)
+
+
 # --------------------------------------------------------------------------- the blocks
 
 
 FIGURES: dict[str, Figure] = {
-    "filter-checked-on": Figure(("filter-nuscenes", *(_synth(s) for s in SENSORS), "calibrate-default",
-                                         "calibrate-kitti"), render_checked_on),
-    "filter-nuscenes": Figure(("filter-nuscenes", "filter-nuscenes-every-box", "filter-nuscenes-kitti-preset"),
-                              render_nuscenes_groups),
-    "filter-synthcars-kinds": Figure(tuple(_synth(s) for s in SENSORS), render_synthcars_kinds),
+    "filter-checked-on": Figure(("filter-nuscenes", *(_synth(s) for s in SENSORS), "filter-calibration",
+                                 "calibrate-kitti"), render_checked_on),
+    "filter-nuscenes": one("filter-nuscenes", render_filter_nuscenes),
+    "filter-synth": Figure(tuple(_synth(s) for s in SENSORS), render_filter_synth),
+    "filter-calibration": Figure(("filter-calibration", "filter-calibration-shape"), render_filter_calibration),
     "filter-calibration-kitti": Figure(("calibrate-kitti", "calibrate-kitti-physics"), render_calibration_kitti),
-    "filter-calibration-default": Figure(("calibrate-default", "calibrate-default-ray-terms"),
-                                         render_calibration_default),
-    "filter-term-auc": Figure(("calibrate-default", "calibrate-s99"), render_term_auc),
-    "filter-spill-fill": Figure(("calibrate-default-spill-fill", "calibrate-default"), render_spill_fill),
-    "filter-shape-term": Figure(("calibrate-shape",), render_shape_term),
+    "filter-term-auc": Figure(("filter-calibration", "calibrate-s99"), render_term_auc),
     "filter-eval-kitti": Figure(("filter-kitti", *(f"filter-kitti-trapcc-{b}" for b in TRAPCC_BACKENDS)),
                                 render_eval_kitti),
     "filter-eval-synthcars": Figure(("filter-synthcars-kitti-preset", "filter-synthcars-calibrated"),
