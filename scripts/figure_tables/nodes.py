@@ -20,7 +20,7 @@ def render_startup(d: dict[str, Any]) -> list[str]:
               "frames answered", "first answer"]
     installs = {s["install"]: s["install_s"] for s in d["starts"].values()}
     note = "Install times (colcon `setup.py install`, the build's kernel compilation included): " + ", ".join(
-        f"{name} {seconds:.0f} s" for name, seconds in installs.items()) + "."
+        f"{name} {seconds:.1f} s" for name, seconds in installs.items()) + "."
     return [*table(header, rows), "", note]
 
 
