@@ -11,7 +11,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.pcc_ros-installed
 OUT    ?= out
 
-.PHONY: setup system-deps ros test test-fast test-numpy1 demo bench figures lint clean
+.PHONY: setup system-deps ros test test-fast test-numpy1 demo bench figures figures-rerun lint clean
 
 setup: system-deps $(STAMP) ros
 
@@ -75,6 +75,11 @@ bench: setup
 figures: bench
 	$(PY) scripts/render_figures.py store-bench benchmarks/results
 	$(PY) scripts/render_figures.py
+
+# the docs' evaluation, calibration and check figures: every stored result that is not a benchmark's,
+# its recorded command run again (scripts/render_figures.py rerun), then every block re-rendered
+figures-rerun:
+	$(PY) scripts/render_figures.py rerun
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -84,3 +85,40 @@ def test_store_records_the_provenance(tmp_path):
     assert stored["provenance"] == {"command": "pcc bench crop", "commit": "abc1234", "date": "2026-11-28 14:31",
                                     "machine": {"cpu_count": 2, "other_processes_cores": 0.004}}
     assert "idle)" in figures.provenance(stored, "bench-x")
+
+
+def test_a_result_no_figure_renders_is_named(copy):
+    (copy / figures.RESULTS / "stray.json").write_text("{}")
+    assert f"{figures.RESULTS / 'stray.json'} is rendered by no figure" in figures.check(copy)
+
+
+def test_json_output_is_the_last_json_of_the_command():
+    assert figures.json_output("pcc synth --out a && pcc eval detections --json out/x.json --plot p.png") == \
+        Path("out/x.json")
+    assert figures.json_output("pcc bench crop --repeat 30") is None
+
+
+def test_rerun_runs_the_recorded_command_and_stores_its_output(tmp_path):
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "--allow-empty", "-m", "x"],
+                   cwd=tmp_path, check=True)
+    (tmp_path / "new.json").write_text(json.dumps({"rows": [1, 2]}))
+    command = "cp new.json res.json && true --json res.json"  # `true` ignores its arguments
+    (tmp_path / "old.json").write_text(json.dumps({"rows": [1]}))
+    figures.store(tmp_path, "x", tmp_path / "old.json", command)
+    assert figures.rerun(tmp_path, ["x"]) == [tmp_path / figures.RESULTS / "x.json"]
+    stored = json.loads((tmp_path / figures.RESULTS / "x.json").read_text())
+    assert stored["rows"] == [1, 2] and stored["provenance"]["command"] == command
+    with pytest.raises(SystemExit, match="no stored result matches"):
+        figures.rerun(tmp_path, ["nothing-*"])
+
+
+def test_a_typed_table_of_measurements_is_named_unless_a_dated_record(copy):
+    doc = copy / "docs" / "typed.md"
+    typed = "| backend | CD-L1 |\n| --- | --- |\n| a | 0.123 |\n| b | **4.5 ms** |\n"
+    doc.write_text("# x\n\n" + typed)
+    assert any("typed.md:3: a table of measured values typed by hand" in p for p in figures.check(copy))
+    doc.write_text("# x\n\nA dated record of commit abc1234:\n\n" + typed)
+    assert not any("typed.md" in p for p in figures.check(copy))
+    doc.write_text("# x\n\n| setting | default |\n| --- | --- |\n| `workers` | `2` |\n| `rate` | 0.5 |\n")
+    assert not any("typed.md" in p for p in figures.check(copy))  # one number is not a table of figures

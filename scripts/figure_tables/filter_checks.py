@@ -1,0 +1,313 @@
+"""docs/filter.md's checks of the detection filter: ``pcc eval detections --json`` on the real and
+simulated frames (nuScenes, KITTI + PointRCNN, SynthCars per sensor) and ``pcc calibrate-filter
+--json`` (the shipped default across sensors, the KITTI preset), stored under ``docs/results/``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .base import Figure, one, pct, table
+
+#: The simulated sensors of the per-kind check, in the docs' column order.
+SENSORS = ("hdl64", "vlp16", "vlp32c", "os1_64")
+#: The false-positive kinds of SynthCars' simulated detector, and the real frames' false detections.
+KINDS = ("confusion", "ghost", "far", "misplaced")
+#: The trapcc rule's completion backends, as the eval-on-KITTI table lists them.
+TRAPCC_BACKENDS = ("pointpncnet", "trapcc", "aml")
+BUDGET = "false_removed_at_0.02_lost"
+
+
+def _synth(sensor: str) -> str:
+    return f"filter-synth-{sensor}"
+
+
+def _share(count: int, total: int) -> str:
+    return f"{pct(count / total)} ({count} / {total})" if total else "-"
+
+
+def _by_sensor(results: dict[str, dict[str, Any]], value) -> str:
+    return " / ".join(value(results[_synth(s)]) for s in SENSORS)
+
+
+# --------------------------------------------------------------------------- the nuScenes check
+
+
+def _nuscenes_summary(d: dict[str, Any]) -> str:
+    c = d["configured"]
+    cars = d["true"]
+    lost = [round(v["true_lost"] * cars) for v in d["by_score"].values()]
+    scores = "-".join(str(s) for s in (min(d["by_score"]), max(d["by_score"])))
+    seen = "; ".join(f"its car with {car['returns']} returns {car['status']} (p_false {car['p_false']:.3f})"
+                     for car in d["well_seen_cars"])
+    return (f"{max(lost)} / {cars} cars lost at any score {scores}; {seen}; non-vehicle boxes removed "
+            f"**{pct(c['non_vehicle_removed'])}** ({pct(c['non_vehicle_removed_without_overlap'])} without the "
+            f"`overlap` term), free ground {pct(c['free_ground_removed'])}; ranked by p_false "
+            f"{pct(d['methods']['filter'][BUDGET])} of all false boxes go at <= 2 % cars lost (points in the box: "
+            f"{pct(d['methods']['points-in-box'][BUDGET])})")
+
+
+# --------------------------------------------------------------------------- SynthCars per kind
+
+
+# --------------------------------------------------------------------------- what the shipped rule was checked on
+
+
+def _held_out(d: dict[str, Any]) -> str:
+    """Held-out figures of either calibration JSON (across sensors: ``false_removed``; the KITTI
+    path: ``false_removed_at_fold_threshold``)."""
+    removed = d.get("false_removed", d.get("false_removed_at_fold_threshold"))
+    lost = d.get("true_lost", d.get("true_lost_at_fold_threshold"))
+    return (f"{pct(removed)} removed, {round(lost * d['true'])} / {d['true']} lost at the fold thresholds; "
+            f"AUC {d['auc_false_above_true']:.3f} ({pct(d[BUDGET + '_best'])} at the best threshold for <= 2 % lost)")
+
+
+def render_checked_on(results: dict[str, dict[str, Any]]) -> list[str]:
+    """The shipped rule on every set it was checked on: one row per data set."""
+    nus, default, kitti = results["filter-nuscenes"], results["filter-calibration"], results["calibrate-kitti"]
+
+    def synth(field: str) -> str:
+        return _by_sensor(results, lambda d: pct(d["per_kind"]["configured"][field]))
+
+    def kind(name: str) -> str:
+        return _by_sensor(results, lambda d: pct(d["per_kind"]["configured"]["per_group_removed"].get(name, 0)))
+
+    s = results[_synth(SENSORS[0])]
+    rows = [
+        [f"nuScenes, {nus['frames']} key frame (real)", "HDL-32E, ring field",
+         f"none: boxes on the annotations, every score {nus['score']}", _nuscenes_summary(nus)],
+        [f"SynthCars, held-out seed 99, {s['frames']} frames per sensor", " / ".join(SENSORS) + " (simulated)",
+         "simulated, four false-positive kinds",
+         f"true lost {synth('true_lost')}; false removed {synth('false_removed')} (points in the box at <= 2 % "
+         f"lost: {_by_sensor(results, lambda d: pct(d['per_kind']['methods']['points-in-box'][BUDGET]))}); "
+         f"confusions {kind('confusion')}; misplaced {kind('misplaced')}"],
+        [f"KITTI tracking 0000, {sum(len(f['frames']) for f in kitti['cross_validation']['folds'])} frames (real)",
+         "HDL-64E",
+         "PointRCNN", f"held out by blocks of 4 frames: {_held_out(default['cv_real_frames'])}"],
+        ["the same, with the KITTI preset's rule (`config/detection_filter_kitti.yaml`'s command, score term "
+         "included)", "HDL-64E", "PointRCNN", f"held out ({len(kitti['cross_validation']['folds'])} folds): "
+         f"{_held_out(kitti['cross_validation']['held_out'])}"],
+    ]
+    return table(["data", "sensor (beam model `auto`)", "detector", "result, shipped default"], rows)
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+def _weights(d: dict[str, Any]) -> str:
+    named = ", ".join(f"{term} {w:+.3f}" for term, w in d["weights"].items() if w)
+    zero = ", ".join(term for term, w in d["weights"].items() if not w)
+    return f"bias {d['bias']:+.3f}, {named}" + (f"; 0: {zero}" if zero else "")
+
+
+def render_calibration_kitti(results: dict[str, dict[str, Any]]) -> list[str]:
+    """The KITTI + PointRCNN calibration: rows, weights, threshold, in-sample and held-out figures,
+    and the same fitted on the physics terms alone."""
+    d, physics = results["calibrate-kitti"], results["calibrate-kitti-physics"]
+    names = {"real": "real", "synth": "SynthCars", "object": "KITTI object"}
+    held, held_physics = d["cross_validation"]["held_out"], physics["cross_validation"]["held_out"]
+
+    def held_out(h: dict[str, Any]) -> str:
+        lost = h["true_lost_at_fold_threshold"]
+        return (f"{pct(h['false_removed_at_fold_threshold'])} of false removed, {pct(lost)} "
+                f"({round(lost * h['true'])} of {h['true']}) true lost at each fold's own "
+                f"threshold; at the best threshold {pct(h[BUDGET + '_best'])} removed at <= 2 % lost; "
+                f"P(false scores above true) {h['auc_false_above_true']:.3f}")
+
+    in_sample = " / ".join(names[k] for k in d["in_sample"])
+    rows = [
+        ["rows", "; ".join(f"{names[k]} {v['true']:,} true / {v['false']} false" for k, v in d["rows"].items())],
+        ["weights (per unit of each term)", _weights(d)],
+        ["`reject_threshold` (loses at most `--max-lost` "
+         f"{pct(d['max_lost'])} of the calibration set's true detections)", f"{d['threshold']:.3f}"],
+        [f"in-sample: {in_sample}",
+         " / ".join(pct(v["false_removed_at_threshold"]) for v in d["in_sample"].values()) + " of false removed at "
+         + " / ".join(pct(v["true_lost_at_threshold"]) for v in d["in_sample"].values()) + " of true lost"],
+        [f"**held-out real ({len(d['cross_validation']['folds'])} folds)**", held_out(held)],
+        [f"physics terms only (`--terms {','.join(physics['terms'])}`)", f"held-out real: {held_out(held_physics)}; "
+         f"SynthCars in-sample P(false above true) {physics['in_sample']['synth']['auc_false_above_true']:.3f}"],
+    ]
+    return table(["", "value"], rows)
+
+
+def _cv(d: dict[str, Any]) -> str:
+    return f"{pct(d['false_removed'])} at {pct(d['true_lost'])} lost, AUC {d['auc_false_above_true']:.3f}"
+
+
+def render_term_auc(results: dict[str, dict[str, Any]]) -> list[str]:
+    """Each measured term alone: AUC of a kind's boxes scoring above the true cars, on the calibration
+    rows / on held-out rows of seed 99 (the real frames only in the first)."""
+    d, s99 = results["filter-calibration"], results["calibrate-s99"]
+    real = "real false" in next(iter(d["term_auc"].values()))
+
+    terms = [t for t in d["term_auc"] if t not in ("density", "free_space", "ground_gap", "score", "mismatch")]
+
+    def row(term: str) -> list[str]:
+        label = f"(`{term}`, for scale)" if term == "free_space" else f"`{term}`"
+        cells = [f"{d['term_auc'][term][k]:.3f} / {s99['term_auc'][term][k]:.3f}" for k in KINDS]
+        return [label, *cells, *([f"{d['term_auc'][term]['real false']:.3f}"] if real else [])]
+
+    header = ["term (AUC: 0.5 chance, 1 every false box above every true car)", *KINDS,
+              *(["KITTI false"] if real else [])]
+    return table(header, [row(term) for term in (*terms, "free_space")])
+
+
+# --------------------------------------------------------------------------- pcc eval detections on KITTI and SynthCars
+
+
+def _configured(d: dict[str, Any]) -> str:
+    s = d["shipped_threshold"]
+    return (f"{pct(s['false_removed_share'])} ({s['false_removed']} / {s['false_removed'] + s['false_kept']}), "
+            f"{s['true_lost']} true lost; precision {s['precision_before']:.3f} -> {s['precision_after']:.3f}")
+
+
+def render_eval_kitti(results: dict[str, dict[str, Any]]) -> list[str]:
+    """``pcc eval detections`` on the real KITTI frames with PointRCNN: AP before / after the filter,
+    the operating points against the trivial baselines, the TraPCC rule per backend, the cost."""
+    d = results["filter-kitti"]
+    ap = table([f"KITTI AP_R40, {' + '.join(d['gt_classes'])}, moderate (higher is better)", "before", "after"],
+               [[metric.replace("3d", "3D").replace("bev", "BEV").replace("@", " @ "),
+                 f"{d['ap_before'][metric]['moderate']:.2f}", f"{d['ap_after'][metric]['moderate']:.2f}"]
+                for metric in ("3d@0.7", "3d@0.5", "bev@0.7", "bev@0.5")])
+    ops = d["operating_points"]
+    trapcc = [results[f"filter-kitti-trapcc-{b}"] for b in TRAPCC_BACKENDS]
+    rows = [
+        ["**filter, configured threshold**", f"**{_configured(d)}**"],
+        ["filter, best threshold", pct(ops["filter"][BUDGET])],
+        [f"points in box, best threshold (<= {ops['points-in-box']['threshold']:.0f} points)",
+         pct(ops["points-in-box"][BUDGET])],
+        ["detector score, best threshold", pct(ops["detector score"][BUDGET])],
+        [f"TraPCC rule (`--rule trapcc --backend B`), B = {' / '.join(TRAPCC_BACKENDS)}",
+         " / ".join(pct(t["operating_points"]["filter"][BUDGET]) for t in trapcc) + " (P(false above true) "
+         + " / ".join(f"{t['operating_points']['filter']['auc_false_above_true']:.2f}" for t in trapcc) + ")"],
+    ]
+    cost = (f"Filter cost, as the command prints it: {d['filter_ms_mean']:.1f} ms per frame against "
+            f"{d['complete_ms_mean']:.1f} ms for the configured completion stage (means over the "
+            f"{d['frames']} frames, on a machine whose load this command does not record: the timed figures are "
+            "`pcc bench filter`'s, below).")
+    return [*ap, "", *table([f"{d['false']} false / {d['true']} true detections", "false removed at <= 2 % true lost"],
+                            rows), "", cost]
+
+
+def render_eval_synthcars(results: dict[str, dict[str, Any]]) -> list[str]:
+    """A SynthCars sequence the calibration never saw: the KITTI preset against a rule calibrated for the
+    simulated detector, with the trivial baselines."""
+    preset, calibrated = results["filter-synthcars-kitti-preset"], results["filter-synthcars-calibrated"]
+
+    def ap(d: dict[str, Any]) -> str:
+        return f"{d['ap_before']['3d@0.7']['moderate']:.2f} -> {d['ap_after']['3d@0.7']['moderate']:.2f}"
+
+    def configured(d: dict[str, Any]) -> str:
+        s = d["shipped_threshold"]
+        return f"{pct(s['false_removed_share'])} removed, {pct(s['true_lost_share'])} true lost"
+
+    ops = preset["operating_points"]
+    rows = [
+        ["KITTI preset (PointRCNN scale)", pct(ops["filter"][BUDGET]), configured(preset), ap(preset)],
+        ["calibrated for this detector", pct(calibrated["operating_points"]["filter"][BUDGET]),
+         configured(calibrated), ap(calibrated)],
+        ["points in box", pct(ops["points-in-box"][BUDGET]), "", ""],
+        ["detector score", pct(ops["detector score"][BUDGET]), "", ""],
+    ]
+    header = [f"SynthCars seed 99, {preset['true']} true / {preset['false']} false",
+              "false removed at <= 2 % lost, best threshold (higher is better)", "configured threshold",
+              "AP40 3D @ 0.7 moderate, before -> after"]
+    return table(header, rows)
+
+
+# ---------------------------------------------------- the shipped rule's checks (per kind, nuScenes, calibration)
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else pct(value)
+
+
+def render_filter_synth(results: dict[str, dict[str, Any]]) -> list[str]:
+    """Per false-positive kind and held-out simulated sensor: removed at the configured threshold
+    (the filter and points-in-box at their best threshold for <= 2 % lost), and the true cars lost."""
+    kinds = {s: results[f"filter-synth-{s}"]["per_kind"] for s in SENSORS}
+
+    def cell(k: dict[str, Any], kind: str) -> str:
+        n = k["configured"]["per_group_count"].get(kind)
+        if not n:
+            return "none"
+        best, pib = (k["methods"][m]["per_group_removed"][kind] for m in ("filter", "points-in-box"))
+        return f"{_pct(k['configured']['per_group_removed'][kind])} ({_pct(best)} / {_pct(pib)}) of {n}"
+
+    rows = [[kind, *(cell(kinds[s], kind) for s in SENSORS)] for kind in ("confusion", "ghost", "far",
+                                                                               "misplaced")]
+    rows.append(["all false", *(f"{_pct(k['configured']['false_removed'])} "
+                                f"({_pct(k['methods']['filter']['false_removed_at_0.02_lost'])} / "
+                                f"{_pct(k['methods']['points-in-box']['false_removed_at_0.02_lost'])})"
+                                for k in kinds.values())])
+    rows.append(["**true cars lost** (by kind label)", *(f"**{k['configured']['true_lost_count']} / {k['true']}** "
+                                                          f"({_pct(k['configured']['true_lost'])})"
+                                                          for k in kinds.values())])
+    return table(["kind: configured (filter at the budget / points-in-box)", *SENSORS], rows)
+
+
+def render_filter_nuscenes(d: dict[str, Any]) -> list[str]:
+    """The nuScenes check per group: removed at the configured threshold, and by the filter and by
+    points-in-box at their best threshold for <= 2 % of the cars lost; then the headline figures."""
+    conf, methods = d["configured"], d["methods"]
+    rows = [[g, conf["per_group_count"][g], _pct(conf["per_group_removed"][g]),
+             _pct(methods["filter"]["per_group_removed"][g]), _pct(methods["points-in-box"]["per_group_removed"][g])]
+            for g in sorted(conf["per_group_count"])]
+    cars = "; ".join(f"car with {c['returns']} returns at {c['range_m']} m: p_false {c['p_false']:.3f}, {c['status']}"
+                     for c in d["well_seen_cars"])
+    return [*table(["false group", "boxes", "configured", "filter, best for <= 2 % lost", "points-in-box, same"],
+                   rows), "",
+            f"Non-vehicle boxes removed at the configured threshold: **{_pct(conf['non_vehicle_removed'])}** "
+            f"({_pct(conf.get('non_vehicle_removed_without_overlap'))} without the `overlap` term); free ground "
+            f"{_pct(conf['free_ground_removed'])}; cars lost {conf['true_lost_count']} / {d['true']}; {cars}."]
+
+
+def render_filter_calibration(results: dict[str, dict[str, Any]]) -> list[str]:
+    """``pcc calibrate-filter --sim-sensors``: weights, leave-one-sensor-out and leave-one-sequence-out
+    figures at each fold's own threshold, the ablation; beside it the same fit offered the shape term."""
+    d, shape = results["filter-calibration"], results["filter-calibration-shape"]
+
+    def weights(r: dict[str, Any]) -> str:
+        return ", ".join(f"{t} {w:+.2f}" for t, w in r["weights"].items() if w) + f"; bias {r['bias']:+.2f}, " \
+            f"threshold {r['threshold']:.3f}"
+
+    def folds(r: dict[str, Any]) -> str:
+        return "; ".join(f"{s}: {_pct(f['false_removed'])} removed at {_pct(f['true_lost'])} lost, confusions "
+                         f"{_pct(f['per_kind'].get('confusion', {}).get('removed'))}"
+                         for s, f in r["cv_by_sensor"]["folds"].items())
+
+    def kinds(r: dict[str, Any]) -> str:
+        p = r["cv_by_sequence"]["pooled"]
+        return ", ".join(f"{k} {_pct(v['removed'])}" for k, v in p["per_kind"].items()) + \
+            f" ({_pct(p['true_lost'])} true lost; AUC {p['auc_false_above_true']:.3f})"
+
+    m = shape["mismatch"]
+    rows = [["weights", weights(d), weights(shape)],
+            ["held-out sensor (fold threshold)", folds(d), folds(shape)],
+            ["held-out sequences, per kind", kinds(d), kinds(shape)],
+            ["held-out real KITTI frames", _pct(d["cv_real_frames"]["false_removed"]) + " removed, "
+             + _pct(d["cv_real_frames"]["true_lost"]) + " lost", _pct(shape["cv_real_frames"]["false_removed"])
+             + " removed, " + _pct(shape["cv_real_frames"]["true_lost"]) + " lost"],
+            ["ablation: held-out AUC the term brings", ", ".join(f"{t} {a['auc_change']:+.3f}"
+                                                                 for t, a in d["ablation"].items()),
+             f"mismatch {m['confusion_auc_contribution']:+.3f} on confusions ({m['confusion_auc_held_out_without']:.3f}"
+             f" -> {m['confusion_auc_held_out_with']:.3f}); alone {m['auc_alone_confusion_vs_true']:.3f}"]]
+    return table(["", "shipped rule (`--terms " + ",".join(d["terms"]) + "`)", "offered the shape (`+mismatch`)"],
+                 rows)
+
+
+# --------------------------------------------------------------------------- the blocks
+
+
+FIGURES: dict[str, Figure] = {
+    "filter-checked-on": Figure(("filter-nuscenes", *(_synth(s) for s in SENSORS), "filter-calibration",
+                                 "calibrate-kitti"), render_checked_on),
+    "filter-nuscenes": one("filter-nuscenes", render_filter_nuscenes),
+    "filter-synth": Figure(tuple(_synth(s) for s in SENSORS), render_filter_synth),
+    "filter-calibration": Figure(("filter-calibration", "filter-calibration-shape"), render_filter_calibration),
+    "filter-calibration-kitti": Figure(("calibrate-kitti", "calibrate-kitti-physics"), render_calibration_kitti),
+    "filter-term-auc": Figure(("filter-calibration", "calibrate-s99"), render_term_auc),
+    "filter-eval-kitti": Figure(("filter-kitti", *(f"filter-kitti-trapcc-{b}" for b in TRAPCC_BACKENDS)),
+                                render_eval_kitti),
+    "filter-eval-synthcars": Figure(("filter-synthcars-kitti-preset", "filter-synthcars-calibrated"),
+                                    render_eval_synthcars),
+}
