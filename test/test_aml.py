@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from pcc_ros.errors import CheckpointError
 from pcc_ros.geometry.partitions import grid_bounds, voxelize
 from pcc_ros.geometry.voxels import (
     AML_GRID,
@@ -32,6 +33,7 @@ from pcc_ros.models.aml import (
     space_to_depth,
 )
 from pcc_ros.models.base import SceneContext
+from pcc_ros.models.checkpoint import load_checkpoint
 from pcc_ros.types import Boxes
 
 
@@ -493,3 +495,49 @@ def test_decode_density_samples_denser_and_odd_boxes_are_clipped():
     wide = Boxes(np.zeros((1, 3)), np.array([[1.8, 5.4, 1.5]]), np.zeros(1), np.array(["Car"], object))
     ctx = SceneContext(box=wide, neighbour_boxes=wide[np.array([], int)])
     np.testing.assert_allclose(box_aspects([ctx, None])[:, 1], [2 * DEFAULT_ASPECT[1], DEFAULT_ASPECT[1]])
+
+
+def test_encoder_init_warm_starts_only_the_encoder(tmp_path):
+    torch.manual_seed(0)
+    AML(device="cpu").save(tmp_path / "prior.safetensors", training={"stage": "prior"})
+    torch.manual_seed(1)
+    other = AML(device="cpu")
+    other.save(tmp_path / "other.safetensors", training={"stage": "encoder"})
+    recipe = AMLRecipe(stage="encoder", prior=str(tmp_path / "prior.safetensors"), lam=1.0,
+                       encoder_init=str(tmp_path / "other.safetensors"))
+    net = recipe.build_completer("cpu").model
+    for k, v in net.encoder.state_dict().items():
+        torch.testing.assert_close(v, other.model.encoder.state_dict()[k])
+    prior_state = load_checkpoint(tmp_path / "prior.safetensors")[0]
+    for k, v in net.decoder.state_dict().items():
+        torch.testing.assert_close(v, prior_state[f"decoder.{k}"])
+    bad = AMLRecipe(stage="encoder", prior=str(tmp_path / "prior.safetensors"), lam=1.0,
+                    encoder_init=str(tmp_path / "missing.safetensors"))
+    with pytest.raises(CheckpointError, match=r"missing\.safetensors"):
+        bad.build_completer("cpu")
+
+
+def test_reference_grids_cache_follows_the_dataset_not_its_path(tmp_path, monkeypatch):
+    """The voxelised shapes cached for one SynthCars root are reused for a copy of it elsewhere
+    (a lent machine), and stored compactly (float16 SDF, read back as float32)."""
+    import json
+    import shutil
+
+    from pcc_ros.models.aml import recipe as aml_recipe
+
+    root = tmp_path / "synth"
+    (root / "shapes" / "0000").mkdir(parents=True)
+    (root / "meta.json").write_text(json.dumps({"splits": {"train": ["0000"], "test": []}}))
+    rng = np.random.default_rng(0)
+    for track in range(3):
+        d = rng.normal(size=(4000, 3))
+        surface = d / np.linalg.norm(d, axis=1, keepdims=True) * [0.45, 0.2, 0.17]
+        np.save(root / "shapes" / "0000" / f"{track}.npy", surface.astype(np.float32))
+    cache = tmp_path / "grids.npz"
+    first = AMLRecipe(stage="prior", reference_cache=str(cache)).open_data(root)
+    assert first.sdf.dtype == np.float32 and np.load(cache)["sdf"].dtype == np.float16
+    shutil.copytree(root, tmp_path / "elsewhere")
+    monkeypatch.setattr(aml_recipe, "synthcars_reference_shapes", lambda *a, **k: pytest.fail("recomputed"))
+    again = AMLRecipe(stage="prior", reference_cache=str(cache)).open_data(tmp_path / "elsewhere")
+    assert again.sdf.dtype == np.float32 and np.abs(again.sdf - first.sdf).max() < 5e-3
+    np.testing.assert_array_equal(again.occupancy, first.occupancy)

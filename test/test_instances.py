@@ -176,6 +176,20 @@ def test_multiview_groups(tmp_path):
     assert [len(g) for g in cache.multiview_groups(group_size=20, min_views=4)] == [20, 23]
 
 
+def test_detections_without_ids_group_by_their_matched_track(tmp_path):
+    """A detector gives no track ids: the training views group by the matched labelled track (a
+    tracker's association); evaluation's own track keys stay the detections' (none)."""
+    frames, _ = make_track_frames(n_frames=24)
+    for frame in frames:  # the detector finds the car (its box a little off) and nothing else
+        gt = frame.ground_truth
+        frame.detections = Boxes(gt.center[:1] + np.array([0.1, 0.0, 0.0]), gt.size[:1], gt.yaw[:1], label=["Car"],
+                                 track_id=[""], score=[0.9])
+    cache = extract_instances(frames, tmp_path / "det", ExtractConfig(boxes="detections"), progress=False)
+    assert (cache.meta["track"] == "").all() and (cache.meta["gt_track"] == "7").all()
+    assert all("/#" in k for k in cache.track_keys())  # unchanged: no ids of their own
+    assert [len(g) for g in cache.multiview_groups(group_size=20, min_views=4)] == [20, 4]
+
+
 def test_evenness_and_pools(tmp_path):
     rng = np.random.default_rng(1)
     whole = car_surface(5000, rng)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import configparser
+import os
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -133,3 +134,25 @@ def test_readme_rosdep_line_skips_every_pip_key_of_package_xml():
     line = re.search(r"rosdep install [^\n]*\\\n\s*--skip-keys \"([^\"]+)\"", (REPO / "README.md").read_text())
     assert line, "README: the rosdep install line with --skip-keys is gone"
     assert pip_keys and pip_keys <= set(line.group(1).split()), pip_keys - set(line.group(1).split())
+
+
+def test_a_named_command_imports_only_its_own_module(tmp_path):
+    """``pcc train ...`` runs where the bag libraries (rosbags, mcap), open3d, matplotlib or
+    scikit-image are missing, as on a lent training machine: only the named command's module is
+    imported."""
+    blocker = tmp_path / "sitecustomize.py"
+    blocker.write_text(  # those packages look not installed (find_spec -> None)
+        "from importlib.machinery import PathFinder\n"
+        "_find = PathFinder.find_spec\n"
+        "def _hide(name, path=None, target=None):\n"
+        "    if name.split('.')[0] in ('rosbags', 'mcap', 'open3d', 'rclpy', 'matplotlib', 'skimage'):\n"
+        "        return None\n"
+        "    return _find(name, path, target)\n"
+        "PathFinder.find_spec = staticmethod(_hide)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).resolve().parents[1])])}
+    out = subprocess.run([sys.executable, "-m", "pcc_ros.cli", "train", "--help"], capture_output=True, text=True,
+                         env=env)
+    assert out.returncode == 0 and "--max-minutes" in out.stdout, out.stderr
+    parser = build_parser(only="train")
+    commands = next(a for a in parser._actions if a.dest == "command").choices
+    assert list(commands) == ["train"]

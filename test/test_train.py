@@ -211,3 +211,14 @@ def test_every_trainable_backend_states_the_recipe_contract():
               if isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("hasattr", "getattr")
               and "recipe" in ast.unparse(node.args[0])]
     assert not probes, probes
+
+
+def test_max_minutes_stops_the_loop_and_saves_as_at_the_end(tiny_cache, tmp_path, caplog):
+    out = tmp_path / "budget"
+    with caplog.at_level("INFO", logger="pcc.train"):
+        assert main([*_argv(tiny_cache, out, "--iterations", "1000"), "--val-instances", "0",
+                     "--max-minutes", "0"]) == 0  # spent before the first step
+    assert "--max-minutes 0.0 spent at step 0 of 1000" in caplog.text
+    config = load_config(out / "pointpncnet.json")
+    assert config["training"]["steps"] == 0 and (out / "pointpncnet_last.safetensors").is_file()
+    load_completer("pointpncnet", out / "pointpncnet.safetensors", device="cpu")  # a usable checkpoint

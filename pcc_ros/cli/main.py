@@ -55,7 +55,10 @@ def available_commands() -> dict[str, tuple[str, str]]:
     return found
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``pcc`` parser. ``only``: just that command's sub-parser (what :func:`main` builds when a
+    command is named), so running ``pcc train`` imports the training modules and not every other
+    command's dependencies (bag I/O's rosbags / mcap, a machine without them trains all the same)."""
     parser = argparse.ArgumentParser(
         prog="pcc",
         description="pcc_ros offline tools: datasets, bags, training, evaluation, benchmarks.",
@@ -68,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="on an error, also print the Python traceback")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, text) in available_commands().items():
+        if only is not None and name != only:
+            continue
         module = importlib.import_module(module_name)
         summary = (module.__doc__ or text).strip().splitlines()[0]
         command = sub.add_parser(name, help=text, description=plain_text(summary))
@@ -84,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if tuple(argv[:2]) in NESTED:
         argv = [NESTED[tuple(argv[:2])], *argv[2:]]
-    parser = build_parser()
+    named = next((a for a in argv if not a.startswith("-")), None)  # the command, when one is given
+    parser = build_parser(only=named if named in COMMANDS else None)
     args, extra = parser.parse_known_args(argv)
     if extra:  # only commands that forward options to a sub-tool accept unknown ones
         if not hasattr(args, "passthrough"):

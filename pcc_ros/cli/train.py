@@ -56,6 +56,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="start from these weights (e.g. the shipped checkpoint; fresh optimizer), recorded in the config",
     )
     parser.add_argument(
+        "--max-minutes", type=float, default=None, metavar="M",
+        help="wall-clock budget: stop the loop after M minutes, then validate and save as at the end",
+    )
+    parser.add_argument(
         "--select-by", choices=("cd_l1", "fscore", "coverage"), default="cd_l1",
         help="validation metric that picks the shipped weights (best, not last; default cd_l1)",
     )
@@ -70,7 +74,7 @@ def train_config(args: argparse.Namespace) -> TrainConfig:
         device=args.device, split=args.split, val_split=args.val_split, val_instances=args.val_instances,
         val_every=args.val_every, checkpoint_every=args.checkpoint_every, min_points=args.min_points,
         threads=args.threads, progress=not args.no_progress, real_data=list(args.real_data),
-        real_share=args.real_share, init=args.init, select_by=args.select_by,
+        real_share=args.real_share, init=args.init, select_by=args.select_by, max_minutes=args.max_minutes,
     )
 
 

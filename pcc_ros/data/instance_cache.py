@@ -177,16 +177,21 @@ class InstanceCache:
             keep &= self.meta["split"] == split
         return np.flatnonzero(keep)
 
-    def track_keys(self) -> np.ndarray:
-        """``sequence/track`` per instance; instances without a track get a unique key."""
+    def track_keys(self, matched: bool = False) -> np.ndarray:
+        """``sequence/track`` per instance; instances without a track get a unique key. ``matched``:
+        a detection without a track id takes its matched ground-truth track (``gt_track``), the
+        association a tracker gives; the training views of a detector-box cache group by it."""
         seq, track = self.meta["sequence"], self.meta["track"]
+        if matched:
+            track = np.where(track != "", track, self.meta["gt_track"])
         own = np.char.add(np.char.add(seq, "/#"), np.arange(len(self)).astype(str))
         return np.where(track != "", np.char.add(np.char.add(seq, "/"), track), own)
 
-    def tracks(self, indices: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """Track key -> its instance indices ordered by frame (optionally within ``indices``)."""
+    def tracks(self, indices: np.ndarray | None = None, matched: bool = False) -> dict[str, np.ndarray]:
+        """Track key -> its instance indices ordered by frame (optionally within ``indices``;
+        ``matched``: see :meth:`track_keys`)."""
         idx = np.arange(len(self)) if indices is None else np.asarray(indices)
-        keys = self.track_keys()[idx]
+        keys = self.track_keys(matched)[idx]
         order = np.lexsort((self.meta["frame"][idx], keys))
         idx, keys = idx[order], keys[order]
         uniq, starts = np.unique(keys, return_index=True)
@@ -275,9 +280,11 @@ def multiview_groups(
 ) -> list[np.ndarray]:
     """PointPnCNet's groups: each track's observations in frame order, cut into runs of
     ``group_size`` sequential observations; runs shorter than ``min_views`` are dropped
-    (a short tail joins the previous run when that keeps it within 1.5 x ``group_size``)."""
+    (a short tail joins the previous run when that keeps it within 1.5 x ``group_size``).
+    Detections without a track id group by their matched ground-truth track (a tracker's
+    association; ``InstanceCache.track_keys(matched=True)``)."""
     groups: list[np.ndarray] = []
-    for key, obs in cache.tracks(indices).items():  # loop over tracks, vectorised inside
+    for key, obs in cache.tracks(indices, matched=True).items():  # loop over tracks, vectorised inside
         if "/#" in key or len(obs) < min_views:
             continue
         runs = [obs[s : s + group_size] for s in range(0, len(obs), group_size)]

@@ -1,5 +1,6 @@
 """Training losses of the completion networks: the asymmetric weighted Chamfer distance
-(PointPnCNet's Eq. 1, TraPCC's terms) on padded batches, and the masked mean they average with."""
+(PointPnCNet's Eq. 1, TraPCC's terms) on padded batches, the left / right symmetry term, and the
+masked mean they average with."""
 
 from __future__ import annotations
 
@@ -62,3 +63,17 @@ def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean of ``values`` where ``mask``; 0 (still differentiable) when nothing is selected."""
     m = mask.to(values.dtype)
     return (values * m).sum() / m.sum().clamp_min(1.0)
+
+
+def reflect_y(points: torch.Tensor) -> torch.Tensor:
+    """``points`` ``(..., 3)`` reflected across the box's x-z plane (``y -> -y``)."""
+    return points * torch.tensor([1.0, -1.0, 1.0], dtype=points.dtype, device=points.device)
+
+
+def symmetry_chamfer(points: torch.Tensor) -> torch.Tensor:
+    """Mean over rows of the symmetric Chamfer-L1 between ``points`` ``(B, M, 3)`` and their
+    reflection across the box's x-z plane: 0 for a left / right symmetric shape. A car is
+    symmetric, and no self-supervised target asks for the flank the sensor did not see."""
+    reflected = reflect_y(points)
+    full = torch.ones(reflected.shape[:-1], dtype=torch.bool, device=reflected.device)
+    return weighted_chamfer(reflected, full, points, 0.5).mean()

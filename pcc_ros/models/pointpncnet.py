@@ -48,7 +48,7 @@ from pcc_ros.models.base import (
     cache_origin,
     resample_cloud,
 )
-from pcc_ros.models.losses import masked_mean, weighted_chamfer
+from pcc_ros.models.losses import masked_mean, symmetry_chamfer, weighted_chamfer
 from pcc_ros.models.pointpncnet_network import (
     NUM_REGIONS,
     Packed,
@@ -340,10 +340,7 @@ def inpainting_loss(
     loss = global_loss + local_weight * local_loss
     stats = {"loss": 0.0, "global": float(global_loss.detach()), "local": float(local_loss.detach())}
     if symmetry_weight > 0:
-        flip = torch.tensor([1.0, -1.0, 1.0], dtype=y_global.dtype, device=y_global.device)
-        reflected = y_global * flip
-        symmetry = weighted_chamfer(reflected, torch.ones(reflected.shape[:-1], dtype=torch.bool,
-                                                          device=reflected.device), y_global, 0.5).mean()
+        symmetry = symmetry_chamfer(y_global)
         loss = loss + symmetry_weight * symmetry
         stats["symmetry"] = float(symmetry.detach())
     stats["loss"] = float(loss.detach())

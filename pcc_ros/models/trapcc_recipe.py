@@ -27,7 +27,7 @@ from torch import nn
 
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.models.base import aspect_scales
-from pcc_ros.models.losses import masked_mean, nearest, weighted_chamfer
+from pcc_ros.models.losses import masked_mean, nearest, reflect_y, symmetry_chamfer, weighted_chamfer
 from pcc_ros.models.recipe import CacheRecipe, CacheTrainOptions, TrainingKit, cache_origin
 from pcc_ros.models.trapcc import (
     GEOMETRY_FEATURES,
@@ -77,6 +77,12 @@ class TrainOptions(CacheTrainOptions):
     #: tight crops of the same recordings when the training inputs are cropped as the node crops
     #: (``pcc extract --node-crop``): inputs look like the node's, targets stay the car itself
     pool_data: list[str] = field(default_factory=list)
+    #: the left / right symmetry the one-flank inputs never show (``docs/pointpncnet.md``, "far side"):
+    #: ``mirror_targets`` joins each Whole-GT target with its reflection across the box's x-z plane,
+    #: ``symmetry_weight`` weighs the symmetric Chamfer-L1 between the detailed output and its own
+    #: reflection (0: off)
+    mirror_targets: bool = False
+    symmetry_weight: float = 0.0
 
 
 @dataclass
@@ -349,7 +355,10 @@ def trapcc_loss(net: nn.Module, batch: TrainBatch, options: TrainOptions) -> tup
     if 0 < options.detail_loss_points < detailed.shape[1]:  # a fresh random subset every step
         pick = torch.randperm(detailed.shape[1], device=detailed.device)[: options.detail_loss_points]
         sub = detailed[:, pick]
-    whole = chamfer(batch.whole, batch.whole_mask, sub, 0.5, squared)
+    target, target_mask = batch.whole, batch.whole_mask
+    if options.mirror_targets:
+        target, target_mask = torch.cat([target, reflect_y(target)], 1), torch.cat([target_mask, target_mask], 1)
+    whole = chamfer(target, target_mask, sub, 0.5, squared)
     has_whole = batch.whole_mask.any(-1)
     l_whole = masked_mean(whole, has_whole)
     l_input = masked_mean(one_sided(batch.inputs, batch.input_mask, detailed, squared), batch.input_mask.any(-1))
@@ -361,6 +370,10 @@ def trapcc_loss(net: nn.Module, batch: TrainBatch, options: TrainOptions) -> tup
         l_part = masked_mean(part, use)
         loss = loss + options.weight_partial * l_part
         stats["partial"] = float(l_part.detach())
+    if options.symmetry_weight > 0:
+        symmetry = symmetry_chamfer(sub)
+        loss = loss + options.symmetry_weight * symmetry
+        stats["symmetry"] = float(symmetry.detach())
     stats["loss"] = float(loss.detach())
     return loss, stats
 

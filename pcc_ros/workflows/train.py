@@ -95,6 +95,7 @@ class TrainConfig:
     real_share: float = 0.1
     init: Path | None = None
     select_by: str = "cd_l1"
+    max_minutes: float | None = None  # wall-clock budget of the loop: stop there, validate and save as at the end
 
 
 # --------------------------------------------------------------------------- helpers
@@ -129,10 +130,8 @@ def load_recipe(backend: str, size: str, options: dict[str, Any]) -> TrainingRec
 
 def _accepts(kind: Any, value: Any) -> bool | None:
     """Whether ``value`` fits the annotation ``kind`` (None: a kind this check does not know)."""
-    if kind is type(None):
-        return value is None
-    if kind is bool:
-        return isinstance(value, bool)
+    if kind is type(None) or kind is bool:
+        return value is None if kind is type(None) else isinstance(value, bool)
     if kind is int:
         return isinstance(value, int) and not isinstance(value, bool)
     if kind is float:  # JSON writes 1.0 as 1: an integer is a float option's value too
@@ -182,9 +181,7 @@ class Distributed:
     local_rank: int = 0
     world: int = 1
 
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
+    main = property(lambda self: self.rank == 0, doc="rank 0: the process that validates and writes")
 
     @classmethod
     def from_env(cls) -> Distributed:
@@ -275,12 +272,8 @@ def validate(completer: Any, instances: list[Any], seed: int) -> dict[str, float
 
 def validation_instances(cache: Any, split: str, count: int, seed: int) -> tuple[list[Any], str]:
     """A seeded subset of the validation split with its reference (ground truth or aggregate)."""
-    if count <= 0 or len(cache.indices(split)) == 0:
-        return [], "none"
-    return instances_from_cache(cache, split, count, seed)
-
-
-# --------------------------------------------------------------------------- plotting
+    empty = count <= 0 or len(cache.indices(split)) == 0
+    return ([], "none") if empty else instances_from_cache(cache, split, count, seed)
 
 
 def init_weights(completer: Any, path: Path) -> dict[str, Any]:
@@ -309,9 +302,11 @@ def machine_info() -> dict[str, Any]:
 
 def plot_log(records: list[dict[str, Any]], path: Path, title: str, best: dict[str, Any] | None = None,
              select_key: str = "val_cd_l1") -> None:
-    """Training loss (and its parts) and validation Chamfer-L1 against the step, as a PNG."""
-    import matplotlib
-
+    """Loss and validation curves against the step as a PNG; none where matplotlib is missing (log.jsonl)."""
+    try:
+        import matplotlib
+    except ImportError:
+        return log.info("matplotlib not installed: no %s (the curves are in log.jsonl)", path.name)
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -494,7 +489,7 @@ class TrainingRun:
         bar = tqdm(total=opts.iterations, initial=self.step, desc=f"train {opts.backend}", unit="step",
                    disable=not opts.progress or not dist.main)
         try:
-            while self.step < opts.iterations:
+            while self.step < opts.iterations and not self.out_of_time():
                 current_lr = learning_rate(self.lr, self.step, self.decay_every)
                 for group in self.optimizer.param_groups:
                     group["lr"] = current_lr
@@ -528,6 +523,13 @@ class TrainingRun:
             raise
         finally:
             bar.close()
+        if self.step < opts.iterations:
+            log.info("--max-minutes %s spent at step %d of %d", opts.max_minutes, self.step, opts.iterations)
+
+    def out_of_time(self) -> bool:
+        """``--max-minutes`` spent (a shared or lent machine's budget): the loop ends at this step."""
+        budget = self.opts.max_minutes
+        return budget is not None and time.perf_counter() - self.started >= 60.0 * budget
 
     def finish(self) -> dict[str, Any]:
         """The final validation and checkpoint; the process group left."""
@@ -547,9 +549,7 @@ class TrainingRun:
         """The validation record with the best selection metric (step 0, the initial weights, never)."""
         key = self.select_key
         vals = [r for r in self.records if key in r and np.isfinite(r[key]) and r["step"] > 0]
-        if not vals:
-            return None
-        return (min if self.lower_better else max)(vals, key=lambda r: r[key])
+        return None if not vals else (min if self.lower_better else max)(vals, key=lambda r: r[key])
 
     def save_weights(self, name: str, record: dict[str, Any]) -> None:
         """``OUT/<name>.safetensors`` with the run's settings, the recipe's summaries and ``record``'s metrics."""

@@ -11,6 +11,10 @@ __all__ = ["generate", "load_families", "load_shape"]
 
 def __getattr__(name: str):
     """Import the generator (and open3d) only when it is used, not on ``pcc --help``."""
+    if name in ("load_families", "load_shape"):  # file readers: no simulator (open3d) needed
+        from pcc_ros.data.synthetic import reading
+
+        return getattr(reading, name)
     if name in __all__:
         from pcc_ros.data.synthetic import generator
 

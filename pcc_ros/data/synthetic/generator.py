@@ -21,6 +21,7 @@ from tqdm import tqdm
 from pcc_ros.data.synthetic import writer
 from pcc_ros.data.synthetic.detector import DetectorParams, detect
 from pcc_ros.data.synthetic.lidar import Scan, Sensor, cast
+from pcc_ros.data.synthetic.reading import load_families, load_shape  # noqa: F401  (the package's names)
 from pcc_ros.data.synthetic.scene import (
     KIND_CLUTTER,
     KIND_GROUND,
@@ -283,40 +284,3 @@ def _write_sequence(out, name, index, split, street, seed, sensor, detector, lab
 def _ensure(path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     return path
-
-
-def load_shape(root: str | Path, sequence: str | int, track_id: str | int) -> np.ndarray | None:
-    """The complete canonical surface of a track, or ``None`` when the dataset has none.
-
-    Raises :class:`DataError` for a file that exists but is not a float (M, 3) array.
-    """
-    seq = f"{int(sequence):04d}" if str(sequence).isdigit() else str(sequence)
-    path = Path(root) / "shapes" / seq / f"{int(track_id)}.npy"
-    if not path.exists():
-        return None
-    try:
-        array = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise DataError(f"{path}: unreadable shape file ({exc})") from exc
-    if array.ndim != 2 or array.shape[1] != 3 or not np.issubdtype(array.dtype, np.floating):
-        raise DataError(f"{path}: expected a float (M, 3) array, got {array.dtype} {array.shape}")
-    if not np.isfinite(array).all():
-        raise DataError(f"{path}: non-finite coordinates")
-    return array.astype(np.float32, copy=False)
-
-
-def load_families(root: str | Path) -> dict[tuple[str, str], str]:
-    """``(sequence, track id) -> vehicle family`` (``sedan``, ``van``, ...) of a SynthCars root,
-    read from its ``meta.json`` (per-family evaluation); empty when the root has no meta.json or
-    it records no tracks (a hand-made root with splits only).
-
-    Raises :class:`DataError` for a meta.json that exists but cannot be read."""
-    path = Path(root) / "meta.json"
-    if not path.is_file():
-        return {}
-    try:
-        sequences = json.loads(path.read_text()).get("sequences", {})
-        return {(str(seq), str(track)): str(info["name"]) for seq, entry in sequences.items()
-                for track, info in entry.get("tracks", {}).items()}
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise DataError(f"{path}: unreadable SynthCars meta.json ({exc})") from exc

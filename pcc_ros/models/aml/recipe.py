@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -83,12 +84,16 @@ class AMLRecipe(TrainingRecipe):
                  real: str | None = None, real_repeat: int = 4, lambda_instances: int = 96,
                  lambda_steps: int = 40, beta: float = 1.0, augment: bool = True, max_shapes: int = 600,
                  reference_cache: str | None = None, real_split: str = "train", box_jitter: float = 0.06,
-                 lambda_real_weight: float = 0.5, lambda_holdout: float = 0.3) -> None:
+                 lambda_real_weight: float = 0.5, lambda_holdout: float = 0.3,
+                 encoder_init: str | None = None) -> None:
         if stage not in ("prior", "encoder"):
             raise ConfigError(f"aml: --stage must be prior or encoder, got {stage!r}")
         if stage == "encoder" and not prior:
             raise ConfigError("aml --stage encoder needs the prior: --option prior=RUN/aml.safetensors")
         self.size, self.stage, self.prior = size, stage, prior
+        #: encoder stage: start the observation encoder from this checkpoint's ``encoder.*`` weights
+        #: (e.g. the shipped AML after a prior fine-tune: a warm start in a nearby latent space)
+        self.encoder_init = encoder_init
         if isinstance(lambdas, str):
             lambdas = [float(v) for v in lambdas.split(",") if v.strip()]
         self.lambdas = [float(v) for v in lambdas]
@@ -122,7 +127,7 @@ class AMLRecipe(TrainingRecipe):
                 "augment": self.augment, "lambda_instances": self.lambda_instances,
                 "lambda_steps": self.lambda_steps, "max_shapes": self.max_shapes, "real_split": self.real_split,
                 "box_jitter": self.box_jitter, "lambda_real_weight": self.lambda_real_weight,
-                "lambda_holdout": self.lambda_holdout}
+                "lambda_holdout": self.lambda_holdout, "encoder_init": self.encoder_init}
 
     # ---- model
 
@@ -138,6 +143,13 @@ class AMLRecipe(TrainingRecipe):
             missing, unexpected = completer.model.load_state_dict(prior_state, strict=False)
             if unexpected or any(not k.startswith("encoder.") for k in missing):
                 raise CheckpointError(f"{self.prior}: prior weights do not fit ({missing[:3]} {unexpected[:3]})")
+            if self.encoder_init:
+                state, _ = load_checkpoint(self.encoder_init)
+                own = completer.model.state_dict()
+                encoder = {k: v for k, v in state.items() if k.startswith("encoder.")}
+                if not encoder or any(k not in own or own[k].shape != v.shape for k, v in encoder.items()):
+                    raise CheckpointError(f"{self.encoder_init}: no encoder weights of this model (encoder_init)")
+                completer.model.load_state_dict(encoder, strict=False)
             completer.model.freeze_decoder()
         self.completer = completer
         return completer
@@ -155,18 +167,26 @@ class AMLRecipe(TrainingRecipe):
         truncation = float(PRESETS[self.size]["truncation"])
         frame = str(PRESETS[self.size]["frame"])
         cache = Path(self.reference_cache) if self.reference_cache else None
-        stamp = f"{root.resolve()}|{self.max_shapes}|{truncation}|{frame}|{GRIDS[frame]}|sdf-voxel-steps"
+        # the root by its meta.json's content (seed, parameters, splits), not its path: a cache made
+        # here is reused where the same dataset lies elsewhere (another machine, a copied folder)
+        try:
+            content = hashlib.sha256((root / "meta.json").read_bytes()).hexdigest()[:16]
+        except OSError:
+            content = str(root.resolve())  # not a SynthCars root: synthcars_reference_shapes says so below
+        stamp = f"{content}|{self.max_shapes}|{truncation}|{frame}|{GRIDS[frame]}|sdf-voxel-steps|f16"
         if cache is not None and cache.is_file():
             with np.load(cache, allow_pickle=False) as z:
                 if str(z["stamp"]) == stamp:
                     log.info("aml: reference grids from %s", cache)
-                    return ReferenceSet(z["occupancy"], z["sdf"], [str(k) for k in z["keys"]])
+                    return ReferenceSet(z["occupancy"], z["sdf"].astype(np.float32), [str(k) for k in z["keys"]])
             log.info("aml: %s was made from other shapes or settings; recomputing", cache)
         ref = synthcars_reference_shapes(root, truncation, self.max_shapes, frame=frame)
         if cache is not None:
             cache.parent.mkdir(parents=True, exist_ok=True)
             with atomic_write(cache, "wb") as stream:
-                np.savez_compressed(stream, occupancy=ref.occupancy, sdf=ref.sdf, keys=np.array(ref.keys), stamp=stamp)
+                # the truncated SDF (|d| <= a few voxels) in float16: half the file, 1e-3 voxel steps
+                np.savez_compressed(stream, occupancy=ref.occupancy, sdf=ref.sdf.astype(np.float16),
+                                    keys=np.array(ref.keys), stamp=stamp)
         return ref
 
     def training_data(self, source: Any, split: str, min_points: int = 10) -> Any:
