@@ -39,6 +39,8 @@ BODY_MARGIN = 0.15
 RETURN_BINS = (0, 1, 5, 10, 20, 50, 100)
 #: Range bins, metres (lower edges; the last bin is open).
 RANGE_BINS = (0.0, 20.0, 40.0)
+#: Bins with fewer labelled cars than this are drawn hollow.
+FEW = 5
 #: "Fewer than" cuts of the true detections' returns.
 SPARSE_CUTS = (5, 10, 20)
 
@@ -92,7 +94,8 @@ def recall_table(rows: dict[str, np.ndarray]) -> dict[str, Any]:
 
 
 def plot(tables: dict[str, dict[str, Any]], path: Path) -> None:
-    """Recall by returns, one line per source (bins without labelled cars left out)."""
+    """Recall by returns and by range, one line per source (bins without labelled cars left out,
+    bins of fewer than :data:`FEW` cars hollow)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -103,7 +106,10 @@ def plot(tables: dict[str, dict[str, Any]], path: Path) -> None:
         for a, key in zip(ax, ("recall_by_returns", "recall_by_range")):
             labels = list(t[key])
             xs = [i for i, b in enumerate(labels) if t[key][b]["labelled"]]
-            a.plot(xs, [t[key][labels[i]]["recall"] for i in xs], "o-", label=f"{name} ({t['labelled']} cars)")
+            line, = a.plot(xs, [t[key][labels[i]]["recall"] for i in xs], "-", label=f"{name} ({t['labelled']} cars)")
+            for i in xs:  # hollow: a bin of fewer than FEW cars, a recall that says little
+                few = t[key][labels[i]]["labelled"] < FEW
+                a.plot(i, t[key][labels[i]]["recall"], "o", color=line.get_color(), mfc="none" if few else line.get_color())
             a.set_xticks(range(len(labels)), labels)
     ax[0].set_xlabel("returns on the labelled car (more than 0.15 m above its bottom)")
     ax[1].set_xlabel("range, m")
