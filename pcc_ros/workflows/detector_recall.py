@@ -108,8 +108,9 @@ def plot(tables: dict[str, dict[str, Any]], path: Path) -> None:
             xs = [i for i, b in enumerate(labels) if t[key][b]["labelled"]]
             line, = a.plot(xs, [t[key][labels[i]]["recall"] for i in xs], "-", label=f"{name} ({t['labelled']} cars)")
             for i in xs:  # hollow: a bin of fewer than FEW cars, a recall that says little
-                few = t[key][labels[i]]["labelled"] < FEW
-                a.plot(i, t[key][labels[i]]["recall"], "o", color=line.get_color(), mfc="none" if few else line.get_color())
+                colour = line.get_color()
+                fill = "none" if t[key][labels[i]]["labelled"] < FEW else colour
+                a.plot(i, t[key][labels[i]]["recall"], "o", color=colour, mfc=fill)
             a.set_xticks(range(len(labels)), labels)
     ax[0].set_xlabel("returns on the labelled car (more than 0.15 m above its bottom)")
     ax[1].set_xlabel("range, m")
