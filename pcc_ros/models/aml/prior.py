@@ -161,6 +161,8 @@ def whiten_latent(net: AMLNet, reference: ReferenceSet, truncation: float, chunk
     chol = torch.linalg.cholesky(cov)
     inv = torch.linalg.inv(chol)
     fc = net.decoder.fc
+    # the fit runs on the CPU in float64; the weights it folds into may live on a GPU
+    mean, chol, inv = (t.to(fc.weight.device) for t in (mean, chol, inv))
     w, b = fc.weight.double(), fc.bias.double()
     fc.bias.copy_((w @ mean + b).float())
     fc.weight.copy_((w @ chol).float())
@@ -169,7 +171,7 @@ def whiten_latent(net: AMLNet, reference: ReferenceSet, truncation: float, chunk
     head.weight[:q] = (inv @ wm).float()
     head.bias[:q] = (inv @ (bm - mean)).float()
     net.train(was)
-    return {"shapes": len(mu), "code_mean_norm": float(mean.norm()),
+    return {"shapes": len(mu), "code_mean_norm": float(mean.norm().cpu()),
             "code_std": [round(float(v), 4) for v in cov.diagonal().sqrt()]}
 
 
