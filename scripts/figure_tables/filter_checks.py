@@ -46,6 +46,18 @@ def _nuscenes_summary(d: dict[str, Any]) -> str:
             f"{pct(d['methods']['points-in-box'][BUDGET])})")
 
 
+def render_nuscenes_kitti_preset(d: dict[str, Any]) -> list[str]:
+    """docs/filter.md: the KITTI preset, as shipped, on the nuScenes frame (a sensor and a score
+    scale it was not calibrated for)."""
+    lost = ", ".join(f"{round(v['true_lost'] * d['true'])} / {d['true']} at score {s}"
+                     for s, v in sorted(d["by_score"].items()))
+    seen = "; ".join(f"the car with {car['returns']} returns {car['status']} (p_false {car['p_false']:.3f})"
+                     for car in d["well_seen_cars"])
+    return [f"The KITTI preset as shipped (`config/detection_filter_kitti.yaml`: HDL-64E beam table, score term "
+            f"fitted on PointRCNN's logits) on this frame rejects {lost} of the cars; {seen}."]
+
+
+
 # --------------------------------------------------------------------------- SynthCars per kind
 
 
@@ -302,6 +314,7 @@ FIGURES: dict[str, Figure] = {
     "filter-checked-on": Figure(("filter-nuscenes", *(_synth(s) for s in SENSORS), "filter-calibration",
                                  "calibrate-kitti"), render_checked_on),
     "filter-nuscenes": one("filter-nuscenes", render_filter_nuscenes),
+    "filter-nuscenes-kitti-preset": one("filter-nuscenes-kitti-preset", render_nuscenes_kitti_preset),
     "filter-synth": Figure(tuple(_synth(s) for s in SENSORS), render_filter_synth),
     "filter-calibration": Figure(("filter-calibration", "filter-calibration-shape"), render_filter_calibration),
     "filter-calibration-kitti": Figure(("calibrate-kitti", "calibrate-kitti-physics"), render_calibration_kitti),
