@@ -20,7 +20,14 @@ from pcc_ros.files import write_json, write_text
 from pcc_ros.pipeline.filter import TERMS, FilterConfig
 from pcc_ros.pipeline.parameters import CHOICES
 from pcc_ros.workflows.detection_eval import default_config, load_kitti, parse_frames
-from pcc_ros.workflows.filter_calibration import FIT_TERMS, PRESETS, calibrate, cross_validate, preset_yaml
+from pcc_ros.workflows.filter_calibration import (
+    FIT_TERMS,
+    PRESET_NOTES,
+    PRESETS,
+    calibrate,
+    cross_validate,
+    preset_yaml,
+)
 from pcc_ros.workflows.filter_sensors import DEFAULT_SENSORS, SENSOR_TERMS, parse_terms
 
 log = logging.getLogger(__name__)
@@ -137,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
         values = {"score_mapping": args.score_mapping, "sensor": args.sensor, **PRESETS[args.preset]}
         header += (
             f"# calibrated: preset {args.preset}, sensor {values['sensor']}, score_mapping {values['score_mapping']}\n"
-        )
+        ) + PRESET_NOTES.get(args.preset, "")
         text = preset_yaml(args.base_config or default_config(), result["bias"], result["weights"], result["threshold"],
                            values, header)
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -395,13 +395,26 @@ def preset_yaml(base: Path, bias: float, weights: np.ndarray, threshold: float, 
         for i, line in enumerate(lines):
             m = pattern.match(line)
             if m:
-                lines[i] = f"{m.group(1)}{key}: {text}{m.group(3) or ''}"
+                comment = VALUE_COMMENTS.get((key, value), m.group(3) or "")
+                lines[i] = f"{m.group(1)}{key}: {text}{comment}"
                 break
         else:
             lines.append(f"{indent}{key}: {text}")
     body = [line for line in lines if not line.startswith("# calibrated:")]
     return header + "\n".join(body) + "\n"
 
+
+#: A base line's trailing comment describes the base's value; where a preset writes another value
+#: whose meaning differs, this comment replaces it (keyed by parameter and written value).
+VALUE_COMMENTS: dict[tuple[str, Any], str] = {
+    ("sensor", "hdl64"): "                 # KITTI's HDL-64E datasheet table; auto: estimated from the scans",
+}
+
+#: The lines a preset's file opens with, after the command that wrote it: what it is for.
+PRESET_NOTES: dict[str, str] = {
+    "kitti": "# The KITTI + PointRCNN preset (score term in PointRCNN's logits: run with score_mapping:=sigmoid); the\n"
+             "# shipped default (detection_filter.yaml) is the sensor- and detector-agnostic rule (docs/filter.md).\n",
+}
 
 #: What a preset writes besides the fitted weights: sensor model and score mapping. Both write
 #: ``score_mapping: identity`` (the project's convention: shipped configs assume probabilities;
