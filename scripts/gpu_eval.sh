@@ -3,24 +3,26 @@
 # this machine (CPU), on data none of them trained on:
 #   1. real KITTI tracking 0000 (`pcc eval --real`, labelled boxes): published and generated-only
 #      completeness, the unseen half, lateral balance, consistency; the three-view PNG;
-#   2. the same frames with PointRCNN's boxes;
+#   2. the same frames with PointRCNN's boxes, and the observations it matched with the labels' boxes
+#      (what the detector's box errors cost each weights);
 #   3. SynthCars families, held-out seed 21 (true shapes): generated points and the published
 #      output (crop + generated, decode_density 2), per family;
-#   4. `pcc demo` on SynthCars seeds (the node on the simulated detector's boxes vs true shapes).
+#   4. `pcc demo` on SynthCars seeds (the node on the simulated detector's boxes vs true shapes);
+#   5. scripts/gpu_compare.py: old vs new per backend, and whether the ship gate holds.
 #
 #     bash scripts/gpu_eval.sh RETURNED OUTDIR [FAMILY_CACHE]
 #
 # RETURNED: the folder holding {pointpncnet,trapcc,aml}.{safetensors,json}; a missing one is
 # skipped. FAMILY_CACHE (default OUTDIR/fam_cache) is built once if absent. The shipped weights'
 # runs are reused when OUTDIR already holds them (their .json / demo log). Environment: PY,
-# SEEDS (demo seeds, default "2026 2027 2028"; empty: no demo), STEPS (default "1 2 3 4"), WHICH.
+# SEEDS (demo seeds, default "2026 2027 2028"; empty: no demo), STEPS (default "1 2 3 4 5"), WHICH.
 set -u
 RET=$(cd "${1:?usage: gpu_eval.sh RETURNED OUTDIR [FAMILY_CACHE]}" && pwd)
 OUTD=${2:?usage: gpu_eval.sh RETURNED OUTDIR [FAMILY_CACHE]}
 FAM=${3:-$OUTD/fam_cache}
 PY=${PY:-python3}
 SEEDS=${SEEDS-2026 2027 2028}
-STEPS=${STEPS:-1 2 3 4}
+STEPS=${STEPS:-1 2 3 4 5}
 WHICH=${WHICH:-shipped new}  # "shipped": precompute the reference runs alone
 P="$PY -m pcc_ros.cli"
 mkdir -p "$OUTD"
@@ -54,6 +56,11 @@ if step 2; then
       --real-detections ../shared/data/kitti_tracking/detections/pointrcnn --real-table "$OUTD/real_det_$w.md" \
       --json "$OUTD/real_det_$w.json" > "$OUTD/real_det_$w.log" 2>&1
     echo "== real, PointRCNN boxes, $w (exit $?)"; cat "$OUTD/real_det_$w.md"
+    [ $w = shipped ] && continue  # shipped: docs/results/eval-real-matched-labels.json
+    $P eval --real --real-sources ../shared/data/kitti_tracking --backends "$BACKENDS" "${extra[@]}" \
+      --real-detections ../shared/data/kitti_tracking/detections/pointrcnn --real-matched-labels \
+      --real-table "$OUTD/real_pair_$w.md" --json "$OUTD/real_pair_$w.json" > "$OUTD/real_pair_$w.log" 2>&1
+    echo "== real, PointRCNN's matches with the labels' boxes, $w (exit $?)"; cat "$OUTD/real_pair_$w.md"
   done
 fi
 if step 3; then
@@ -89,4 +96,7 @@ if step 4; then
       done
     done
   done
+fi
+if step 5 && [[ " $WHICH " == *" new "* ]]; then
+  $PY "$(dirname "$0")/gpu_compare.py" "$OUTD"
 fi

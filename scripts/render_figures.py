@@ -212,6 +212,8 @@ def store(root: Path, name: str, result: Path, command: str | None = None) -> Pa
     else the one a benchmark recorded), and the commit and date the benchmark recorded (``run``), else
     the checkout's commit and now."""
     data = json.loads(result.read_text(encoding="utf-8"))
+    if "skipped" in data:  # e.g. `pcc bench gpu` where there is no CUDA: the stored measurement stands
+        raise SystemExit(f"{result}: the run measured nothing ({data['skipped']}); {name} is not replaced")
     run = data.get("run") or {}
     command = command or run.get("command")
     if not command:
@@ -288,7 +290,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.action == "store-bench":
         for result in sorted(args.folder.glob("*.json")):
             if result.stem in STORED_BENCHMARKS:
-                print(store(ROOT, f"bench-{result.stem}", result))
+                skipped = json.loads(result.read_text(encoding="utf-8")).get("skipped")
+                print(f"{result}: measured nothing here ({skipped}); the stored bench-{result.stem} stays"
+                      if skipped else store(ROOT, f"bench-{result.stem}", result))
         return 0
     if args.check:
         problems = check(ROOT)

@@ -87,6 +87,18 @@ def test_store_records_the_provenance(tmp_path):
     assert "idle)" in figures.provenance(stored, "bench-x")
 
 
+def test_a_run_that_measured_nothing_leaves_the_stored_result(tmp_path):
+    """`pcc bench gpu` without CUDA writes only its reason: the H200's stored figures must stay."""
+    measured = tmp_path / "gpu.json"
+    measured.write_text(json.dumps({"rows": [1], "run": {"commit": "abc1234", "utc": "2026-11-28 17:07:21"}}))
+    stored = figures.store(tmp_path, "bench-gpu", measured, "pcc bench gpu")
+    before = stored.read_text()
+    measured.write_text(json.dumps({"skipped": "no CUDA device on this machine: nothing to measure"}))
+    with pytest.raises(SystemExit, match=r"measured nothing.*no CUDA device"):
+        figures.store(tmp_path, "bench-gpu", measured, "pcc bench gpu")
+    assert stored.read_text() == before
+
+
 def test_a_result_no_figure_renders_is_named(copy):
     (copy / figures.RESULTS / "stray.json").write_text("{}")
     assert f"{figures.RESULTS / 'stray.json'} is rendered by no figure" in figures.check(copy)

@@ -352,6 +352,29 @@ def render_bench_hostile(d: dict[str, Any]) -> list[str]:
     return table(header, rows)
 
 
+# ---- docs/nodes.md's GPU table: `pcc bench gpu` (run on a machine with CUDA; stored as measured there)
+
+
+def render_bench_gpu(d: dict[str, Any]) -> list[str]:
+    """Each learned backend's batch on CUDA (float32, ``half_precision``) against the same machine's CPU
+    completer: median ms per batch, the speed-up, and how far the outputs stray from the CPU's."""
+    by = {(r["backend"], r["batch"], r["setting"]): r for r in d["rows"]}
+    rows = []
+    for backend, batch in dict.fromkeys((r["backend"], r["batch"]) for r in d["rows"]):
+        cpu, fp32, fp16 = (by[(backend, batch, s)] for s in ("cpu", "cuda_fp32", "cuda_fp16"))
+        rows.append([backend, batch, f"{cpu['median_ms']:.1f}", f"{fp32['median_ms']:.1f}", f"{fp16['median_ms']:.1f}",
+                     ratio(cpu["median_ms"] / fp32["median_ms"]), ratio(cpu["median_ms"] / fp16["median_ms"]),
+                     f"{fp32['cd_l1_vs_cpu']:.1e} / {fp16['cd_l1_vs_cpu']:.1e}",
+                     "yes" if fp32["agrees"] and fp16["agrees"] else "**no**"])
+    header = ["backend", "batch", "CPU ms (median)", "CUDA float32 ms", "CUDA float16 ms",
+              "speed-up float32 (higher is better)", "speed-up float16", "largest CD-L1 vs CPU (float32 / float16)",
+              "within tolerance"]
+    run = d["run"]
+    where = (f"Measured on an {d['device']} (torch {d['torch']}) on {run['utc'][:10]}, against that machine's CPU "
+             f"completer on one thread; {d['inputs']}, medians of the interleaved rounds of `{run['command']}`.")
+    return [where, "", *table(header, rows)]
+
+
 FIGURES: dict[str, Figure] = {
     "bench-table": Figure(tuple(f"bench-{name}" for name in BENCH_ROWS), render_bench_table),
     "bench-messages": one("bench-messages", render_bench_messages),
@@ -367,4 +390,5 @@ FIGURES: dict[str, Figure] = {
     "bench-pipeline-scaling": one("bench-pipeline", render_pipeline_scaling),
     "bench-convert": one("bench-convert", render_bench_convert),
     "bench-hostile": one("bench-hostile", render_bench_hostile),
+    "bench-gpu": one("bench-gpu", render_bench_gpu),
 }
