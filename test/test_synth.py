@@ -236,6 +236,11 @@ def test_same_seed_same_bytes_and_resume(tmp_path, dataset):
     generate(root, sequences=2, frames=3, seed=SEED, sensor=LOW, progress=False)
     for rel in files:
         assert (dataset / rel).read_bytes() == (root / rel).read_bytes(), rel
+    # A finished dataset re-run as it was made writes nothing: every file keeps its time, so a
+    # cache extracted from it (its fingerprint reads the times) stays valid.
+    times = {rel: (root / rel).stat().st_mtime_ns for rel in files}
+    generate(root, sequences=2, frames=3, seed=SEED, sensor=LOW, progress=False)
+    assert {rel: (root / rel).stat().st_mtime_ns for rel in files} == times
     with pytest.raises(ConfigError):
         generate(root, sequences=2, frames=3, seed=SEED + 1, sensor=LOW, progress=False)
     other = tmp_path / "other"
