@@ -148,9 +148,29 @@ def _row_hostile(d: dict[str, Any]) -> list[str]:
                            and bounded["peak_alloc_mb"] < unbounded["peak_alloc_mb"])]
 
 
+def _row_startup(d: dict[str, Any]) -> list[str]:
+    starts = d["starts"]
+    node = {n: starts.get(f"built/{n}/cold") for n in ("completion_node", "detection_filter_node")}
+    warm = starts.get("built/completion_node/warm")
+    unbuilt = starts.get("unbuilt/completion_node/cold")
+    parts = [f"`{n}` {s['subscriptions_live_s']:.1f} s, {s['answered']}/{s['frames']} real KITTI frames answered"
+             f"{' from the first' if s['first_frame_answered'] else ''}" for n, s in node.items() if s]
+    figure = "cold start on a fresh read-only install: " + "; ".join(parts)
+    if warm:
+        figure += f"; warm {warm['subscriptions_live_s']:.1f} s"
+    if unbuilt:
+        figure += f"; without the kernels compiled at build time {unbuilt['subscriptions_live_s']:.1f} s"
+    figure += " ([docs/nodes.md](docs/nodes.md))"
+    ok = all(s and s["subscriptions_live_s"] <= 5.0 and s["first_frame_answered"] and s["answered"] == s["frames"]
+             for s in node.values())
+    return ["`pcc bench startup` (process start to live subscriptions, shipped YAML)", figure,
+            "<= 5 s, every frame answered from the first", met(ok)]
+
+
 BENCH_ROWS: dict[str, Callable[[dict[str, Any]], list[str]]] = {
     "messages": _row_messages, "synth": _row_synth, "convert": _row_convert, "crop": _row_crop,
     "complete": _row_complete, "filter": _row_filter, "pipeline": _row_pipeline, "hostile": _row_hostile,
+    "startup": _row_startup,
 }
 
 
