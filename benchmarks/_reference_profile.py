@@ -18,7 +18,15 @@ from pcc_ros.geometry.boxes import BoxCandidates, iou_bev
 from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.jit import compiled
 from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, angular_window
-from pcc_ros.pipeline.evidence_profile import ABOVE_REACH, FACE_MARGIN, PROFILE_TERMS, SHELL
+from pcc_ros.pipeline.evidence_profile import (
+    ABOVE_PRIOR_RETURNS,
+    ABOVE_REACH,
+    DEPTH_PRIOR,
+    DEPTH_PRIOR_RETURNS,
+    FACE_MARGIN,
+    PROFILE_TERMS,
+    SHELL,
+)
 from pcc_ros.types import Boxes
 
 BODY, ABOVE, SHELL_COL, AZ_MIN, AZ_MAX, DEPTH_SUM, TOP = range(7)
@@ -155,10 +163,11 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
     fill = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
     top = np.where(has, (out[:, TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0)
     terms = {
-        "above": n_above / (n_above + n_body + 1.0),
+        # the terms as the pipeline defines them now (their priors): only the pass is 24858c5's
+        "above": n_above / (n_above + n_body + ABOVE_PRIOR_RETURNS),
         "fill": fill,
         "spill": np.log((n_shell + 1.0) / (n_body + 1.0)),
-        "depth": (out[:, DEPTH_SUM] + 0.5) / (n_body + 1.0),
+        "depth": (out[:, DEPTH_SUM] + DEPTH_PRIOR * DEPTH_PRIOR_RETURNS) / (n_body + DEPTH_PRIOR_RETURNS),
         "top": top,
     }
     out_terms.update({k: v for k, v in terms.items() if k in wanted})
