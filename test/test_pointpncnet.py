@@ -14,14 +14,16 @@ from pcc_ros.geometry.partitions import octant_masks
 from pcc_ros.models import create, load_completer
 from pcc_ros.models.base import resample_cloud
 from pcc_ros.models.layers import FoldingDecoder, PCNEncoder, segment_max
-from pcc_ros.models.losses import weighted_chamfer
+from pcc_ros.models.losses import symmetry_chamfer, weighted_chamfer
 from pcc_ros.models.pointpncnet import (
     NUM_REGIONS,
     PRESETS,
+    PlaneView,
     PointPnCNet,
     TrainOptions,
     make_train_batch,
     pack,
+    plane_reflection,
     region_subsets,
     remove_regions,
     target_flags,
@@ -367,3 +369,43 @@ def test_shipped_checkpoint_completes_a_car():
     assert (out[:, 1] < -0.1).mean() > 0.1  # a real share of points on the unseen right side ...
     assert out[:, 1].min() < -0.15  # ... reaching out to where its flank is (y = -0.2)
     assert np.abs(out[:, 0]).max() < 0.8 and np.abs(out[:, 1]).max() < 0.5  # within a car-sized box
+
+
+def test_label_mirror_plane_puts_the_mirrored_target_on_the_true_far_side():
+    """A detector's box 0.1 (canonical units) to the car's left and turned 0.1 rad: the box-plane mirror
+    lands the seen flank's reflection off the car, the labelled box's plane (``PlaneView``) on the
+    true far flank, with the aspect scaling, through a flip, and in the symmetry term."""
+    rng = np.random.default_rng(5)
+    car = car_like(rng, 4000).astype(np.float64)  # the true car, symmetric about its own x-z plane
+    yaw, shift = 0.1, np.array([0.0, -0.1])  # the car's plane in the detector box's frame
+    c, s = np.cos(yaw), np.sin(yaw)
+    in_box = car.copy()
+    in_box[:, :2] = car[:, :2] @ np.array([[c, s], [-s, c]]) + shift
+    seen, far = in_box[car[:, 1] > 0.05], in_box[car[:, 1] < -0.05]
+    scales = np.array([1.0, 1.1, 0.9])
+    view = PlaneView(seen.astype(np.float32) * scales.astype(np.float32),
+                     plane_reflection(np.array([*shift, yaw]), scales))
+    options = TrainOptions(loss_points=4096, views=1, drop_prob=0.0, mirror_targets=True)
+
+    def far_half_error(batch) -> float:
+        """Median distance of the mirrored half of the target to the true far flank (metres / length)."""
+        pts = batch.target[batch.target_mask].numpy().astype(np.float64)
+        if batch.inputs.points.numpy()[:, 1].mean() < 0:  # a flipped group: back to the box's frame
+            pts[:, 1] *= -1
+        pts = pts[len(pts) // 2:] / scales
+        return float(np.median(np.sqrt(((pts[:, None] - far[None]) ** 2).sum(-1)).min(1)))
+
+    labelled = make_train_batch([[view]], PRESETS["default"], options, rng)
+    boxed = make_train_batch([[view.points]], PRESETS["default"], options, rng)
+    assert far_half_error(labelled) < 0.01  # the reflection is the true far flank
+    assert far_half_error(boxed) > 0.1  # the box's plane misses it by the box's error
+    assert labelled.reflection is not None and boxed.reflection is None
+    flips = make_train_batch([[view]], PRESETS["default"], TrainOptions(**{**options.__dict__, "flip_prob": 1.0}), rng)
+    assert flips.inputs.points.numpy()[:, 1].mean() < 0  # flipped; its car plane flipped with it
+    assert far_half_error(flips) < 0.01
+    # the symmetry term vanishes for a car symmetric about its labelled plane, not about the box's
+    whole = torch.from_numpy((in_box * scales).astype(np.float32))[None]
+    refl = torch.from_numpy(view.reflection)[None]
+    assert symmetry_chamfer(whole, refl) < 0.01 < symmetry_chamfer(whole)
+    with pytest.raises(ConfigError):
+        TrainOptions(mirror_plane="car")

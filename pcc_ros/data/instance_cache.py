@@ -204,6 +204,48 @@ class InstanceCache:
         ``pcc_ros.models`` needs no import of the data layer)."""
         return multiview_groups(self, indices, group_size, min_views)
 
+    def label_planes(self) -> np.ndarray:
+        """``(N, 3)`` per observation: the centre ``x, y`` (canonical units) and the yaw of its labelled
+        box in the observation's crop frame, NaN where unknown.
+
+        A crop of a labelled box is its own labelled box (``0, 0, 0``). A crop of a detector's box
+        (``pcc extract --boxes detections``) matched to a labelled track (``gt_track``) gets that
+        track's box of the same frame, read from the extraction's source (KITTI tracking layout,
+        ``label_02``): where the detector's box is offset or turned, the car's centre plane is not
+        the crop's x-z plane. Unmatched detections and sources without labels stay NaN. Only boxes
+        are read, never a complete shape."""
+        out = np.full((len(self), 3), np.nan)
+        if self.index.get("config", {}).get("boxes", "ground_truth") != "detections":
+            out[:] = 0.0
+            return out
+        from pcc_ros.data.kitti import KittiTracking  # the extraction's source, read on demand
+
+        matched = np.flatnonzero(self.meta["gt_track"] != "")
+        source = self.index.get("source")
+        if not len(matched) or not source or not Path(source).is_dir():
+            return out
+        data = KittiTracking(source)
+        for seq in np.unique(self.meta["sequence"][matched]):  # loop over sequences (a few)
+            rows = matched[self.meta["sequence"][matched] == seq]
+            try:
+                labels = data.labels(str(seq), data.calibration(str(seq)))
+            except (DataError, OSError) as exc:
+                raise DataError(f"{source}: labelled boxes of sequence {seq} unreadable ({exc})") from exc
+            if labels is None:
+                continue
+            for i in rows:  # loop over matched observations, a scalar lookup each
+                boxes = labels.get(int(self.meta["frame"][i]))
+                hit = np.flatnonzero(boxes.track_id == self.meta["gt_track"][i]) if boxes is not None else []
+                if not len(hit):
+                    continue
+                yaw = float(self.meta["box_yaw"][i])
+                c, s = np.cos(yaw), np.sin(yaw)
+                d = boxes.center[hit[0], :2] - self.meta["box_center"][i, :2]
+                length = float(self.meta["box_size"][i, 0])
+                rel = np.angle(np.exp(1j * (float(boxes.yaw[hit[0]]) - yaw)))
+                out[i] = [(c * d[0] + s * d[1]) / length, (-s * d[0] + c * d[1]) / length, rel]
+        return out
+
     def frame_groups(self, indices: np.ndarray | None = None) -> list[np.ndarray]:
         """Instances grouped by (sequence, frame): the neighbours TraPCC's scene graph needs."""
         idx = np.arange(len(self)) if indices is None else np.asarray(indices)

@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -199,6 +199,65 @@ class TrainOptions(CacheTrainOptions):
     #: ``symmetry_weight``: weight of the symmetric Chamfer-L1 between the global output and its own
     #: reflection (0: off).
     symmetry_weight: float = 0.0
+    #: the plane ``mirror_targets``, ``flip_prob`` and ``symmetry_weight`` reflect across. ``"box"``:
+    #: the crop box's x-z plane. ``"label"``: for a crop of a detector's box matched to a labelled
+    #: track (``pcc extract --boxes detections``), that track's labelled box's centre plane in the
+    #: crop's frame (``InstanceCache.label_planes``), so a completion learns the car's plane from the
+    #: returns instead of copying the detector's box error onto the far flank; other crops keep
+    #: their box's plane. Uses labelled boxes only, no complete shape.
+    mirror_plane: str = "box"
+
+    def __post_init__(self) -> None:
+        if self.mirror_plane not in ("box", "label"):
+            raise ConfigError(f"pointpncnet: mirror_plane must be 'box' or 'label', got {self.mirror_plane!r}")
+
+
+#: The reflection across the box's x-z plane as a ``(3, 4)`` affine map ``[M | t]``.
+BOX_REFLECTION = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 1, 0]], dtype=np.float32)
+
+
+class PlaneView(NamedTuple):
+    """A training view whose car's centre plane is not its box's: its points and the ``(3, 4)``
+    affine reflection ``[M | t]`` across that plane (in the view's frame, aspect scaling included)."""
+
+    points: np.ndarray
+    reflection: np.ndarray
+
+
+def plane_reflection(plane: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """The ``(3, 4)`` reflection across a vertical plane through canonical ``(x, y)`` = ``plane[:2]``
+    heading ``plane[2]`` (radians from the box's x axis), in a frame scaled per axis by ``scales``
+    (the box-aspect scaling): ``S R S^-1`` with offset ``S t``."""
+    x, y, yaw = (float(v) for v in plane)
+    n = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    r = np.eye(3) - 2.0 * np.outer(n, n)
+    t = 2.0 * (n[0] * x + n[1] * y) * n
+    s = np.asarray(scales, dtype=np.float64)
+    return np.concatenate([r * s[:, None] / s[None, :], (s * t)[:, None]], axis=1).astype(np.float32)
+
+
+def _points(view: np.ndarray | PlaneView) -> np.ndarray:
+    return view.points if isinstance(view, PlaneView) else view
+
+
+def _reflection(view: np.ndarray | PlaneView) -> np.ndarray:
+    return view.reflection if isinstance(view, PlaneView) else BOX_REFLECTION
+
+
+def _reflect(points: np.ndarray, reflection: np.ndarray) -> np.ndarray:
+    """``points`` (x, y, z first; other columns kept) mapped by the affine ``reflection``."""
+    out = np.array(points, copy=True)
+    out[:, :3] = points[:, :3] @ reflection[:, :3].T + reflection[:, 3]
+    return out
+
+
+def _flip(view: np.ndarray | PlaneView) -> np.ndarray | PlaneView:
+    """A view reflected across its box's x-z plane (F), its car's plane with it (F A F)."""
+    if not isinstance(view, PlaneView):
+        return mirror_y(view)
+    f = BOX_REFLECTION[:, :3]
+    m, t = view.reflection[:, :3], view.reflection[:, 3]
+    return PlaneView(mirror_y(view.points), np.concatenate([f @ m @ f, (f @ t)[:, None]], axis=1))
 
 
 def target_flags(points: np.ndarray, size: np.ndarray, margin: float, ground_margin: float) -> np.ndarray:
@@ -212,9 +271,10 @@ def target_flags(points: np.ndarray, size: np.ndarray, margin: float, ground_mar
     return (np.abs(p[:, 0]) <= half[0]) & (np.abs(p[:, 1]) <= half[1]) & (p[:, 2] >= low) & (p[:, 2] <= half[2])
 
 
-def view_targets(view: np.ndarray) -> np.ndarray:
+def view_targets(view: np.ndarray | PlaneView) -> np.ndarray:
     """The pseudo-ground-truth points of a training view: all of an ``(N, 3)`` view, the flagged
     rows of an ``(N, 4)`` one (fourth column: :func:`target_flags`, see ``target_margin``)."""
+    view = _points(view)
     return view if view.shape[1] == 3 else view[view[:, 3] > 0, :3]
 
 
@@ -246,11 +306,14 @@ class TrainBatch:
     local_mask: torch.Tensor  # (B, V, 8, L)
     region_present: torch.Tensor  # (B, V, 8) octants present in the original view (>= min points)
     view_mask: torch.Tensor  # (B, V) which views exist
+    reflection: torch.Tensor | None = None  # (B, 3, 4) each input's car plane (None: the box's x-z plane)
 
     def to(self, device: torch.device) -> TrainBatch:
         tensors = (self.target, self.target_mask, self.local_target, self.local_mask, self.region_present,
                    self.view_mask)
-        return TrainBatch(self.inputs.to(device), *(t.to(device, non_blocking=True) for t in tensors))
+        reflection = None if self.reflection is None else self.reflection.to(device, non_blocking=True)
+        return TrainBatch(self.inputs.to(device), *(t.to(device, non_blocking=True) for t in tensors),
+                          reflection=reflection)
 
 
 def make_train_batch(
@@ -265,24 +328,28 @@ def make_train_batch(
     removal); up to ``options.views`` views (the input's own original view first) are the
     pseudo ground truth, each subsampled to at most ``options.loss_points`` points (and
     ``options.local_loss_points`` per octant for the local loss). A view with a fourth column
-    is input whole and target only where that column is set (:func:`view_targets`). Only
-    observed partial clouds are used: this function never sees a complete shape.
+    is input whole and target only where that column is set (:func:`view_targets`). A
+    :class:`PlaneView` is reflected across its own car plane (``mirror_targets``, the symmetry
+    term) instead of the box's. Only observed partial clouds are used: this function never sees a
+    complete shape.
     """
     overlap = float(cfg["region_overlap"])
     min_points = int(cfg["min_region_points"])
     cap = int(options.input_points or cfg["max_input_points"])
-    inputs, input_regions, targets = [], [], []
+    inputs, input_regions, targets, reflections = [], [], [], []
     for views in groups:  # loop over instances of a batch (tens); all per-point work is vectorised
         if options.flip_prob > 0 and rng.random() < options.flip_prob:
-            views = [mirror_y(v) for v in views]
+            views = [_flip(v) for v in views]
         k = int(rng.integers(len(views)))
         others = [v for i, v in enumerate(views) if i != k]
         order = rng.permutation(len(others))[: max(0, options.views - 1)]
-        chosen = [view_targets(views[k]), *(view_targets(others[i]) for i in order)]
+        picked = [views[k], *(others[i] for i in order)]
+        chosen = [view_targets(v) for v in picked]
         if options.mirror_targets:
-            chosen = [np.concatenate([x, mirror_y(x)]) for x in chosen]
+            chosen = [np.concatenate([x, _reflect(x, _reflection(v))]) for x, v in zip(chosen, picked)]
         targets.append(chosen)
-        cloud = views[k][:, :3]
+        reflections.append(_reflection(views[k]))
+        cloud = _points(views[k])[:, :3]
         if len(cloud) > cap:
             cloud = cloud[rng.choice(len(cloud), cap, replace=False)]
         cloud, cloud_regions = remove_regions(cloud, region_masks(cloud, overlap), options.drop_prob, min_points, rng)
@@ -310,9 +377,11 @@ def make_train_batch(
             target[i, j, : len(sub)] = sub
             mask[i, j, : len(sub)] = True
             view_mask[i, j] = True
+    planes = any(isinstance(v, PlaneView) for views in groups for v in views)
     return TrainBatch(
         pack(inputs, overlap, input_regions),
         *(torch.from_numpy(a) for a in (target, mask, local_target, local_mask, present, view_mask)),
+        reflection=torch.from_numpy(np.stack(reflections)) if planes else None,
     )
 
 
@@ -325,8 +394,9 @@ def inpainting_loss(
     octants ``i`` present in view ``j`` of ``L_wcd(X_j^i, Y_l^i)``. Both are averaged over
     views and instances (the paper sums over views; the average keeps the scale independent
     of how many views a track happens to have). ``symmetry_weight`` adds that weight times the
-    symmetric Chamfer-L1 between ``Y_g`` and its reflection across the box's x-z plane: a car is
-    left / right symmetric, and nothing else in the loss asks for the side the sensor did not see.
+    symmetric Chamfer-L1 between ``Y_g`` and its reflection across the box's x-z plane (across each
+    input's car plane where the batch has ``reflection``): a car is left / right symmetric, and
+    nothing else in the loss asks for the side the sensor did not see.
     """
     inp = batch.inputs
     y_global, y_local, _ = net(inp.points, inp.segment, inp.regions, inp.batch_size)
@@ -340,7 +410,7 @@ def inpainting_loss(
     loss = global_loss + local_weight * local_loss
     stats = {"loss": 0.0, "global": float(global_loss.detach()), "local": float(local_loss.detach())}
     if symmetry_weight > 0:
-        symmetry = symmetry_chamfer(y_global)
+        symmetry = symmetry_chamfer(y_global, batch.reflection)
         loss = loss + symmetry_weight * symmetry
         stats["symmetry"] = float(symmetry.detach())
     stats["loss"] = float(loss.detach())
@@ -420,25 +490,37 @@ class PointPnCNetRecipe(CacheRecipe):
         if aspect is not None:
             scales[indices] = aspect_scales(sizes[indices], aspect, len(indices))
         tm, tg = self.options.target_margin, self.options.target_ground_margin
+        planes = cache.label_planes() if self.options.mirror_plane == "label" else None
+        # a plane of (0, 0, 0) is the box's own: those views stay plain arrays
+        moved = (np.isfinite(planes).all(1) & (np.abs(planes) > 1e-9).any(1)) if planes is not None else None
 
-        def view(i: int) -> np.ndarray:
+        def view(i: int) -> np.ndarray | PlaneView:
             points = np.asarray(cache.points(i), dtype=np.float32)
             if tm is None:
-                return points * scales[i]
-            flags = target_flags(points, sizes[i], tm, tg)  # in the canonical frame, before the aspect
-            return np.concatenate([points * scales[i], flags[:, None].astype(np.float32)], axis=1)
+                out = points * scales[i]
+            else:
+                flags = target_flags(points, sizes[i], tm, tg)  # in the canonical frame, before the aspect
+                out = np.concatenate([points * scales[i], flags[:, None].astype(np.float32)], axis=1)
+            if moved is not None and moved[i]:
+                return PlaneView(out, plane_reflection(planes[i], scales[i]))
+            return out
 
         out, dropped = [], 0
         for g in [*groups, *singles]:  # loop over observations (tens of thousands); the work per point is vectorised
             views = [view(int(i)) for i in g]
             if tm is not None:  # a view whose target crop keeps too few points is no pseudo ground truth
-                kept = [v for v in views if int(v[:, 3].sum()) >= min_points]
+                kept = [v for v in views if int(_points(v)[:, 3].sum()) >= min_points]
                 dropped += len(views) - len(kept)
                 views = kept
             if views:
                 out.append(views)
-        self.sources.append({"cache": str(cache.root), **origin, "split": split, "groups": len(out),
-                             "observations": sum(len(g) for g in out), "dropped_few_target_points": dropped})
+        record = {"cache": str(cache.root), **origin, "split": split, "groups": len(out),
+                  "observations": sum(len(g) for g in out), "dropped_few_target_points": dropped}
+        if planes is not None:  # how many views reflect across their labelled box's plane, how many lack one
+            used = np.concatenate([*groups, *singles]) if len(groups) + len(singles) else np.zeros(0, int)
+            record["mirror_plane"] = {"label": int(moved[used].sum()),
+                                      "unmatched": int((~np.isfinite(planes[used]).all(1)).sum())}
+        self.sources.append(record)
         return out
 
     def batches(
