@@ -284,3 +284,44 @@ def test_extract_node_crop_crops_as_completion_node(shared_data, tmp_path):
     _, crops = crop_canonical(np.asarray(frame.points), gt, cfg.box_margin, cfg.ground_margin)
     first = [len(c) for c in crops if len(c) >= 10]
     assert first and sorted(node.meta["num_points"][node.meta["frame"] == first_frame].tolist()) == sorted(first)
+
+
+def test_label_planes_place_the_matched_labelled_box_in_a_detector_crop(tmp_path):
+    """A detector's box 0.3 m to the car's left and turned 0.05 rad: each crop records where the
+    matched labelled box's centre and heading lie in its frame (read from the source's labels);
+    a labelled-box cache's plane is its own box's."""
+    from pcc_ros.data.synthetic import writer
+
+    frames, _ = make_track_frames(n_frames=3)
+    calib = writer.calibration()
+    lines = []
+    for frame in frames:
+        gt = frame.ground_truth[:1]
+        c, s = np.cos(gt.yaw[0]), np.sin(gt.yaw[0])
+        frame.detections = Boxes(gt.center + 0.3 * np.array([-s, c, 0.0]), gt.size, gt.yaw + 0.05, label=["Car"],
+                                 track_id=[""], score=[0.9])
+        lines += writer.tracking_label_lines(gt, frame.index, np.zeros(1), calib)
+    src = tmp_path / "src" / "training"
+    writer.write_text(src / "label_02" / "0000.txt", lines)
+    (src / "calib").mkdir()
+    calib.write(src / "calib" / "0000.txt")
+    det = extract_instances(frames, tmp_path / "det", ExtractConfig(boxes="detections"), source=tmp_path / "src",
+                            progress=False)
+    planes = det.label_planes()
+    for i in range(len(det)):
+        box = frames[int(det.meta["frame"][i])].detections
+        want = to_canonical(frames[int(det.meta["frame"][i])].ground_truth.center[:1], box.center[0], box.yaw[0],
+                            box.size[0, 0])[0]
+        assert planes[i, :2] == pytest.approx(want[:2], abs=2e-3)  # labels are written to 0.01 m
+        assert abs(want[1]) * CAR[0] == pytest.approx(0.3, abs=0.01)
+        assert planes[i, 2] == pytest.approx(-0.05, abs=0.01)
+    tight = extract_instances(frames, tmp_path / "gt", ExtractConfig(), progress=False)
+    assert (tight.label_planes() == 0).all()
+    # PointPnCNet's mirror_plane=label: the detector crops' views carry their car plane's reflection
+    from pcc_ros.models.pointpncnet import PlaneView, training_recipe
+
+    groups = training_recipe("default", mirror_plane="label").training_data(det, None, min_points=1)
+    views = [v for g in groups for v in g]
+    assert views and all(isinstance(v, PlaneView) for v in views)
+    plain = training_recipe("default", mirror_plane="label").training_data(tight, None, min_points=1)
+    assert not any(isinstance(v, PlaneView) for g in plain for v in g)
