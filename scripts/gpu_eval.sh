@@ -15,7 +15,9 @@
 # RETURNED: the folder holding {pointpncnet,trapcc,aml}.{safetensors,json}; a missing one is
 # skipped. FAMILY_CACHE (default OUTDIR/fam_cache) is built once if absent. The shipped weights'
 # runs are reused when OUTDIR already holds them (their .json / demo log). Environment: PY,
-# SEEDS (demo seeds, default "2026 2027 2028"; empty: no demo), STEPS (default "1 2 3 4 5"), WHICH.
+# SEEDS (demo seeds, default "2026 2027 2028"; empty: no demo), STEPS (default "1 2 3 4 5"), WHICH,
+# BACKENDS (default input,mirror,pointpncnet,trapcc,aml; e.g. input,mirror,pointpncnet scores one
+# learned backend, its shipped runs reused from OUTDIR).
 set -u
 RET=$(cd "${1:?usage: gpu_eval.sh RETURNED OUTDIR [FAMILY_CACHE]}" && pwd)
 OUTD=${2:?usage: gpu_eval.sh RETURNED OUTDIR [FAMILY_CACHE]}
@@ -35,9 +37,12 @@ for b in pointpncnet trapcc aml; do
     echo "no returned $b checkpoint in $RET: shipped only"
   fi
 done
-BACKENDS=input,mirror,pointpncnet,trapcc,aml
+BACKENDS=${BACKENDS:-input,mirror,pointpncnet,trapcc,aml}
+LEARNED=()
+for b in pointpncnet trapcc aml; do [[ ",$BACKENDS," == *",$b,"* ]] && LEARNED+=("$b"); done
 REAL=(--real --real-sources ../shared/data/kitti_tracking,../shared/data/nuscenes_mini --backends "$BACKENDS")
-PLOT=pointpncnet,pointpncnet/generated,trapcc,trapcc/generated,aml,aml/generated
+PLOT=$(for b in "${LEARNED[@]}"; do printf '%s,%s/generated,' "$b" "$b"; done)
+PLOT=${PLOT%,}
 step() { [[ " $STEPS " == *" $1 "* ]]; }
 done_before() { [ "$1" = shipped ] && [ -s "$2" ]; }  # a shipped run already in OUTDIR
 
@@ -75,7 +80,7 @@ if step 3; then
       --no-gt-free --json "$OUTD/fam_gen_$w.json" > "$OUTD/fam_gen_$w.log" 2>&1
     echo "== SynthCars families (seed 21), generated points, $w (exit $?)"
     grep -A12 -iE "by family|lateral|unseen" "$OUTD/fam_gen_$w.log" | head -60
-    done_before $w "$OUTD/fam_pub_$w.json" || $P eval --data "$FAM" --split test --backends pointpncnet,trapcc,aml \
+    done_before $w "$OUTD/fam_pub_$w.json" || $P eval --data "$FAM" --split test --backends "$(IFS=,; echo "${LEARNED[*]}")" \
       "${extra[@]}" --max-instances 350 --no-emd \
       --seed 0 --no-gt-free --keep-input --decode-density 2 --json "$OUTD/fam_pub_$w.json" > "$OUTD/fam_pub_$w.log" 2>&1
     echo "== SynthCars families, published output (crop + generated, density 2), $w (exit $?)"
@@ -83,7 +88,7 @@ if step 3; then
 fi
 if step 4; then
   for s in $SEEDS; do
-    for b in pointpncnet trapcc aml; do
+    for b in "${LEARNED[@]}"; do
       for w in $WHICH; do
         extra=()
         if [ $w = new ]; then
