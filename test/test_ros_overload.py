@@ -1,4 +1,4 @@
-"""Overload on real ROS 2 Jazzy: full KITTI scans at 10 / 30 / 100 Hz into the installed
+"""Overload on real ROS 2 Jazzy: full KITTI scans at 10 / 30 / 300 Hz into the installed
 ``completion_node`` (its own process, Fast DDS), then the publisher restarts.
 
 The node's memory (VmRSS of its process) stays bounded, what it cannot process is counted on
@@ -22,6 +22,10 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 PHASE_S = float(os.environ.get("PCC_OVERLOAD_SECONDS", "4"))
 NODE = "completion_node"
+#: The last phase's rate: above what the node can process on any machine (a real KITTI frame takes
+#: it several milliseconds end to end; at 100 Hz an idle 2-core machine now keeps up), so the phase
+#: is an overload wherever the test runs and its drops must be counted.
+OVERLOAD_HZ = 300
 COUNTERS = ("scans_received", "frames", "dropped_pairs_newest_wins", "dropped_clouds", "dropped_detections")
 
 
@@ -79,7 +83,7 @@ def test_overload_on_rclpy_keeps_memory_bounded_counts_drops_and_recovers(instal
         publish(graph, messages, 2, 3.0, 10**9, proc.pid, [])  # handshake / warm-up at 2 Hz
         assert graph.wait_for(lambda: graph.received["/completed"], 60, [proc]), log.read_text()[-3000:]
         stamp = 100 * 10**9
-        for rate in (10, 30, 100):
+        for rate in (10, 30, OVERLOAD_HZ):
             rss: list[float] = []
             mark = time.perf_counter()
             time.sleep(1.2)
@@ -97,8 +101,11 @@ def test_overload_on_rclpy_keeps_memory_bounded_counts_drops_and_recovers(instal
             # unpaired ones by the pairer); only the frame in flight may be unaccounted for
             accounted = delta["frames"] + delta["dropped_pairs_newest_wins"] + delta["dropped_clouds"]
             assert received - 2 <= accounted <= received + 2, report
-        assert report[100]["dropped_pairs_newest_wins"] + report[100]["dropped_clouds"] > 0, report
-        assert report[100]["rss_max_mb"] - report[10]["rss_max_mb"] < 300, report
+        top = report[OVERLOAD_HZ]
+        # the overload shows: scans the node dropped (counted) or the best-effort transport lost
+        shed = top["dropped_pairs_newest_wins"] + top["dropped_clouds"] + top["sent"] - top["scans_received"]
+        assert shed > 0, report
+        assert top["rss_max_mb"] - report[10]["rss_max_mb"] < 300, report
 
         # the publisher's participant goes away; a new one starts its stamps from the beginning
         graph.close()
