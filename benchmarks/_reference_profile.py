@@ -1,9 +1,10 @@
 """The filter's profile pass as it was before its pairs were tested in the compiled loop
-(commit 24858c5, kept verbatim apart from names): :class:`~pcc_ros.geometry.boxes.BoxCandidates`
-gathers the pairs of the grown boxes into arrays (``pairs(local=True)``), the compiled loop then
-reads them box by box, and the overlap clips every pair of boxes whose circles meet. The
-reference ``pcc bench filter`` checks the profile terms against (bit for bit) and times beside
-them; nothing else uses it.
+(commit 24858c5, the loop and the overlap kept verbatim apart from names):
+:class:`~pcc_ros.geometry.boxes.BoxCandidates` gathers the pairs of the grown boxes into arrays
+(``pairs(local=True)``), the compiled loop then reads them box by box, and the overlap clips every
+pair of boxes. What the pass feeds on and what is derived from its counts (the grown boxes, the
+box frames, the terms) is the pipeline's own, so only the pass differs. The reference ``pcc bench
+filter`` checks the profile terms against (bit for bit) and times beside them; nothing else uses it.
 """
 
 from __future__ import annotations
@@ -15,21 +16,18 @@ import numpy as np
 
 from pcc_ros.geometry.beams import SensorModel
 from pcc_ros.geometry.boxes import BoxCandidates, iou_bev
-from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.jit import compiled
-from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, angular_window
+from pcc_ros.pipeline.evidence import EVIDENCE_GROUND
 from pcc_ros.pipeline.evidence_profile import (
-    ABOVE_PRIOR_RETURNS,
     ABOVE_REACH,
-    DEPTH_PRIOR,
-    DEPTH_PRIOR_RETURNS,
     FACE_MARGIN,
     PROFILE_TERMS,
-    SHELL,
+    box_frames,
+    grown_boxes,
+    terms_from_counts,
 )
+from pcc_ros.pipeline.profile_kernels import ABOVE, AZ_MAX, AZ_MIN, BODY, DEPTH_SUM, SHELL, TOP
 from pcc_ros.types import Boxes
-
-BODY, ABOVE, SHELL_COL, AZ_MIN, AZ_MAX, DEPTH_SUM, TOP = range(7)
 
 
 @compiled()
@@ -89,7 +87,7 @@ def profile_pairs(lx, ly, lz, px, py, pair_point, starts, half, origin, centre_a
                 shell += 1
         out[b, BODY] = body
         out[b, ABOVE] = above
-        out[b, SHELL_COL] = shell
+        out[b, SHELL] = shell
         out[b, DEPTH_SUM] = depth
         if body:
             out[b, AZ_MIN] = az_min
@@ -116,19 +114,11 @@ def covered_share(boxes: Boxes) -> np.ndarray:
 
 def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
                   measure: Collection[str] | None = None) -> dict[str, np.ndarray]:
-    """``above``, ``fill``, ``spill``, ``overlap``, ``depth`` and ``top`` of every box (module
-    docstring), plus the raw counts behind them (``n_body``, ``n_above``, ``n_shell``).
-
-    ``depth``: how deep behind the box's near surface its body returns lie, as a share of the
-    box's depth along each return's ray (0: where the ray enters the box, 1: its far side),
-    averaged with one prior return at 0.5 (no return: 0.5, undecided). A car fills its box: the
-    rays stop at its faces; a pole, a pedestrian or a bollard in a car box stops them deep
-    inside; a box shifted off its car holds the car's returns at its back. ``top``: the highest
-    body return over the box bottom, as a share of the box height (0 without one).
-
-    ``measure``: the terms wanted (default all); only they are returned, with the same values.
-    ``overlap`` alone needs no pass over the scan; without ``spill`` the boxes grow sideways by
-    the face margin only, not by the shell (about half the candidate pairs of a car box)."""
+    """:func:`pcc_ros.pipeline.evidence_profile.profile_terms` with 24858c5's pass (pairs gathered
+    into arrays, then the loop above) and its overlap; the grown boxes and the terms derived from
+    the pass's counts are the pipeline's own (:func:`~pcc_ros.pipeline.evidence_profile.grown_boxes`,
+    :func:`~pcc_ros.pipeline.evidence_profile.terms_from_counts`), so the two agree wherever the
+    passes do."""
     wanted = set(PROFILE_TERMS if measure is None else measure) & set(PROFILE_TERMS)
     n = len(boxes)
     if n == 0:
@@ -137,41 +127,12 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
     out_terms: dict[str, np.ndarray] = {"overlap": covered_share(boxes)} if "overlap" in wanted else {}
     if not wanted - {"overlap"}:
         return out_terms
-    centre, size = boxes.center.copy(), boxes.size.copy()
-    # (without the shell, a 5 cm slack past the face margin: the kernel's body test of a point
-    # on that boundary must never depend on the rounding of the grown box's half size)
-    size[:, :2] += 2 * ((SHELL if "spill" in wanted else 0.05) + FACE_MARGIN)
-    size[:, 2] += ABOVE_REACH
-    centre[:, 2] += ABOVE_REACH / 2
-    grown = Boxes(centre, size, boxes.yaw)
-    candidates = BoxCandidates(points, grown)
+    candidates = BoxCandidates(points, grown_boxes(boxes, "spill" in wanted))
     pair_point, starts, (lx, ly, lz) = candidates.pairs(local=True)
-    cos, sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
-    cx, cy, cz = boxes.center.T
-    origin = np.ascontiguousarray(np.stack(to_box_local(0.0, 0.0, 0.0, cx, cy, cz, cos, sin), axis=1))
-    centre_az = np.arctan2(cy, cx)
+    origin, centre_az = box_frames(boxes)
     pts = candidates.points
     px, py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
     out = np.zeros((n, 7))
     profile_pairs(lx, ly, lz, px, py, pair_point, starts, np.ascontiguousarray(boxes.size / 2), origin,
                   centre_az, ABOVE_REACH / 2, FACE_MARGIN, EVIDENCE_GROUND, out)
-    n_body, n_above, n_shell = out[:, BODY], out[:, ABOVE], out[:, SHELL_COL]
-    has = n_body > 0
-    az_lo, az_hi, *_ = angular_window(boxes)
-    step = np.deg2rad(sensor.azimuth_resolution_deg)
-    span = out[:, AZ_MAX] - out[:, AZ_MIN]
-    fill = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
-    top = np.where(has, (out[:, TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0)
-    terms = {
-        # the terms as the pipeline defines them now (their priors): only the pass is 24858c5's
-        "above": n_above / (n_above + n_body + ABOVE_PRIOR_RETURNS),
-        "fill": fill,
-        "spill": np.log((n_shell + 1.0) / (n_body + 1.0)),
-        "depth": (out[:, DEPTH_SUM] + DEPTH_PRIOR * DEPTH_PRIOR_RETURNS) / (n_body + DEPTH_PRIOR_RETURNS),
-        "top": top,
-    }
-    out_terms.update({k: v for k, v in terms.items() if k in wanted})
-    out_terms.update({"n_body": n_body, "n_above": n_above})
-    if "spill" in wanted:
-        out_terms["n_shell"] = n_shell
-    return out_terms
+    return {**out_terms, **terms_from_counts(out, boxes, sensor, wanted)}

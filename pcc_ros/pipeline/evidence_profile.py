@@ -106,48 +106,74 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
     ``overlap`` alone needs no pass over the scan; without ``spill`` the boxes grow sideways by
     the face margin only, not by the shell (about half the candidate pairs of a car box)."""
     wanted = set(PROFILE_TERMS if measure is None else measure) & set(PROFILE_TERMS)
-    n = len(boxes)
-    if n == 0:
-        zero = np.zeros(0)
-        return {k: zero for k in (*sorted(wanted), "n_body", "n_above", "n_shell")}
-    out_terms: dict[str, np.ndarray] = {"overlap": covered_share(boxes)} if "overlap" in wanted else {}
-    if not wanted - {"overlap"}:
+    out_terms, needs_pass = terms_before_pass(boxes, wanted)
+    if not needs_pass:
         return out_terms
-    centre, size = boxes.center.copy(), boxes.size.copy()
-    # (without the shell, a 5 cm slack past the face margin: the kernel's body test of a point
-    # on that boundary must never depend on the rounding of the grown box's half size)
-    size[:, :2] += 2 * ((SHELL if "spill" in wanted else 0.05) + FACE_MARGIN)
-    size[:, 2] += ABOVE_REACH
-    centre[:, 2] += ABOVE_REACH / 2
-    grown = Boxes(centre, size, boxes.yaw)
+    grown = grown_boxes(boxes, "spill" in wanted)
     pair_point, pair_box, pts, test = BoxCandidates(points, grown).candidate_test()
-    cos, sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
-    cx, cy, cz = boxes.center.T
-    origin = np.ascontiguousarray(np.stack(to_box_local(0.0, 0.0, 0.0, cx, cy, cz, cos, sin), axis=1))
-    centre_az = np.arctan2(cy, cx)
-    out = np.zeros((n, 7))
+    origin, centre_az = box_frames(boxes)
+    out = np.zeros((len(boxes), 7))
     from pcc_ros.pipeline import profile_kernels as kernels  # numba: heavy, only when measuring
 
     kernels.profile_pairs(pair_point, pair_box, pts, test, grown.center[:, 2].astype(test.dtype),
                           np.ascontiguousarray(boxes.size / 2), origin, centre_az, ABOVE_REACH / 2, FACE_MARGIN,
                           EVIDENCE_GROUND, "fill" in wanted, out)
-    n_body, n_above, n_shell = out[:, kernels.BODY], out[:, kernels.ABOVE], out[:, kernels.SHELL]
+    return {**out_terms, **terms_from_counts(out, boxes, sensor, wanted)}
+
+
+def terms_before_pass(boxes: Boxes, wanted: set[str]) -> tuple[dict[str, np.ndarray], bool]:
+    """The terms that need no pass over the scan (``overlap``; every term of an empty frame) and
+    whether a pass is still needed for the rest of ``wanted``."""
+    if len(boxes) == 0:
+        zero = np.zeros(0)
+        return {k: zero for k in (*sorted(wanted), "n_body", "n_above", "n_shell")}, False
+    out_terms = {"overlap": covered_share(boxes)} if "overlap" in wanted else {}
+    return out_terms, bool(wanted - {"overlap"})
+
+
+def grown_boxes(boxes: Boxes, spill: bool) -> Boxes:
+    """The boxes a profile pass gathers candidate returns in: grown sideways by the face margin
+    (and the shell when ``spill`` is measured) and upwards by :data:`ABOVE_REACH`."""
+    centre, size = boxes.center.copy(), boxes.size.copy()
+    # (without the shell, a 5 cm slack past the face margin: the kernel's body test of a point
+    # on that boundary must never depend on the rounding of the grown box's half size)
+    size[:, :2] += 2 * ((SHELL if spill else 0.05) + FACE_MARGIN)
+    size[:, 2] += ABOVE_REACH
+    centre[:, 2] += ABOVE_REACH / 2
+    return Boxes(centre, size, boxes.yaw)
+
+
+def box_frames(boxes: Boxes) -> tuple[np.ndarray, np.ndarray]:
+    """Per box, the sensor origin in the box's frame ``(n, 3)`` and the azimuth of its centre:
+    what a pass needs to measure each return's depth along its ray and its azimuth."""
+    cos, sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
+    cx, cy, cz = boxes.center.T
+    origin = np.ascontiguousarray(np.stack(to_box_local(0.0, 0.0, 0.0, cx, cy, cz, cos, sin), axis=1))
+    return origin, np.arctan2(cy, cx)
+
+
+def terms_from_counts(out: np.ndarray, boxes: Boxes, sensor: SensorModel, wanted: set[str]) -> dict[str, np.ndarray]:
+    """The pass-measured terms of ``wanted`` from a pass's per-box counts (the columns of
+    :func:`pcc_ros.pipeline.profile_kernels.profile_pairs`), with the raw counts behind them
+    (``n_shell`` only when ``spill`` is wanted)."""
+    from pcc_ros.pipeline import profile_kernels as col  # the pass's column layout
+
+    n_body, n_above, n_shell = out[:, col.BODY], out[:, col.ABOVE], out[:, col.SHELL]
     has = n_body > 0
-    terms = {}
+    terms: dict[str, np.ndarray] = {}
     if "fill" in wanted:
         az_lo, az_hi, *_ = angular_window(boxes)
         step = np.deg2rad(sensor.azimuth_resolution_deg)
-        span = out[:, kernels.AZ_MAX] - out[:, kernels.AZ_MIN]
+        span = out[:, col.AZ_MAX] - out[:, col.AZ_MIN]
         terms["fill"] = np.where(has, np.clip((span + step) / (az_hi - az_lo + step), 0.0, 1.0), 0.0)
-    top = np.where(has, (out[:, kernels.TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0)
     terms.update({
         "above": n_above / (n_above + n_body + ABOVE_PRIOR_RETURNS),
         "spill": np.log((n_shell + 1.0) / (n_body + 1.0)),
-        "depth": (out[:, kernels.DEPTH_SUM] + DEPTH_PRIOR * DEPTH_PRIOR_RETURNS) / (n_body + DEPTH_PRIOR_RETURNS),
-        "top": top,
+        "depth": (out[:, col.DEPTH_SUM] + DEPTH_PRIOR * DEPTH_PRIOR_RETURNS) / (n_body + DEPTH_PRIOR_RETURNS),
+        "top": np.where(has, (out[:, col.TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0),
     })
-    out_terms.update({k: v for k, v in terms.items() if k in wanted})
-    out_terms.update({"n_body": n_body, "n_above": n_above})
+    found = {k: v for k, v in terms.items() if k in wanted}
+    found.update({"n_body": n_body, "n_above": n_above})
     if "spill" in wanted:
-        out_terms["n_shell"] = n_shell
-    return out_terms
+        found["n_shell"] = n_shell
+    return found
