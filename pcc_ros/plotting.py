@@ -151,3 +151,19 @@ def plot_examples(
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def operating_curves(ax, curves: dict[str, dict[str, np.ndarray]], configured: tuple[float, float], max_lost: float,
+                     true_label: str, false_label: str, xlim: tuple[float, float]) -> None:
+    """A filter's operating-curve panel: per method, false removed against true lost (shares,
+    drawn in %) as steps; the configured threshold's point as a star; the loss budget as a
+    dotted line. The detection checks (``pcc eval detections``, its nuScenes check) draw it alike."""
+    for name, curve in curves.items():
+        ax.plot(100 * curve["true_lost"], 100 * curve["false_removed"], drawstyle="steps-post", label=name)
+    ax.plot([100 * configured[0]], [100 * configured[1]], "k*", ms=12, label="filter, configured")
+    ax.axvline(100 * max_lost, color="grey", ls=":", lw=1)
+    ax.set_xlabel(f"{true_label} lost (%)")
+    ax.set_ylabel(f"{false_label} removed (%)")
+    ax.set_xlim(*xlim)
+    ax.set_title("operating curves")
+    ax.legend(loc="lower right", fontsize=8)

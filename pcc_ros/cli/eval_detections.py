@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -65,13 +66,7 @@ def _nuscenes(args: argparse.Namespace, pipeline) -> int:
                             nms_iou=args.nms_iou)
     print_check(result)
     title = f"{args.nuscenes}: filter vs points-in-box, every box at score {args.score:g}, NMS IoU {args.nms_iou:g}"
-    if args.plot:
-        plot_check(result, args.plot, title)
-        log.info("wrote %s", args.plot)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        write_json(args.json, check_json(result), indent=1, nonfinite_null=True)
-        log.info("wrote %s", args.json)
+    _write(args, lambda path: plot_check(result, path, title), lambda: check_json(result))
     return 0
 
 
@@ -92,11 +87,16 @@ def run(args: argparse.Namespace) -> int:
     if all(np.isnan(v) for row in results["ap_before"].values() for v in row.values()):
         log.warning("no valid ground truth of %s: AP undefined (a sequence of Vans only? try --gt-classes Car,Van)",
                     "+".join(gt_classes))
+    _write(args, lambda path: plot(results, path, title), lambda: to_json(results))
+    return 0
+
+
+def _write(args: argparse.Namespace, draw: Callable[[Path], None], payload: Callable[[], dict]) -> None:
+    """The PNG (``--plot``) and the JSON (``--json``) a check asked for, each logged."""
     if args.plot:
-        plot(results, args.plot, title)
+        draw(args.plot)
         log.info("wrote %s", args.plot)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        write_json(args.json, to_json(results), indent=1, nonfinite_null=True)
+        write_json(args.json, payload(), indent=1, nonfinite_null=True)
         log.info("wrote %s", args.json)
-    return 0

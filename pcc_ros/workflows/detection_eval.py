@@ -36,6 +36,7 @@ from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.metrics.detection import DIFFICULTIES, NEIGHBOURS, FrameBoxes, ap_table
 from pcc_ros.pipeline.config import CONFIG_FILES, shipped_config_dir
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig
+from pcc_ros.plotting import operating_curves
 from pcc_ros.types import Boxes, class_mask
 
 log = logging.getLogger(__name__)
@@ -446,17 +447,9 @@ def plot(results: dict[str, Any], path: Path, title: str) -> None:
     axes = grid.ravel()
     for extra in axes[2 + len(terms):]:
         extra.axis("off")
-    ax = axes[0]
-    for name, curve in results["_curves"].items():
-        ax.plot(100 * curve["true_lost"], 100 * curve["false_removed"], drawstyle="steps-post", label=name)
     s = results["shipped_threshold"]
-    ax.plot([100 * s["true_lost_share"]], [100 * s["false_removed_share"]], "k*", ms=12, label="filter, configured")
-    ax.axvline(100 * results["max_lost"], color="grey", ls=":", lw=1)
-    ax.set_xlabel("true detections lost (%)")
-    ax.set_ylabel("false detections removed (%)")
-    ax.set_xlim(-1, 30)
-    ax.set_title("operating curves")
-    ax.legend(loc="lower right", fontsize=8)
+    operating_curves(axes[0], results["_curves"], (s["true_lost_share"], s["false_removed_share"]),
+                     results["max_lost"], "true detections", "false detections", (-1, 30))
     is_true = scores["is_true"]
     panels = [("p_false" if results["rule"] == "evidence" else "mismatch", scores["p_false"])]
     panels += [(t, scores["terms"][t]) for t in terms]

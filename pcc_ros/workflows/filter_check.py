@@ -44,6 +44,7 @@ import numpy as np
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.pipeline.filter import false_probability, local_ground
+from pcc_ros.plotting import operating_curves
 from pcc_ros.types import Boxes
 from pcc_ros.workflows.detection_eval import compare, print_groups
 
@@ -258,18 +259,11 @@ def plot_check(result: dict[str, Any], path: Path, title: str) -> None:
     rows = result["_rows"]
     fig, axes = plt.subplots(1, 3, figsize=(18, 5.8))
     ax = axes[0]
-    for name, method in result["methods"].items():
-        c = method["curve"]
-        ax.plot(100 * c["true_lost"], 100 * c["false_removed"], drawstyle="steps-post", label=name)
     conf = result["configured"]
-    ax.plot([100 * conf["true_lost"]], [100 * conf["false_removed"]], "k*", ms=12, label="filter, configured")
-    ax.axvline(100 * result["max_lost"], color="grey", ls=":", lw=1)
-    ax.set_xlabel("true car boxes lost (%)")
-    ax.set_ylabel("false boxes removed (%)")
-    ax.set_xlim(-2, 102)
+    operating_curves(ax, {name: method["curve"] for name, method in result["methods"].items()},
+                     (conf["true_lost"], conf["false_removed"]), result["max_lost"], "true car boxes", "false boxes",
+                     (-2, 102))
     ax.set_ylim(-2, 102)
-    ax.set_title("operating curves")
-    ax.legend(loc="lower right", fontsize=8)
     ax = axes[1]
     p = rows["p_false"]
     broad = np.where(rows["is_true"], "car", np.where(rows["group"] == "free ground", "free ground", "non-vehicle"))
