@@ -23,12 +23,12 @@ from pcc_ros.models.pointpncnet import (
     TrainOptions,
     make_train_batch,
     pack,
-    plane_reflection,
     region_subsets,
     remove_regions,
     target_flags,
     training_recipe,
 )
+from pcc_ros.models.recipe import plane_reflection
 from pcc_ros.types import Boxes, Sample
 
 

@@ -22,6 +22,7 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.models import SceneContext, create, load_completer
 from pcc_ros.models.base import aspect_scales, median_box_aspect
+from pcc_ros.models.recipe import BOX_REFLECTION, plane_reflection
 from pcc_ros.models.trapcc import nearest_neighbours, neighbour_geometry
 from pcc_ros.models.trapcc_recipe import TrainOptions, TraPCCRecipe, training_recipe
 from pcc_ros.types import Boxes, Sample
@@ -540,3 +541,71 @@ def test_shipped_weights_record_their_training_data():
     clouds, contexts = _frame_contexts()
     out = net.complete(clouds, contexts)
     assert [o.shape for o in out] == [(2048, 3)] * len(clouds)
+
+
+class _FixedOutput(torch.nn.Module):
+    """A stand-in network with a given output, so a loss term can be read for a known prediction."""
+
+    def __init__(self, detailed: torch.Tensor, coarse: torch.Tensor) -> None:
+        super().__init__()
+        self.detailed, self.coarse = detailed, coarse
+
+    def forward(self, *args) -> dict[str, torch.Tensor]:
+        present = torch.ones(self.coarse.shape[:2], dtype=torch.bool)
+        return {"detailed": self.detailed, "coarse": self.coarse, "present": present}
+
+
+def test_mirrored_halves_across_the_labelled_plane_ask_for_the_true_far_flank(train_cache, tmp_path):
+    """``mirror_halves``: the Partial-GT halves (retrieved to fit the input, so leaning to its flank) are
+    joined by their reflection; with ``mirror_plane="label"`` across the car's plane, not the box's, as
+    PointPnCNet's targets (one copy: ``models.recipe.CarPlanes``). A coarse output on the whole true car
+    then scores better than one on the seen flank only, and only the labelled plane makes it so."""
+    recipe = _recipe(tmp_path, mirror_plane="label", mirror_targets=True, mirror_halves=True)
+    data = recipe.training_data(train_cache, "train", min_points=10)
+    # crops of labelled boxes: every observation reflects across its own box's plane, recorded as such
+    assert data.reflection.shape == (len(data), 3, 4)
+    np.testing.assert_array_equal(data.reflection, np.broadcast_to(BOX_REFLECTION, data.reflection.shape))
+    assert recipe.data_summary()["sources"][0]["mirror_plane"] == {"label": 0, "unmatched": 0}
+    assert _recipe(tmp_path).training_data(train_cache, "train", min_points=10).reflection is None
+    batch = next(recipe.batches(data, 2, recipe.build_completer("cpu").config, np.random.default_rng(0)))
+    # a car whose plane is 0.1 (canonical units) left of the box's and turned 0.1 rad; its halves seen
+    # from the +y flank only (what retrieval hands a +y input)
+    rng = np.random.default_rng(3)
+    car, _ = ellipsoid_surface(4000, ELLIPSOID, rng)
+    yaw, shift = 0.1, np.array([0.0, -0.1])
+    c, s = np.cos(yaw), np.sin(yaw)
+    in_box = car.copy()
+    in_box[:, :2] = car[:, :2] @ np.array([[c, s], [-s, c]]) + shift
+    seen = car[:, 1] > 0.02
+
+    def halves(mask: np.ndarray) -> torch.Tensor:
+        pts = in_box[mask]
+        front, back = pts[pts[:, 0] >= 0], pts[pts[:, 0] < 0]
+        n = min(len(front), len(back), 256)
+        return torch.from_numpy(np.stack([front[:n], back[:n]]).astype(np.float32))[None].repeat(2, 1, 1, 1)
+
+    seen_halves, whole_halves = halves(seen), halves(np.ones(len(car), bool))
+    batch.half, batch.half_mask = seen_halves, torch.ones(seen_halves.shape[:3], dtype=torch.bool)
+    label = torch.from_numpy(plane_reflection(np.array([*shift, yaw]), np.ones(3)))[None].repeat(2, 1, 1)
+    detailed = torch.from_numpy(in_box.astype(np.float32))[None].repeat(2, 1, 1)
+
+    def partial(coarse: torch.Tensor, reflection: torch.Tensor | None, **options) -> float:
+        batch.reflection = reflection
+        return _recipe(tmp_path, **options).loss(_FixedOutput(detailed, coarse), batch)[1]["partial"]
+
+    # without mirrored halves the seen flank alone is the better coarse output: the lean is taught
+    assert partial(seen_halves, None) < partial(whole_halves, None)
+    # mirrored across the labelled plane, the whole car is the better one
+    on_label = dict(mirror_halves=True, mirror_plane="label")
+    assert partial(whole_halves, label, **on_label) < partial(seen_halves, label, **on_label)
+    # across the box's plane the mirrored flank misses the car by the box's error
+    assert partial(whole_halves, label, **on_label) < partial(whole_halves, None, mirror_halves=True) - 0.005
+    # the symmetry term follows the same plane (all 4000 points: no subset's sampling gap)
+    symmetric = _recipe(tmp_path, symmetry_weight=1.0, detail_loss_points=0)
+    batch.reflection = label
+    about_label = symmetric.loss(_FixedOutput(detailed, whole_halves), batch)[1]["symmetry"]
+    batch.reflection = None
+    about_box = symmetric.loss(_FixedOutput(detailed, whole_halves), batch)[1]["symmetry"]
+    assert about_label < 0.5 * about_box
+    with pytest.raises(ConfigError, match="mirror_plane"):
+        training_recipe(mirror_plane="car")

@@ -70,15 +70,21 @@ def reflect_y(points: torch.Tensor) -> torch.Tensor:
     return points * torch.tensor([1.0, -1.0, 1.0], dtype=points.dtype, device=points.device)
 
 
+def reflect(points: torch.Tensor, reflection: torch.Tensor | None = None) -> torch.Tensor:
+    """``points`` ``(B, ..., 3)`` reflected across the box's x-z plane (``reflection`` ``None``) or,
+    row ``b`` of the batch, by the ``(3, 4)`` affine map ``reflection[b]`` (its car's plane)."""
+    if reflection is None:
+        return reflect_y(points)
+    r = reflection.to(points.dtype)
+    flat = points.reshape(points.shape[0], -1, 3)
+    return (flat @ r[:, :, :3].transpose(1, 2) + r[:, None, :, 3]).reshape(points.shape)
+
+
 def symmetry_chamfer(points: torch.Tensor, reflection: torch.Tensor | None = None) -> torch.Tensor:
     """Mean over rows of the symmetric Chamfer-L1 between ``points`` ``(B, M, 3)`` and their
     reflection across the box's x-z plane (or across each row's plane, the ``(B, 3, 4)`` affine
     maps ``reflection``): 0 for a left / right symmetric shape. A car is symmetric, and no
     self-supervised target asks for the flank the sensor did not see."""
-    if reflection is None:
-        reflected = reflect_y(points)
-    else:
-        r = reflection.to(points.dtype)
-        reflected = points @ r[:, :, :3].transpose(1, 2) + r[:, None, :, 3]
+    reflected = reflect(points, reflection)
     full = torch.ones(reflected.shape[:-1], dtype=torch.bool, device=reflected.device)
     return weighted_chamfer(reflected, full, points, 0.5).mean()

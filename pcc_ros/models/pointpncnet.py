@@ -56,6 +56,7 @@ from pcc_ros.models.pointpncnet_network import (
     pack,
     region_masks,
 )
+from pcc_ros.models.recipe import BOX_REFLECTION, reflect_points
 from pcc_ros.models.registry import register
 
 log = logging.getLogger(__name__)
@@ -199,21 +200,7 @@ class TrainOptions(CacheTrainOptions):
     #: ``symmetry_weight``: weight of the symmetric Chamfer-L1 between the global output and its own
     #: reflection (0: off).
     symmetry_weight: float = 0.0
-    #: the plane ``mirror_targets``, ``flip_prob`` and ``symmetry_weight`` reflect across. ``"box"``:
-    #: the crop box's x-z plane. ``"label"``: for a crop of a detector's box matched to a labelled
-    #: track (``pcc extract --boxes detections``), that track's labelled box's centre plane in the
-    #: crop's frame (``InstanceCache.label_planes``), so a completion learns the car's plane from the
-    #: returns instead of copying the detector's box error onto the far flank; other crops keep
-    #: their box's plane. Uses labelled boxes only, no complete shape.
-    mirror_plane: str = "box"
-
-    def __post_init__(self) -> None:
-        if self.mirror_plane not in ("box", "label"):
-            raise ConfigError(f"pointpncnet: mirror_plane must be 'box' or 'label', got {self.mirror_plane!r}")
-
-
-#: The reflection across the box's x-z plane as a ``(3, 4)`` affine map ``[M | t]``.
-BOX_REFLECTION = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 1, 0]], dtype=np.float32)
+    # mirror_plane (CacheTrainOptions): the plane all three reflect across, the box's or the labelled box's
 
 
 class PlaneView(NamedTuple):
@@ -224,31 +211,12 @@ class PlaneView(NamedTuple):
     reflection: np.ndarray
 
 
-def plane_reflection(plane: np.ndarray, scales: np.ndarray) -> np.ndarray:
-    """The ``(3, 4)`` reflection across a vertical plane through canonical ``(x, y)`` = ``plane[:2]``
-    heading ``plane[2]`` (radians from the box's x axis), in a frame scaled per axis by ``scales``
-    (the box-aspect scaling): ``S R S^-1`` with offset ``S t``."""
-    x, y, yaw = (float(v) for v in plane)
-    n = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
-    r = np.eye(3) - 2.0 * np.outer(n, n)
-    t = 2.0 * (n[0] * x + n[1] * y) * n
-    s = np.asarray(scales, dtype=np.float64)
-    return np.concatenate([r * s[:, None] / s[None, :], (s * t)[:, None]], axis=1).astype(np.float32)
-
-
 def _points(view: np.ndarray | PlaneView) -> np.ndarray:
     return view.points if isinstance(view, PlaneView) else view
 
 
 def _reflection(view: np.ndarray | PlaneView) -> np.ndarray:
     return view.reflection if isinstance(view, PlaneView) else BOX_REFLECTION
-
-
-def _reflect(points: np.ndarray, reflection: np.ndarray) -> np.ndarray:
-    """``points`` (x, y, z first; other columns kept) mapped by the affine ``reflection``."""
-    out = np.array(points, copy=True)
-    out[:, :3] = points[:, :3] @ reflection[:, :3].T + reflection[:, 3]
-    return out
 
 
 def _flip(view: np.ndarray | PlaneView) -> np.ndarray | PlaneView:
@@ -346,7 +314,7 @@ def make_train_batch(
         picked = [views[k], *(others[i] for i in order)]
         chosen = [view_targets(v) for v in picked]
         if options.mirror_targets:
-            chosen = [np.concatenate([x, _reflect(x, _reflection(v))]) for x, v in zip(chosen, picked)]
+            chosen = [np.concatenate([x, reflect_points(x, _reflection(v))]) for x, v in zip(chosen, picked)]
         targets.append(chosen)
         reflections.append(_reflection(views[k]))
         cloud = _points(views[k])[:, :3]
@@ -490,9 +458,8 @@ class PointPnCNetRecipe(CacheRecipe):
         if aspect is not None:
             scales[indices] = aspect_scales(sizes[indices], aspect, len(indices))
         tm, tg = self.options.target_margin, self.options.target_ground_margin
-        planes = cache.label_planes() if self.options.mirror_plane == "label" else None
-        # a plane of (0, 0, 0) is the box's own: those views stay plain arrays
-        moved = (np.isfinite(planes).all(1) & (np.abs(planes) > 1e-9).any(1)) if planes is not None else None
+        planes = self.car_planes(cache)
+        moved = None if planes is None else planes.moved  # a box's own plane: those views stay plain arrays
 
         def view(i: int) -> np.ndarray | PlaneView:
             points = np.asarray(cache.points(i), dtype=np.float32)
@@ -502,7 +469,7 @@ class PointPnCNetRecipe(CacheRecipe):
                 flags = target_flags(points, sizes[i], tm, tg)  # in the canonical frame, before the aspect
                 out = np.concatenate([points * scales[i], flags[:, None].astype(np.float32)], axis=1)
             if moved is not None and moved[i]:
-                return PlaneView(out, plane_reflection(planes[i], scales[i]))
+                return PlaneView(out, planes.reflection(i, scales[i]))
             return out
 
         out, dropped = [], 0
@@ -518,8 +485,7 @@ class PointPnCNetRecipe(CacheRecipe):
                   "observations": sum(len(g) for g in out), "dropped_few_target_points": dropped}
         if planes is not None:  # how many views reflect across their labelled box's plane, how many lack one
             used = np.concatenate([*groups, *singles]) if len(groups) + len(singles) else np.zeros(0, int)
-            record["mirror_plane"] = {"label": int(moved[used].sum()),
-                                      "unmatched": int((~np.isfinite(planes[used]).all(1)).sum())}
+            record["mirror_plane"] = planes.record(used)
         self.sources.append(record)
         return out
 

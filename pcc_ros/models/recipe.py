@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import functools
 import logging
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -229,6 +230,70 @@ class CacheTrainOptions:
     #: cap on training input points (``None``: the model's ``max_input_points``): a lower cap makes
     #: CPU training steps cheaper, and the max-pooled encoders care little about density
     input_points: int | None = None
+    #: the plane the symmetry options (mirror targets, flips, the symmetry term) reflect across.
+    #: ``"box"``: the crop box's x-z plane. ``"label"``: for a crop of a detector's box matched to a
+    #: labelled track (``pcc extract --boxes detections``), that track's labelled box's centre plane in
+    #: the crop's frame (``InstanceCache.label_planes``), so a completion learns the car's plane from
+    #: the returns instead of copying the detector's box error onto the far flank; other crops keep
+    #: their box's plane. Uses labelled boxes only, no complete shape (:class:`CarPlanes`).
+    mirror_plane: str = "box"
+
+    def __post_init__(self) -> None:
+        if self.mirror_plane not in ("box", "label"):
+            raise ConfigError(f"mirror_plane must be 'box' or 'label', got {self.mirror_plane!r}")
+
+
+#: The reflection across the box's x-z plane as a ``(3, 4)`` affine map ``[M | t]``.
+BOX_REFLECTION = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 1, 0]], dtype=np.float32)
+
+
+def plane_reflection(plane: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """The ``(3, 4)`` reflection across a vertical plane through canonical ``(x, y)`` = ``plane[:2]``
+    heading ``plane[2]`` (radians from the box's x axis), in a frame scaled per axis by ``scales``
+    (the box-aspect scaling): ``S R S^-1`` with offset ``S t``."""
+    x, y, yaw = (float(v) for v in plane)
+    n = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    r = np.eye(3) - 2.0 * np.outer(n, n)
+    t = 2.0 * (n[0] * x + n[1] * y) * n
+    s = np.asarray(scales, dtype=np.float64)
+    return np.concatenate([r * s[:, None] / s[None, :], (s * t)[:, None]], axis=1).astype(np.float32)
+
+
+def reflect_points(points: np.ndarray, reflection: np.ndarray) -> np.ndarray:
+    """``points`` (x, y, z first; other columns kept) mapped by the ``(3, 4)`` affine ``reflection``."""
+    out = np.array(points, copy=True)
+    out[:, :3] = points[:, :3] @ reflection[:, :3].T + reflection[:, 3]
+    return out
+
+
+@dataclass(frozen=True)
+class CarPlanes:
+    """Each observation's car plane in its crop's frame (``mirror_plane="label"``): ``planes`` are
+    ``InstanceCache.label_planes`` (``(N, 3)`` centre ``x, y`` and yaw; ``0, 0, 0`` the box's own plane,
+    NaN unknown). An observation whose plane is its box's, or unknown, reflects across its box's plane."""
+
+    planes: np.ndarray
+
+    @functools.cached_property
+    def moved(self) -> np.ndarray:
+        """``(N,)`` which observations reflect across a plane other than their box's."""
+        return np.isfinite(self.planes).all(1) & (np.abs(self.planes) > 1e-9).any(1)
+
+    def reflection(self, i: int, scales: np.ndarray) -> np.ndarray:
+        """Observation ``i``'s ``(3, 4)`` reflection in its frame scaled by ``scales`` (box aspect)."""
+        if not self.moved[i]:
+            return BOX_REFLECTION
+        return plane_reflection(self.planes[i], scales)
+
+    def reflections(self, indices: np.ndarray, scales: np.ndarray) -> np.ndarray:
+        """``(len(indices), 3, 4)``: :meth:`reflection` of each of ``indices`` with its row of ``scales``."""
+        return np.stack([self.reflection(int(i), s) for i, s in zip(indices, scales)]).reshape(-1, 3, 4)
+
+    def record(self, used: np.ndarray) -> dict[str, int]:
+        """For the checkpoint's data summary: of the ``used`` observations, how many reflect across their
+        labelled box's plane, how many are detections without a labelled box."""
+        used = np.asarray(used, dtype=np.int64)
+        return {"label": int(self.moved[used].sum()), "unmatched": int((~np.isfinite(self.planes[used]).all(1)).sum())}
 
 
 class CacheRecipe(TrainingRecipe):
@@ -269,6 +334,11 @@ class CacheRecipe(TrainingRecipe):
         if self.options.box_aspect and self.aspect is None:
             self.aspect = median_box_aspect(sizes)
         return self.aspect
+
+    def car_planes(self, cache: Any) -> CarPlanes | None:
+        """The car planes of ``cache``'s observations with ``mirror_plane="label"`` (``None``: every
+        observation reflects across its box's plane)."""
+        return CarPlanes(cache.label_planes()) if self.options.mirror_plane == "label" else None
 
     def check_held_out(self, caches: Sequence[Any]) -> dict[str, Any]:
         """:func:`check_held_out` of ``caches`` against the ``held_out`` option, in this backend's name."""

@@ -27,7 +27,7 @@ from torch import nn
 
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.models.base import aspect_scales
-from pcc_ros.models.losses import masked_mean, nearest, reflect_y, symmetry_chamfer, weighted_chamfer
+from pcc_ros.models.losses import masked_mean, nearest, reflect, symmetry_chamfer, weighted_chamfer
 from pcc_ros.models.recipe import CacheRecipe, CacheTrainOptions, TrainingKit, cache_origin
 from pcc_ros.models.trapcc import (
     GEOMETRY_FEATURES,
@@ -80,9 +80,14 @@ class TrainOptions(CacheTrainOptions):
     #: the left / right symmetry the one-flank inputs never show (``docs/pointpncnet.md``, "far side"):
     #: ``mirror_targets`` joins each Whole-GT target with its reflection across the box's x-z plane,
     #: ``symmetry_weight`` weighs the symmetric Chamfer-L1 between the detailed output and its own
-    #: reflection (0: off)
+    #: reflection (0: off); ``mirror_halves`` joins each Partial-GT half (the coarse output's target)
+    #: with its reflection too: retrieval picks the pool entries that best cover the input, so the
+    #: retrieved halves lean to the flank the input shows, and the coarse halves C-Net folds the
+    #: detailed output around learn that lean (``docs/trapcc.md``, "far side"). All three reflect
+    #: across ``mirror_plane``'s plane (:class:`~pcc_ros.models.recipe.CacheTrainOptions`).
     mirror_targets: bool = False
     symmetry_weight: float = 0.0
+    mirror_halves: bool = False
 
 
 @dataclass
@@ -99,6 +104,9 @@ class TrainData:
     real: np.ndarray  # (N,) bool: from a real-data cache
     pools: Any
     summary: dict[str, Any]
+    #: ``(N, 3, 4)`` each observation's reflection across its car plane (``mirror_plane="label"``;
+    #: ``None``: the box's x-z plane for all)
+    reflection: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.clouds)
@@ -120,12 +128,15 @@ class TrainBatch:
     whole_mask: torch.Tensor
     half: torch.Tensor  # (B, 2, H, 3)
     half_mask: torch.Tensor  # (B, 2, H)
+    reflection: torch.Tensor | None = None  # (B, 3, 4) each input's car plane (None: the box's x-z plane)
 
     def to(self, device: torch.device) -> TrainBatch:
         t = [x.to(device, non_blocking=True) for x in (self.points, self.segment)]
         rest = [x.to(device, non_blocking=True) for x in (self.inputs, self.input_mask, self.whole, self.whole_mask,
                                                           self.half, self.half_mask)]
-        return TrainBatch(*t, self.batch_size, None if self.neighbours is None else self.neighbours.to(device), *rest)
+        reflection = None if self.reflection is None else self.reflection.to(device, non_blocking=True)
+        return TrainBatch(*t, self.batch_size, None if self.neighbours is None else self.neighbours.to(device), *rest,
+                          reflection=reflection)
 
 
 class TraPCCRecipe(CacheRecipe):
@@ -189,7 +200,7 @@ class TraPCCRecipe(CacheRecipe):
         if self.options.box_aspect:  # the main training data fixes the reference
             self.fix_aspect(np.asarray(cache.meta["box_size"])[cache.indices(split, min_points=min_points)])
         clouds, nb_clouds, whole, front, back, real, nbs, geos = [], [], [], [], [], [], [], []
-        per_source = []
+        per_source, reflections = [], []
         for s, c in enumerate(caches):
             idx = c.indices(split, min_points=min_points)
             a = kit.load_or_assign(pools, folder, c, idx, f"{split}-min{min_points}", pool_cfg.size_candidates)
@@ -208,11 +219,13 @@ class TraPCCRecipe(CacheRecipe):
                     geo[i, : len(j)] = neighbour_geometry(centers[i], yaws[i], sizes[i, 0], centers[j], yaws[j], radius)
             usable = a["whole_index"] >= 0
             sel = idx[usable]
+            scales = np.ones((len(sel), 3), np.float32)
             if self.aspect is not None:  # inputs in the box-aspect frame; neighbours keep their own frame
                 scales = aspect_scales(np.asarray(sizes)[sel], self.aspect, len(sel))
                 clouds.extend(nb_clouds[base + int(i)] * sc for i, sc in zip(sel, scales))
             else:
                 clouds.extend(nb_clouds[base + int(i)] for i in sel)
+            planes = self.car_planes(c)
             whole.append(a["whole_index"][usable])
             front.append(a["front_index"][usable])
             back.append(a["back_index"][usable])
@@ -220,9 +233,13 @@ class TraPCCRecipe(CacheRecipe):
             geos.append(geo[sel])
             real.append(np.full(len(sel), s > 0))
             per_source.append({"cache": str(c.root), "instances": len(sel), "real": s > 0, **cache_origin(c)})
+            if planes is not None:  # how many reflect across their labelled box's plane, how many lack one
+                reflections.append(planes.reflections(sel, scales))
+                per_source[-1]["mirror_plane"] = planes.record(sel)
         gt = pools if self.aspect is None else aspect_pools(pools, self.aspect)
         data = TrainData(clouds, np.concatenate(whole), np.concatenate(front), np.concatenate(back),
-                         np.concatenate(nbs), np.concatenate(geos), nb_clouds, np.concatenate(real), gt, {})
+                         np.concatenate(nbs), np.concatenate(geos), nb_clouds, np.concatenate(real), gt, {},
+                         np.concatenate(reflections) if reflections else None)
         n_real = int(data.real.sum())
         share = self.options.real_share if n_real and n_real < len(data) else n_real / max(len(data), 1)
         data.summary = {
@@ -290,7 +307,8 @@ class TraPCCRecipe(CacheRecipe):
         return TrainBatch(points, segment, b, neighbours, torch.from_numpy(inp), torch.from_numpy(inp_mask),
                           torch.from_numpy(whole), torch.from_numpy(whole_mask),
                           torch.from_numpy(np.stack([hf, hb], axis=1)),
-                          torch.from_numpy(np.stack([hf_mask, hb_mask], axis=1)))
+                          torch.from_numpy(np.stack([hf_mask, hb_mask], axis=1)),
+                          None if data.reflection is None else torch.from_numpy(data.reflection[chosen]))
 
     @staticmethod
     def _gt(pool: Any, index: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -357,7 +375,8 @@ def trapcc_loss(net: nn.Module, batch: TrainBatch, options: TrainOptions) -> tup
         sub = detailed[:, pick]
     target, target_mask = batch.whole, batch.whole_mask
     if options.mirror_targets:
-        target, target_mask = torch.cat([target, reflect_y(target)], 1), torch.cat([target_mask, target_mask], 1)
+        target = torch.cat([target, reflect(target, batch.reflection)], 1)
+        target_mask = torch.cat([target_mask, target_mask], 1)
     whole = chamfer(target, target_mask, sub, 0.5, squared)
     has_whole = batch.whole_mask.any(-1)
     l_whole = masked_mean(whole, has_whole)
@@ -365,13 +384,17 @@ def trapcc_loss(net: nn.Module, batch: TrainBatch, options: TrainOptions) -> tup
     loss = options.weight_whole * l_whole + options.weight_input * l_input
     stats = {"whole": float(l_whole.detach()), "input": float(l_input.detach())}
     if "coarse" in out:
-        part = chamfer(batch.half, batch.half_mask, out["coarse"], 0.5, squared)  # (B, 2)
+        half, half_mask = batch.half, batch.half_mask
+        if options.mirror_halves:  # (B, 2, 2H, 3): each half with its reflection (the front half stays in front)
+            half = torch.cat([half, reflect(half, batch.reflection)], 2)
+            half_mask = torch.cat([half_mask, half_mask], 2)
+        part = chamfer(half, half_mask, out["coarse"], 0.5, squared)  # (B, 2)
         use = out["present"] & batch.half_mask.any(-1)
         l_part = masked_mean(part, use)
         loss = loss + options.weight_partial * l_part
         stats["partial"] = float(l_part.detach())
     if options.symmetry_weight > 0:
-        symmetry = symmetry_chamfer(sub)
+        symmetry = symmetry_chamfer(sub, batch.reflection)
         loss = loss + options.symmetry_weight * symmetry
         stats["symmetry"] = float(symmetry.detach())
     stats["loss"] = float(loss.detach())
