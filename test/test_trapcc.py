@@ -3,6 +3,8 @@ scene graph, training steps and checkpoints."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -22,7 +24,7 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.geometry.canonical import from_canonical, to_canonical
 from pcc_ros.models import SceneContext, create, load_completer
 from pcc_ros.models.base import aspect_scales, median_box_aspect
-from pcc_ros.models.recipe import BOX_REFLECTION, plane_reflection
+from pcc_ros.models.recipe import BOX_REFLECTION, IDENTITY, plane_placement, plane_reflection
 from pcc_ros.models.trapcc import nearest_neighbours, neighbour_geometry
 from pcc_ros.models.trapcc_recipe import TrainOptions, TraPCCRecipe, training_recipe
 from pcc_ros.types import Boxes, Sample
@@ -566,8 +568,22 @@ def test_mirrored_halves_across_the_labelled_plane_ask_for_the_true_far_flank(tr
     assert data.reflection.shape == (len(data), 3, 4)
     np.testing.assert_array_equal(data.reflection, np.broadcast_to(BOX_REFLECTION, data.reflection.shape))
     assert recipe.data_summary()["sources"][0]["mirror_plane"] == {"label": 0, "unmatched": 0}
+    np.testing.assert_array_equal(data.placement, np.broadcast_to(IDENTITY, data.placement.shape))
     assert _recipe(tmp_path).training_data(train_cache, "train", min_points=10).reflection is None
-    batch = next(recipe.batches(data, 2, recipe.build_completer("cpu").config, np.random.default_rng(0)))
+    config = recipe.build_completer("cpu").config
+    # a detector box 0.1 to the car's right, heading the other way: the retrieved targets (centred on
+    # their own box) are moved onto the car, turned, their front half becoming the crop's back half
+    placed = dataclasses.replace(data, placement=np.broadcast_to(
+        plane_placement(np.array([0.0, -0.1, np.pi]), np.ones(3)), data.placement.shape))
+    at_box, on_car = (r.make_batch(d, np.array([0, 1]), config, np.random.default_rng(1))
+                      for r, d in ((recipe, data), (recipe, placed)))
+    for a, b in ((at_box.whole, on_car.whole), (at_box.half, on_car.half)):
+        np.testing.assert_allclose(b[..., 1].numpy()[a[..., 1].numpy() != 0].mean(),
+                                   -0.1 - a[..., 1].numpy()[a[..., 1].numpy() != 0].mean(), atol=1e-5)
+    # the crop's front slot holds the entry's back half, turned to the front
+    np.testing.assert_allclose(on_car.half[:, 0, :, 0].numpy(), -at_box.half[:, 1, :, 0].numpy(), atol=1e-5)
+    assert (on_car.half[:, 0][on_car.half_mask[:, 0]][:, 0] >= -1e-6).all()
+    batch = next(recipe.batches(data, 2, config, np.random.default_rng(0)))
     # a car whose plane is 0.1 (canonical units) left of the box's and turned 0.1 rad; its halves seen
     # from the +y flank only (what retrieval hands a +y input)
     rng = np.random.default_rng(3)

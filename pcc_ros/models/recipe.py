@@ -245,6 +245,15 @@ class CacheTrainOptions:
 
 #: The reflection across the box's x-z plane as a ``(3, 4)`` affine map ``[M | t]``.
 BOX_REFLECTION = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 1, 0]], dtype=np.float32)
+#: The identity as a ``(3, 4)`` affine map (a car placed where its box is).
+IDENTITY = np.eye(3, 4, dtype=np.float32)
+
+
+def _scaled(r: np.ndarray, t: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """The affine map ``x -> r x + t`` of canonical coordinates, in a frame scaled per axis by
+    ``scales`` (the box-aspect scaling): ``[S r S^-1 | S t]``."""
+    s = np.asarray(scales, dtype=np.float64)
+    return np.concatenate([r * s[:, None] / s[None, :], (s * t)[:, None]], axis=1).astype(np.float32)
 
 
 def plane_reflection(plane: np.ndarray, scales: np.ndarray) -> np.ndarray:
@@ -253,10 +262,16 @@ def plane_reflection(plane: np.ndarray, scales: np.ndarray) -> np.ndarray:
     (the box-aspect scaling): ``S R S^-1`` with offset ``S t``."""
     x, y, yaw = (float(v) for v in plane)
     n = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
-    r = np.eye(3) - 2.0 * np.outer(n, n)
-    t = 2.0 * (n[0] * x + n[1] * y) * n
-    s = np.asarray(scales, dtype=np.float64)
-    return np.concatenate([r * s[:, None] / s[None, :], (s * t)[:, None]], axis=1).astype(np.float32)
+    return _scaled(np.eye(3) - 2.0 * np.outer(n, n), 2.0 * (n[0] * x + n[1] * y) * n, scales)
+
+
+def plane_placement(plane: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """The ``(3, 4)`` map from the frame of the box whose centre plane is ``plane`` (canonical ``x, y``,
+    heading) to the crop's frame, scaled by ``scales`` as :func:`plane_reflection`: a shape centred on
+    its own box (a retrieved pseudo ground truth) moved to where that box lies in the crop."""
+    x, y, yaw = (float(v) for v in plane)
+    c, s = np.cos(yaw), np.sin(yaw)
+    return _scaled(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.array([x, y, 0.0]), scales)
 
 
 def reflect_points(points: np.ndarray, reflection: np.ndarray) -> np.ndarray:
@@ -285,9 +300,17 @@ class CarPlanes:
             return BOX_REFLECTION
         return plane_reflection(self.planes[i], scales)
 
+    def placement(self, i: int, scales: np.ndarray) -> np.ndarray:
+        """Observation ``i``'s :func:`plane_placement` (the identity where its plane is its box's)."""
+        return plane_placement(self.planes[i], scales) if self.moved[i] else IDENTITY
+
     def reflections(self, indices: np.ndarray, scales: np.ndarray) -> np.ndarray:
         """``(len(indices), 3, 4)``: :meth:`reflection` of each of ``indices`` with its row of ``scales``."""
         return np.stack([self.reflection(int(i), s) for i, s in zip(indices, scales)]).reshape(-1, 3, 4)
+
+    def placements(self, indices: np.ndarray, scales: np.ndarray) -> np.ndarray:
+        """``(len(indices), 3, 4)``: :meth:`placement` of each of ``indices`` with its row of ``scales``."""
+        return np.stack([self.placement(int(i), s) for i, s in zip(indices, scales)]).reshape(-1, 3, 4)
 
     def record(self, used: np.ndarray) -> dict[str, int]:
         """For the checkpoint's data summary: of the ``used`` observations, how many reflect across their

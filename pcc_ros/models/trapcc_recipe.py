@@ -84,7 +84,9 @@ class TrainOptions(CacheTrainOptions):
     #: with its reflection too: retrieval picks the pool entries that best cover the input, so the
     #: retrieved halves lean to the flank the input shows, and the coarse halves C-Net folds the
     #: detailed output around learn that lean (``docs/trapcc.md``, "far side"). All three reflect
-    #: across ``mirror_plane``'s plane (:class:`~pcc_ros.models.recipe.CacheTrainOptions`).
+    #: across ``mirror_plane``'s plane (:class:`~pcc_ros.models.recipe.CacheTrainOptions`); with
+    #: ``"label"`` the retrieved targets (centred on their own box) are also moved to where the car's
+    #: labelled box lies in a detector-box crop, so the reflection lands on the car's far flank.
     mirror_targets: bool = False
     symmetry_weight: float = 0.0
     mirror_halves: bool = False
@@ -107,6 +109,9 @@ class TrainData:
     #: ``(N, 3, 4)`` each observation's reflection across its car plane (``mirror_plane="label"``;
     #: ``None``: the box's x-z plane for all)
     reflection: np.ndarray | None = None
+    #: ``(N, 3, 4)`` where its car's (labelled) box lies in its crop (``mirror_plane="label"``): the
+    #: retrieved pseudo ground truth, centred on its own box, is moved there (``None``: the crop's box)
+    placement: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.clouds)
@@ -200,7 +205,7 @@ class TraPCCRecipe(CacheRecipe):
         if self.options.box_aspect:  # the main training data fixes the reference
             self.fix_aspect(np.asarray(cache.meta["box_size"])[cache.indices(split, min_points=min_points)])
         clouds, nb_clouds, whole, front, back, real, nbs, geos = [], [], [], [], [], [], [], []
-        per_source, reflections = [], []
+        per_source, reflections, placements = [], [], []
         for s, c in enumerate(caches):
             idx = c.indices(split, min_points=min_points)
             a = kit.load_or_assign(pools, folder, c, idx, f"{split}-min{min_points}", pool_cfg.size_candidates)
@@ -235,11 +240,13 @@ class TraPCCRecipe(CacheRecipe):
             per_source.append({"cache": str(c.root), "instances": len(sel), "real": s > 0, **cache_origin(c)})
             if planes is not None:  # how many reflect across their labelled box's plane, how many lack one
                 reflections.append(planes.reflections(sel, scales))
+                placements.append(planes.placements(sel, scales))
                 per_source[-1]["mirror_plane"] = planes.record(sel)
         gt = pools if self.aspect is None else aspect_pools(pools, self.aspect)
         data = TrainData(clouds, np.concatenate(whole), np.concatenate(front), np.concatenate(back),
                          np.concatenate(nbs), np.concatenate(geos), nb_clouds, np.concatenate(real), gt, {},
-                         np.concatenate(reflections) if reflections else None)
+                         np.concatenate(reflections) if reflections else None,
+                         np.concatenate(placements) if placements else None)
         n_real = int(data.real.sum())
         share = self.options.real_share if n_real and n_real < len(data) else n_real / max(len(data), 1)
         data.summary = {
@@ -289,6 +296,13 @@ class TraPCCRecipe(CacheRecipe):
         whole, whole_mask = self._gt(data.pools.whole, data.whole[chosen], o.whole_loss_points, rng)
         hf, hf_mask = self._gt(data.pools.front, data.front[chosen], o.half_loss_points, rng)
         hb, hb_mask = self._gt(data.pools.back, data.back[chosen], o.half_loss_points, rng)
+        if data.placement is not None:  # the pseudo ground truth where the car's labelled box lies in the crop
+            place = data.placement[chosen]
+            whole, hf, hb = (np.einsum("bij,bnj->bni", place[:, :, :3], x) + place[:, None, :, 3]
+                             for x in (whole, hf, hb))
+            turned = place[:, 0, 0] < 0  # a detector box heading the other way: its front half is the car's back
+            hf[turned], hb[turned] = hb[turned], hf[turned]
+            hf_mask[turned], hb_mask[turned] = hb_mask[turned], hf_mask[turned]
         neighbours = None
         if cfg["scene_graph"] != "none":
             k = int(cfg["k_neighbours"])
