@@ -130,7 +130,8 @@ def render_calibration_kitti(results: dict[str, dict[str, Any]]) -> list[str]:
         ["rows", "; ".join(f"{names[k]} {v['true']:,} true / {v['false']} false" for k, v in d["rows"].items())],
         ["weights (per unit of each term)", _weights(d)],
         ["`reject_threshold` (loses at most `--max-lost` "
-         f"{pct(d['max_lost'])} of the true detections of each source: real, SynthCars, object)", f"{d['threshold']:.3f}"],
+         f"{pct(d['max_lost'])} of the true detections of each source: real, SynthCars, object)",
+         f"{d['threshold']:.3f}"],
         [f"in-sample: {in_sample}",
          " / ".join(pct(v["false_removed_at_threshold"]) for v in d["in_sample"].values()) + " of false removed at "
          + " / ".join(pct(v["true_lost_at_threshold"]) for v in d["in_sample"].values()) + " of true lost"],
