@@ -113,9 +113,9 @@ def run_sensors(args: argparse.Namespace) -> int:
                   f" --terms {','.join(terms)} --max-lost {args.max_lost}"
                   f"{f' --target-lost {args.target_lost:g}' if selection is not None else ''} --out {args.out}\n")
         if selection is not None:
-            header += (f"# calibrated: loss budget by leave-one-sensor-out CV, the largest of {selection['grid']} whose "
-                       f"held-out sensors each lose <= {selection['target_lost']:g} of their true cars (worst held-out "
-                       f"loss per budget: {[round(w, 4) for w in selection['worst_held_out_lost']]}): "
+            header += (f"# calibrated: loss budget by leave-one-sensor-out CV, the largest of {selection['grid']} "
+                       f"whose held-out sensors each lose <= {selection['target_lost']:g} of their true cars "
+                       f"(worst held-out loss per budget: {[round(w, 4) for w in selection['worst_held_out_lost']]}): "
                        f"{selection['chosen']:g}\n")
         text = preset_yaml(args.base_config or default_config(), result["bias"], weights, result["threshold"], values,
                            header)
