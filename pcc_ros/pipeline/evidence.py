@@ -62,8 +62,8 @@ _MAX_CELLS = 32_000
 #: ``cover`` of a car: the median share of a true car box's unhidden azimuth columns holding
 #: a return (seed-11 SynthCars, every simulated sensor), and the number of such prior columns
 #: the term starts from (chosen by leave-one-sensor-out cross-validation, docs/filter.md).
-COVER_PRIOR = 0.9
-COVER_PRIOR_COLUMNS = 10.0
+COVER_PRIOR = 1.0
+COVER_PRIOR_COLUMNS = 120.0
 #: Most beam columns sampled per box for the expected return count.
 EXPECTED_COLUMNS = 64
 #: Bins of the ray index: 0.2 deg of azimuth times 16 bands of elevation spanning the boxes'
@@ -203,8 +203,8 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch,
     kernels.counting_sort(key, wanted, start, order)
     kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, np.cumsum(nbins), boxes_idx,
                        s_lo.astype(dt), s_hi.astype(dt), table.center, table.cos, table.sin,
-                       table.origin, *table.body, *table.core, out, azimuth, *_column_grid(window, boxes_idx, column_step),
-                       cols)
+                       table.origin, *table.body, *table.core, out, azimuth,
+                       *_column_grid(window, boxes_idx, column_step), cols)
     return (*out.T.copy(), *cols.T.copy())
 
 
