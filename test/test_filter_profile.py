@@ -192,9 +192,10 @@ def test_cover_without_columns_keeps_a_cars_value():
 
 
 def test_cover_is_measured_only_where_weighted():
-    """Weight 0 (the shipped rule): the node does not measure it; a weight: it does, the same values."""
+    """Weight 0: the node does not measure it; a weight (the shipped rule's): it does, the same values."""
     scan = cast([CAR])
-    assert "cover" not in filter_terms(scan, BOX, FilterConfig(), sensor=SENSOR, weighted_only=True)
-    weighted = filter_terms(scan, BOX, FilterConfig(w_cover=-5.0), sensor=SENSOR, weighted_only=True)
-    every = filter_terms(scan, BOX, FilterConfig(), sensor=SENSOR)
+    assert FilterConfig().w_cover != 0.0  # the shipped rule weighs it
+    assert "cover" not in filter_terms(scan, BOX, FilterConfig(w_cover=0.0), sensor=SENSOR, weighted_only=True)
+    weighted = filter_terms(scan, BOX, FilterConfig(), sensor=SENSOR, weighted_only=True)
+    every = filter_terms(scan, BOX, FilterConfig(w_cover=0.0), sensor=SENSOR)
     assert weighted["cover"][0] == every["cover"][0] > 0.9
