@@ -319,8 +319,12 @@ def render_filter_calibration(results: dict[str, dict[str, Any]]) -> list[str]:
                                                                  for t, a in d["ablation"].items()),
              f"mismatch {m['confusion_auc_contribution']:+.3f} on confusions ({m['confusion_auc_held_out_without']:.3f}"
              f" -> {m['confusion_auc_held_out_with']:.3f}); alone {m['auc_alone_confusion_vs_true']:.3f}"]]
-    return table(["", "shipped rule (`--terms " + ",".join(d["terms"]) + "`)", "offered the shape (`+mismatch`)"],
-                 rows)
+    def fitted_on(r: dict[str, Any]) -> str:  # the two columns may come from calibration sets of different sizes
+        rows = [v for k, v in r["rows"].items() if k != "real"]
+        return f"{sum(v['true'] for v in rows):,} true / {sum(v['false'] for v in rows):,} false simulated rows"
+
+    return table(["", f"shipped rule (`--terms {','.join(d['terms'])}`; {fitted_on(d)})",
+                  f"offered the shape (`--terms {','.join(shape['terms'])}`; {fitted_on(shape)})"], rows)
 
 
 # --------------------------------------------------------------------------- the blocks
