@@ -16,7 +16,15 @@ from pcc_ros.errors import DataError
 from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.filter import FilterConfig
 from pcc_ros.workflows.detection_eval import build_pipeline, default_config, load_kitti, operating_curve, removed_at
-from pcc_ros.workflows.filter_calibration import calibrate, fit_logistic, predict, threshold_each, threshold_for
+from pcc_ros.workflows.filter_calibration import (
+    calibrate,
+    fit_logistic,
+    predict,
+    score_quantiles,
+    silverman_bandwidth,
+    threshold_each,
+    threshold_for,
+)
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +73,39 @@ def test_threshold_each_is_safe_on_the_worst_group():
     assert threshold_each(p, false, np.r_[group[:20], ["c", "c"]], 0.05) == pytest.approx(each)
 
 
+def test_score_quantiles_reach_past_the_few_real_scores():
+    """30 real true logits: the plain quantiles stop at their smallest, the smoothed ones carry
+    the tail a detector's low-scoring true cars sit in; the middle stays where it was."""
+    rng = np.random.default_rng(0)
+    reference = rng.normal(7.0, 2.0, 30)
+    q = np.array([0.001, 0.01, 0.5, 0.99])
+    plain = np.quantile(reference, q)
+    smooth = score_quantiles(q, reference, "sigmoid")
+    assert smooth[0] < reference.min() - 1.0 and plain[0] >= reference.min()
+    assert smooth[2] == pytest.approx(np.median(reference), abs=0.5)
+    assert np.all(np.diff(smooth) > 0) and smooth[3] > plain[3]
+    h = silverman_bandwidth(reference)
+    assert 0.5 < h < 2.0  # 0.9 * ~2 * 30^-0.2
+    # probabilities (identity mapping) come back as probabilities: smoothed in logit space (the
+    # logit is clipped at 1 - 1e-4, so the top quantile differs)
+    probs = score_quantiles(q, 1 / (1 + np.exp(-reference)), "identity")
+    assert np.all((probs > 0) & (probs < 1)) and probs[:3] == pytest.approx(1 / (1 + np.exp(-smooth[:3])), abs=1e-6)
+    # one score, or all equal: nothing to smooth, the plain quantile
+    assert score_quantiles(q, np.array([3.0]), "sigmoid") == pytest.approx([3.0] * 4)
+
+
+def test_calibration_threshold_spares_each_source(frames):
+    """The threshold loses at most max_lost of the real true rows too, not of the pool that the
+    thousands of simulated rows would dominate."""
+    real, obj = frames
+    result = calibrate(real, [], obj, FilterConfig(score_mapping="sigmoid"), seed=3, gt_classes=("Car", "Van"))
+    table = result["table"]
+    p = predict(result["bias"], result["weights"], table.x)
+    for source in np.unique(table.source):
+        true = (table.source == source) & ~table.false
+        assert (p[true] > result["threshold"]).sum() <= np.floor(0.01 * true.sum())
+
+
 def test_operating_curve_hand_computed():
     # false scores: 0.9, 0.8, 0.1; true: 0.7, 0.2. Removing >= 0.8 takes 2/3 false, 0 true.
     s = np.array([0.9, 0.8, 0.1, 0.7, 0.2])
@@ -95,10 +136,13 @@ def test_eval_detections_on_real_kitti(shared_data, tmp_path, capsys):
     shipped = result["shipped_threshold"]
     assert shipped["true_lost_share"] <= 0.02
     # The shipped weights recomputed against the labels (not against a copy of themselves): the
-    # figure docs/filter.md states for them (with the free-space reach estimated per box), 30 of the
-    # 31 false detections removed, no true lost.
-    assert (shipped["false_removed"], result["false"], shipped["true_lost"], result["true"]) == (30, 31, 0, 32), shipped
-    assert shipped["false_removed_share"] > max(ops["points-in-box"][key], ops["detector score"][key])
+    # in-sample figure docs/filter.md states for them (calibrate-kitti.json's in_sample real: 90.3 %),
+    # 28 of the 31 false detections removed, no true lost.
+    assert (shipped["false_removed"], result["false"], shipped["true_lost"], result["true"]) == (28, 31, 0, 32), shipped
+    baselines = max(ops["points-in-box"][key], ops["detector score"][key])
+    # the curve lies above the baselines' best thresholds; the shipped threshold (its own 1 % budget,
+    # not these frames' best) still reaches the best of the points-in-box count
+    assert ops["filter"][key] > baselines and shipped["false_removed_share"] >= baselines
     assert result["ap_after"]["3d@0.7"]["moderate"] >= result["ap_before"]["3d@0.7"]["moderate"]
     assert (tmp_path / "eval.png").stat().st_size > 10_000
 

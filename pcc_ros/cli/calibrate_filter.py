@@ -62,7 +62,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="how the real detector's scores read (sigmoid: logits, PointRCNN)")
     parser.add_argument("--sensor", default="auto", choices=SENSOR_CHOICES,
                         help="beam model: auto (estimated from each scan, the default) or a preset")
-    parser.add_argument("--max-lost", type=float, default=0.01, help="true detections the threshold may lose (0.01)")
+    parser.add_argument(
+        "--max-lost", type=_budget, default=0.01,
+        help="share of each source's (each sensor's) true detections the threshold may lose (0.01), or 'cv': "
+        "across sensors, the largest budget of a grid (0.5-2 %%) whose leave-one-sensor-out folds each lose at "
+        "most --target-lost of the held-out sensor's true cars")
+    parser.add_argument("--target-lost", type=float, default=0.02,
+                        help="with --max-lost cv: the most of a held-out sensor's true cars a fold may lose (0.02)")
     parser.add_argument("--l2", type=float, default=1e-2, help="ridge penalty on standardised weights (0.01)")
     parser.add_argument("--folds", type=int, default=5, help="leave-frames-out folds over the real frames (5; 0: none)")
     parser.add_argument("--seed", type=int, default=0, help="simulator seed")
@@ -80,6 +86,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, help="write weights, data sizes and the cross-validated figures here")
 
 
+def _budget(text: str) -> float | str:
+    """``--max-lost``: a share in (0, 1), or ``cv`` (chosen by leave-one-sensor-out cross-validation)."""
+    if text.strip().lower() == "cv":
+        return "cv"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--max-lost: a share such as 0.01, or 'cv'; got {text!r}") from None
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"--max-lost: a share in [0, 1), got {value}")
+    return value
+
+
 def _synth_frames(root: Path, per_sequence: int):
     split = split_dir(root, "training")
     frames = []
@@ -95,6 +114,9 @@ def run(args: argparse.Namespace) -> int:
         return run_sensors(args)
     if args.real_detections is None:
         raise ConfigError("--real needs --real-detections (the real detector's results)")
+    if args.max_lost == "cv":
+        raise ConfigError("--max-lost cv holds out each simulated sensor in turn: it needs --sim-sensors (two or "
+                          "more); the labelled-frame path takes a number, e.g. --max-lost 0.01")
     config = FilterConfig(rule="evidence", score_mapping=args.score_mapping, sensor=args.sensor)
     gt_classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
     sequences = [q.strip() for q in args.real_sequence.split(",")] if args.real_sequence else [None]

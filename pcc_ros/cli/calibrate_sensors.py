@@ -66,8 +66,18 @@ def run_sensors(args: argparse.Namespace) -> int:
         frames = load_kitti(args.real, args.real_detections, args.real_sequence, parse_frames(args.real_frames))
         parts.append(real_rows(pipeline, frames, args.sensor, classes))
     rows = Rows.concatenate(parts)
-    result = calibrate_sensors(rows, terms, args.max_lost, args.l2)
+    result = calibrate_sensors(rows, terms, args.max_lost, args.l2, args.target_lost)
     print("rows:", json.dumps(result["rows"]))
+    selection = result.get("budget_selection")
+    if selection is not None:
+        print(f"loss budget by leave-one-sensor-out CV (target <= {selection['target_lost']:.1%} of a held-out "
+              "sensor's true cars): " + ", ".join(f"{b:.2%} -> worst {w:.2%}" for b, w in
+                                                  zip(selection["grid"], selection["worst_held_out_lost"]))
+              + f"; chosen {selection['chosen']:.2%}")
+        for s, n in selection.get("nested", {}).items():
+            if n["budget"] is not None:
+                print(f"  {s} held out of the choice too: budget {n['budget']:.2%}, {n['true_lost']:.1%} of its true "
+                      f"lost, {n['false_removed']:.1%} of its false removed")
     print("weights:", " ".join(f"w_{t}={w:+.4f}" for t, w in result["weights"].items()),
           f"w_bias={result['bias']:+.4f} reject_threshold={result['threshold']:.4f}")
     if "cv_by_sensor" in result:
@@ -100,7 +110,13 @@ def run_sensors(args: argparse.Namespace) -> int:
         header = (f"# calibrated: pcc calibrate-filter --sim-sensors {','.join(sensors)} --sim-seed {args.sim_seed}"
                   f" --sim-sequences {args.sim_sequences} --sim-frames {args.sim_frames}"
                   f"{real}"
-                  f" --terms {','.join(terms)} --out {args.out}\n")
+                  f" --terms {','.join(terms)} --max-lost {args.max_lost}"
+                  f"{f' --target-lost {args.target_lost:g}' if selection is not None else ''} --out {args.out}\n")
+        if selection is not None:
+            header += (f"# calibrated: loss budget by leave-one-sensor-out CV, the largest of {selection['grid']} "
+                       f"whose held-out sensors each lose <= {selection['target_lost']:g} of their true cars "
+                       f"(worst held-out loss per budget: {[round(w, 4) for w in selection['worst_held_out_lost']]}): "
+                       f"{selection['chosen']:g}\n")
         text = preset_yaml(args.base_config or default_config(), result["bias"], weights, result["threshold"], values,
                            header)
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,11 @@ sensor's beam model; the shape ``mismatch`` comes from a car-constrained complet
 (``filter_backend``, TraPCC by default). Fit: the L2 logistic regression of
 :mod:`pcc_ros.workflows.filter_calibration`, each sensor's rows and the real rows weighing the same.
 Threshold: the smallest that loses at most ``max_lost`` of each sensor's true detections (and
-of the real frames'): safe on the worst sensor, not on the average.
+of the real frames'): safe on the worst sensor, not on the average. ``max_lost="cv"`` makes that
+budget a choice of the calibration (:func:`choose_budget`): the largest of :data:`BUDGET_GRID`
+whose leave-one-sensor-out folds each lose at most ``target_lost`` of the held-out sensor's true
+cars — what an unknown sensor is promised — and, one level further out, each sensor held out of
+that choice too (``budget_selection.nested``): the loss of a sensor the budget never saw.
 
 Honesty: leave-one-group-out cross-validation **by sensor** (fit on the other sensors and the
 real frames, judge the held-out sensor at the fold's own threshold, per false-positive kind) and
@@ -50,6 +54,11 @@ DEFAULT_SENSORS = ("hdl64", "vlp16", "vlp32c", "os1_64")
 #: unknown); the shape ``mismatch`` is opt-in (``--terms``): it costs a car-constrained completion of
 #: every box and, measured across the simulated sensors, buys ranking but no removal at 2 % lost.
 SENSOR_TERMS = ("density", "free_space", "ground_gap")
+#: Per-sensor loss budgets ``max_lost="cv"`` chooses from (a share of each sensor's true cars the
+#: threshold may reject): 0.5-2 % in quarter-point steps. The held-out loss grows with the budget
+#: (the weights do not depend on it, only the threshold), so the largest budget within the target
+#: is the one that removes the most.
+BUDGET_GRID = (0.005, 0.0075, 0.01, 0.0125, 0.015, 0.0175, 0.02)
 
 
 def parse_terms(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:
@@ -213,15 +222,78 @@ def leave_one_out(rows: Rows, by: np.ndarray, terms, max_lost: float, l2: float,
     return {"pooled": figures(p[held], rows.subset(held), reject[held]), "folds": folds}
 
 
-def calibrate_sensors(rows: Rows, terms: tuple[str, ...], max_lost: float = 0.01, l2: float = 1e-2) -> dict[str, Any]:
-    """The fit on every row, the cross-validation by sensor and by sequence, the ablation."""
+def _worst_held_out(rows: Rows, terms, budget: float, l2: float) -> tuple[float, dict[str, float]]:
+    """(worst, per sensor) share of a held-out sensor's true cars lost, leave one sensor out at ``budget``."""
+    folds = leave_one_out(rows, rows.sensor, terms, budget, l2, only=rows.sensor != "real")["folds"]
+    lost = {s: f["true_lost"] for s, f in folds.items()}
+    return max(lost.values()), lost
+
+
+def choose_budget(rows: Rows, terms: tuple[str, ...], l2: float = 1e-2, target_lost: float = 0.02,
+                  grid: tuple[float, ...] = BUDGET_GRID, nested: bool = True) -> dict[str, Any]:
+    """The per-sensor loss budget by leave-one-sensor-out cross-validation: the largest of ``grid``
+    at which every simulated sensor, held out in turn (fitted and thresholded on the others and the
+    real rows), loses at most ``target_lost`` of its true cars. A budget chosen so sits at the
+    folds' edge; ``nested`` also holds each sensor out of the choice itself (the budget chosen on
+    the others alone, then that sensor judged at it): the loss to expect on a sensor never seen.
+
+    Raises :class:`ConfigError` naming each budget's worst held-out loss when none meets the
+    target (the rule cannot promise it on an unknown sensor), or with fewer than 2 sensors.
+    """
+    sim = rows.sensor != "real"
+    sensors = np.unique(rows.sensor[sim])
+    if len(sensors) < 2:
+        raise ConfigError("--max-lost cv holds out each simulated sensor in turn: give two or more "
+                          f"--sim-sensors (have {', '.join(map(str, sensors)) or 'none'})")
+    worst, per_sensor = {}, {}
+    for b in grid:
+        worst[b], per_sensor[b] = _worst_held_out(rows, terms, b, l2)
+    ok = [b for b in grid if worst[b] <= target_lost + 1e-12]
+    report = {"target_lost": target_lost, "grid": list(grid),
+              "worst_held_out_lost": [worst[b] for b in grid],
+              "held_out_lost": {f"{b:g}": per_sensor[b] for b in grid}}
+    if not ok:
+        tried = ", ".join(f"{b:.2%}: {worst[b]:.2%}" for b in grid)
+        raise ConfigError(f"--max-lost cv: no budget keeps every held-out sensor's loss at or under "
+                          f"{target_lost:.2%} (budget: worst held-out loss {tried}); raise --target-lost or give "
+                          "--max-lost a number")
+    report["chosen"] = max(ok)
+    if nested and len(sensors) > 2:  # the inner choice needs two sensors left to hold out
+        report["nested"] = {}
+        for s in sensors:
+            out = rows.sensor == s
+            inner = rows.subset(~out)
+            ok_inner = [b for b in grid if _worst_held_out(inner, terms, b, l2)[0] <= target_lost + 1e-12]
+            if not ok_inner:
+                report["nested"][str(s)] = {"budget": None}
+                continue
+            bias, weights, threshold, mean = fit_rows(inner, terms, max(ok_inner), l2)
+            p = predict(bias, weights, filled(rows.x[out], mean))
+            fig = figures(p, rows.subset(out), p > threshold)
+            report["nested"][str(s)] = {"budget": max(ok_inner), "threshold": threshold,
+                                        "true_lost": fig["true_lost"], "false_removed": fig["false_removed"]}
+    return report
+
+
+def calibrate_sensors(rows: Rows, terms: tuple[str, ...], max_lost: float | str = 0.01, l2: float = 1e-2,
+                      target_lost: float = 0.02) -> dict[str, Any]:
+    """The fit on every row, the cross-validation by sensor and by sequence, the ablation.
+    ``max_lost="cv"``: the budget chosen by :func:`choose_budget` for ``target_lost`` (recorded
+    under ``budget_selection``), then everything else at it."""
+    selection = None
+    if max_lost == "cv":
+        selection = choose_budget(rows, terms, l2, target_lost)
+        max_lost = selection["chosen"]
+    elif not isinstance(max_lost, float | int):
+        raise ConfigError(f"max_lost must be a share of true detections or 'cv', got {max_lost!r}")
     bias, weights, threshold, mean = fit_rows(rows, terms, max_lost, l2)
     x = filled(rows.x, mean)
     p = predict(bias, weights, x)
     sim = rows.sensor != "real"
     out: dict[str, Any] = {
         "terms": list(terms), "bias": bias, "weights": dict(zip(TERMS, weights.tolist())), "threshold": threshold,
-        "mismatch_mean": mean,
+        "mismatch_mean": mean, "max_lost": max_lost,
+        **({"budget_selection": selection} if selection is not None else {}),
         "rows": {str(s): {"true": int((~rows.false[rows.sensor == s]).sum()),
                           "false": int(rows.false[rows.sensor == s].sum())} for s in np.unique(rows.sensor)},
         "in_sample": figures(p, rows, p > threshold),

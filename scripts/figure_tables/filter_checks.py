@@ -130,7 +130,8 @@ def render_calibration_kitti(results: dict[str, dict[str, Any]]) -> list[str]:
         ["rows", "; ".join(f"{names[k]} {v['true']:,} true / {v['false']} false" for k, v in d["rows"].items())],
         ["weights (per unit of each term)", _weights(d)],
         ["`reject_threshold` (loses at most `--max-lost` "
-         f"{pct(d['max_lost'])} of the calibration set's true detections)", f"{d['threshold']:.3f}"],
+         f"{pct(d['max_lost'])} of the true detections of each source: real, SynthCars, object)",
+         f"{d['threshold']:.3f}"],
         [f"in-sample: {in_sample}",
          " / ".join(pct(v["false_removed_at_threshold"]) for v in d["in_sample"].values()) + " of false removed at "
          + " / ".join(pct(v["true_lost_at_threshold"]) for v in d["in_sample"].values()) + " of true lost"],
@@ -292,8 +293,23 @@ def render_filter_calibration(results: dict[str, dict[str, Any]]) -> list[str]:
         return ", ".join(f"{k} {_pct(v['removed'])}" for k, v in p["per_kind"].items()) + \
             f" ({_pct(p['true_lost'])} true lost; AUC {p['auc_false_above_true']:.3f})"
 
+    def share(b: float) -> str:  # a budget of the grid (0.75 %, not 0.8 %)
+        return f"{b * 100:g} %"
+
+    def budget(r: dict[str, Any]) -> str:
+        sel = r.get("budget_selection")
+        if sel is None:
+            return f"{share(r.get('max_lost', 0.01))} of each sensor's true cars (set by hand)"
+        nested = "; ".join(f"{s} {_pct(n['true_lost'])} lost at {share(n['budget'])}" for s, n in sel["nested"].items()
+                           if n["budget"] is not None)
+        return (f"**{share(sel['chosen'])}** of each sensor's true cars: the largest budget whose held-out sensors "
+                f"each lose <= {_pct(sel['target_lost'])} (worst held-out loss at " + ", ".join(
+                    f"{share(b)}: {_pct(w)}" for b, w in zip(sel["grid"], sel["worst_held_out_lost"]))
+                + f"); each sensor also held out of the choice: {nested}")
+
     m = shape["mismatch"]
     rows = [["weights", weights(d), weights(shape)],
+            ["loss budget (`--max-lost`)", budget(d), budget(shape)],
             ["held-out sensor (fold threshold)", folds(d), folds(shape)],
             ["held-out sequences, per kind", kinds(d), kinds(shape)],
             ["held-out real KITTI frames", _pct(d["cv_real_frames"]["false_removed"]) + " removed, "
