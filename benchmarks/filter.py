@@ -13,7 +13,8 @@ settings, is checked bit-identical first, with 93cd59e's fixed ground reach on b
 (``reach=GROUND_REACH``: the timed comparison) and with the reach the pipeline uses (the beam
 model's, :func:`pcc_ros.pipeline.evidence.ground_reach`) on both sides. The profile terms
 (:func:`pcc_ros.pipeline.evidence_profile.profile_terms`, newer than 93cd59e) are timed beside
-them (``profile_ms``). Last of the interleaved calls, the whole measurement of the filter
+them (``profile_ms``), and the rays with the azimuth columns of ``cover`` (``cover_ms``: the
+other outputs checked unchanged by them). Last of the interleaved calls, the whole measurement of the filter
 (:func:`pcc_ros.pipeline.filter.filter_terms`, one thread) of every term (``all_terms_ms``:
 calibration's) and of only those the shipped rule weighs (``rule_terms_ms``: ``weighted_only``,
 the pipeline's; a term of weight 0 and a pass only it needs are skipped). The machine's load
@@ -131,6 +132,8 @@ def run(args: argparse.Namespace) -> dict:
         reference = reference_evidence(points, boxes, sensor, reach=fixed).as_dict()
         check_equal(evidence(points, boxes, sensor, reach=fixed).as_dict(), reference)
         check_equal(evidence(points, boxes, sensor, workers=2, reach=fixed).as_dict(), reference)
+        with_columns = evidence(points, boxes, sensor, reach=fixed, columns=True).as_dict()
+        check_equal({k: with_columns[k] for k in reference}, reference, "the rays with the azimuth columns")
         check_equal(filter_terms(points, boxes, rule, sensor=sensor, weighted_only=True, workers=2),
                     filter_terms(points, boxes, rule, sensor=sensor, weighted_only=True), "one thread's filter_terms")
         for measure in (None, rule_profile):  # every profile term, and those the shipped rule weighs
@@ -139,6 +142,7 @@ def run(args: argparse.Namespace) -> dict:
         times = interleaved({"ours": lambda p=points, b=boxes: evidence(p, b, sensor, reach=fixed),
                              "ours_2": lambda p=points, b=boxes: evidence(p, b, sensor, workers=2, reach=fixed),
                              "ours_beams": lambda p=points, b=boxes: evidence(p, b, sensor),
+                             "ours_cover": lambda p=points, b=boxes: evidence(p, b, sensor, reach=fixed, columns=True),
                              "profile": lambda p=points, b=boxes: profile_terms(p, b, sensor),
                              "profile_rule": lambda p=points, b=boxes: profile_terms(p, b, sensor,
                                                                                      measure=rule_profile),
@@ -159,6 +163,7 @@ def run(args: argparse.Namespace) -> dict:
         rows.append({"scan": scan, "points": len(points), "boxes": len(boxes),
                      "ours_min": ours["min_ms"], "ours_ms": ours["median_ms"], "ours_max": ours["max_ms"],
                      "ours2_min": two["min_ms"], "ours2_ms": two["median_ms"], "beams_ms": beams["median_ms"],
+                     "cover_ms": summary_ms(times["ours_cover"])["median_ms"],
                      "profile_ms": profile["median_ms"], "profile_rule_ms": profile_rule["median_ms"],
                      "profile_24858c5_ms": profile_before["median_ms"], "all_terms_ms": every["median_ms"],
                      "rule_terms_ms": weighted["median_ms"],
@@ -169,8 +174,10 @@ def run(args: argparse.Namespace) -> dict:
     print_table(f"evidence filter measurements, ms ({args.repeat} interleaved calls each: min / median / max); "
                 "ours = one thread, ours2 = workers 2 (ground and expected returns on a second thread, as the "
                 "pipeline's workers >= 2), both with 93cd59e's fixed ground reach; beams = one thread, the ground "
-                "reach the pipeline uses (widened with the beam model's ring spacing); profile = the profile terms "
-                "(above, fill, spill, overlap, depth, top: one more pass, no 93cd59e counterpart, not compared), "
+                "reach the pipeline uses (widened with the beam model's ring spacing); cover = ours with the "
+                "azimuth columns of the cover term (the rays' pass marking each box's columns); profile = the "
+                "profile terms (above, fill, spill, overlap, depth, top: one more pass, no 93cd59e counterpart, "
+                "not compared), "
                 "which the pipeline adds to beams; profile_rule = those the shipped rule weighs, profile_24858c5 = "
                 "the same by the profile pass of 24858c5 (pair arrays first; outputs checked identical); ref = main "
                 "at 93cd59e; all_terms = every term of the rule "

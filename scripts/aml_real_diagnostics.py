@@ -16,7 +16,10 @@ aggregated crops as partial ground truth) it prints, for the shipped AML weights
    output points (how much is shape, how much is point spacing);
 4. on two observations, the ML baseline run to convergence at lambda 0 and at the
    checkpoint's lambda against the amortized encoder: code norm, observed-voxel NLL and
-   completeness (the prior's shape space vs the amortization gap).
+   completeness (the prior's shape space vs the amortization gap);
+5. on the same observations, z fitted by ML to the track's whole aggregated GT (all of it
+   observed) against the encoder on the crop, by region of the box: can the prior's shape
+   space hold this car at all (the best its decoder can do), or does the encoder not ask for it?
 """
 
 from __future__ import annotations
@@ -47,6 +50,12 @@ def _report_extents(name, completer, instances, contexts) -> None:
           f"{extent.std(0).round(4)}; height / box height {height:.3f}")
 
 
+def _regions(box_points):
+    """Masks of the box regions (box units): rear / front face, sides, top."""
+    return {"rear face": box_points[:, 0] < -0.4, "front face": box_points[:, 0] > 0.4,
+            "sides": np.abs(box_points[:, 1]) > 0.4, "top": box_points[:, 2] > 0.3}
+
+
 def _report_regions(name, completer, instances, contexts, counts) -> None:
     from scipy.spatial import cKDTree
 
@@ -61,8 +70,7 @@ def _report_regions(name, completer, instances, contexts, counts) -> None:
             d = cKDTree(o).query(inst["reference"])[0] * inst["size"][0]
             means.append(d.mean())
             b = inst["reference"] / box_aspect(inst["size"])
-            regions = {"rear face": b[:, 0] < -0.4, "front face": b[:, 0] > 0.4, "sides": np.abs(b[:, 1]) > 0.4,
-                       "top": b[:, 2] > 0.3}
+            regions = _regions(b)
             regions["rest"] = ~np.any(list(regions.values()), axis=0)
             for k, m in regions.items():
                 sums.setdefault(k, [0.0, 0.0])
@@ -72,6 +80,30 @@ def _report_regions(name, completer, instances, contexts, counts) -> None:
         parts = ", ".join(f"{k} {s / max(c, 1):.3f} m ({100 * c / total:.0f} % of GT)" for k, (s, c) in sums.items())
         print(f"  {name}, {n} points: completeness {np.mean(means):.4f} m; by region: {parts}")
     completer.config["output_points"] = 2048
+
+
+def _report_oracle(completer, instances, contexts, keys, steps) -> None:
+    import torch
+    from scipy.spatial import cKDTree
+
+    from pcc_ros.geometry.voxels import box_aspect
+
+    picks = [j for j, i in enumerate(instances) if i["key"].split(":", 1)[-1] in keys]
+    crops = [instances[j]["partial"] for j in picks]
+    with torch.inference_mode():
+        whole, aspects = completer.observe([instances[j]["reference"] for j in picks], [contexts[j] for j in picks])
+        crop, _ = completer.observe(crops, [contexts[j] for j in picks])
+        encoded = completer.decode_points(completer.model.decoder(completer.model.encoder(crop)), crops, aspects)
+    z = completer.fit_latent(whole[:, 0] > 0.5, whole[:, 1] > 0.5, steps=steps)
+    with torch.inference_mode():
+        fitted = completer.decode_points(completer.model.decoder(z), crops, aspects)
+    for label, outs in (("encoder on the crop", encoded), (f"ML on the whole GT, {steps} steps", fitted)):
+        for j, o in zip(picks, outs):
+            inst = instances[j]
+            d = cKDTree(o).query(inst["reference"])[0] * inst["size"][0]
+            parts = " ".join(f"{k} {d[m].mean():.3f} m ({100 * m.mean():.0f} %)"
+                             for k, m in _regions(inst["reference"] / box_aspect(inst["size"])).items() if m.any())
+            print(f"  {label} {inst['key']}: completeness {d.mean():.3f} m; {parts}")
 
 
 def _report_amortization(completer, instances, contexts, keys, steps) -> None:
@@ -140,6 +172,8 @@ def main() -> int:
         _report_regions(name, model, instances, contexts, (2048, 16384))
     print("4. amortized encoder vs ML to convergence (shipped weights)")
     _report_amortization(models["shipped"], instances, contexts, args.observations.split(","), args.ml_steps)
+    print("5. the prior's best fit to the whole aggregated GT vs the encoder on the crop (shipped weights)")
+    _report_oracle(models["shipped"], instances, contexts, args.observations.split(","), args.ml_steps)
     return 0
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from pcc_ros.errors import CheckpointError
+from pcc_ros.errors import CheckpointError, ConfigError
 from pcc_ros.geometry.partitions import grid_bounds, voxelize
 from pcc_ros.geometry.voxels import (
     AML_GRID,
@@ -31,6 +31,7 @@ from pcc_ros.models.aml import (
     observed_nll,
     sample_meshes,
     space_to_depth,
+    track_partners,
 )
 from pcc_ros.models.base import SceneContext
 from pcc_ros.models.checkpoint import load_checkpoint
@@ -451,6 +452,42 @@ def test_box_jitter_off_gives_the_completer_observation(tmp_path):
         data, np.arange(3), aml.config, np.random.default_rng(0))
     assert not torch.equal(jittered.occupied, batch.occupied)
     assert jittered.occupied.flatten(1).sum(1).tolist() != [0, 0, 0]
+
+
+def test_track_partners_pair_neighbouring_frames_of_one_car():
+    seq = np.array(["0", "0", "0", "0", "1", "0", "1"])
+    track = np.array(["a", "a", "b", "a", "a", "", ""])
+    frame = np.array([5, 3, 4, 9, 3, 4, 4])
+    # a@3 -> a@5, a@5 -> a@9, the last a@9 -> a@5; b and sequence 1's a seen once; untracked: itself
+    assert track_partners(seq, track, frame).tolist() == [3, 0, 2, 0, 4, 5, 6]
+
+
+def test_consistency_pairs_add_the_code_gap_to_the_encoder_loss():
+    from pcc_ros.models.aml import Observations
+
+    rng = np.random.default_rng(3)
+    clouds = [(rng.uniform(-0.4, 0.4, (80, 3)) * [1, 0.5, 0.4]).astype(np.float32) for _ in range(4)]
+    data = Observations(clouds, np.tile([[2.0, 3.0, 0.3]], (4, 1)), {}, np.tile([[1.0, 0.4, 0.35]], (4, 1)),
+                        np.array([1, 0, 3, 2]))
+    torch.manual_seed(0)
+    aml = AML(device="cpu")
+    plain = AMLRecipe(stage="prior", augment=False, consistency=0.0)
+    paired = AMLRecipe(stage="prior", augment=False, consistency=1e6)
+    paired.stage = plain.stage = "encoder"  # without the prior checkpoint the encoder stage needs
+    batch = next(paired.batches(data, 2, aml.config, np.random.default_rng(0)))
+    assert batch.pairs == 2 and len(batch.occupied) == 4
+    assert next(plain.batches(data, 2, aml.config, np.random.default_rng(0))).pairs == 0
+    paired.completer = plain.completer = aml
+    aml.model.eval()
+    with torch.no_grad():  # codes that differ between the two frames
+        aml.model.encoder.fc.weight.mul_(100.0)
+    loss, stats = paired.loss(aml.model, batch)
+    base, _ = plain.loss(aml.model, batch)
+    observed = (batch.occupied | batch.free).flatten(1).sum(1).float().mean()
+    assert stats["z_gap"] > 1e-3
+    assert float(loss - base) == pytest.approx(1e6 * stats["z_gap"] / float(observed), rel=1e-3)
+    with pytest.raises(ConfigError, match="consistency"):
+        AMLRecipe(stage="prior", consistency=-1.0)
 
 
 @pytest.mark.slow

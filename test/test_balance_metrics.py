@@ -10,6 +10,7 @@ from pcc_ros.metrics.balance import (
     far_completeness,
     far_half_mask,
     lateral_offset,
+    previous_in_track,
     symmetric_chamfer_l1,
     track_consistency,
 )
@@ -88,6 +89,11 @@ def test_consistency_pairs_consecutive_frames_of_one_track():
     assert track_consistency(tracks, frames, clouds, max_gap=2)[5] > 0.01
     with pytest.raises(ValueError):
         track_consistency(["t"], [1, 2], [a])
+
+
+def test_previous_in_track_by_frame_any_order():
+    # track a at frames 7, 3, 5; b seen once; an empty key has no history
+    assert previous_in_track(["a", "b", "a", "", "a"], [7, 2, 3, 4, 5]).tolist() == [4, -1, -1, -1, 2]
 
 
 def test_summary_rows_use_the_generated_points_and_the_bars():

@@ -7,6 +7,7 @@ import pytest
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.pipeline.filter import (
+    RULE_WEIGHTS,
     SENSOR_PRESETS,
     FilterConfig,
     evidence,
@@ -139,8 +140,7 @@ def test_filter_config_defaults_equal_the_shipped_yaml():
 
     shipped = read_parameters(Path(__file__).resolve().parents[1] / "config" / "detection_filter.yaml")
     defaults = FilterConfig()
-    for key in ("w_bias", "w_density", "w_free_space", "w_ground_gap", "w_score", "w_mismatch", "reject_threshold",
-                "sensor", "rule"):
+    for key in ("w_bias", *RULE_WEIGHTS, "mismatch_mean", "reject_threshold", "sensor", "rule"):
         assert shipped[key] == getattr(defaults, key), key
 
 
@@ -180,7 +180,7 @@ def test_node_publishes_scores_terms_markers_and_counts():
         assert ids[0] == "Car" and ids[1] == "pcc_filter_score"
         # the terms the shipped rule weighs; one it gives weight 0 is not measured, not published
         assert {f"pcc_filter/{t}" for t in FilterConfig().weighted_terms} <= set(ids)
-        assert "pcc_filter/density" in ids and "pcc_filter/score" not in ids
+        assert "pcc_filter/density" in ids and "pcc_filter/cover" in ids and "pcc_filter/score" not in ids
         p = det.results[1].hypothesis.score
         assert (p > FilterConfig().reject_threshold) == false
     decoded = boxes_from_detection_array(got["kept"][0])

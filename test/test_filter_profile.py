@@ -1,6 +1,7 @@
 """The filter's profile terms (pcc_ros.pipeline.evidence_profile) on ray-cast scenes where each
 term's value is known: a car in its box against a pole, a box shifted off its car, a duplicate;
-and the ray terms' readings on boxes without evidence (a sunk box, one no ray reaches)."""
+the ray terms' readings on boxes without evidence (a sunk box, one no ray reaches); ``cover``
+on a car, a bin in a car box and a car half hidden behind a wall."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import numpy as np
 import pytest
 from test_filter_evidence import BOX, CAR_HI, CAR_LO, GROUND_Z, SENSOR, cast
 
+from pcc_ros.pipeline.evidence import COVER_PRIOR, cover
 from pcc_ros.pipeline.evidence_profile import (
     ABOVE_PRIOR_RETURNS,
     DEPTH_PRIOR,
@@ -154,3 +156,46 @@ def test_through_is_the_share_of_a_cars_returns_that_pass():
     # the core is 0.8 x 0.8 x 0.4 of the box: about a third of the beams that meet the box
     assert all(0.15 < v < 0.6 for v in shares), shares
 
+
+
+# ---- cover: the share of the box's unhidden azimuth columns holding a return
+
+#: a bin (0.6 m square, 1.1 m tall) at the near end of the car box
+BIN = ((14.0, -0.3, GROUND_Z), (14.6, 0.3, GROUND_Z + 1.1))
+#: a wall in front of the car box hiding the half of its azimuth interval at y < 0
+SCREEN = ((8.0, -3.0, GROUND_Z), (8.3, 0.0, GROUND_Z + 3.0))
+
+
+def test_cover_counts_the_columns_nothing_in_front_hides():
+    """A car fills every azimuth column of its box; a bin in the car box fills a few, the rays
+    beside it crossing the core to the wall behind; a car half behind a wall fills every column
+    the wall leaves it (the hidden ones are not counted against it); an empty box fills none."""
+    def cover_of(targets):
+        ev = evidence(cast(targets), BOX, columns=True)
+        return ev.terms["n_filled"][0], ev.terms["n_seen"][0], ev.terms["cover"][0]
+
+    car, bin_, hidden, empty = (cover_of(t) for t in ([CAR], [BIN], [CAR, SCREEN], []))
+    assert car[1] > 30 and car[0] >= 0.95 * car[1]
+    # (the columns at the box's sides, beside its core, count only where something fills them)
+    assert bin_[1] >= 0.6 * car[1] and bin_[0] < 0.5 * bin_[1]
+    assert 0.3 * car[1] < hidden[1] < 0.7 * car[1] and hidden[0] >= 0.95 * hidden[1]
+    assert empty[0] == 0 and empty[1] == bin_[1]
+    assert min(car[2], hidden[2]) > bin_[2] + 0.1 > empty[2] + 0.1
+    assert car[2] == pytest.approx(cover(np.array([car[0]]), np.array([car[1]]))[0])
+
+
+def test_cover_without_columns_keeps_a_cars_value():
+    """A box no ray reaches (nothing seen) reads the prior, a car's value: no evidence."""
+    far = Boxes([[16.1, 30.0, GROUND_Z + 20.75]], [[4.2, 1.8, 1.5]], [0.0])  # above every beam
+    ev = evidence(cast([CAR]), far, columns=True)
+    assert ev.terms["n_seen"][0] == 0 and ev.terms["cover"][0] == pytest.approx(COVER_PRIOR)
+
+
+def test_cover_is_measured_only_where_weighted():
+    """Weight 0: the node does not measure it; a weight (the shipped rule's): it does, the same values."""
+    scan = cast([CAR])
+    assert FilterConfig().w_cover != 0.0  # the shipped rule weighs it
+    assert "cover" not in filter_terms(scan, BOX, FilterConfig(w_cover=0.0), sensor=SENSOR, weighted_only=True)
+    weighted = filter_terms(scan, BOX, FilterConfig(), sensor=SENSOR, weighted_only=True)
+    every = filter_terms(scan, BOX, FilterConfig(w_cover=0.0), sensor=SENSOR)
+    assert weighted["cover"][0] == every["cover"][0] > 0.9

@@ -161,6 +161,11 @@ MISMATCH = {"rule": "trapcc", "backend": "densify"}
 #: network's; the baselines' all do, scoring 0), the MCD term scaled down so the score is not saturated.
 CONTOUR = {"rule": "trapcc", "mcd_scale": 10.0}
 #: parameter -> how to see it act (completion cases use the mirror backend unless ``base`` says).
+#: The evidence cases' base: the input backend, and a threshold that keeps car a. The shipped rule
+#: reads car a, seen on half its width with rays through the other half's core on this hand-made
+#: scan (`cover` 0.90), at p_false 0.56, just over its threshold (0.512), so a case that shows a
+#: change by car a kept or the kept detections' wire starts from a threshold of 0.6.
+EVIDENCE = {"backend": "input", "reject_threshold": 0.6}
 CASES: dict[str, Case] = {
     "backend": Case("completion", "input", check=_fewer_points),  # the mirror adds each car's reflection
     "checkpoint": Case("completion", "SECOND", learned=True),  # other weights, other completions
@@ -183,25 +188,26 @@ CASES: dict[str, Case] = {
     "max_box_tilt": Case("completion", 0.1, tilt=0.2, check=_fewer_instances),
     "max_crop_work": Case("completion", 300, check=_fewer_instances),
     "rule": Case("filter", "trapcc", base={"backend": "input"}),
-    "w_bias": Case("filter", 40.0, base={"backend": "input"}, check=_all_rejected),
+    "w_bias": Case("filter", 40.0, base=EVIDENCE, check=_all_rejected),
     "w_density": Case("filter", 3.0, base={"backend": "input"}),
     "w_free_space": Case("filter", 3.0, base={"backend": "input"}),
     "w_ground_gap": Case("filter", -30.0, base={"backend": "input"}),
     "w_score": Case("filter", 3.0, base={"backend": "input"}),
     "w_mismatch": Case("filter", 3.0, base={"backend": "input"}),
-    "reject_threshold": Case("filter", 1e-6, base={"backend": "input"}, check=_all_rejected),
+    "reject_threshold": Case("filter", 1e-6, base=EVIDENCE, check=_all_rejected),
     "sensor": Case("filter", "hdl32", base={"backend": "input"}),
     # each profile term decides a box here (besides moving every box's log-odds by weight x term; a
     # negative weight where the other terms alone would still reject the box):
     # the pole's returns over box c; car a's returns over part of its silhouette, car b's none
     # outside its box; box d mostly on car a's; returns deep in the boxes (not on a face); car a's top
-    "w_above": Case("filter", -3.0, base={"backend": "input"}, pole=True, check=_decides(kept="c")),
-    "w_fill": Case("filter", 6.0, base={"backend": "input"}, check=_decides(rejected="a")),
+    "w_above": Case("filter", -6.0, base=EVIDENCE, pole=True, check=_decides(kept="c")),
+    "w_fill": Case("filter", 6.0, base=EVIDENCE, check=_decides(rejected="a")),
     "w_spill": Case("filter", 3.0, base={"backend": "input"}, check=_decides(kept="b")),
-    "w_overlap": Case("filter", -2.0, base={"backend": "input"}, duplicate=True, check=_decides(kept="d")),
+    "w_overlap": Case("filter", -4.0, base=EVIDENCE, duplicate=True, check=_decides(kept="d")),
     "w_depth": Case("filter", 0.0, base={"backend": "input"}, check=_decides(kept="b")),
-    "w_top": Case("filter", 3.0, base={"backend": "input"}, check=_decides(rejected="a")),
+    "w_top": Case("filter", 3.0, base=EVIDENCE, check=_decides(rejected="a")),
     "w_through": Case("filter", 20.0, base={"backend": "input"}),
+    "w_cover": Case("filter", -10.0, base=EVIDENCE),
     # past max_instances boxes b and c are not completed: their mismatch term reads mismatch_mean
     "mismatch_mean": Case("filter", 1.0, base={"backend": "input", "w_mismatch": 3.0, "max_instances": 1}),
     "filter_backend": Case("filter", "densify", base={"backend": "input", "w_mismatch": 3.0}),

@@ -24,7 +24,6 @@ the box length); multiply by the box length for metres.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from itertools import pairwise
 
 import numpy as np
 
@@ -71,6 +70,21 @@ def symmetric_chamfer_l1(a: np.ndarray, b: np.ndarray) -> float:
     return float(chamfer_from_distances(PairDistances.compute(a, b))["cd_l1"])
 
 
+def previous_in_track(tracks: Sequence[str], frames: Sequence[int]) -> np.ndarray:
+    """Per instance: the index of the same track's observation just before it (by frame; -1 for
+    a track's first one and for instances without a track key). Parallel inputs in any order;
+    one sort. What consistency compares, and what a training pair of neighbouring frames is."""
+    keys = np.asarray([str(t) for t in tracks])
+    frame = np.asarray(frames, dtype=np.int64)
+    if len(keys) != len(frame):
+        raise ValueError(f"previous_in_track: {len(keys)} tracks, {len(frame)} frames")
+    order = np.lexsort((frame, keys))
+    out = np.full(len(keys), -1, dtype=np.int64)
+    same = (keys[order[1:]] == keys[order[:-1]]) & (keys[order[1:]] != "")
+    out[order[1:][same]] = order[:-1][same]
+    return out
+
+
 def track_consistency(
     tracks: Sequence[str], frames: Sequence[int], clouds: Sequence[np.ndarray], max_gap: int = 1
 ) -> np.ndarray:
@@ -84,9 +98,9 @@ def track_consistency(
         raise ValueError(f"track_consistency: {len(tracks)} tracks, {len(frames)} frames, {n} clouds")
     out = np.full(n, np.nan)
     frame = np.asarray(frames, dtype=np.int64)
-    keys = np.asarray([str(t) for t in tracks])
-    order = np.lexsort((frame, keys))
-    for prev, cur in pairwise(order):  # one pair per consecutive observation (tens to thousands)
-        if keys[cur] and keys[cur] == keys[prev] and 0 < frame[cur] - frame[prev] <= max_gap:
+    previous = previous_in_track(tracks, frame)
+    for cur in np.flatnonzero(previous >= 0):  # one pair per consecutive observation (tens to thousands)
+        prev = previous[cur]
+        if 0 < frame[cur] - frame[prev] <= max_gap:
             out[cur] = symmetric_chamfer_l1(clouds[prev], clouds[cur])
     return out

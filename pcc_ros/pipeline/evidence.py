@@ -59,6 +59,11 @@ GROUND_REACH_MAX = 10.0
 _GROUND_CELL = 1.0
 #: Cells of the ground query's grid at most (the counting sort's table of cell starts).
 _MAX_CELLS = 32_000
+#: ``cover`` of a car: the median share of a true car box's unhidden azimuth columns holding
+#: a return (seed-11 SynthCars, every simulated sensor), and the number of such prior columns
+#: the term starts from (chosen by leave-one-sensor-out cross-validation, docs/filter.md).
+COVER_PRIOR = 1.0
+COVER_PRIOR_COLUMNS = 120.0
 #: Most beam columns sampled per box for the expected return count.
 EXPECTED_COLUMNS = 64
 #: Bins of the ray index: 0.2 deg of azimuth times 16 bands of elevation spanning the boxes'
@@ -141,8 +146,12 @@ def angular_window(boxes: Boxes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
 _SCRATCH = Scratch()  # this module's work arrays (pcc_ros.scratch)
 
 
-def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) -> tuple[np.ndarray, ...]:
-    """``n_in, n_occluded, n_stop, n_pass, n_rays`` of every box (float64).
+def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch,
+                column_step: float | None = None) -> tuple[np.ndarray, ...]:
+    """``n_in, n_occluded, n_stop, n_pass, n_rays`` of every box (float64), and with
+    ``column_step`` (radians: the beam model's azimuth step) ``n_filled, n_seen``: the box's
+    azimuth columns of that step holding an in-box return, and those holding one or a ray
+    through the core that returned from beyond it (the columns not hidden by something in front).
 
     The ray index: numpy's SIMD ``arctan2`` and one compiled pass over the scan, both in its
     own precision, give every point's cell, its azimuth bin and slope band (the slope ``z / r``
@@ -154,11 +163,12 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
     """
     n = len(boxes)
     out = np.zeros((n, 5))
+    cols = np.zeros((n if column_step else 0, 2))
     az_lo, az_hi, el_lo, el_hi, judged = window
     boxes_idx = np.flatnonzero(judged)
     m = len(boxes_idx)
     if not m or not len(x):
-        return tuple(out.T.copy())
+        return (*out.T.copy(), *cols.T.copy())
     dt = x.dtype.type
     # Windows in slope space, widened by the slack; bands span the boxes' windows.
     s_lo = np.tan(el_lo[boxes_idx]) - _SLOPE_SLACK * (1.0 + np.tan(el_lo[boxes_idx]) ** 2)
@@ -193,8 +203,19 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch) ->
     kernels.counting_sort(key, wanted, start, order)
     kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, np.cumsum(nbins), boxes_idx,
                        s_lo.astype(dt), s_hi.astype(dt), table.center, table.cos, table.sin,
-                       table.origin, *table.body, *table.core, out)
-    return tuple(out.T.copy())
+                       table.origin, *table.body, *table.core, out, azimuth,
+                       *_column_grid(window, boxes_idx, column_step), cols)
+    return (*out.T.copy(), *cols.T.copy())
+
+
+def _column_grid(window, boxes_idx: np.ndarray, step: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per judged box, the azimuth columns of ``step`` radians over its azimuth interval: the
+    first column's start, columns per radian, the column count (one column without a step)."""
+    az_lo, az_hi = window[0][boxes_idx], window[1][boxes_idx]
+    if not step:
+        return az_lo, np.ones(len(boxes_idx)), np.ones(len(boxes_idx), dtype=np.int64)
+    count = np.floor((az_hi - az_lo) / step).astype(np.int64) + 1
+    return az_lo, np.full(len(boxes_idx), 1.0 / step), count
 
 
 def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_hi, judged,
@@ -373,7 +394,7 @@ def beside(fn, *args) -> Future:
 
 def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1,
              reach: float | np.ndarray | None = None, rays: bool = True, expected: bool = True,
-             ground: bool = True) -> Evidence:
+             ground: bool = True, columns: bool = False) -> Evidence:
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
@@ -387,6 +408,8 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     the terms that need them are NaN; the others are the same values): a rule whose weights
     leave a term out does not pay for it (``rays``: n_in, n_stop, n_pass, n_occluded, n_rays;
     ``density`` and ``through`` need rays and expected, ``free_space`` rays, ``ground_gap`` ground).
+    ``columns`` (with ``rays``): also the azimuth columns behind ``cover`` (``n_filled``, ``n_seen``
+    and ``cover`` in the terms; :func:`cover`).
     """
     sensor = sensor or SENSOR_PRESETS["hdl64"]
     n = len(boxes)
@@ -408,8 +431,12 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     table = _BoxTable(boxes) if rays or expected else None
     expected_job = beside(partial(_expected_beams, table=table), boxes, sensor, *window) \
         if pool and expected else None
+    cover_terms = {}
     if rays:
-        n_in, n_occ, n_stop, n_pass, n_rays = _ray_counts(x, y, z, boxes, table, window, _SCRATCH)
+        step = np.deg2rad(sensor.azimuth_resolution_deg) if columns else None
+        n_in, n_occ, n_stop, n_pass, n_rays, *col = _ray_counts(x, y, z, boxes, table, window, _SCRATCH, step)
+        if columns:
+            cover_terms = {"n_filled": col[0], "n_seen": col[1], "cover": cover(*col)}
     else:
         n_in, n_occ, n_stop, n_pass, n_rays = nan, nan, nan, nan, nan
     ground = (ground_job.result() if ground_job else _ground(x, y, z, boxes, reach, 0.05, _SCRATCH)) \
@@ -418,8 +445,20 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
         if expected else nan
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
-        _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),
+        {**_derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes), **cover_terms},
     )
+
+
+def cover(n_filled: np.ndarray, n_seen: np.ndarray) -> np.ndarray:
+    """``cover``: the share of a box's unhidden azimuth columns that hold an in-box return,
+    starting from :data:`COVER_PRIOR_COLUMNS` prior columns at a car's :data:`COVER_PRIOR`.
+
+    A car fills every column of its box that nothing in front hides; a bin, a bush, a pole or a
+    short wall segment in a car-sized box fills part of them, the rays beside it crossing the
+    box's core to what lies behind. A column every ray of which ended in front of the box says
+    nothing (an occluded car is not condemned for what it cannot show), and a far box of few
+    columns keeps about a car's value until its own columns say otherwise."""
+    return (n_filled + COVER_PRIOR * COVER_PRIOR_COLUMNS) / (n_seen + COVER_PRIOR_COLUMNS)
 
 
 def warm_up() -> None:

@@ -29,6 +29,8 @@ from pcc_ros.jit import compiled
 
 # Per-box ray counts, columns of :func:`ray_counts`' output.
 IN, OCCLUDED, STOP, PASS, RAYS = range(5)
+# Per-box azimuth columns, columns of :func:`ray_counts`' ``cols`` output.
+FILLED, SEEN = range(2)
 
 
 @njit(inline="always")
@@ -196,11 +198,23 @@ def counting_sort(key, wanted, start, order):
 
 @compiled()
 def ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, boxes_idx, s_lo, s_hi,
-               centre, cos, sin, origin, body_lo, body_hi, core_lo, core_hi, out):
+               centre, cos, sin, origin, body_lo, body_hi, core_lo, core_hi, out, azimuth, col_lo, col_scale,
+               col_count, cols):
     """``out[box, IN / OCCLUDED / STOP / PASS / RAYS]`` += the rays of the cells each judged box
     searches (``first_cell[i] .. last_cell[i]`` for ``i`` in its range of ``bin_ends``; the cells
     sorted by :func:`counting_sort`) whose slope lies in the box's window (the scan's precision)
-    and that the float64 slab tests put through the box (definitions in ``docs/filter.md``)."""
+    and that the float64 slab tests put through the box (definitions in ``docs/filter.md``).
+
+    With ``cols`` (``(boxes, 2)``; an empty array: not measured), the box's azimuth columns too:
+    the ray's column is ``(azimuth - col_lo[j]) * col_scale[j]`` (wrapped to a half turn, clipped
+    to the ``col_count[j]`` columns); ``cols[box, FILLED]`` counts the columns holding an in-box
+    return and ``cols[box, SEEN]`` those holding one or a ray through the core returning from
+    beyond it (a column whose every ray ended in front of the box is hidden: not counted)."""
+    measure_cols = len(cols) > 0
+    width = 0
+    for j in range(len(boxes_idx)):
+        width = max(width, col_count[j]) if measure_cols else 0
+    state = np.zeros(width, dtype=np.uint8)
     begin = 0
     for j in range(len(boxes_idx)):
         b = boxes_idx[j]
@@ -233,7 +247,20 @@ def ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, bo
                 n_occ += 1.0 < tin
                 n_stop += 1.0 <= cout and core and before
                 n_pass += 1.0 > cout and core
+                if measure_cols and ((1.0 <= tout and before) or (1.0 > cout and core)):
+                    a = np.float64(azimuth[p]) - col_lo[j]
+                    a -= 2 * np.pi * np.floor((a + np.pi) / (2 * np.pi))
+                    col = min(max(int(np.floor(a * col_scale[j])), 0), col_count[j] - 1)
+                    state[col] |= 2 if 1.0 <= tout and before else 1
         begin = bin_ends[j]
+        if measure_cols:
+            filled = seen = 0
+            for col in range(col_count[j]):
+                filled += state[col] >= 2
+                seen += state[col] > 0
+                state[col] = 0
+            cols[b, FILLED] = filled
+            cols[b, SEEN] = seen
         out[b, IN] = n_in
         out[b, OCCLUDED] = n_occ
         out[b, STOP] = n_stop

@@ -83,24 +83,25 @@ class FilterConfig:
     # `pcc calibrate-filter --sim-sensors ...` into config/detection_filter.yaml (a test keeps the
     # two equal; docs/filter.md has the command): scan evidence only, no score term (an unknown
     # detector's score scale is unknown; the score must not reject a real car on its own).
-    w_bias: float = -4.603
-    w_density: float = -0.8214
-    w_free_space: float = 0.4724
-    w_ground_gap: float = 4.5697
+    w_bias: float = 14.7412
+    w_density: float = -0.5359
+    w_free_space: float = 0.3788
+    w_ground_gap: float = 4.7327
     w_score: float = 0.0
     w_mismatch: float = 0.0
     # profile terms (pcc_ros.pipeline.evidence_profile): where the returns lie in and around the box
-    w_above: float = 3.8647
+    w_above: float = 4.0301
     w_fill: float = 0.0
     w_spill: float = 0.0
-    w_overlap: float = 12.4173
-    w_depth: float = 8.9004
+    w_overlap: float = 10.1513
+    w_depth: float = 7.8491
     w_top: float = 0.0
     w_through: float = 0.0  # rays through the core returning from beyond it / a car's returns there
+    w_cover: float = -18.8944  # share of the box's unhidden azimuth columns holding a return
     # the value a missing mismatch term takes (a detection whose shape was not completed): its
     # mean over the calibration detections, the first-order marginalisation of the term
     mismatch_mean: float = 0.0
-    reject_threshold: float = 0.5747
+    reject_threshold: float = 0.5118
     sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
@@ -246,7 +247,7 @@ def reject_mask(mismatch: np.ndarray, detection_scores: np.ndarray, config: Filt
 # ============================================================================ physics evidence
 
 #: The evidence terms, in the order of the logistic weights (:attr:`FilterConfig.weights`).
-TERMS = ("density", "free_space", "ground_gap", "score", "mismatch", *PROFILE_TERMS, "through")
+TERMS = ("density", "free_space", "ground_gap", "score", "mismatch", *PROFILE_TERMS, "through", "cover")
 
 #: The term weights of the evidence rule: one calibrated whole (:func:`whole_rule`).
 RULE_WEIGHTS = tuple(f"w_{t}" for t in TERMS)
@@ -328,7 +329,7 @@ def filter_terms(
     Calibration and the evaluation tools measure every term (the default)."""
     sensor = sensor or sensor_for(config.sensor, points, rings)
     wanted = set(config.weighted_terms) if weighted_only else set(TERMS)
-    rays = bool(wanted & {"density", "free_space", "through"})
+    rays = bool(wanted & {"density", "free_space", "through", "cover"})
     out: dict[str, np.ndarray] = {}
     measured = {"rays": rays, "expected": bool(wanted & {"density", "through"}), "ground": "ground_gap" in wanted}
     profile = wanted & set(PROFILE_TERMS)
@@ -341,8 +342,9 @@ def filter_terms(
     if workers > 1 and profile and any(measured.values()):
         profile_job, workers = beside(partial(profile_terms, measure=profile), points, boxes, sensor), 1
     if any(measured.values()):
-        ev = evidence(points, boxes, sensor, workers=workers, **measured)
-        keep = {k for k, needs in _EVIDENCE_KEYS.items() if measured[needs]} | (wanted & set(ev.terms))
+        ev = evidence(points, boxes, sensor, workers=workers, columns="cover" in wanted, **measured)
+        keep = {k for k, needs in _EVIDENCE_KEYS.items() if measured[needs]} | (wanted & set(ev.terms)) \
+            | ({"n_filled", "n_seen"} & set(ev.terms))
         out = {k: v for k, v in ev.as_dict().items() if k in keep}
     if profile:
         out.update(profile_job.result() if profile_job else profile_terms(points, boxes, sensor, measure=profile))

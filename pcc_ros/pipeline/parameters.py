@@ -55,6 +55,8 @@ DESCRIPTIONS = {
     "w_ground_gap": "evidence rule: weight of how far the box bottom floats above the local ground (m)",
     "w_through": "evidence rule: weight of the rays through the box core returning from beyond it, as a share of "
     "the returns a car there would give",
+    "w_cover": "evidence rule: weight of the share of the box's unhidden azimuth columns holding a return (with "
+    "prior columns at a car's value)",
     "w_score": "evidence rule: weight of the detector score as a logit (after score_mapping)",
     "w_mismatch": "evidence rule: weight of the shape-mismatch score (0 unless calibrated with a car-constrained "
     "backend)",

@@ -182,7 +182,8 @@ def attach_families(cache: Any, instances: Sequence[EvalInstance]) -> None:
 
     families = load_families(root)
     if not families:
-        log.info("%s: no SynthCars meta.json (moved?): no per-family tables", root)
+        log.warning("%s: the SynthCars root this cache was extracted from has no meta.json (moved, or a relative "
+                    "path read from another directory?): no per-family tables", root)
     for inst in instances:
         name = families.get((inst.meta["sequence"], str(cache.meta["track"][inst.meta["index"]])))
         if name:

@@ -17,6 +17,7 @@ from torch import nn
 from pcc_ros.errors import CheckpointError, ConfigError
 from pcc_ros.files import atomic_write
 from pcc_ros.geometry.voxels import box_aspect, observation_grids, to_box_frame
+from pcc_ros.metrics.balance import previous_in_track
 from pcc_ros.models.aml.completer import AML
 from pcc_ros.models.aml.lambda_selection import real_crops, select_lambda
 from pcc_ros.models.aml.likelihood import observed_nll
@@ -41,9 +42,11 @@ log = logging.getLogger(__name__)
 class ObservationBatch:
     occupied: torch.Tensor  # (B, H, L, W) bool
     free: torch.Tensor
+    #: with ``pairs`` = P > 0, instance ``i < P`` and instance ``P + i`` are two observations of one car
+    pairs: int = 0
 
     def to(self, device: torch.device) -> ObservationBatch:
-        return ObservationBatch(self.occupied.to(device), self.free.to(device))
+        return ObservationBatch(self.occupied.to(device), self.free.to(device), self.pairs)
 
     def grids(self) -> torch.Tensor:
         return torch.stack([self.occupied, self.free], 1).float().contiguous(memory_format=torch.channels_last_3d)
@@ -58,9 +61,24 @@ class Observations:
     origins: np.ndarray
     sources: dict[str, int]
     aspects: np.ndarray | None = None
+    #: index of the same car's observation in the nearest other frame (itself when it has none)
+    partner: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.clouds)
+
+
+def track_partners(sequence: np.ndarray, track: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """For each observation, the index of the same track's observation in the next frame it was
+    seen in (the previous one for a track's last frame); itself for a track seen once or an
+    observation without a track id (``""``). Vectorised (:func:`previous_in_track`'s one sort)."""
+    track = np.asarray(track, str)
+    keys = np.where(track == "", "", np.char.add(np.char.add(np.asarray(sequence, str), "/"), track))
+    previous = previous_in_track(keys, frame)
+    has_previous = np.flatnonzero(previous >= 0)
+    following = np.full(len(keys), -1, dtype=np.int64)
+    following[previous[has_previous]] = has_previous
+    return np.where(following >= 0, following, np.where(previous >= 0, previous, np.arange(len(keys))))
 
 
 class AMLRecipe(TrainingRecipe):
@@ -85,7 +103,7 @@ class AMLRecipe(TrainingRecipe):
                  lambda_steps: int = 40, beta: float = 1.0, augment: bool = True, max_shapes: int = 600,
                  reference_cache: str | None = None, real_split: str = "train", box_jitter: float = 0.06,
                  lambda_real_weight: float = 0.5, lambda_holdout: float = 0.3,
-                 encoder_init: str | None = None) -> None:
+                 encoder_init: str | None = None, consistency: float = 0.0) -> None:
         if stage not in ("prior", "encoder"):
             raise ConfigError(f"aml: --stage must be prior or encoder, got {stage!r}")
         if stage == "encoder" and not prior:
@@ -116,6 +134,11 @@ class AMLRecipe(TrainingRecipe):
         self.lambda_holdout = float(lambda_holdout)
         if not 0 < self.lambda_holdout < 1:
             raise ConfigError(f"aml: lambda_holdout must be in (0, 1), got {lambda_holdout}")
+        #: encoder stage: weight of ``||z_a - z_b||^2 / 2`` between two observations of one car in
+        #: neighbouring frames (each with its own box jitter), on the scale of lambda's ``||z||^2 / 2``
+        self.consistency = float(consistency)
+        if self.consistency < 0:
+            raise ConfigError(f"aml: consistency must be >= 0, got {consistency}")
         self.select_metric = "val_loss" if stage == "prior" else "val_cd_l1"
         self.lambda_sweep: dict[str, Any] = {}
         self.whitening: dict[str, Any] = {}
@@ -127,7 +150,8 @@ class AMLRecipe(TrainingRecipe):
                 "augment": self.augment, "lambda_instances": self.lambda_instances,
                 "lambda_steps": self.lambda_steps, "max_shapes": self.max_shapes, "real_split": self.real_split,
                 "box_jitter": self.box_jitter, "lambda_real_weight": self.lambda_real_weight,
-                "lambda_holdout": self.lambda_holdout, "encoder_init": self.encoder_init}
+                "lambda_holdout": self.lambda_holdout, "encoder_init": self.encoder_init,
+                "consistency": self.consistency}
 
     # ---- model
 
@@ -194,7 +218,7 @@ class AMLRecipe(TrainingRecipe):
             val = hash_split(source.keys, 0.1)
             return source.subset(np.flatnonzero(~val))
 
-        clouds, origins, aspects, sources = [], [], [], {}
+        clouds, origins, aspects, partners, sources = [], [], [], [], {}
         open_cache = TrainingKit.require(self.kit, self.name).open_cache if self.real else None
         caches = [(source, 1, split)] + [(open_cache(p), self.real_repeat, self.real_split) for p in self.real]
         for cache, repeat, which in caches:  # a handful of caches
@@ -202,13 +226,17 @@ class AMLRecipe(TrainingRecipe):
                 [cache.indices(s, min_points=min_points) for s in ("train", "val", "test")])
             pts = [np.asarray(cache.points(int(i)), np.float32) for i in idx]
             sources[str(cache.root)] = len(idx)
+            meta = cache.meta
+            partner = track_partners(meta["sequence"][idx], meta["track"][idx], meta["frame"][idx])
             for _ in range(repeat):  # real crops are few: repeated so a batch sees them
+                partners.append(partner + len(clouds))
                 clouds.extend(pts)
                 origins.append(cache.meta["origin"][idx].astype(np.float64))
                 aspects.append(box_aspect(cache.meta["box_size"][idx]))
         if not clouds:
             raise ConfigError(f"aml: no training observations in split {split!r}")
-        return Observations(clouds, np.concatenate(origins), sources, np.concatenate(aspects))
+        return Observations(clouds, np.concatenate(origins), sources, np.concatenate(aspects),
+                            np.concatenate(partners))
 
     def batches(self, data: Any, batch_size: int, cfg: dict[str, Any], rng: np.random.Generator) -> Iterator[Any]:
         n = len(data)
@@ -225,6 +253,10 @@ class AMLRecipe(TrainingRecipe):
                         occ, sdf = augment_grids(occ, sdf, rng, spec=grid_of(cfg),
                                                  axis_scale=self.box_jitter if cfg.get("frame") == "box" else 0.0)
                     yield PriorBatch(occ.contiguous(), sdf.contiguous())
+                elif self.consistency > 0 and data.partner is not None:  # each car twice: two frames
+                    batch = self.observation_batch(data, np.concatenate([pick, data.partner[pick]]), cfg, rng)
+                    batch.pairs = len(pick)
+                    yield batch
                 else:
                     yield self.observation_batch(data, pick, cfg, rng)
 
@@ -259,9 +291,16 @@ class AMLRecipe(TrainingRecipe):
         nll = observed_nll(decoded, batch.occupied, batch.free, float(cfg["log_var"]))
         prior = 0.5 * (z**2).sum(1)
         observed = (batch.occupied | batch.free).flatten(1).sum(1).clamp(min=1).float()
-        loss = (nll + lam * prior).mean() / observed.mean()
+        loss = (nll + lam * prior).mean()
+        stats: dict[str, float] = {}
+        if batch.pairs:  # one car seen in two frames: one code (the shape did not change)
+            p = batch.pairs
+            gap = 0.5 * ((z[:p] - z[p:2 * p]) ** 2).sum(1)
+            loss = loss + self.consistency * gap.mean()
+            stats["z_gap"] = float(gap.detach().mean())
+        loss = loss / observed.mean()
         return loss, {"loss": float(loss.detach()), "nll_per_voxel": float((nll / observed).mean().detach()),
-                      "z_norm": float(z.detach().norm(dim=1).mean())}
+                      "z_norm": float(z.detach().norm(dim=1).mean()), **stats}
 
     # ---- validation and lambda selection
 
