@@ -24,7 +24,11 @@ from pcc_ros.pipeline.evidence import (
     GROUND_REACH,
     Evidence,
     SensorModel,
+    _column_grid,
+    _columns,
     _derive,
+    angular_window,
+    cover,
     ground_reach,
 )
 from pcc_ros.types import Boxes
@@ -57,8 +61,10 @@ def original_geometry() -> Iterator[None]:
 
     saved = (pipeline_module._bounded_crop, filter_module.evidence)
     pipeline_module._bounded_crop = bounded_crop
-    # one thread; 93cd59e measured everything (the filter keeps what its rule weights)
-    filter_module.evidence = lambda points, boxes, sensor=None, workers=1, **_measured: evidence(points, boxes, sensor)
+    # one thread; 93cd59e measured everything (the filter keeps what its rule weights); the
+    # azimuth columns of ``cover`` (a term after 93cd59e) from the same pass's pairs
+    filter_module.evidence = lambda points, boxes, sensor=None, workers=1, columns=False, **_measured: \
+        evidence(points, boxes, sensor, columns=columns)
     try:
         yield
     finally:
@@ -385,7 +391,7 @@ def _local_ground(points: np.ndarray, boxes: Boxes, reach: float | np.ndarray = 
 
 
 def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None,
-             reach: float | np.ndarray | None = None) -> Evidence:
+             reach: float | np.ndarray | None = None, columns: bool = False) -> Evidence:
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     ``reach``: metres around each footprint the local ground looks. Default: the shipped
@@ -417,7 +423,8 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     body_lo[:, 2] += EVIDENCE_GROUND
     tin, tout = _slab(o_local, direction, body_lo[pair_box], body_hi[pair_box])
     through = np.flatnonzero(tout >= np.maximum(tin, 0.0))  # rays that cross the box at all
-    pair_box, o_local, direction = pair_box[through], o_local[through], direction[through]
+    pair_point, pair_box = pair_point[through], pair_box[through]
+    o_local, direction = o_local[through], direction[through]
     tin, tout = tin[through], tout[through]
     scale = np.array([CORE_FRACTION[0], CORE_FRACTION[1], 1.0])
     core_lo, core_hi = -half * scale, half * scale
@@ -437,7 +444,34 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     n_pass, n_rays = count(passed), np.bincount(pair_box, minlength=n).astype(np.float64)
     expected = _expected_beams(boxes, sensor, az_lo, az_hi, el_lo, el_hi, judged)
     ground = _local_ground(xyz, boxes, ground_reach(boxes, sensor) if reach is None else reach)
-    return Evidence(
-        n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
-        _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes),
-    )
+    terms = _derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes)
+    if columns:
+        n_filled, n_seen = _azimuth_columns(points, boxes, sensor, pair_point, pair_box, inside, passed)
+        terms = {**terms, "n_filled": n_filled, "n_seen": n_seen, "cover": cover(n_filled, n_seen)}
+    return Evidence(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, terms)
+
+
+def _azimuth_columns(points, boxes: Boxes, sensor: SensorModel, pair_point, pair_box, inside, passed):
+    """``cover``'s columns from this pass's (ray, box) pairs, vectorised: each marked pair's column
+    on the shipped grid (:func:`pcc_ros.pipeline.evidence._column_grid` over the shipped angular
+    window, the beam model's azimuth step), then the distinct (box, column) keys holding an
+    in-box return (filled) and those holding one or a ray through the core (seen)."""
+    n = len(boxes)
+    window = angular_window(boxes)
+    judged = np.flatnonzero(window[4])
+    col_lo, col_scale, col_count = (np.zeros(n), np.ones(n), np.ones(n, dtype=np.int64))
+    col_lo[judged], col_scale[judged], col_count[judged] = _column_grid(
+        window, judged, np.deg2rad(sensor.azimuth_resolution_deg))
+    x, y, _ = _columns(points)
+    with np.errstate(invalid="ignore"):
+        azimuth = np.arctan2(y, x).astype(np.float64)  # the scan's precision, as the kernel reads it
+    mark = inside | passed
+    box, a = pair_box[mark], azimuth[pair_point[mark]] - col_lo[pair_box[mark]]
+    a -= 2 * np.pi * np.floor((a + np.pi) / (2 * np.pi))
+    col = np.clip(np.floor(a * col_scale[box]).astype(np.int64), 0, col_count[box] - 1)
+    key = box * (int(col_count.max()) + 1) + col
+
+    def distinct(keys):
+        return np.bincount(np.unique(keys) // (int(col_count.max()) + 1), minlength=n).astype(np.float64)
+
+    return distinct(key[inside[mark]]), distinct(key)
