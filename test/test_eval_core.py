@@ -94,6 +94,14 @@ def test_resume_reuses_finished_backends():
     # Different settings -> different fingerprint -> recomputed.
     other, _ = evaluate(instances, "ground_truth", ["densify"], emd_points=32, progress=False, previous=first)
     assert other["backends"]["densify"]["overall"]["cd_l1"] != 123.0
+    # The same instances now carrying their SynthCars families (a run that could not read them
+    # wrote no per-family tables): recomputed, with the family table.
+    for inst in instances:
+        inst.meta["family"] = "van"
+    with_families, _ = evaluate(instances, "ground_truth", ["input", "densify"], emd_points=64, progress=False,
+                                previous=first)
+    assert with_families["backends"]["densify"]["overall"]["cd_l1"] != 123.0
+    assert "van" in with_families["backends"]["densify"]["by_family"]
 
 
 def test_evaluate_is_reproducible():
