@@ -398,7 +398,6 @@ def parse_checkpoints(items: Sequence[str]) -> dict[str, Path]:
 
 def fingerprint(instances: Sequence[EvalInstance], settings: dict[str, Any]) -> str:
     """Hash of what a result depends on (instances, their point counts and families, settings).
-
     A re-run whose fingerprint matches the JSON already on disk reuses the backends finished
     there (resume after an interruption); a run that could not read the SynthCars families
     wrote no per-family tables, so one that reads them must not reuse it."""
