@@ -180,7 +180,11 @@ def test_shipped_backend_scores_false_detections_higher_on_synthcars(tmp_path):
         true_scores += result.mismatch[judged & truth].tolist()
         false_scores += result.mismatch[judged & ~truth].tolist()
     assert len(true_scores) > 10 and len(false_scores) > 2
-    assert np.median(false_scores) > np.median(true_scores) + 0.2
+    # The rule reads the mismatch's ranking (its threshold is calibrated); the scale moves with
+    # each fine-tune of the weights, so the check is the rank separation, P(false > true).
+    false, true = np.array(false_scores)[:, None], np.array(true_scores)[None, :]
+    assert np.median(false_scores) > np.median(true_scores)
+    assert (false > true).mean() + 0.5 * (false == true).mean() > 0.7
 
 
 @pytest.mark.parametrize(("workers", "torch_threads", "expected"), [(1, 1, 1), (1, 2, 2), (3, 1, 3)])

@@ -397,14 +397,10 @@ def parse_checkpoints(items: Sequence[str]) -> dict[str, Path]:
 
 
 def fingerprint(instances: Sequence[EvalInstance], settings: dict[str, Any]) -> str:
-    """Hash of what a result depends on (instances, their point counts and vehicle families,
-    settings).
-
+    """Hash of what a result depends on (instances, their point counts and families, settings).
     A re-run whose fingerprint matches the JSON already on disk reuses the backends finished
-    there instead of recomputing them (resume after an interruption). The family is part of it:
-    a run that could not read the SynthCars families (its root moved) wrote no per-family
-    tables, and a later run that reads them must not reuse that result.
-    """
+    there (resume after an interruption); a run that could not read the SynthCars families
+    wrote no per-family tables, so one that reads them must not reuse it."""
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
     for inst in instances:
         digest.update(f"{inst.key}:{inst.num_points}:{len(inst.reference)}:{inst.length:.6f}:"
