@@ -80,3 +80,16 @@ def test_pcc_eval_real_refuses_a_plot_column_it_does_not_evaluate(tmp_path, capl
     argv = ["eval", "--real", "--real-sources", str(tmp_path / "none"), "--backends", "input,mirror",
             "--plot", str(tmp_path / "p.png"), "--plot-backends", "mirror,mirorr"]
     assert_named_failure(*run_cli(argv, caplog), "--plot-backends names backend(s) not evaluated: ['mirorr']")
+
+
+def test_a_dangling_symlink_as_output_is_named_as_one(tmp_path):
+    """mkdir on a dangling link fails with "File exists": the message says what the path is."""
+    import errno
+
+    from pcc_ros.cli.main import describe_error
+
+    link = tmp_path / "cache"
+    link.symlink_to(tmp_path / "gone")
+    text = describe_error(FileExistsError(errno.EEXIST, "File exists", str(link)))
+    assert text.startswith(f"{link}: a broken symbolic link (to {tmp_path / 'gone'})"), text
+    assert "free disk space" in describe_error(FileExistsError(errno.EEXIST, "File exists", str(tmp_path)))

@@ -17,6 +17,7 @@ import logging
 import os
 import sys
 import traceback
+from pathlib import Path
 
 from pcc_ros import __version__
 from pcc_ros.cli.text import plain_text
@@ -154,6 +155,9 @@ def describe_error(exc: BaseException) -> str:
     if isinstance(exc, PccError):
         return str(exc)
     if isinstance(exc, OSError) and exc.filename is not None:
+        path = Path(exc.filename)
+        if path.is_symlink() and not path.exists():  # "File exists" from mkdir on a dangling link
+            return f"{exc.filename}: a broken symbolic link (to {os.readlink(path)}) — remove it or choose another path"
         return f"{exc.filename}: {exc.strerror or exc} — check the path, its permissions and the free disk space"
     if isinstance(exc, MemoryError):
         return "out of memory — process less at once (fewer frames, smaller --batch-size) or free memory"
