@@ -275,9 +275,10 @@ def plane_placement(plane: np.ndarray, scales: np.ndarray) -> np.ndarray:
 
 
 def reflect_points(points: np.ndarray, reflection: np.ndarray) -> np.ndarray:
-    """``points`` (x, y, z first; other columns kept) mapped by the ``(3, 4)`` affine ``reflection``."""
+    """``points`` ``(..., N, C)`` (x, y, z first; other columns kept) mapped by the ``(..., 3, 4)``
+    affine ``reflection`` (a reflection or a placement; one per cloud of a batch)."""
     out = np.array(points, copy=True)
-    out[:, :3] = points[:, :3] @ reflection[:, :3].T + reflection[:, 3]
+    out[..., :3] = points[..., :3] @ np.swapaxes(reflection[..., :3], -1, -2) + reflection[..., None, :, 3]
     return out
 
 

@@ -28,7 +28,7 @@ from torch import nn
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.models.base import aspect_scales
 from pcc_ros.models.losses import masked_mean, nearest, reflect, symmetry_chamfer, weighted_chamfer
-from pcc_ros.models.recipe import CacheRecipe, CacheTrainOptions, TrainingKit, cache_origin
+from pcc_ros.models.recipe import CacheRecipe, CacheTrainOptions, TrainingKit, cache_origin, reflect_points
 from pcc_ros.models.trapcc import (
     GEOMETRY_FEATURES,
     PRESETS,
@@ -298,8 +298,7 @@ class TraPCCRecipe(CacheRecipe):
         hb, hb_mask = self._gt(data.pools.back, data.back[chosen], o.half_loss_points, rng)
         if data.placement is not None:  # the pseudo ground truth where the car's labelled box lies in the crop
             place = data.placement[chosen]
-            whole, hf, hb = (np.einsum("bij,bnj->bni", place[:, :, :3], x) + place[:, None, :, 3]
-                             for x in (whole, hf, hb))
+            whole, hf, hb = (reflect_points(x, place) for x in (whole, hf, hb))
             turned = place[:, 0, 0] < 0  # a detector box heading the other way: its front half is the car's back
             hf[turned], hb[turned] = hb[turned], hf[turned]
             hf_mask[turned], hb_mask[turned] = hb_mask[turned], hf_mask[turned]
