@@ -212,8 +212,9 @@ def ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, bo
     beyond it (a column whose every ray ended in front of the box is hidden: not counted)."""
     measure_cols = len(cols) > 0
     width = 0
-    for j in range(len(boxes_idx)):
-        width = max(width, col_count[j]) if measure_cols else 0
+    if measure_cols:  # one column state array, as wide as the widest box's columns
+        for j in range(len(boxes_idx)):
+            width = max(width, col_count[j])
     state = np.zeros(width, dtype=np.uint8)
     begin = 0
     for j in range(len(boxes_idx)):
@@ -242,16 +243,18 @@ def ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, bo
                 cin, cout = _slab(ix, iy, iz, core_lo, core_hi, b)
                 core = cout >= _maximum(cin, 0.0)
                 before = tin <= 1.0
+                inside = 1.0 <= tout and before  # the return lies in the box
+                passed = 1.0 > cout and core  # the ray crossed the core and returned from beyond it
                 n_rays += 1
-                n_in += 1.0 <= tout and before
+                n_in += inside
                 n_occ += 1.0 < tin
                 n_stop += 1.0 <= cout and core and before
-                n_pass += 1.0 > cout and core
-                if measure_cols and ((1.0 <= tout and before) or (1.0 > cout and core)):
+                n_pass += passed
+                if measure_cols and (inside or passed):
                     a = np.float64(azimuth[p]) - col_lo[j]
                     a -= 2 * np.pi * np.floor((a + np.pi) / (2 * np.pi))
                     col = min(max(int(np.floor(a * col_scale[j])), 0), col_count[j] - 1)
-                    state[col] |= 2 if 1.0 <= tout and before else 1
+                    state[col] |= 2 if inside else 1
         begin = bin_ends[j]
         if measure_cols:
             filled = seen = 0
