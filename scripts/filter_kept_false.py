@@ -58,8 +58,8 @@ def report(layout: str, m: dict[str, np.ndarray]) -> None:
     true = m["kind"] == "true"
     print(f"\n## {layout}: true cars {true.sum()}, lost {(~m['kept'][true]).mean():.1%}")
     print("| boxes | n | range m (median) | returns (median) | 0 returns | no core ring | no body ring "
-          "| core rays (pass+stop, median) | free_space 0 | unjudgeable (no unobstructed ray) |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "| core rays (pass+stop, median) | no core ray | free_space 0 | unjudgeable (no unobstructed ray) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
 
     def line(name: str, sel: np.ndarray) -> None:
         if not sel.any():
@@ -68,7 +68,7 @@ def report(layout: str, m: dict[str, np.ndarray]) -> None:
         blind = (m["n_rays"][sel] - m["n_occluded"][sel]) == 0
         print(f"| {name} | {sel.sum()} | {np.median(m['range'][sel]):.0f} | {np.median(m['n_in'][sel]):.0f} | "
               f"{(m['n_in'][sel] == 0).mean():.0%} | {(m['core_rings'][sel] == 0).mean():.0%} | "
-              f"{(m['body_rings'][sel] == 0).mean():.0%} | {np.median(core):.0f} | "
+              f"{(m['body_rings'][sel] == 0).mean():.0%} | {np.median(core):.0f} | {(core == 0).mean():.0%} | "
               f"{(m['free_space'][sel] == 0).mean():.0%} | {blind.mean():.0%} ({blind.sum()}) |")
 
     line("true, all", true)
@@ -76,7 +76,8 @@ def report(layout: str, m: dict[str, np.ndarray]) -> None:
     for kind in ("confusion", "misplaced", "far", "ghost"):
         sel = m["kind"] == kind
         if sel.any():
-            print(f"| *{kind}: removed {(~m['kept'][sel]).mean():.1%} of {sel.sum()}* | | | | | | | | | |")
+            print(f"| *{kind}: removed {(~m['kept'][sel]).mean():.1%} of {sel.sum()}* | | | | | | | | | | |")
+            line(f"{kind}, all", sel)
             line(f"{kind}, kept", sel & m["kept"])
 
 
