@@ -7,7 +7,8 @@ variants that read the beam model or the scan's ray counts (a covariate added, o
 ``density`` normalised), it prints:
 
 * each sensor's own threshold for the budget (in sample) and its true cars' ``p_false`` by the
-  returns in their box: which sensor's cars bind the one threshold;
+  returns in their box: which sensor's cars bind the one threshold; the rule refitted on each
+  sensor alone;
 * per variant, leave one sensor out at the budget chosen as ``--max-lost cv`` does
   (:func:`pcc_ros.workflows.filter_sensors.choose_budget`): each held-out sensor's true cars lost
   and false boxes removed per kind, and the mean per-kind removal against the shipped terms';
@@ -157,6 +158,11 @@ def binding(rows: Rows, n_in: np.ndarray, budget: float, l2: float) -> None:
             q = m & (n_in >= lo) & (n_in <= hi)
             parts.append(f"{np.quantile(p[q], 0.98):.2f} ({q.sum() / m.sum():.0%})" if q.any() else "none")
         print(f"  {s}: own threshold {own:.3f}; " + " / ".join(parts))
+    print("refitted on each sensor alone: weights, and the intercept at a car's cover (bias + w_cover)")
+    for s in np.unique(rows.sensor[rows.sensor != "real"]):
+        b, w, _, _ = fit_rows(rows.subset(rows.sensor == s), SHIPPED, budget, l2)
+        print(f"  {s}: " + ", ".join(f"{t} {w[TERMS.index(t)]:+.2f}" for t in SHIPPED)
+              + f"; bias + w_cover {b + w[TERMS.index('cover')]:+.2f}")
 
 
 def main() -> None:
