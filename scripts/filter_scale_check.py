@@ -113,14 +113,32 @@ VARIANTS: dict[str, tuple[str | None, Callable]] = {
                         / np.log(2 + r["n_pass"] + r["n_stop"])),
     "density_rays": ("density", lambda x, r: np.log((r["n_in"] + 1)
                                                     / (np.minimum(_evidence(r), r["n_rays"] - r["n_occluded"]) + 1))),
+    "free_space_sensor": (None, lambda x, r: x[:, TERMS.index("free_space")] * r["sensor_level"]),
     "missing_beams": (None, lambda x, r: np.minimum(np.log((r["n_rays"] - r["n_occluded"] + 1)
                                                            / (_evidence(r) + 1)), 0.0)),
 }
 
 
+def sensor_level(sensor: np.ndarray) -> np.ndarray:
+    """Per row, log(beams between -10 and +2 deg elevation per degree of azimuth) of its sensor's beam
+    table (the real KITTI rows: the HDL-64E's), less the mean over the four simulated layouts: how much
+    evidence the sensor gives a car near the horizon, one number a sensor."""
+    from pcc_ros.geometry.beams import SENSOR_PRESETS
+
+    def level(name: str) -> float:
+        model = SENSOR_PRESETS[name]
+        e = np.asarray(model.elevations_deg)
+        return float(np.log(((e >= -10) & (e <= 2)).sum() / model.azimuth_resolution_deg))
+
+    table = {s: level(s) for s in ("hdl64", "vlp16", "vlp32c", "os1_64")}
+    centre = np.mean(list(table.values()))
+    return np.array([table.get(s, table["hdl64"]) - centre for s in sensor])
+
+
 def variant(rows: Rows, raw, name: str) -> tuple[Rows, tuple[str, ...]]:
     """``rows`` with the variant's column in place, and the terms it fits."""
     replaced, values = VARIANTS[name]
+    raw = {**raw, "sensor_level": sensor_level(rows.sensor)}
     x = rows.x.copy()
     column = replaced or SPARE
     x[:, TERMS.index(column)] = values(rows.x, raw)
