@@ -66,7 +66,7 @@ def test_the_term_enters_the_loss_only_when_asked(train_cache, tmp_path):  # noq
     data = recipe.training_data(train_cache, "train", min_points=10)
     completer = recipe.build_completer("cpu")
     batch = next(recipe.batches(data, 4, completer.config, np.random.default_rng(0)))
-    loss, stats = recipe.loss(completer.model, batch)
+    _, stats = recipe.loss(completer.model, batch)
     _, base = _recipe(tmp_path).loss(completer.model, batch)
     assert "consistency" not in base and stats["consistency"] > 0  # two frames' inputs differ
     assert stats["loss"] == pytest.approx(base["loss"] + 2.0 * stats["consistency"], rel=1e-5)

@@ -10,6 +10,8 @@ the one-sided input -> detailed mean Euclidean distance. The paper writes square
 distances (Eq. 1, 2); with canonical units (~0.01-0.1) squares make the gradients of the
 fine-detail errors vanish, so the training uses the L1 forms (documented in
 ``docs/trapcc.md``); the evaluation reports the paper's squared L-G / L-I / L-S.
+Optional terms (off by default): the left / right symmetry of the detailed output and, with
+``consistency``, the Chamfer between one car's detailed outputs in two neighbouring frames.
 """
 
 from __future__ import annotations
