@@ -17,8 +17,6 @@ import numpy as np
 from pcc_ros.errors import DataError
 from pcc_ros.geometry.boxes import _bev_corners, _check_boxes, box_corners, round_down_to, round_up_to
 from pcc_ros.pipeline.evidence import (
-    CORE_FRACTION,
-    CORE_Z,
     EVIDENCE_GROUND,
     EXPECTED_COLUMNS,
     GROUND_REACH,
@@ -28,6 +26,7 @@ from pcc_ros.pipeline.evidence import (
     _columns,
     _derive,
     angular_window,
+    core_box,
     cover,
     ground_reach,
 )
@@ -426,10 +425,8 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     pair_point, pair_box = pair_point[through], pair_box[through]
     o_local, direction = o_local[through], direction[through]
     tin, tout = tin[through], tout[through]
-    scale = np.array([CORE_FRACTION[0], CORE_FRACTION[1], 1.0])
-    core_lo, core_hi = -half * scale, half * scale
-    core_lo[:, 2] = -half[:, 2] + CORE_Z[0] * 2 * half[:, 2]
-    core_hi[:, 2] = -half[:, 2] + CORE_Z[1] * 2 * half[:, 2]
+    # the shipped core (the band, or the cabin where no ring of the beam model crosses it)
+    core_lo, core_hi = core_box(boxes, sensor)
     cin, cout = _slab(o_local, direction, core_lo[pair_box], core_hi[pair_box])
     through_core = cout >= np.maximum(cin, 0.0)
     inside = (tin <= 1.0) & (1.0 <= tout)

@@ -13,12 +13,14 @@ aggregated crops as partial ground truth) it prints, for the shipped AML weights
 2. the sensor height above the box bottom of every instance cache in ``--caches`` (is the
    canonical sensor origin, from which free space is cast, where the LiDAR is?);
 3. completeness by region of the box (rear / front face, sides, top) at 2048 and 16384
-   output points (how much is shape, how much is point spacing);
+   output points (how much is shape, how much is point spacing), over all observations and
+   per track;
 4. on two observations, the ML baseline run to convergence at lambda 0 and at the
    checkpoint's lambda against the amortized encoder: code norm, observed-voxel NLL and
    completeness (the prior's shape space vs the amortization gap);
 5. on the same observations, z fitted by ML to the track's whole aggregated GT (all of it
-   observed) against the encoder on the crop, by region of the box: can the prior's shape
+   observed) against the completer's own code of the crop (the encoder's, refined when the
+   checkpoint or ``--refine-steps`` sets it), by region of the box: can the prior's shape
    space hold this car at all (the best its decoder can do), or does the encoder not ask for it?
 """
 
@@ -57,28 +59,34 @@ def _regions(box_points):
 
 
 def _report_regions(name, completer, instances, contexts, counts) -> None:
+    """Completeness by box region over all observations, then per track (2048 points and more)."""
     from scipy.spatial import cKDTree
 
     from pcc_ros.geometry.voxels import box_aspect
 
+    tracks = sorted({i["key"].split("@")[0] for i in instances})
     for n in counts:
         completer.config["output_points"] = n
         outs = completer.complete([i["partial"] for i in instances], contexts)
-        sums: dict[str, list[float]] = {}
-        means = []
+        sums: dict[str, dict[str, list[float]]] = {}
+        means: dict[str, list[float]] = {}
         for o, inst in zip(outs, instances):  # 35 instances, vectorised inside
             d = cKDTree(o).query(inst["reference"])[0] * inst["size"][0]
-            means.append(d.mean())
             b = inst["reference"] / box_aspect(inst["size"])
             regions = _regions(b)
             regions["rest"] = ~np.any(list(regions.values()), axis=0)
-            for k, m in regions.items():
-                sums.setdefault(k, [0.0, 0.0])
-                sums[k][0] += float(d[m].sum())
-                sums[k][1] += float(m.sum())
-        total = sum(c for _, c in sums.values())
-        parts = ", ".join(f"{k} {s / max(c, 1):.3f} m ({100 * c / total:.0f} % of GT)" for k, (s, c) in sums.items())
-        print(f"  {name}, {n} points: completeness {np.mean(means):.4f} m; by region: {parts}")
+            for group in ("all", inst["key"].split("@")[0]):
+                means.setdefault(group, []).append(d.mean())
+                for k, m in regions.items():
+                    cell = sums.setdefault(group, {}).setdefault(k, [0.0, 0.0])
+                    cell[0] += float(d[m].sum())
+                    cell[1] += float(m.sum())
+        for group in ("all", *tracks):
+            total = sum(c for _, c in sums[group].values())
+            parts = ", ".join(f"{k} {s / max(c, 1):.3f} m ({100 * c / total:.0f} % of GT)"
+                              for k, (s, c) in sums[group].items())
+            print(f"  {name}, {n} points, {group} ({len(means[group])} obs.): completeness "
+                  f"{np.mean(means[group]):.4f} m; by region: {parts}")
     completer.config["output_points"] = 2048
 
 
@@ -93,11 +101,12 @@ def _report_oracle(completer, instances, contexts, keys, steps) -> None:
     with torch.inference_mode():
         whole, aspects = completer.observe([instances[j]["reference"] for j in picks], [contexts[j] for j in picks])
         crop, _ = completer.observe(crops, [contexts[j] for j in picks])
-        encoded = completer.decode_points(completer.model.decoder(completer.model.encoder(crop)), crops, aspects)
+        encoded = completer.decode_points(completer.model.decoder(completer.latent_codes(crop)), crops, aspects)
     z = completer.fit_latent(whole[:, 0] > 0.5, whole[:, 1] > 0.5, steps=steps)
     with torch.inference_mode():
         fitted = completer.decode_points(completer.model.decoder(z), crops, aspects)
-    for label, outs in (("encoder on the crop", encoded), (f"ML on the whole GT, {steps} steps", fitted)):
+    mine = f"encoder{f' + {completer.refine_steps} refine steps' if completer.refine_steps else ''} on the crop"
+    for label, outs in ((mine, encoded), (f"ML on the whole GT, {steps} steps", fitted)):
         for j, o in zip(picks, outs):
             inst = instances[j]
             d = cKDTree(o).query(inst["reference"])[0] * inst["size"][0]
@@ -144,7 +153,10 @@ def main() -> int:
     parser.add_argument("--caches", default="", help="comma-separated instance caches for the sensor-height check")
     parser.add_argument("--observations", default="0000/0@0,0000/3@19", help="observations of the ML check")
     parser.add_argument("--ml-steps", type=int, default=200)
+    parser.add_argument("--refine-steps", type=int, help="refine the encoder's codes (default: the checkpoint's)")
+    parser.add_argument("--sections", default="1,2,3,4,5", help="comma-separated sections to run (numbers above)")
     args = parser.parse_args()
+    sections = {int(s) for s in args.sections.split(",") if s}
 
     import torch
 
@@ -155,25 +167,30 @@ def main() -> int:
     torch.set_num_threads(1)
     instances, _ = real_instances([Path(s) for s in args.real_sources.split(",") if s])
     contexts = scene_contexts(instances)
-    models = {"shipped": load_completer("aml", args.checkpoint, device="cpu")}
+    models = {"shipped": load_completer("aml", args.checkpoint, device="cpu", refine_steps=args.refine_steps)}
     if args.old_checkpoint:
         models["old"] = load_completer("aml", args.old_checkpoint, device="cpu")
     print(f"{len(instances)} real observations")
-    print("1. box vs completion extents")
-    for name, model in models.items():
-        _report_extents(name, model, instances, contexts)
-    print("2. sensor height above the box bottom (median, metres)")
-    for path in [c for c in args.caches.split(",") if c]:
-        meta = InstanceCache.load(path).meta
-        height = meta["origin"][:, 2] * meta["box_size"][:, 0] + meta["box_size"][:, 2] / 2
-        print(f"  {path}: {np.median(height):.2f} m over {len(height)} instances")
-    print("3. completeness by region of the box")
-    for name, model in models.items():
-        _report_regions(name, model, instances, contexts, (2048, 16384))
-    print("4. amortized encoder vs ML to convergence (shipped weights)")
-    _report_amortization(models["shipped"], instances, contexts, args.observations.split(","), args.ml_steps)
-    print("5. the prior's best fit to the whole aggregated GT vs the encoder on the crop (shipped weights)")
-    _report_oracle(models["shipped"], instances, contexts, args.observations.split(","), args.ml_steps)
+    if 1 in sections:
+        print("1. box vs completion extents")
+        for name, model in models.items():
+            _report_extents(name, model, instances, contexts)
+    if 2 in sections:
+        print("2. sensor height above the box bottom (median, metres)")
+        for path in [c for c in args.caches.split(",") if c]:
+            meta = InstanceCache.load(path).meta
+            height = meta["origin"][:, 2] * meta["box_size"][:, 0] + meta["box_size"][:, 2] / 2
+            print(f"  {path}: {np.median(height):.2f} m over {len(height)} instances")
+    if 3 in sections:
+        print("3. completeness by region of the box")
+        for name, model in models.items():
+            _report_regions(name, model, instances, contexts, (2048, 16384))
+    if 4 in sections:
+        print("4. amortized encoder vs ML to convergence (shipped weights)")
+        _report_amortization(models["shipped"], instances, contexts, args.observations.split(","), args.ml_steps)
+    if 5 in sections:
+        print("5. the prior's best fit to the whole aggregated GT vs the encoder on the crop (shipped weights)")
+        _report_oracle(models["shipped"], instances, contexts, args.observations.split(","), args.ml_steps)
     return 0
 
 

@@ -483,18 +483,19 @@ def test_consistency_pairs_add_the_code_gap_to_the_encoder_loss():
 
 @pytest.mark.slow
 def test_lambda_selection_scores_real_crops_by_held_out_points():
-    from pcc_ros.models.aml import RealCrops, holdout_fidelity
+    from pcc_ros.models.aml import RealCrops, holdout_fidelity, ml_codes
 
     torch.manual_seed(0)
     aml = AML(device="cpu")
     rng = np.random.default_rng(2)
     clouds = [(rng.uniform(-0.45, 0.45, (60, 3)) * [1, 0.4, 0.3]).astype(np.float32) for _ in range(2)]
     crops = RealCrops(clouds, np.array([[2.0, 3.0, 0.3], [-3.0, 1.0, 0.2]]), np.array([[4.2, 1.7, 1.5]] * 2))
-    table = holdout_fidelity(aml, crops, [1.0, 100.0], steps=2, holdout=0.3, seed=0)
+    table = holdout_fidelity(aml, crops, {str(lam): ml_codes(aml, 2, lam) for lam in (1.0, 100.0)}, holdout=0.3,
+                             seed=0)
     assert set(table) == {"1.0", "100.0"}
     # metres: the held-out points of a ~4 m car lie within a few metres of any completion
     assert all(0 < v < 3.0 for v in table.values())
-    assert holdout_fidelity(aml, crops, [1.0], steps=2, holdout=0.3, seed=0)["1.0"] == table["1.0"]  # seeded
+    assert holdout_fidelity(aml, crops, {"1.0": ml_codes(aml, 2, 1.0)}, holdout=0.3, seed=0)["1.0"] == table["1.0"]
 
 
 def test_the_ml_baseline_is_found_by_name_in_a_fresh_process():

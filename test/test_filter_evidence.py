@@ -196,9 +196,10 @@ def _brute_force_rays(scan: np.ndarray, boxes: Boxes) -> dict[str, np.ndarray]:
     """n_in / n_occluded / n_stop / n_pass / n_rays by testing every point against every judged
     box (no index), with the float64 slab arithmetic the filter documents."""
     from pcc_ros.geometry.canonical import to_box_local
-    from pcc_ros.pipeline.evidence import CORE_FRACTION, CORE_Z, EVIDENCE_GROUND, angular_window
+    from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, angular_window, core_box
 
     judged = angular_window(boxes)[4]
+    core_lo, core_hi = core_box(boxes, SENSOR)  # the documented core (the cabin where no ring crosses the band)
     p = scan[:, :3].astype(np.float64)
     out = {k: np.zeros(len(boxes)) for k in ("n_in", "n_occluded", "n_stop", "n_pass", "n_rays")}
     for b in np.flatnonzero(judged):  # a test: one box at a time
@@ -208,8 +209,7 @@ def _brute_force_rays(scan: np.ndarray, boxes: Boxes) -> dict[str, np.ndarray]:
         d = [local[a] - origin[a] for a in range(3)]
         half = boxes.size[b] / 2
         body = (np.array([-half[0], -half[1], -half[2] + EVIDENCE_GROUND]), half)
-        core_xy = half[:2] * np.array(CORE_FRACTION)
-        core = (np.r_[-core_xy, -half[2] + CORE_Z[0] * 2 * half[2]], np.r_[core_xy, -half[2] + CORE_Z[1] * 2 * half[2]])
+        core = (core_lo[b], core_hi[b])
         t = {}
         with np.errstate(divide="ignore", invalid="ignore"):
             for name, (lo, hi) in (("body", body), ("core", core)):

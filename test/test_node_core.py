@@ -748,3 +748,43 @@ def test_qos_overrides_are_honoured_or_refused_under_rclpy():
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+def test_a_frame_still_running_when_serving_stops_is_never_published(monkeypatch, caplog):
+    """Stopping (a managed node's deactivate, or exit) waits a bounded time for the frame in
+    flight; a frame that outlasts the wait finds no publisher and is dropped, so nothing is ever
+    published on a publisher the runtime is about to destroy."""
+    import pcc_ros.runtime.node as node_module
+
+    monkeypatch.setattr(node_module, "STOP_WAIT_S", 0.05)
+    wall = LocalGraph()
+    core = _node(wall, "completion", threaded=True)
+    completed = _tap(wall, "/completed", CLOUD)
+    started, release = threading.Event(), threading.Event()
+    process_messages = core.pipeline.process_messages
+
+    def slow_frame(*args, **kwargs):
+        started.set()
+        release.wait(5)
+        return process_messages(*args, **kwargs)
+
+    core.pipeline.process_messages = slow_frame
+    worker = core._worker
+    try:
+        pub_cloud, pub_dets = _driver(wall)
+        cloud, dets = _messages(1_000_000_000)
+        pub_cloud.publish(cloud)
+        pub_dets.publish(dets)
+        assert started.wait(5)
+        with caplog.at_level(logging.WARNING):
+            core.shutdown()  # returns after the short wait, the frame still running
+        assert worker.is_alive()
+        assert any("still runs" in r.message for r in caplog.records)
+        release.set()
+        worker.join(5)
+        assert not worker.is_alive()
+        assert completed == [] and core.frames == 0
+    finally:
+        release.set()
+        core.shutdown()
+        core.runtime.shutdown()

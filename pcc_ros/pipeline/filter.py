@@ -83,25 +83,25 @@ class FilterConfig:
     # `pcc calibrate-filter --sim-sensors ...` into config/detection_filter.yaml (a test keeps the
     # two equal; docs/filter.md has the command): scan evidence only, no score term (an unknown
     # detector's score scale is unknown; the score must not reject a real car on its own).
-    w_bias: float = 14.7412
-    w_density: float = -0.5359
-    w_free_space: float = 0.3788
-    w_ground_gap: float = 4.7327
+    w_bias: float = 14.7298
+    w_density: float = -0.4958
+    w_free_space: float = 0.396
+    w_ground_gap: float = 4.7152
     w_score: float = 0.0
     w_mismatch: float = 0.0
     # profile terms (pcc_ros.pipeline.evidence_profile): where the returns lie in and around the box
-    w_above: float = 4.0301
+    w_above: float = 3.9652
     w_fill: float = 0.0
     w_spill: float = 0.0
-    w_overlap: float = 10.1513
-    w_depth: float = 7.8491
+    w_overlap: float = 10.0427
+    w_depth: float = 7.8196
     w_top: float = 0.0
     w_through: float = 0.0  # rays through the core returning from beyond it / a car's returns there
-    w_cover: float = -18.8944  # share of the box's unhidden azimuth columns holding a return
+    w_cover: float = -18.8009  # share of the box's unhidden azimuth columns holding a return
     # the value a missing mismatch term takes (a detection whose shape was not completed): its
     # mean over the calibration detections, the first-order marginalisation of the term
     mismatch_mean: float = 0.0
-    reject_threshold: float = 0.5118
+    reject_threshold: float = 0.5066
     sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule

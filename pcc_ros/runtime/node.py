@@ -64,6 +64,10 @@ OUTPUTS = {
 DIAGNOSTICS_TOPIC = "/diagnostics"
 #: A clock that moves back by more than this is a jump (a looped bag, a reset simulator).
 JUMP_BACK_NS = 1_000_000
+#: How long stopping waits for the worker's frame in flight. A frame that runs longer is never
+#: published (the publish lock, see :meth:`NodeCore.shutdown`); the wait keeps the worker from
+#: still running inference while a process that is exiting tears the interpreter down under it.
+STOP_WAIT_S = 10.0
 
 
 #: The logger of the node whose work runs here now (:func:`working_for`; a context variable, so per
@@ -237,6 +241,9 @@ class NodeCore:
         self.pub_diagnostics = None
         self.threaded = threaded
         self._running = False
+        #: Held while a frame's messages go out and while serving stops: nothing is published
+        #: on a publisher the runtime is about to destroy.
+        self._publish_lock = threading.Lock()
         self._refreeze = threading.Event()  # set by a backend reload, served by the worker
         self._worker = None
         on_jump = getattr(runtime, "on_clock_jump", None)
@@ -504,11 +511,11 @@ class NodeCore:
             header = make_header(transforms.output_frame, result.stamp_ns, self.runtime.classes)
         outputs = build_outputs(result, originals, self.runtime.classes, detections_header=header,
                                 names=self._wanted_outputs())
-        for name, msg in outputs.items():
-            publisher = self.publishers.get(name)
-            if publisher is None:  # stopped serving (deactivated) while this frame ran
+        with self._publish_lock:
+            if not self.publishers:  # stopped serving (deactivated, shut down) while this frame ran
                 return None
-            publisher.publish(msg)
+            for name, msg in outputs.items():
+                self.publishers[name].publish(msg)
         self.frames += 1
         if self.mode == "filter":
             self.last_decisions = decision_counts(result.status, result.skipped.get("invalid detection", 0))
@@ -581,8 +588,11 @@ class NodeCore:
         self._running = False
         self.slot.close()
         if self._worker is not None:
-            self._worker.join(timeout=2.0)
+            self._worker.join(timeout=STOP_WAIT_S)
+            if self._worker.is_alive():
+                self.log.warning(f"the frame in flight still runs after {STOP_WAIT_S:g} s: its results are dropped")
             self._worker = None
-        self.publishers = {}
-        self.pub_diagnostics = None
+        with self._publish_lock:  # a frame still in flight finds no publisher from here on
+            self.publishers = {}
+            self.pub_diagnostics = None
 

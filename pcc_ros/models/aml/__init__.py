@@ -17,7 +17,8 @@ Two steps, as in the paper (Fig. 2):
    validation split by the ML baseline (below) and recorded in the checkpoint.
 
 **ML baseline** (Eq. 4): the same objective minimised per instance over ``z`` by Adam from
-the prior mean, batched over instances (backend ``aml_ml``, same weights).
+the prior mean, batched over instances (backend ``aml_ml``, same weights). ``aml`` can refine
+its encoder's codes by a few such steps (``refine_steps``, ``refine_lr``).
 
 Output: marching cubes (scikit-image) on the decoded SDF of the whole batch in one call, a
 triangle mesh per instance, ``output_points`` points sampled uniformly by area on it (seeded
@@ -37,7 +38,7 @@ by importing :mod:`.recipe`, attaches the training recipe to the ``aml`` backend
 * :mod:`.surface`: batched marching cubes and area-uniform sampling of the meshes;
 * :mod:`.completer`: the registered backends ``aml`` and ``aml_ml``;
 * :mod:`.prior`: the reference shapes, augmentation, VAE loss, validation, latent whitening;
-* :mod:`.lambda_selection`: lambda chosen by the ML baseline on validation data;
+* :mod:`.lambda_selection`: lambda (by the ML baseline) and the refinement chosen on validation data;
 * :mod:`.recipe`: ``pcc train aml --stage prior|encoder``.
 """
 
@@ -50,10 +51,14 @@ from pcc_ros.models.aml.completer import (
     canonical_origins,
 )
 from pcc_ros.models.aml.lambda_selection import (
+    Codes,
     RealCrops,
     holdout_fidelity,
+    ml_codes,
     real_crops,
+    refined_codes,
     select_lambda,
+    select_refinement,
 )
 from pcc_ros.models.aml.likelihood import (
     observed_nll,
@@ -101,6 +106,7 @@ __all__ = [
     "AMLMaximumLikelihood",
     "AMLNet",
     "AMLRecipe",
+    "Codes",
     "Decoder",
     "Encoder",
     "ObservationBatch",
@@ -116,11 +122,14 @@ __all__ = [
     "hash_split",
     "holdout_fidelity",
     "marching_cubes_batch",
+    "ml_codes",
     "observed_nll",
     "real_crops",
     "reference_nll",
+    "refined_codes",
     "sample_meshes",
     "select_lambda",
+    "select_refinement",
     "shape_to_grid_frame",
     "space_to_depth",
     "surface_samples",

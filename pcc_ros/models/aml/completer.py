@@ -1,5 +1,6 @@
-"""The AML completers: ``aml`` (the amortized encoder) and ``aml_ml`` (the ML baseline, Eq. 4:
-``z`` optimised per instance), sharing the prior's weights."""
+"""The AML completers: ``aml`` (the amortized encoder, optionally refined by a few steps of the
+per-instance objective) and ``aml_ml`` (the ML baseline, Eq. 4: ``z`` optimised per instance from
+``z = 0``), sharing the prior's weights."""
 
 from __future__ import annotations
 
@@ -64,6 +65,11 @@ class AML(TorchCompleter):
 
     Without a :class:`SceneContext` the sensor origin (for free space) is estimated from
     the side the points face (:func:`~pcc_ros.geometry.voxels.estimate_origin`).
+
+    ``refine_steps`` / ``refine_lr`` (run-time; default: the checkpoint's ``training.refine_steps``
+    / ``training.refine_lr``, else 0 / :attr:`ml_lr`): amortised-then-refined inference, the
+    encoder's code as the start of that many Adam steps of Eq. 4 (:meth:`fit_latent`), for the
+    scans the encoder maps to too common a car (its amortization gap). 0: the encoder's code as is.
     """
 
     uses_context = True
@@ -73,11 +79,14 @@ class AML(TorchCompleter):
     #: The named sizes of the network.
     presets = PRESETS
 
-    def __init__(self, device: str = "auto", **options: Any) -> None:
+    def __init__(self, device: str = "auto", refine_steps: int | None = None, refine_lr: float | None = None,
+                 **options: Any) -> None:
         #: lambda of Eq. 4/5 (set from the checkpoint; training selects it on validation).
         self.lam = 1.0
         self.ml_steps = 40
         self.ml_lr = 0.15
+        self.refine_steps, self.refine_lr = 0, self.ml_lr
+        self.set_refinement(refine_steps, refine_lr)
         # options: size (a preset), hyper-parameters overriding it, and run-time options (batch_size, ...)
         super().__init__(device=device, **options)
 
@@ -94,14 +103,32 @@ class AML(TorchCompleter):
              metrics: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> Path:
         return super().save(path, training={**(training or {}), "lam": self.lam}, metrics=metrics, extra=extra)
 
+    def set_refinement(self, steps: int | None = None, lr: float | None = None) -> None:
+        """Set the encoder-then-Eq. 4 refinement (``None`` keeps a setting); refused unless
+        ``steps`` is an integer >= 0 and ``lr`` a positive finite number."""
+        if steps is not None:
+            if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
+                raise ConfigError(f"aml: refine_steps must be an integer >= 0, got {steps!r}")
+            self.refine_steps = int(steps)
+        if lr is not None:
+            if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not 0 < lr < float("inf"):
+                raise ConfigError(f"aml: refine_lr must be a positive number, got {lr!r}")
+            self.refine_lr = float(lr)
+
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "auto", **overrides: Any) -> AML:
         completer = super().from_checkpoint(path, device=device, **overrides)
-        lam = (completer.checkpoint_config or {}).get("training", {}).get("lam")
+        training = (completer.checkpoint_config or {}).get("training", {})
+        lam = training.get("lam")
         if lam is not None:
             if not (isinstance(lam, (int, float)) and lam >= 0):
                 raise CheckpointError(f"{path}: invalid lambda {lam!r}")
             completer.lam = float(lam)
+        stored = {k: training.get(f"refine_{k}") for k in ("steps", "lr") if overrides.get(f"refine_{k}") is None}
+        try:  # the run-time options given win over the checkpoint's
+            completer.set_refinement(stored.get("steps"), stored.get("lr"))
+        except ConfigError as exc:
+            raise CheckpointError(f"{path}: invalid training.refine_* entry: {exc}") from exc
         return completer
 
     # ---- inference
@@ -157,20 +184,32 @@ class AML(TorchCompleter):
                              else np.asarray(clouds[i], np.float32))
         return points
 
+    def latent_codes(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, Q)`` codes of observation grids ``x``: Eq. 4 from ``z = 0`` (``aml_ml``), or the
+        amortized encoder's code, refined by ``refine_steps`` steps of Eq. 4 when set."""
+        occupied, free = x[:, 0] > 0.5, x[:, 1] > 0.5
+        if self.inference == "ml":
+            return self.fit_latent(occupied, free)
+        z = self.model.encoder(x)
+        if self.refine_steps:
+            z = self.fit_latent(occupied, free, steps=self.refine_steps, init=z, lr=self.refine_lr)
+        return z
+
     def forward_batch(self, clouds: list[np.ndarray], contexts: list[SceneContext | None]) -> list[np.ndarray]:
         x, aspects = self.observe(clouds, contexts)
-        if self.inference == "ml":
-            z = self.fit_latent(x[:, 0] > 0.5, x[:, 1] > 0.5)
-            decoded = self.model.decoder(z.to(next(self.model.decoder.parameters()).dtype))
-        else:
-            _, decoded = self.model(x)
+        z = self.latent_codes(x)
+        decoded = self.model.decoder(z.to(next(self.model.decoder.parameters()).dtype))
         return self.decode_points(decoded, clouds, aspects)
 
     def fit_latent(self, occupied: torch.Tensor, free: torch.Tensor, steps: int | None = None,
-                   lam: float | None = None) -> torch.Tensor:
-        """Eq. 4: ``argmin_z`` of the observed-voxel NLL + ``lam ||z||^2 / 2`` by Adam, from ``z = 0``.
+                   lam: float | None = None, init: torch.Tensor | None = None, lr: float | None = None
+                   ) -> torch.Tensor:
+        """Eq. 4: ``argmin_z`` of the observed-voxel NLL + ``lam ||z||^2 / 2`` by ``steps`` Adam
+        steps of learning rate ``lr`` (default :attr:`ml_lr`), from ``init`` (``(B, Q)``, e.g. the
+        encoder's codes) or ``z = 0``.
 
-        Batched over instances (the objective is a sum of independent per-instance terms).
+        Batched over instances: the objective is a sum of independent per-instance terms and
+        Adam's update is per coordinate, so each instance's path is the one it would take alone.
         """
         lam = self.lam if lam is None else float(lam)
         steps = self.ml_steps if steps is None else int(steps)
@@ -179,8 +218,11 @@ class AML(TorchCompleter):
         decoder.eval()
         with torch.inference_mode(False), torch.enable_grad():
             occ, fr = occupied.clone(), free.clone()
-            z = torch.zeros(len(occ), self.model.latent, device=occ.device, requires_grad=True)
-            opt = torch.optim.Adam([z], lr=self.ml_lr)
+            if init is None:
+                z = torch.zeros(len(occ), self.model.latent, device=occ.device, requires_grad=True)
+            else:
+                z = init.detach().clone().float().requires_grad_(True)
+            opt = torch.optim.Adam([z], lr=self.ml_lr if lr is None else float(lr))
             params = [p.requires_grad for p in decoder.parameters()]
             for p in decoder.parameters():
                 p.requires_grad_(False)

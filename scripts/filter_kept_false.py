@@ -1,0 +1,102 @@
+"""Which false boxes the shipped filter keeps on SynthCars, and what the scan says of them.
+
+For every simulated sensor of a calibration root (``pcc calibrate-filter --sim-root``; the
+seed-11 sets, never a held-out seed), the shipped rule judges every detection as the node does
+(``sensor: auto``, the beam model estimated afresh per sequence) and this prints, per sensor and
+false-positive kind, for the kept false boxes against the true cars: their range, returns, how
+many rings of the sensor's table cross the core band and the body, the rays through the core,
+``free_space`` and how many boxes the scan cannot judge at all (no ray reaches the box body
+unobstructed: every ray towards it ended in front of it, or none came). ``--core-open F`` and
+``--cabin F``: the core's top and length where no ring crosses the band
+(:data:`pcc_ros.pipeline.evidence.CORE_Z_OPEN`, :data:`~pcc_ros.pipeline.evidence.CABIN_FRACTION`;
+``--core-open 0.6 --cabin 0.8`` is the rule before the sparse-ring core), the weights as configured
+(``--config``: another rule file).
+
+    PYTHONPATH=$PWD python scripts/filter_kept_false.py data/synthcars_sensors_8x20 --seed 11
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from pcc_ros.geometry.beams import SENSOR_PRESETS
+from pcc_ros.pipeline import evidence as ev
+from pcc_ros.pipeline.beam_model import BeamModel
+from pcc_ros.workflows.detection_eval import build_pipeline, load_kitti
+
+
+def measure(root: Path, layout: str, config: Path | None = None) -> dict[str, np.ndarray]:
+    """Per detection of the set: kind, kept, raw counts, terms, range, ring crossings."""
+    pipeline = build_pipeline(config, {"backend": "input", "sensor": "auto"})
+    split = root / "training" / "velodyne"
+    cols: dict[str, list] = {}
+    preset = SENSOR_PRESETS[layout]
+    for seq in sorted(p.name for p in split.iterdir() if p.is_dir()):
+        pipeline.beam_model = BeamModel("auto")
+        for f in tqdm(load_kitti(root, root / "detections" / "synthetic", seq), desc=f"{layout} {seq}", leave=False):
+            boxes = f.dt.boxes
+            if not len(boxes):
+                continue
+            r = pipeline.process(f.points, boxes)
+            t = r.filter_terms
+            row = {"kind": f.kinds, "kept": r.status != "rejected", "p": r.filter_score,
+                   "range": np.hypot(boxes.center[:, 0], boxes.center[:, 1]),
+                   "core_rings": ev.core_rings(boxes, preset),
+                   "body_rings": ev.core_rings(boxes, preset, (ev.CORE_Z[0], 1.0))}
+            for k in ("n_in", "n_pass", "n_stop", "n_rays", "n_occluded", "free_space", "cover", "density"):
+                row[k] = t[k]
+            for k, v in row.items():
+                cols.setdefault(k, []).append(np.asarray(v))
+    return {k: np.concatenate(v) for k, v in cols.items()}
+
+
+def report(layout: str, m: dict[str, np.ndarray]) -> None:
+    true = m["kind"] == "true"
+    print(f"\n## {layout}: true cars {true.sum()}, lost {(~m['kept'][true]).mean():.1%}")
+    print("| boxes | n | range m (median) | returns (median) | 0 returns | no core ring | no body ring "
+          "| core rays (pass+stop, median) | no core ray | free_space 0 | unjudgeable (no unobstructed ray) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+
+    def line(name: str, sel: np.ndarray) -> None:
+        if not sel.any():
+            return
+        core = m["n_pass"][sel] + m["n_stop"][sel]
+        blind = (m["n_rays"][sel] - m["n_occluded"][sel]) == 0
+        print(f"| {name} | {sel.sum()} | {np.median(m['range'][sel]):.0f} | {np.median(m['n_in'][sel]):.0f} | "
+              f"{(m['n_in'][sel] == 0).mean():.0%} | {(m['core_rings'][sel] == 0).mean():.0%} | "
+              f"{(m['body_rings'][sel] == 0).mean():.0%} | {np.median(core):.0f} | {(core == 0).mean():.0%} | "
+              f"{(m['free_space'][sel] == 0).mean():.0%} | {blind.mean():.0%} ({blind.sum()}) |")
+
+    line("true, all", true)
+    line("true, kept", true & m["kept"])
+    for kind in ("confusion", "misplaced", "far", "ghost"):
+        sel = m["kind"] == kind
+        if sel.any():
+            print(f"| *{kind}: removed {(~m['kept'][sel]).mean():.1%} of {sel.sum()}* | | | | | | | | | | |")
+            line(f"{kind}, all", sel)
+            line(f"{kind}, kept", sel & m["kept"])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("root", type=Path)
+    parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument("--sensors", default="hdl64,vlp16,vlp32c,os1_64")
+    parser.add_argument("--core-open", type=float, default=None)
+    parser.add_argument("--cabin", type=float, default=None)
+    parser.add_argument("--config", type=Path, default=None)
+    args = parser.parse_args()
+    if args.core_open is not None:
+        ev.CORE_Z_OPEN = args.core_open
+    if args.cabin is not None:
+        ev.CABIN_FRACTION = args.cabin
+    for layout in args.sensors.split(","):
+        report(layout, measure(args.root / f"{layout}_s{args.seed}", layout, args.config))
+
+
+if __name__ == "__main__":
+    main()
