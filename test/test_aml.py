@@ -31,7 +31,6 @@ from pcc_ros.models.aml import (
     observed_nll,
     sample_meshes,
     space_to_depth,
-    track_partners,
 )
 from pcc_ros.models.base import SceneContext
 from pcc_ros.models.checkpoint import load_checkpoint
@@ -452,14 +451,6 @@ def test_box_jitter_off_gives_the_completer_observation(tmp_path):
         data, np.arange(3), aml.config, np.random.default_rng(0))
     assert not torch.equal(jittered.occupied, batch.occupied)
     assert jittered.occupied.flatten(1).sum(1).tolist() != [0, 0, 0]
-
-
-def test_track_partners_pair_neighbouring_frames_of_one_car():
-    seq = np.array(["0", "0", "0", "0", "1", "0", "1"])
-    track = np.array(["a", "a", "b", "a", "a", "", ""])
-    frame = np.array([5, 3, 4, 9, 3, 4, 4])
-    # a@3 -> a@5, a@5 -> a@9, the last a@9 -> a@5; b and sequence 1's a seen once; untracked: itself
-    assert track_partners(seq, track, frame).tolist() == [3, 0, 2, 0, 4, 5, 6]
 
 
 def test_consistency_pairs_add_the_code_gap_to_the_encoder_loss():

@@ -13,6 +13,7 @@ from pcc_ros.metrics.balance import (
     previous_in_track,
     symmetric_chamfer_l1,
     track_consistency,
+    track_partners,
 )
 from pcc_ros.metrics.realdata import real_instance_metrics, symmetric_reference
 from pcc_ros.metrics.suite import instance_metrics
@@ -122,3 +123,11 @@ def test_summary_rows_use_the_generated_points_and_the_bars():
     assert rows["net"]["completeness_sym"] == pytest.approx(0.075) and rows["net"]["far_completeness_sym"] == 0.14
     assert table.count("\n") == 4
     assert "| net | 0.050 | 0.075 | 0.070 (30.0 %) | 0.084 | 0.140 | 0.050 | 0.040 |" in table
+
+
+def test_track_partners_pair_neighbouring_frames_of_one_car():
+    seq = np.array(["0", "0", "0", "0", "1", "0", "1"])
+    track = np.array(["a", "a", "b", "a", "a", "", ""])
+    frame = np.array([5, 3, 4, 9, 3, 4, 4])
+    # a@3 -> a@5, a@5 -> a@9, the last a@9 -> a@5; b and sequence 1's a seen once; untracked: itself
+    assert track_partners(seq, track, frame).tolist() == [3, 0, 2, 0, 4, 5, 6]

@@ -93,3 +93,16 @@ def test_a_dangling_symlink_as_output_is_named_as_one(tmp_path):
     text = describe_error(FileExistsError(errno.EEXIST, "File exists", str(link)))
     assert text.startswith(f"{link}: a broken symbolic link (to {tmp_path / 'gone'})"), text
     assert "free disk space" in describe_error(FileExistsError(errno.EEXIST, "File exists", str(tmp_path)))
+
+
+@pytest.mark.parametrize("real", [False, True])
+def test_pcc_eval_refuses_to_write_over_a_checkpoints_config(tmp_path, caplog, real):
+    """`--json run/trapcc.json` beside `--checkpoint trapcc=run/trapcc.safetensors` replaced the
+    checkpoint's config (its weights' hash and training record) without a word."""
+    weights = tmp_path / "trapcc.safetensors"
+    config = tmp_path / "trapcc.json"
+    config.write_text("{}")
+    source = ["--real", "--real-sources", str(tmp_path / "none")] if real else ["--data", str(tmp_path / "none")]
+    argv = ["eval", *source, "--backends", "trapcc", "--checkpoint", f"trapcc={weights}", "--json", str(config)]
+    assert_named_failure(*run_cli(argv, caplog), f"--json {config} is a file of the trapcc checkpoint")
+    assert config.read_text() == "{}"

@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from pcc_ros.errors import ConfigError
+from pcc_ros.models.checkpoint import checkpoint_paths
 from pcc_ros.workflows.evaluate import EvalConfig, evaluate_cache, parse_checkpoints, print_tables
 from pcc_ros.workflows.evaluate_real import RealEvalConfig, run_real
 
@@ -109,7 +110,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def refuse_writing_over_checkpoints(checkpoints: dict[str, Path], outputs: dict[str, Path | None]) -> None:
+    """An output named like a checkpoint's file (``--json out/trapcc.json`` beside
+    ``--checkpoint trapcc=out/trapcc.safetensors``) would silently replace the checkpoint's config,
+    which records its weights' hash and training: refused before anything runs."""
+    for flag, out in outputs.items():
+        if out is None:
+            continue
+        for name, checkpoint in checkpoints.items():
+            if out.resolve() in {p.resolve() for p in checkpoint_paths(checkpoint)}:
+                raise ConfigError(f"{flag} {out} is a file of the {name} checkpoint ({checkpoint}): "
+                                  "choose another output path")
+
+
 def run(args: argparse.Namespace) -> int:
+    refuse_writing_over_checkpoints(parse_checkpoints(args.checkpoint), {"--json": args.json, "--plot": args.plot})
     if args.real:
         return run_real(RealEvalConfig(
             sources=[Path(s.strip()) for s in args.real_sources.split(",") if s.strip()], backends=args.backends,

@@ -85,6 +85,21 @@ def previous_in_track(tracks: Sequence[str], frames: Sequence[int]) -> np.ndarra
     return out
 
 
+def track_partners(sequence: np.ndarray, track: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """For each observation, the index of the same track's observation in the next frame it was
+    seen in (the previous one for a track's last frame); itself for a track seen once or an
+    observation without a track id (``""``). Vectorised (:func:`previous_in_track`'s one sort).
+    The training pairs of the recipes' consistency terms (AML's code gap, TraPCC's Chamfer
+    between the two completions), so training and ``consistency`` pair the same frames."""
+    track = np.asarray(track, str)
+    keys = np.where(track == "", "", np.char.add(np.char.add(np.asarray(sequence, str), "/"), track))
+    previous = previous_in_track(keys, frame)
+    has_previous = np.flatnonzero(previous >= 0)
+    following = np.full(len(keys), -1, dtype=np.int64)
+    following[previous[has_previous]] = has_previous
+    return np.where(following >= 0, following, np.where(previous >= 0, previous, np.arange(len(keys))))
+
+
 def track_consistency(
     tracks: Sequence[str], frames: Sequence[int], clouds: Sequence[np.ndarray], max_gap: int = 1
 ) -> np.ndarray:

@@ -10,6 +10,8 @@ the one-sided input -> detailed mean Euclidean distance. The paper writes square
 distances (Eq. 1, 2); with canonical units (~0.01-0.1) squares make the gradients of the
 fine-detail errors vanish, so the training uses the L1 forms (documented in
 ``docs/trapcc.md``); the evaluation reports the paper's squared L-G / L-I / L-S.
+Optional terms (off by default): the left / right symmetry of the detailed output and, with
+``consistency``, the Chamfer between one car's detailed outputs in two neighbouring frames.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import torch
 from torch import nn
 
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.metrics.balance import track_partners
 from pcc_ros.models.base import aspect_scales
 from pcc_ros.models.losses import masked_mean, nearest, reflect, symmetry_chamfer, weighted_chamfer
 from pcc_ros.models.recipe import CacheRecipe, CacheTrainOptions, TrainingKit, cache_origin, reflect_points
@@ -90,6 +93,13 @@ class TrainOptions(CacheTrainOptions):
     mirror_targets: bool = False
     symmetry_weight: float = 0.0
     mirror_halves: bool = False
+    #: weight of the temporal-consistency term (0: off): half of each batch is drawn as usual, the
+    #: other half is the same cars in a neighbouring frame (:func:`~pcc_ros.metrics.balance.track_partners`;
+    #: a detection without a track id pairs by its matched labelled track, the association a tracker
+    #: gives), and the symmetric Chamfer-L1 between the two detailed outputs in the car's box frame is
+    #: added. One car's shape does not change between frames; no complete shape is used. The mirrored
+    #: targets fill the far flank from each frame's own retrieval, which alone makes it flicker.
+    consistency: float = 0.0
 
 
 @dataclass
@@ -112,6 +122,8 @@ class TrainData:
     #: ``(N, 3, 4)`` where its car's (labelled) box lies in its crop (``mirror_plane="label"``): the
     #: retrieved pseudo ground truth, centred on its own box, is moved there (``None``: the crop's box)
     placement: np.ndarray | None = None
+    #: ``(N,)`` the same car's observation in a neighbouring frame (itself when it has none)
+    partner: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.clouds)
@@ -134,14 +146,19 @@ class TrainBatch:
     half: torch.Tensor  # (B, 2, H, 3)
     half_mask: torch.Tensor  # (B, 2, H)
     reflection: torch.Tensor | None = None  # (B, 3, 4) each input's car plane (None: the box's x-z plane)
+    #: ``(B, 3, 4)`` map from each crop's frame to its car's labelled box frame (None: the crop's box is the car's)
+    to_car: torch.Tensor | None = None
+    #: ``(P,)`` bool, with ``P > 0``: row ``i < P`` and row ``P + i`` are one car in two frames (where True)
+    paired: torch.Tensor | None = None
 
     def to(self, device: torch.device) -> TrainBatch:
         t = [x.to(device, non_blocking=True) for x in (self.points, self.segment)]
         rest = [x.to(device, non_blocking=True) for x in (self.inputs, self.input_mask, self.whole, self.whole_mask,
                                                           self.half, self.half_mask)]
-        reflection = None if self.reflection is None else self.reflection.to(device, non_blocking=True)
+        extra = {k: None if v is None else v.to(device, non_blocking=True)
+                 for k, v in (("reflection", self.reflection), ("to_car", self.to_car), ("paired", self.paired))}
         return TrainBatch(*t, self.batch_size, None if self.neighbours is None else self.neighbours.to(device), *rest,
-                          reflection=reflection)
+                          **extra)
 
 
 class TraPCCRecipe(CacheRecipe):
@@ -156,6 +173,8 @@ class TraPCCRecipe(CacheRecipe):
             raise ConfigError(f"trapcc: chamfer must be l1 or l2, got {self.options.chamfer!r}")
         if not 0.0 <= self.options.real_share <= 1.0:
             raise ConfigError(f"trapcc: real_share must be in [0, 1], got {self.options.real_share}")
+        if self.options.consistency < 0:
+            raise ConfigError(f"trapcc: consistency must be >= 0, got {self.options.consistency}")
         self.model = model
         self.data_summary_: dict[str, Any] = {}
 
@@ -205,7 +224,7 @@ class TraPCCRecipe(CacheRecipe):
         if self.options.box_aspect:  # the main training data fixes the reference
             self.fix_aspect(np.asarray(cache.meta["box_size"])[cache.indices(split, min_points=min_points)])
         clouds, nb_clouds, whole, front, back, real, nbs, geos = [], [], [], [], [], [], [], []
-        per_source, reflections, placements = [], [], []
+        per_source, reflections, placements, partners = [], [], [], []
         for s, c in enumerate(caches):
             idx = c.indices(split, min_points=min_points)
             a = kit.load_or_assign(pools, folder, c, idx, f"{split}-min{min_points}", pool_cfg.size_candidates)
@@ -224,6 +243,8 @@ class TraPCCRecipe(CacheRecipe):
                     geo[i, : len(j)] = neighbour_geometry(centers[i], yaws[i], sizes[i, 0], centers[j], yaws[j], radius)
             usable = a["whole_index"] >= 0
             sel = idx[usable]
+            partner = track_partners(np.full(len(sel), ""), c.track_keys(matched=True)[sel], c.meta["frame"][sel])
+            partners.append(partner + len(clouds))
             scales = np.ones((len(sel), 3), np.float32)
             if self.aspect is not None:  # inputs in the box-aspect frame; neighbours keep their own frame
                 scales = aspect_scales(np.asarray(sizes)[sel], self.aspect, len(sel))
@@ -237,7 +258,8 @@ class TraPCCRecipe(CacheRecipe):
             nbs.append(nb_index[sel])
             geos.append(geo[sel])
             real.append(np.full(len(sel), s > 0))
-            per_source.append({"cache": str(c.root), "instances": len(sel), "real": s > 0, **cache_origin(c)})
+            per_source.append({"cache": str(c.root), "instances": len(sel), "real": s > 0,
+                               "paired": int((partner != np.arange(len(sel))).sum()), **cache_origin(c)})
             if planes is not None:  # how many reflect across their labelled box's plane, how many lack one
                 reflections.append(planes.reflections(sel, scales))
                 placements.append(planes.placements(sel, scales))
@@ -246,7 +268,7 @@ class TraPCCRecipe(CacheRecipe):
         data = TrainData(clouds, np.concatenate(whole), np.concatenate(front), np.concatenate(back),
                          np.concatenate(nbs), np.concatenate(geos), nb_clouds, np.concatenate(real), gt, {},
                          np.concatenate(reflections) if reflections else None,
-                         np.concatenate(placements) if placements else None)
+                         np.concatenate(placements) if placements else None, np.concatenate(partners))
         n_real = int(data.real.sum())
         share = self.options.real_share if n_real and n_real < len(data) else n_real / max(len(data), 1)
         data.summary = {
@@ -302,6 +324,8 @@ class TraPCCRecipe(CacheRecipe):
             turned = place[:, 0, 0] < 0  # a detector box heading the other way: its front half is the car's back
             hf[turned], hb[turned] = hb[turned], hf[turned]
             hf_mask[turned], hb_mask[turned] = hb_mask[turned], hf_mask[turned]
+        else:
+            place = None
         neighbours = None
         if cfg["scene_graph"] != "none":
             k = int(cfg["k_neighbours"])
@@ -321,7 +345,8 @@ class TraPCCRecipe(CacheRecipe):
                           torch.from_numpy(whole), torch.from_numpy(whole_mask),
                           torch.from_numpy(np.stack([hf, hb], axis=1)),
                           torch.from_numpy(np.stack([hf_mask, hb_mask], axis=1)),
-                          None if data.reflection is None else torch.from_numpy(data.reflection[chosen]))
+                          None if data.reflection is None else torch.from_numpy(data.reflection[chosen]),
+                          None if place is None else torch.from_numpy(invert_affine(place)))
 
     @staticmethod
     def _gt(pool: Any, index: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -353,15 +378,29 @@ class TraPCCRecipe(CacheRecipe):
         if len(data) == 0:
             raise ConfigError("trapcc: no training instances")
         weights = self.sampling_weights(data)
+        pairs = batch_size // 2 if self.options.consistency > 0 and data.partner is not None else 0
         while True:
-            chosen = rng.choice(len(data), batch_size, replace=len(data) < batch_size or weights is not None,
-                                p=weights)
-            yield self.make_batch(data, chosen, cfg, rng)
+            if not pairs:
+                chosen = rng.choice(len(data), batch_size, replace=len(data) < batch_size or weights is not None,
+                                    p=weights)
+                yield self.make_batch(data, chosen, cfg, rng)
+                continue
+            # half of the batch drawn, the other half the same cars in a neighbouring frame
+            chosen = rng.choice(len(data), pairs, replace=len(data) < pairs or weights is not None, p=weights)
+            batch = self.make_batch(data, np.concatenate([chosen, data.partner[chosen]]), cfg, rng)
+            batch.paired = torch.from_numpy(data.partner[chosen] != chosen)
+            yield batch
 
     # ---- loss
 
     def loss(self, net: nn.Module, batch: TrainBatch) -> tuple[torch.Tensor, dict[str, float]]:
         return trapcc_loss(net, batch, self.options)
+
+
+def invert_affine(maps: np.ndarray) -> np.ndarray:
+    """The inverses of ``(..., 3, 4)`` affine maps ``x -> A x + t``: ``x -> A^-1 x - A^-1 t``."""
+    inv = np.linalg.inv(maps[..., :3].astype(np.float64))
+    return np.concatenate([inv, -(inv @ maps[..., 3:].astype(np.float64))], -1).astype(np.float32)
 
 
 def aspect_pools(pools: Any, aspect: Sequence[float]) -> Any:
@@ -410,8 +449,26 @@ def trapcc_loss(net: nn.Module, batch: TrainBatch, options: TrainOptions) -> tup
         symmetry = symmetry_chamfer(sub, batch.reflection)
         loss = loss + options.symmetry_weight * symmetry
         stats["symmetry"] = float(symmetry.detach())
+    if options.consistency > 0 and batch.paired is not None:
+        gap = track_pair_chamfer(sub, batch.paired, batch.to_car)
+        loss = loss + options.consistency * gap
+        stats["consistency"] = float(gap.detach())
     stats["loss"] = float(loss.detach())
     return loss, stats
+
+
+def track_pair_chamfer(points: torch.Tensor, paired: torch.Tensor, to_car: torch.Tensor | None = None
+                       ) -> torch.Tensor:
+    """Mean symmetric Chamfer-L1 between rows ``i`` and ``P + i`` of ``points`` ``(B, M, 3)`` over the
+    ``P = len(paired)`` pairs where ``paired`` (one car in two frames), each row first mapped to its car's
+    box frame by ``to_car`` (``(B, 3, 4)``; ``None``: the crop's box is the car's). The car's shape does
+    not change between frames, so its completions should not either (``pcc eval``'s ``consistency``)."""
+    if to_car is not None:
+        points = reflect(points, to_car)
+    p = paired.shape[0]
+    a, b = points[:p], points[p:2 * p]
+    full = torch.ones(a.shape[:-1], dtype=torch.bool, device=a.device)
+    return masked_mean(weighted_chamfer(a, full, b, 0.5), paired)
 
 
 def one_sided(source: torch.Tensor, source_mask: torch.Tensor, pred: torch.Tensor, squared: bool = False

@@ -90,7 +90,6 @@ from pcc_ros.models.aml.recipe import (
     AMLRecipe,
     ObservationBatch,
     Observations,
-    track_partners,
     training_recipe,
 )
 from pcc_ros.models.aml.surface import (
@@ -135,7 +134,6 @@ __all__ = [
     "space_to_depth",
     "surface_samples",
     "synthcars_reference_shapes",
-    "track_partners",
     "training_recipe",
     "vae_loss",
     "validate_prior",

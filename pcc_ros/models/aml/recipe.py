@@ -17,7 +17,7 @@ from torch import nn
 from pcc_ros.errors import CheckpointError, ConfigError
 from pcc_ros.files import atomic_write
 from pcc_ros.geometry.voxels import box_aspect, observation_grids, to_box_frame
-from pcc_ros.metrics.balance import previous_in_track
+from pcc_ros.metrics.balance import track_partners
 from pcc_ros.models.aml.completer import AML
 from pcc_ros.models.aml.lambda_selection import real_crops, select_lambda
 from pcc_ros.models.aml.likelihood import observed_nll
@@ -66,19 +66,6 @@ class Observations:
 
     def __len__(self) -> int:
         return len(self.clouds)
-
-
-def track_partners(sequence: np.ndarray, track: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """For each observation, the index of the same track's observation in the next frame it was
-    seen in (the previous one for a track's last frame); itself for a track seen once or an
-    observation without a track id (``""``). Vectorised (:func:`previous_in_track`'s one sort)."""
-    track = np.asarray(track, str)
-    keys = np.where(track == "", "", np.char.add(np.char.add(np.asarray(sequence, str), "/"), track))
-    previous = previous_in_track(keys, frame)
-    has_previous = np.flatnonzero(previous >= 0)
-    following = np.full(len(keys), -1, dtype=np.int64)
-    following[previous[has_previous]] = has_previous
-    return np.where(following >= 0, following, np.where(previous >= 0, previous, np.arange(len(keys))))
 
 
 class AMLRecipe(TrainingRecipe):
