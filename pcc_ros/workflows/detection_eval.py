@@ -249,6 +249,8 @@ def compare(p_false: np.ndarray, points: np.ndarray, is_true: np.ndarray, group:
         "per_group_removed": {g: float(rejected[group == g].mean()) for g in groups},
         "per_group_count": {g: int((group == g).sum()) for g in groups},
         "unjudged": int((~np.isin(status, ("kept", "rejected"))).sum()),
+        "per_group_unjudged": {g: int((status[group == g] == "unjudged").sum()) for g in groups},
+        "true_unjudged": int((status[is_true] == "unjudged").sum()),
     }
     return out
 
@@ -294,7 +296,7 @@ def evaluate_detections(
     scores = np.concatenate([f.dt.boxes.score for f in frames])
     rule = pipeline.config.filter.rule
     if rule == "evidence":
-        filter_score = p_false
+        filter_score = np.where(np.isfinite(p_false), p_false, -np.inf)  # unjudged: never removed
     else:
         mismatch = np.concatenate([r["mismatch"] for r in results])
         filter_score = np.where(np.isfinite(mismatch), mismatch, -np.inf)  # unjudged: never removed
