@@ -32,9 +32,9 @@ from pcc_ros.msg.detections import (
 from pcc_ros.msg.pointcloud2 import RING_FIELD, point_field_names, read_xyz
 from pcc_ros.msg.stamps import stamp_to_ns
 from pcc_ros.msg.tf_buffer import same_frame
+from pcc_ros.pipeline import filter as filt
 from pcc_ros.pipeline.beam_model import BeamModel
 from pcc_ros.pipeline.config import PipelineConfig
-from pcc_ros.pipeline import filter as filt
 from pcc_ros.pipeline.evidence import warm_up
 from pcc_ros.pipeline.filter import (
     false_probability,
