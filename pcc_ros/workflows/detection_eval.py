@@ -227,7 +227,8 @@ def compare(p_false: np.ndarray, points: np.ndarray, is_true: np.ndarray, group:
     ``at_loss``: the share of each false group each method removes at its best threshold that
     loses at most ``max_lost`` of the true boxes (an oracle threshold for both, same loss
     budget); ``configured``: what the filter's configured threshold removed and lost."""
-    methods = {"filter": p_false, "points-in-box": -points.astype(np.float64)}
+    methods = {"filter": np.where(np.isfinite(p_false), p_false, -np.inf),  # unjudged (NaN): never removed
+               "points-in-box": -points.astype(np.float64)}
     out: dict[str, Any] = {"true": int(is_true.sum()), "false": int((~is_true).sum()), "methods": {}}
     groups = sorted(set(group[~is_true]))
     for name, s in methods.items():
