@@ -18,7 +18,6 @@ from pcc_ros.pipeline.filter import (
     FilterConfig,
     false_probability,
     term_matrix,
-    without_evidence,
 )
 from pcc_ros.runtime.base import RELIABLE, SENSOR_DATA
 from pcc_ros.runtime.local import LocalGraph, LocalRuntime
@@ -98,59 +97,3 @@ def test_a_missing_shape_term_is_marginalised_to_its_calibration_mean():
     config = FilterConfig(w_mismatch=2.0, mismatch_mean=0.4, w_bias=0.0)
     missing = false_probability({**terms, "mismatch": np.array([np.nan, 0.4])}, config)
     assert missing[0] == missing[1] == 1.0 / (1.0 + np.exp(-0.8))
-
-
-def _shadowed_street(seed: int = 0):
-    """A wall 10 m ahead (x = 10, |y| <= 2.5 m, up to 1.2 m high) hides two boxes 20 m ahead
-    behind it: an empty one and a car whose returns the wall stops (none reach it). A third,
-    empty box stands in the open at the same range 30 deg aside, the ground and a far wall
-    behind it returning the rays that cross it. Ground everywhere outside the wall's shadow."""
-    rng = np.random.default_rng(seed)
-    wy, wz = np.meshgrid(np.arange(-2.5, 2.5, 0.04), np.arange(-1.73, 1.2, 0.04))
-    wall = np.c_[np.full(wy.size, 10.0), wy.ravel(), wz.ravel()]
-    radius, angle = rng.uniform(3.0, 60.0, 60_000), rng.uniform(-np.pi, np.pi, 60_000)
-    ground = np.c_[radius * np.cos(angle), radius * np.sin(angle), np.full(60_000, -1.73)]
-    hidden = (ground[:, 0] > 10.0) & (np.abs(ground[:, 1]) < 2.5 * ground[:, 0] / 10.0)
-    far = 45.0 * np.array([np.cos(np.pi / 6), np.sin(np.pi / 6)])
-    fy, fz = np.meshgrid(np.arange(-6.0, 6.0, 0.05), np.arange(-1.73, 2.0, 0.05))
-    back = np.c_[far[0] - 0.5 * fy.ravel(), far[1] + np.sqrt(0.75) * fy.ravel(), fz.ravel()]
-    points = np.concatenate([wall, ground[~hidden], back]).astype(np.float32)
-    open_centre = 20.0 * np.array([np.cos(np.pi / 6), np.sin(np.pi / 6)])
-    boxes = Boxes([[20.0, -1.0, -0.98], [20.0, 1.0, -0.98], [*open_centre, -0.98]], np.tile([4.2, 1.8, 1.5], (3, 1)),
-                  [0.0, 0.0, np.pi / 6], ["Car"] * 3, [0.9, 0.6, 0.5], ["empty", "car", "open"])
-    return points, boxes
-
-
-def test_a_box_the_scan_says_nothing_about_is_unjudged_marked_and_counted():
-    graph = LocalGraph(simulated=True)
-    core = NodeCore(LocalRuntime(graph, "detection_filter_node"), "detection_filter_node", "filter",
-                    {"backend": "input"}, threaded=False)
-    got: list = []
-    LocalRuntime(graph, "probe").create_subscription("/detections_filtered", DETS, got.append, RELIABLE)
-    points, boxes = _shadowed_street()
-    driver = LocalRuntime(graph, "driver")
-    driver.create_publisher("/points", CLOUD, SENSOR_DATA).publish(create_cloud(points, ["x", "y", "z"], "velodyne",
-                                                                                STAMP))
-    driver.create_publisher("/detections", DETS, RELIABLE).publish(detection_array_from_boxes(boxes, "velodyne",
-                                                                                              STAMP))
-    assert core.frames == 1
-    hyps = {d.id: {h.hypothesis.class_id: h.hypothesis.score for h in d.results}
-            for a in got for d in a.detections}
-    for hidden in ("empty", "car"):  # kept, marked, no p_false: the scan holds nothing on them
-        assert UNJUDGED_CLASS_ID in hyps[hidden] and SCORE_CLASS_ID not in hyps[hidden]
-    result = core.pipeline.process(points, boxes)
-    assert list(result.status[:2]) == ["unjudged", "unjudged"]
-    assert result.filter_terms["n_pass"][2] > 0 and result.status[2] in ("kept", "rejected")  # rays cross it: judged
-    assert np.isnan(result.filter_score[:2]).all() and np.isfinite(result.filter_score[2])
-    values = core.diagnostics_values()
-    assert values["skipped_unjudged_no_evidence"] == "2" and values["detections_unjudged"] == "2"
-    status = core.diagnostics_message().status[0]
-    assert "could not be judged" not in status.message  # counted, not a warning: no work was lost
-
-
-def test_without_evidence_needs_no_return_no_core_ray_and_no_overlap():
-    zero = np.zeros(4)
-    terms = {"n_in": np.array([0.0, 1.0, 0.0, 0.0]), "n_pass": np.array([0.0, 0.0, 2.0, 0.0]), "n_stop": zero,
-             "overlap": np.array([0.0, 0.0, 0.0, 0.4])}
-    np.testing.assert_array_equal(without_evidence(terms), [True, False, False, False])
-    assert not without_evidence({**terms, "n_in": np.full(4, np.nan)}).any()  # rays not measured: judged

@@ -67,9 +67,7 @@ def run_sensors(args: argparse.Namespace) -> int:
         parts.append(real_rows(pipeline, frames, args.sensor, classes))
     rows = Rows.concatenate(parts)
     result = calibrate_sensors(rows, terms, args.max_lost, args.l2, args.target_lost)
-    result["unjudged_rows"] = dict(sorted(pipeline.unjudged_rows.items()))
     print("rows:", json.dumps(result["rows"]))
-    print("left unjudged (no evidence; not fitted):", json.dumps(result["unjudged_rows"]))
     selection = result.get("budget_selection")
     if selection is not None:
         print(f"loss budget by leave-one-sensor-out CV (target <= {selection['target_lost']:.1%} of a held-out "

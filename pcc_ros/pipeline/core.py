@@ -32,7 +32,6 @@ from pcc_ros.msg.detections import (
 from pcc_ros.msg.pointcloud2 import RING_FIELD, point_field_names, read_xyz
 from pcc_ros.msg.stamps import stamp_to_ns
 from pcc_ros.msg.tf_buffer import same_frame
-from pcc_ros.pipeline import filter as filt
 from pcc_ros.pipeline.beam_model import BeamModel
 from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.evidence import warm_up
@@ -42,7 +41,6 @@ from pcc_ros.pipeline.filter import (
     map_scores,
     mismatch_scores,
     reject_mask,
-    without_evidence,
 )
 from pcc_ros.pipeline.track_memory import TrackMemory
 from pcc_ros.types import Boxes, class_mask
@@ -283,11 +281,6 @@ class Pipeline:
                     filter_score[judged_idx] = false_probability(part, cfg.filter)
                     reject = filter_score[judged_idx] > cfg.filter.reject_threshold
                     status[judged_idx] = np.where(reject, "rejected", "kept")
-                    if filt.UNJUDGED_WITHOUT_EVIDENCE and "n_in" in part:  # the scan says nothing: kept, marked
-                        blind = judged_idx[without_evidence(part)]
-                        status[blind] = "unjudged"
-                        filter_score[blind] = np.nan
-                        _count(skipped, "unjudged no evidence", len(blind))
             else:
                 judged = np.isfinite(mismatch) & bool(len(points))
                 if not len(points) and len(candidates):

@@ -306,28 +306,6 @@ def false_probability(terms: dict[str, np.ndarray], config: FilterConfig) -> np.
     return 1.0 / (1.0 + np.exp(-z))
 
 
-#: Whether the evidence rule leaves a detection the scan says nothing about unjudged (see
-#: :func:`without_evidence`) instead of giving it the p_false of its bias and zero terms.
-UNJUDGED_WITHOUT_EVIDENCE = True
-
-
-def without_evidence(terms: dict[str, np.ndarray]) -> np.ndarray:
-    """The detections nothing the rule reads speaks for or against: no return inside the box
-    (``n_in`` 0), no ray through its core (``n_pass + n_stop`` 0: every ray towards it ended in
-    front, or none came; then no azimuth column of ``cover`` is unhidden either) and no
-    higher-scored box over its footprint (``overlap`` 0). A box rays pass through (a ghost on
-    free ground, a far box in the open) or one holding a single return is judged. Such a box,
-    a car in another's shadow or far beyond the last ring, gets its p_false from the bias alone;
-    it is published unjudged (kept, marked, counted). A term not measured (NaN, absent) is no
-    evidence; raw counts not measured (the rays pass skipped) leave every box judged."""
-    n_in = np.asarray(terms.get("n_in", []), dtype=np.float64)
-    if not len(n_in):
-        return np.zeros(0, dtype=bool)
-    rays = np.asarray(terms["n_pass"], dtype=np.float64) + np.asarray(terms["n_stop"], dtype=np.float64)
-    overlap = np.nan_to_num(np.asarray(terms.get("overlap", np.zeros(len(n_in))), dtype=np.float64))
-    return (n_in == 0) & (rays == 0) & (overlap == 0)
-
-
 #: The raw measurements of :func:`evidence`, each with the pass that makes them (its flag).
 _EVIDENCE_KEYS = {"n_in": "rays", "n_stop": "rays", "n_pass": "rays", "n_occluded": "rays", "n_rays": "rays",
                   "expected": "expected", "ground_z": "ground"}

@@ -152,10 +152,6 @@ def node_status(core: Any):
     counters = {k: int(v) for k, v in values.items() if k.startswith("skipped_") or k in (
         "frames_without_transform", "time_jumps_back", "detections_unjudged")}
     counters["failed_frames_other"] = core.failures - core.no_transform
-    # A box the scan says nothing about (skipped_unjudged_no_evidence: in another's shadow, past
-    # the last ring) is unjudged in every busy frame: counted, never a warning.
-    if "detections_unjudged" in counters:
-        counters["detections_unjudged"] -= counters.get("skipped_unjudged_no_evidence", 0)
     grown = core.health.recent(now, counters)
     context = {"missing": core.last_missing_transform or "?", "first": core.first_failure or "?"}
     stalled = (f"detections arrive but no scan on '{core.resolved['points']}' for more than "

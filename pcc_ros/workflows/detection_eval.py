@@ -227,8 +227,7 @@ def compare(p_false: np.ndarray, points: np.ndarray, is_true: np.ndarray, group:
     ``at_loss``: the share of each false group each method removes at its best threshold that
     loses at most ``max_lost`` of the true boxes (an oracle threshold for both, same loss
     budget); ``configured``: what the filter's configured threshold removed and lost."""
-    methods = {"filter": np.where(np.isfinite(p_false), p_false, -np.inf),  # unjudged (NaN): never removed
-               "points-in-box": -points.astype(np.float64)}
+    methods = {"filter": p_false, "points-in-box": -points.astype(np.float64)}
     out: dict[str, Any] = {"true": int(is_true.sum()), "false": int((~is_true).sum()), "methods": {}}
     groups = sorted(set(group[~is_true]))
     for name, s in methods.items():
@@ -250,8 +249,6 @@ def compare(p_false: np.ndarray, points: np.ndarray, is_true: np.ndarray, group:
         "per_group_removed": {g: float(rejected[group == g].mean()) for g in groups},
         "per_group_count": {g: int((group == g).sum()) for g in groups},
         "unjudged": int((~np.isin(status, ("kept", "rejected"))).sum()),
-        "per_group_unjudged": {g: int((status[group == g] == "unjudged").sum()) for g in groups},
-        "true_unjudged": int((status[is_true] == "unjudged").sum()),
     }
     return out
 
@@ -297,7 +294,7 @@ def evaluate_detections(
     scores = np.concatenate([f.dt.boxes.score for f in frames])
     rule = pipeline.config.filter.rule
     if rule == "evidence":
-        filter_score = np.where(np.isfinite(p_false), p_false, -np.inf)  # unjudged: never removed
+        filter_score = p_false
     else:
         mismatch = np.concatenate([r["mismatch"] for r in results])
         filter_score = np.where(np.isfinite(mismatch), mismatch, -np.inf)  # unjudged: never removed

@@ -100,7 +100,6 @@ def measuring_pipeline(filter_backend: str, shape: bool = True, device: str = "c
     pipeline = build_pipeline(None, {"backend": "input", "device": device, "w_mismatch": 1.0 if shape else 0.0,
                                      "filter_backend": filter_backend})
     pipeline.config = replace(pipeline.config, max_instances=100_000)
-    pipeline.unjudged_rows = {}  # "<sensor>:<kind>" -> detections left unjudged (no evidence): not fitted
     return pipeline
 
 
@@ -119,17 +118,6 @@ def _measure(pipeline, sensor: str, frames, truth_of, kind_of, group_of, label: 
         if not len(boxes):
             continue
         result = pipeline.process(f.points, boxes)
-        # A box the scan says nothing about is published unjudged: it takes no part in the fit
-        # or the threshold (counted per kind in ``pipeline.unjudged_rows``).
-        judged = result.status != "unjudged"
-        counts = getattr(pipeline, "unjudged_rows", None)
-        if counts is not None:
-            for kind in kind_of(f)[keep][~judged]:
-                key = f"{label}:{kind}"
-                counts[key] = counts.get(key, 0) + 1
-        if not judged.all():
-            keep = np.flatnonzero(keep)[judged]
-            boxes, result = boxes[judged], _judged_only(result, judged)
         terms = {t: result.filter_terms.get(t, np.full(len(boxes), np.nan)) for t in TERMS}
         n = len(boxes)
         x = term_matrix(terms)
@@ -137,13 +125,6 @@ def _measure(pipeline, sensor: str, frames, truth_of, kind_of, group_of, label: 
         parts.append(Rows(x, truth_of(f)[keep] == 0, kind_of(f)[keep],
                           np.full(n, label, dtype=object), np.full(n, group_of(f), dtype=object)))
     return Rows.concatenate(parts)
-
-
-def _judged_only(result, judged: np.ndarray):
-    """``result``'s per-detection outputs of the judged detections only (the terms and mismatch
-    the rows read)."""
-    return replace(result, mismatch=result.mismatch[judged],
-                   filter_terms={k: v[judged] for k, v in result.filter_terms.items()})
 
 
 def synth_rows(pipeline, root: Path, layout: str, sensor: str = "auto") -> Rows:
