@@ -10,6 +10,8 @@ from .base import Figure, one, pct, table
 
 #: The simulated sensors of the per-kind check, in the docs' column order.
 SENSORS = ("hdl64", "vlp16", "vlp32c", "os1_64")
+#: Beam layouts SynthCars simulates that the shipped rule's calibration never saw.
+UNSEEN_SENSORS = ("hdl32", "vlp32c_x2", "os1_128", "pandar64")
 #: The false-positive kinds of SynthCars' simulated detector, and the real frames' false detections.
 KINDS = ("confusion", "ghost", "far", "misplaced")
 #: The trapcc rule's completion backends, as the eval-on-KITTI table lists them.
@@ -235,10 +237,11 @@ def _pct(value: float | None) -> str:
     return "-" if value is None else pct(value)
 
 
-def render_filter_synth(results: dict[str, dict[str, Any]], seed: str = "") -> list[str]:
+def render_filter_synth(results: dict[str, dict[str, Any]], seed: str = "",
+                        sensors: tuple[str, ...] = SENSORS) -> list[str]:
     """Per false-positive kind and held-out simulated sensor: removed at the configured threshold
     (the filter and points-in-box at their best threshold for <= 2 % lost), and the true cars lost."""
-    kinds = {s: results[_synth(s, seed)]["per_kind"] for s in SENSORS}
+    kinds = {s: results[_synth(s, seed)]["per_kind"] for s in sensors}
 
     def cell(k: dict[str, Any], kind: str) -> str:
         n = k["configured"]["per_group_count"].get(kind)
@@ -247,8 +250,7 @@ def render_filter_synth(results: dict[str, dict[str, Any]], seed: str = "") -> l
         best, pib = (k["methods"][m]["per_group_removed"][kind] for m in ("filter", "points-in-box"))
         return f"{_pct(k['configured']['per_group_removed'][kind])} ({_pct(best)} / {_pct(pib)}) of {n}"
 
-    rows = [[kind, *(cell(kinds[s], kind) for s in SENSORS)] for kind in ("confusion", "ghost", "far",
-                                                                               "misplaced")]
+    rows = [[kind, *(cell(kinds[s], kind) for s in sensors)] for kind in KINDS]
     rows.append(["all false", *(f"{_pct(k['configured']['false_removed'])} "
                                 f"({_pct(k['methods']['filter']['false_removed_at_0.02_lost'])} / "
                                 f"{_pct(k['methods']['points-in-box']['false_removed_at_0.02_lost'])})"
@@ -256,7 +258,7 @@ def render_filter_synth(results: dict[str, dict[str, Any]], seed: str = "") -> l
     rows.append(["**true cars lost** (by kind label)", *(f"**{k['configured']['true_lost_count']} / {k['true']}** "
                                                           f"({_pct(k['configured']['true_lost'])})"
                                                           for k in kinds.values())])
-    return table(["kind: configured (filter at the budget / points-in-box)", *SENSORS], rows)
+    return table(["kind: configured (filter at the budget / points-in-box)", *sensors], rows)
 
 
 def render_filter_nuscenes(d: dict[str, Any]) -> list[str]:
@@ -339,6 +341,8 @@ FIGURES: dict[str, Figure] = {
     "filter-synth": Figure(tuple(_synth(s) for s in SENSORS), render_filter_synth),
     "filter-synth-s123": Figure(tuple(_synth(s, "123") for s in SENSORS),
                                 lambda results: render_filter_synth(results, "123")),
+    "filter-synth-unseen": Figure(tuple(_synth(s) for s in UNSEEN_SENSORS),
+                                  lambda results: render_filter_synth(results, sensors=UNSEEN_SENSORS)),
     "filter-calibration": Figure(("filter-calibration", "filter-calibration-shape"), render_filter_calibration),
     "filter-calibration-kitti": Figure(("calibrate-kitti", "calibrate-kitti-physics"), render_calibration_kitti),
     "filter-term-auc": Figure(("filter-calibration", "calibrate-s99"), render_term_auc),
