@@ -165,12 +165,10 @@ def filled(x: np.ndarray, mismatch_mean: float) -> np.ndarray:
     return out
 
 
-def fit_rows(rows: Rows, terms: tuple[str, ...], max_lost: float, l2: float
-             ) -> tuple[float, np.ndarray, float, float]:
-    """(bias, weights over TERMS, threshold, mismatch_mean); every sensor's rows (and the real
-    ones) weigh the same; the threshold loses at most ``max_lost`` of each sensor's true rows
-    (:func:`~pcc_ros.workflows.filter_calibration.threshold_each`); ``mismatch_mean``: the mean
-    measured mismatch of these rows."""
+def fit_weights(rows: Rows, terms: tuple[str, ...], l2: float) -> tuple[float, np.ndarray, float, np.ndarray]:
+    """(bias, weights over TERMS, mismatch_mean, p_false of every row); every sensor's rows (and
+    the real ones) weigh the same; ``mismatch_mean``: the mean measured mismatch of these rows.
+    The loss budget plays no part: it only sets the threshold on ``p_false`` (:func:`fit_rows`)."""
     measured = rows.x[:, _MISMATCH][np.isfinite(rows.x[:, _MISMATCH])]
     mean = float(measured.mean()) if len(measured) and "mismatch" in terms else 0.0
     x = filled(rows.x, mean)
@@ -182,7 +180,16 @@ def fit_rows(rows: Rows, terms: tuple[str, ...], max_lost: float, l2: float
     bias, w = fit_logistic(x[:, cols], rows.false, weight, l2)
     weights = np.zeros(len(TERMS))
     weights[cols] = w
-    return bias, weights, threshold_each(predict(bias, weights, x), rows.false, rows.sensor, max_lost), mean
+    return bias, weights, mean, predict(bias, weights, x)
+
+
+def fit_rows(rows: Rows, terms: tuple[str, ...], max_lost: float, l2: float
+             ) -> tuple[float, np.ndarray, float, float]:
+    """(bias, weights over TERMS, threshold, mismatch_mean): :func:`fit_weights`, and the threshold
+    that loses at most ``max_lost`` of each sensor's true rows
+    (:func:`~pcc_ros.workflows.filter_calibration.threshold_each`)."""
+    bias, weights, mean, p = fit_weights(rows, terms, l2)
+    return bias, weights, threshold_each(p, rows.false, rows.sensor, max_lost), mean
 
 
 def figures(p: np.ndarray, rows: Rows, reject: np.ndarray) -> dict[str, Any]:
@@ -222,11 +229,22 @@ def leave_one_out(rows: Rows, by: np.ndarray, terms, max_lost: float, l2: float,
     return {"pooled": figures(p[held], rows.subset(held), reject[held]), "folds": folds}
 
 
-def _worst_held_out(rows: Rows, terms, budget: float, l2: float) -> tuple[float, dict[str, float]]:
-    """(worst, per sensor) share of a held-out sensor's true cars lost, leave one sensor out at ``budget``."""
-    folds = leave_one_out(rows, rows.sensor, terms, budget, l2, only=rows.sensor != "real")["folds"]
-    lost = {s: f["true_lost"] for s, f in folds.items()}
-    return max(lost.values()), lost
+def _held_out_lost(rows: Rows, terms, grid: tuple[float, ...], l2: float) -> dict[float, dict[str, float]]:
+    """Per budget of ``grid``, per simulated sensor held out (as :func:`leave_one_out` by sensor):
+    the share of its true cars lost at the fold's threshold for that budget. One fit per fold, its
+    threshold set for every budget: the weights do not depend on the budget."""
+    lost: dict[float, dict[str, float]] = {b: {} for b in grid}
+    for s in np.unique(rows.sensor[rows.sensor != "real"]):
+        test = rows.sensor == s
+        train = rows.subset(~test)
+        if train.false.all() or not train.false.any():
+            continue
+        bias, weights, mean, p_train = fit_weights(train, terms, l2)
+        p_true = predict(bias, weights, filled(rows.x[test & ~rows.false], mean))
+        for b in grid:
+            threshold = threshold_each(p_train, train.false, train.sensor, b)
+            lost[b][str(s)] = float((p_true > threshold).mean()) if len(p_true) else float("nan")
+    return lost
 
 
 def choose_budget(rows: Rows, terms: tuple[str, ...], l2: float = 1e-2, target_lost: float = 0.02,
@@ -245,9 +263,8 @@ def choose_budget(rows: Rows, terms: tuple[str, ...], l2: float = 1e-2, target_l
     if len(sensors) < 2:
         raise ConfigError("--max-lost cv holds out each simulated sensor in turn: give two or more "
                           f"--sim-sensors (have {', '.join(map(str, sensors)) or 'none'})")
-    worst, per_sensor = {}, {}
-    for b in grid:
-        worst[b], per_sensor[b] = _worst_held_out(rows, terms, b, l2)
+    per_sensor = _held_out_lost(rows, terms, grid, l2)
+    worst = {b: max(per_sensor[b].values()) for b in grid}
     ok = [b for b in grid if worst[b] <= target_lost + 1e-12]
     report = {"target_lost": target_lost, "grid": list(grid),
               "worst_held_out_lost": [worst[b] for b in grid],
@@ -263,7 +280,8 @@ def choose_budget(rows: Rows, terms: tuple[str, ...], l2: float = 1e-2, target_l
         for s in sensors:
             out = rows.sensor == s
             inner = rows.subset(~out)
-            ok_inner = [b for b in grid if _worst_held_out(inner, terms, b, l2)[0] <= target_lost + 1e-12]
+            inner_lost = _held_out_lost(inner, terms, grid, l2)
+            ok_inner = [b for b in grid if max(inner_lost[b].values()) <= target_lost + 1e-12]
             if not ok_inner:
                 report["nested"][str(s)] = {"budget": None}
                 continue
