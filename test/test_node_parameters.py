@@ -208,6 +208,7 @@ CASES: dict[str, Case] = {
     "w_top": Case("filter", 3.0, base=EVIDENCE, check=_decides(rejected="a")),
     "w_through": Case("filter", 20.0, base={"backend": "input"}),
     "w_cover": Case("filter", -10.0, base=EVIDENCE),
+    "w_corner": Case("filter", -10.0, base=EVIDENCE),
     # past max_instances boxes b and c are not completed: their mismatch term reads mismatch_mean
     "mismatch_mean": Case("filter", 1.0, base={"backend": "input", "w_mismatch": 3.0, "max_instances": 1}),
     "filter_backend": Case("filter", "densify", base={"backend": "input", "w_mismatch": 3.0}),

@@ -96,6 +96,7 @@ class FilterConfig:
     w_overlap: float = 10.0427
     w_depth: float = 7.8196
     w_top: float = 0.0
+    w_corner: float = 0.0  # share of the mid-height returns in the box's four corner columns
     w_through: float = 0.0  # rays through the core returning from beyond it / a car's returns there
     w_cover: float = -18.8009  # share of the box's unhidden azimuth columns holding a return
     # the value a missing mismatch term takes (a detection whose shape was not completed): its

@@ -18,12 +18,12 @@ import numpy as np
 from pcc_ros.jit import compiled
 
 # Columns of :func:`profile_pairs`' per-box output.
-BODY, ABOVE, SHELL, AZ_MIN, AZ_MAX, DEPTH_SUM, TOP = range(7)
+BODY, ABOVE, SHELL, AZ_MIN, AZ_MAX, DEPTH_SUM, TOP, MID, CORNER = range(9)
 
 
 @compiled()
 def profile_pairs(pair_point, pair_box, pts, test, cz, half, origin, centre_az, z_shift, face_margin, ground, azimuth,
-                  out):
+                  corner, out):
     """The profile counts of every box from the candidate pairs of the grown boxes
     (:meth:`pcc_ros.geometry.boxes.BoxCandidates.candidate_test`: ``pair_point``, ``pair_box``,
     the scan ``pts`` and each grown box's ``test`` row in the test's precision, ``cz`` its centre
@@ -35,11 +35,17 @@ def profile_pairs(pair_point, pair_box, pts, test, cz, half, origin, centre_az, 
     ``centre_az[b]``, the sum of their depth shares behind the near face (summed in point order),
     the highest body return (rows of ``out``, columns :data:`BODY` ...; ``out`` zeroed by the
     caller, ``AZ_MIN`` / ``AZ_MAX`` / ``TOP`` are set only where a body return exists; the
-    azimuths, an ``atan2`` per body return, only with ``azimuth``: ``fill`` alone reads them)."""
+    azimuths, an ``atan2`` per body return, only with ``azimuth``: ``fill`` alone reads them).
+
+    ``corner`` (``(corner_length, corner_width, band_top)``, shares of the box; an empty array:
+    not measured): ``MID`` counts the body returns up to ``band_top`` of the box height, ``CORNER``
+    those of them in the box's four vertical corner columns (``|x| >= (1 - 2 corner_length)``
+    of the half length and ``|y| >= (1 - 2 corner_width)`` of the half width)."""
     nb = len(half)
     az_min = np.full(nb, np.inf)
     az_max = np.full(nb, -np.inf)
     top = np.full(nb, -np.inf)
+    measure_corner = len(corner) == 3
     for k in range(len(pair_point)):
         i = pair_point[k]
         b = pair_box[k]
@@ -70,6 +76,10 @@ def profile_pairs(pair_point, pair_box, pts, test, cz, half, origin, centre_az, 
                 az_min[b] = min(az_min[b], a)
                 az_max[b] = max(az_max[b], a)
             top[b] = max(top[b], z)
+            if measure_corner and z <= half[b, 2] * (2.0 * corner[2] - 1.0):
+                out[b, MID] += 1
+                if abs(x) >= half[b, 0] * (1.0 - 2.0 * corner[0]) and abs(y) >= half[b, 1] * (1.0 - 2.0 * corner[1]):
+                    out[b, CORNER] += 1
             # the ray from the sensor (t = 0) to the return (t = 1): where it enters and
             # leaves the box (slabs), and how deep between the two the return lies
             ox, oy, oz = origin[b, 0], origin[b, 1], origin[b, 2]
