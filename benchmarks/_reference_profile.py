@@ -119,7 +119,8 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
     the pass's counts are the pipeline's own (:func:`~pcc_ros.pipeline.evidence_profile.grown_boxes`,
     :func:`~pcc_ros.pipeline.evidence_profile.terms_from_counts`), so the two agree wherever the
     passes do."""
-    wanted = set(PROFILE_TERMS if measure is None else measure) & set(PROFILE_TERMS)
+    # (``corner`` is newer than 24858c5: its pass had no counterpart)
+    wanted = (set(PROFILE_TERMS if measure is None else measure) & set(PROFILE_TERMS)) - {"corner"}
     n = len(boxes)
     if n == 0:
         zero = np.zeros(0)

@@ -18,8 +18,11 @@ around each box (definitions in ``docs/filter.md``, "Profile terms"):
 * ``overlap``: the largest share of the box's footprint covered by another box of the frame
   with a higher detector score (ties: the earlier box). A duplicate the detector's NMS let
   through; only the order of the scores is used, never their scale.
+* ``corner``: the share of the returns up to 70 % of the box height that lie in its four vertical
+  corner columns (:data:`CORNER_COLUMNS`). A car's body fills its box to the corners; a vegetation
+  blob or a bush (an ellipsoid) leaves them air, a bin or a low wall inside the box keeps off them.
 
-All four are dimensionless and read the scan geometry only through the sensor's azimuth step
+All are dimensionless and read the scan geometry only through the sensor's azimuth step
 (the beam model's), so one weight set serves every sensor. One pass of
 :class:`pcc_ros.geometry.boxes.BoxCandidates` over the scan against the boxes grown by the
 shell and the reach above, then one compiled loop that tests each candidate pair and uses it
@@ -104,7 +107,7 @@ def covered_share(boxes: Boxes) -> np.ndarray:
 
 def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
                   measure: Collection[str] | None = None) -> dict[str, np.ndarray]:
-    """``above``, ``fill``, ``spill``, ``overlap``, ``depth`` and ``top`` of every box (module
+    """``above``, ``fill``, ``spill``, ``overlap``, ``depth``, ``top`` and ``corner`` of every box (module
     docstring), plus the raw counts behind them (``n_body``, ``n_above``, ``n_shell``).
 
     ``depth``: how deep behind the box's near surface its body returns lie, as a share of the
@@ -186,8 +189,10 @@ def terms_from_counts(out: np.ndarray, boxes: Boxes, sensor: SensorModel, wanted
         "spill": np.log((n_shell + 1.0) / (n_body + 1.0)),
         "depth": (out[:, col.DEPTH_SUM] + DEPTH_PRIOR * DEPTH_PRIOR_RETURNS) / (n_body + DEPTH_PRIOR_RETURNS),
         "top": np.where(has, (out[:, col.TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0),
-        "corner": (out[:, col.CORNER] + CORNER_PRIOR * CORNER_PRIOR_RETURNS) / (out[:, col.MID] + CORNER_PRIOR_RETURNS),
     })
+    if "corner" in wanted:
+        terms["corner"] = (out[:, col.CORNER] + CORNER_PRIOR * CORNER_PRIOR_RETURNS) / (out[:, col.MID]
+                                                                                      + CORNER_PRIOR_RETURNS)
     found = {k: v for k, v in terms.items() if k in wanted}
     found.update({"n_body": n_body, "n_above": n_above})
     if "spill" in wanted:
