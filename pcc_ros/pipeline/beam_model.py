@@ -372,6 +372,9 @@ class BeamModel:
         self.name = name
         self.recheck_every, self.retry_every = max(1, recheck_every), max(1, retry_every)
         self.model: SensorModel | None = None if name == AUTO else sensor_preset(name)
+        #: the preset the model is (a named one: itself; auto: :func:`matching_preset` of the
+        #: adopted estimate, None before it or for an unknown sensor): what per-sensor settings key on
+        self.preset: str | None = None if name == AUTO else name
         self.frames = 0  # frames seen
         self._next = 0  # frame index of the next estimate
         self.estimates = 0  # estimates made (successful or not)
@@ -408,15 +411,19 @@ class BeamModel:
             return
         self._next = self.frames + self.recheck_every
         if self.model is None:
-            log.info("sensor auto: %s (from frame %d%s)", found.describe(), self.frames,
-                     ", ring field" if rings is not None else "")
-            self.model = found
+            self.model, self.preset = found, matching_preset(found)
+            log.info("sensor auto: %s (from frame %d%s); %s", found.describe(), self.frames,
+                     ", ring field" if rings is not None else "", self._preset_text())
         elif not same_layout(found, self.model):
             self.drifts += 1
+            was, self.model, self.preset = self.model, found, matching_preset(found)
             if worth_logging(self.drifts):
                 log.warning("sensor auto: the beam model drifted at frame %d: was %s, now %s; re-adopted (%d such "
-                            "re-adoptions)", self.frames, self.model.describe(), found.describe(), self.drifts)
-            self.model = found
+                            "re-adoptions); %s", self.frames, was.describe(), found.describe(), self.drifts,
+                            self._preset_text())
+
+    def _preset_text(self) -> str:
+        return f"matches the {self.preset} preset" if self.preset else "matches no preset"
 
 
 def ring_column(points: np.ndarray, fields) -> np.ndarray | None:
