@@ -18,6 +18,7 @@ from pcc_ros.pipeline.beam_model import (
     MIN_RANGE,
     BeamModel,
     estimate_sensor,
+    matching_preset,
     ring_column,
     same_layout,
     sensor_for,
@@ -25,8 +26,8 @@ from pcc_ros.pipeline.beam_model import (
 
 pytest.importorskip("open3d")
 
-#: Layouts simulated below: uniform, non-uniform (VLP-32C, Pandar64), two stacked units.
-LAYOUTS = ("hdl64", "vlp16", "vlp32c", "os1_64", "pandar64", "vlp32c_x2")
+#: Layouts simulated below: every preset (uniform, non-uniform (VLP-32C, Pandar64), two stacked units).
+LAYOUTS = ("hdl64", "hdl32", "vlp16", "vlp32c", "os1_64", "os1_128", "pandar64", "vlp32c_x2")
 
 
 def test_preset_table_is_the_datasheets():
@@ -87,6 +88,8 @@ def test_estimate_matches_the_simulated_layout(layout):
     # read as one beam at half the step.
     per_elevation = len(truth) / len(np.unique(np.round(truth, 9)))
     assert alone.azimuth_resolution_deg == pytest.approx(step / per_elevation, rel=0.06)
+    # Both estimates are recognised as the preset (what sensor_thresholds keys on).
+    assert matching_preset(found) == layout and matching_preset(alone) == layout
 
 
 def test_real_nuscenes_ring_field_gives_the_hdl32(shared_data):
@@ -99,6 +102,7 @@ def test_real_nuscenes_ring_field_gives_the_hdl32(shared_data):
     assert found.rings == 32
     np.testing.assert_allclose(found.elevations_deg, hdl32.elevations_deg, atol=0.4)  # the unit's calibration
     assert found.azimuth_resolution_deg == pytest.approx(hdl32.azimuth_resolution_deg, rel=0.03)
+    assert matching_preset(found) == "hdl32"  # the unit's calibration is within MATCH_DEG of the datasheet
     # without the ring field: the lasers' offsets smear each beam over several histogram
     # spikes; the returns per firing set the count back: beams x columns between -18 and 0 deg
     alone = estimate_sensor(scan[:, :3])
@@ -120,6 +124,7 @@ def test_real_kitti_scan_without_ring_is_close_to_the_hdl64(shared_data):
     assert found.azimuth_resolution_deg == pytest.approx(hdl64.azimuth_resolution_deg, rel=0.05)
     # beams x columns between -20 and 0 deg (where cars are seen), within 10 % of the datasheet's
     assert _density(found) == pytest.approx(_density(hdl64), rel=0.1)
+    assert matching_preset(found) == "hdl64"  # 59 beams within 0.21 deg of 63 the datasheet has over that span
 
 
 def test_no_beam_structure_falls_back_and_an_estimate_is_kept_then_rechecked(caplog):

@@ -84,6 +84,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "probability scores; the same physics weights: no real nuScenes detections to fit on)",
     )
     parser.add_argument("--json", type=Path, help="write weights, data sizes and the cross-validated figures here")
+    parser.add_argument(
+        "--sensor-thresholds", metavar="LAYOUTS",
+        help="also give each of these beam layouts (comma-separated presets, or 'all') its own reject threshold for "
+        "the weights (fitted here with --sim-sensors, else read from --weights-from): its budget by cross-validation "
+        "over folds of its SynthCars sequences (--threshold-folds), written to --out as sensor_thresholds; "
+        "reject_threshold becomes the largest (the sensor matching none)")
+    parser.add_argument("--weights-from", type=Path,
+                        help="with --sensor-thresholds and no --sim-sensors: the node YAML whose weights are used "
+                        "(default: --base-config, else the shipped one); --out keeps its other lines")
+    parser.add_argument("--threshold-folds", type=int, default=2,
+                        help="with --sensor-thresholds: SynthCars sequences per cross-validation fold (2: a 40-frame "
+                        "street of 20-frame sequences)")
+    parser.add_argument("--rows-cache", type=Path,
+                        help="keep each simulated set's measured rows here (keyed by the set and the measuring code): "
+                        "rerunning on other weights then takes seconds")
 
 
 def _budget(text: str) -> float | str:
@@ -108,6 +123,10 @@ def _synth_frames(root: Path, per_sequence: int):
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.sensor_thresholds and not args.sim_sensors:
+        from pcc_ros.cli.calibrate_sensors import run_sensor_thresholds
+
+        return run_sensor_thresholds(args)
     if args.sim_sensors or args.real is None:
         from pcc_ros.cli.calibrate_sensors import run_sensors
 

@@ -17,7 +17,9 @@ import numpy as np
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.files import write_json, write_text
-from pcc_ros.pipeline.filter import TERMS
+from pcc_ros.geometry.beams import SENSOR_PRESETS
+from pcc_ros.pipeline.config import PipelineConfig
+from pcc_ros.pipeline.filter import TERMS, format_sensor_thresholds
 from pcc_ros.workflows.detection_eval import default_config, load_kitti, parse_frames
 from pcc_ros.workflows.filter_calibration import preset_yaml
 from pcc_ros.workflows.filter_sensors import (
@@ -30,6 +32,7 @@ from pcc_ros.workflows.filter_sensors import (
     synth_dataset,
     synth_rows,
 )
+from pcc_ros.workflows.sensor_thresholds import cached_rows, fallback_threshold, sensor_thresholds
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +57,8 @@ def run_sensors(args: argparse.Namespace) -> int:
     single = len(sensors) == 1 and args.real is None  # --sensor X: that sensor's own beam model
     for layout in sensors:
         root = synth_dataset(args.sim_root, layout, args.sim_seed, args.sim_sequences, args.sim_frames)
-        parts.append(synth_rows(pipeline, root, layout, layout if single else "auto"))
+        parts.append(synth_rows(pipeline, root, layout, layout) if single
+                     else cached_rows(pipeline, root, layout, args.rows_cache, "mismatch" in terms))
     if args.real is not None:
         if args.real_detections is None:
             raise ConfigError("--real needs --real-detections (the real detector's results)")
@@ -100,8 +104,13 @@ def run_sensors(args: argparse.Namespace) -> int:
               f" (all false {m['auc_alone_all_false_vs_true']:.3f}); held-out AUC on confusions with / without it "
               f"{m['confusion_auc_held_out_with']:.3f} / {m['confusion_auc_held_out_without']:.3f}")
     sensor_value = "auto" if len(sensors) > 1 or args.real is not None else sensors[0]
+    weights = np.array([result["weights"][t] for t in TERMS])
+    per_sensor = None
+    if args.sensor_thresholds:
+        per_sensor = per_sensor_step(args, pipeline, result["bias"], weights, result["mismatch_mean"],
+                                     result["threshold"])
+        result["sensor_thresholds"] = per_sensor
     if args.out:
-        weights = np.array([result["weights"][t] for t in TERMS])
         values: dict[str, Any] = {"sensor": sensor_value, "score_mapping": "identity"}
         if weights[TERMS.index("mismatch")] != 0:
             values["filter_backend"] = args.filter_backend
@@ -117,8 +126,12 @@ def run_sensors(args: argparse.Namespace) -> int:
                        f"whose held-out sensors each lose <= {selection['target_lost']:g} of their true cars "
                        f"(worst held-out loss per budget: {[round(w, 4) for w in selection['worst_held_out_lost']]}): "
                        f"{selection['chosen']:g}\n")
-        text = preset_yaml(args.base_config or default_config(), result["bias"], weights, result["threshold"], values,
-                           header)
+        threshold = result["threshold"]
+        if per_sensor is not None:
+            values["sensor_thresholds"] = per_sensor["value"]
+            threshold = per_sensor["fallback"]
+            header += per_sensor_header(args, per_sensor)
+        text = preset_yaml(args.base_config or default_config(), result["bias"], weights, threshold, values, header)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         write_text(args.out, text)
         log.info("wrote %s", args.out)
@@ -126,4 +139,83 @@ def run_sensors(args: argparse.Namespace) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.json, {"sensors": list(sensors), "sim_seed": args.sim_seed, **result}, indent=1,
                    nonfinite_null=True)
+    return 0
+
+
+# ----------------------------------------------------------------------------- per-sensor thresholds
+
+
+def _layouts(text: str) -> tuple[str, ...]:
+    """``--sensor-thresholds``: preset names, comma-separated, or ``all``."""
+    if text.strip().lower() == "all":
+        return tuple(SENSOR_PRESETS)
+    layouts = tuple(t.strip() for t in text.split(",") if t.strip())
+    unknown = [t for t in layouts if t not in SENSOR_PRESETS]
+    if unknown or not layouts:
+        raise ConfigError(f"--sensor-thresholds: unknown layout(s) {unknown} (have all, {', '.join(SENSOR_PRESETS)})")
+    return layouts
+
+
+def per_sensor_step(args: argparse.Namespace, pipeline, bias: float, weights: np.ndarray, mismatch_mean: float,
+                    reject_threshold: float) -> dict[str, Any]:
+    """Each ``--sensor-thresholds`` layout's threshold for one weight set (its simulated set measured
+    or read from ``--rows-cache``), printed; the table, its parameter string and the fallback."""
+    layouts = _layouts(args.sensor_thresholds)
+    rows = {}
+    for layout in layouts:
+        root = synth_dataset(args.sim_root, layout, args.sim_seed, args.sim_sequences, args.sim_frames)
+        rows[layout] = cached_rows(pipeline, root, layout, args.rows_cache, weights[TERMS.index("mismatch")] != 0)
+    table = sensor_thresholds(rows, bias, weights, mismatch_mean, args.target_lost, per_fold=args.threshold_folds)
+    fallback = fallback_threshold(table, reject_threshold)
+    print(f"per-sensor thresholds (budget by CV over folds of {args.threshold_folds} sequence(s), each held-out fold "
+          f"<= {args.target_lost:.1%} of its true cars lost):")
+    for layout, t in table.items():
+        print(f"  {layout}: threshold {t['threshold']:.4f}, budget {t['budget']:.2%}, worst held-out fold "
+              f"{t['cv_worst_fold']:.2%} (pooled {t['cv_pooled']:.2%}) of {t['rows']['true']} true; in sample "
+              f"{t['in_sample_removed']:.1%} of {t['rows']['false']} false removed")
+    print(f"  no preset matched: reject_threshold {fallback:.4f} (the largest of these and {reject_threshold:.4f})")
+    return {"layouts": table, "value": format_sensor_thresholds({k: v["threshold"] for k, v in table.items()}),
+            "fallback": fallback, "sequences_per_fold": args.threshold_folds, "target_lost": args.target_lost}
+
+
+def per_sensor_header(args: argparse.Namespace, per_sensor: dict[str, Any]) -> str:
+    """The YAML header lines that say where ``sensor_thresholds`` came from."""
+    table = ", ".join(f"{k} {v['threshold']:.4f} / {v['budget']:.2%} / {v['cv_worst_fold']:.2%}"
+                      for k, v in per_sensor["layouts"].items())
+    return (f"# calibrated: sensor_thresholds: pcc calibrate-filter --sensor-thresholds {args.sensor_thresholds}"
+            f"{' --weights-from ' + str(args.weights_from) if args.weights_from and not args.sim_sensors else ''}"
+            f" --sim-root {args.sim_root} --sim-seed {args.sim_seed} --sim-sequences {args.sim_sequences}"
+            f" --sim-frames {args.sim_frames} --threshold-folds {args.threshold_folds}"
+            f" --target-lost {args.target_lost:g}\n"
+            f"# calibrated: sensor_thresholds per layout (threshold / budget / worst held-out fold of "
+            f"{per_sensor['sequences_per_fold']} sequences): {table}; reject_threshold, for a sensor matching no "
+            f"preset: the largest, {per_sensor['fallback']:.4f}\n")
+
+
+def run_sensor_thresholds(args: argparse.Namespace) -> int:
+    """``--sensor-thresholds`` without ``--sim-sensors``: the weights of ``--weights-from`` (or the
+    base / shipped YAML) kept as they are, each layout's threshold added to ``--out``."""
+    source = args.weights_from or args.base_config or default_config()
+    config = PipelineConfig.from_yaml(source).filter
+    if config.rule != "evidence":
+        raise ConfigError(f"{source}: rule {config.rule!r}; per-sensor thresholds are the evidence rule's")
+    pipeline = measuring_pipeline(args.filter_backend, shape=config.w_mismatch != 0)
+    per_sensor = per_sensor_step(args, pipeline, config.w_bias, config.weights, config.mismatch_mean,
+                                 config.reject_threshold)
+    if args.out:
+        try:
+            kept = [line + "\n" for line in source.read_text().splitlines()
+                    if line.startswith("# calibrated:") and not line.startswith("# calibrated: sensor_thresholds")]
+        except OSError as exc:
+            raise ConfigError(f"{source}: cannot read ({exc.strerror})") from exc
+        values: dict[str, Any] = {"sensor_thresholds": per_sensor["value"], "mismatch_mean": config.mismatch_mean}
+        text = preset_yaml(source, config.w_bias, config.weights, per_sensor["fallback"], values,
+                           "".join(kept) + per_sensor_header(args, per_sensor))
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        write_text(args.out, text)
+        log.info("wrote %s", args.out)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        write_json(args.json, {"weights_from": str(source), "sim_seed": args.sim_seed, "sim_root": str(args.sim_root),
+                               "sensor_thresholds": per_sensor}, indent=1, nonfinite_null=True)
     return 0

@@ -287,14 +287,77 @@ def estimate_sensor(points: np.ndarray, rings: np.ndarray | None = None, min_ran
     return SensorModel(tuple(elevations), step, name)
 
 
-def same_layout(a: SensorModel, b: SensorModel, tol_deg: float = DRIFT_DEG, step_tol: float = DRIFT_STEP) -> bool:
+def same_layout(a: SensorModel, b: SensorModel, tol_deg: float = DRIFT_DEG, step_tol: float = DRIFT_STEP,
+                missing: float = 0.0) -> bool:
     """Whether two beam models agree (no drift): same beam count, elevations within ``tol_deg``
-    and azimuth steps within ``step_tol`` of each other."""
-    if a.rings != b.rings:
-        return False
-    el = np.abs(np.subtract(a.elevations_deg, b.elevations_deg)).max()
+    and azimuth steps within ``step_tol`` of each other. ``missing`` > 0: ``a`` may lack up to that
+    share of ``b``'s beams, or have that share more (a ring-less estimate misses the beams that
+    return nothing beyond :data:`MIN_RANGE`, and a real laser's offsets may split one), each of
+    ``a``'s beams within ``tol_deg`` of one of ``b``'s."""
     step = abs(a.azimuth_resolution_deg - b.azimuth_resolution_deg) / b.azimuth_resolution_deg
+    if missing <= 0.0:
+        if a.rings != b.rings:
+            return False
+        el = np.abs(np.subtract(a.elevations_deg, b.elevations_deg)).max()
+    else:
+        if abs(a.rings - b.rings) > missing * b.rings:  # a split beam may also count twice
+            return False
+        el = np.abs(np.subtract.outer(a.elevations_deg, b.elevations_deg)).min(axis=1).max()
     return bool(el <= tol_deg and step <= step_tol)
+
+
+#: Matching an estimate to a named preset (:func:`matching_preset`): elevations within this many
+#: degrees. Wider than :data:`DRIFT_DEG`: a real unit's own calibration departs from its datasheet
+#: (the nuScenes HDL-32E read with its ring field: up to 0.32 deg), while presets of one beam count
+#: differ by a degree or more (``test/test_sensor_thresholds.py`` checks the table).
+MATCH_DEG = 0.5
+#: ... and azimuth steps within this share.
+MATCH_STEP = DRIFT_STEP
+#: ... and a ring-less estimate may lack this share of the beams the preset has over its span: a
+#: beam needs MIN_BEAM_POINTS returns beyond MIN_RANGE, which an upward beam under open sky or
+#: the lowest one at the span's edge may not get, and two beams 1/3 deg apart may merge into one
+#: histogram peak (SynthCars: OS1-128 up to 4 of 123, VLP-32C 4 of 31 on 1 frame of 32; the real
+#: KITTI HDL-64E scan, its two blocks merged and split by the laser offsets: 59 beams for 63).
+MATCH_MISSING = 0.15
+
+
+def ringless_view(preset: SensorModel, low: float, high: float) -> SensorModel | None:
+    """What the ring-less estimate can see of ``preset`` between ``low`` and ``high`` degrees: its
+    beams there, those closer than :data:`PEAK_WINDOW_DEG` merged into one (two stacked units
+    firing along one elevation are one histogram spike), and the azimuth step divided by the beams
+    per merged elevation (the estimate reads two units' returns along one elevation as one beam at
+    half the step). None when fewer than 2 beams lie there. A scan shows no beam whose returns
+    all lie within :data:`MIN_RANGE` (the steep downward ones) and none that hits nothing (the
+    upward ones under open sky), so the estimate is compared with the preset over its own span."""
+    el = np.asarray(preset.elevations_deg)
+    el = el[(el >= low) & (el <= high)]
+    if len(el) < 2:
+        return None
+    starts = np.r_[True, np.diff(el) >= PEAK_WINDOW_DEG]
+    merged = np.add.reduceat(el, np.flatnonzero(starts)) / np.diff(np.r_[np.flatnonzero(starts), len(el)])
+    if len(merged) < 2:
+        return None
+    step = preset.azimuth_resolution_deg * len(merged) / len(el)
+    return SensorModel(tuple(merged), step, preset.name)
+
+
+def matching_preset(model: SensorModel, presets: dict[str, SensorModel] | None = None,
+                    tol_deg: float = MATCH_DEG, step_tol: float = MATCH_STEP) -> str | None:
+    """The name of the preset ``model`` is (:func:`same_layout` within ``tol_deg`` / ``step_tol``),
+    whole (a ring-field estimate: every beam) or as a ring-less estimate sees it over the model's
+    span (:func:`ringless_view`); the nearest in elevation when several match; None when none does
+    (an unknown sensor). A preset's own model matches itself."""
+    presets = SENSOR_PRESETS if presets is None else presets
+    low, high = model.elevations_deg[0] - tol_deg, model.elevations_deg[-1] + tol_deg
+    best, best_err = None, np.inf
+    for name, preset in presets.items():
+        for view, missing in ((preset, 0.0), (ringless_view(preset, low, high), MATCH_MISSING)):
+            if view is None or not same_layout(model, view, tol_deg, step_tol, missing):
+                continue
+            err = float(np.abs(np.subtract.outer(model.elevations_deg, view.elevations_deg)).min(axis=1).mean())
+            if err < best_err:
+                best, best_err = name, err
+    return best
 
 
 class BeamModel:
@@ -309,6 +372,9 @@ class BeamModel:
         self.name = name
         self.recheck_every, self.retry_every = max(1, recheck_every), max(1, retry_every)
         self.model: SensorModel | None = None if name == AUTO else sensor_preset(name)
+        #: the preset the model is (a named one: itself; auto: :func:`matching_preset` of the
+        #: adopted estimate, None before it or for an unknown sensor): what per-sensor settings key on
+        self.preset: str | None = None if name == AUTO else name
         self.frames = 0  # frames seen
         self._next = 0  # frame index of the next estimate
         self.estimates = 0  # estimates made (successful or not)
@@ -345,15 +411,19 @@ class BeamModel:
             return
         self._next = self.frames + self.recheck_every
         if self.model is None:
-            log.info("sensor auto: %s (from frame %d%s)", found.describe(), self.frames,
-                     ", ring field" if rings is not None else "")
-            self.model = found
+            self.model, self.preset = found, matching_preset(found)
+            log.info("sensor auto: %s (from frame %d%s); %s", found.describe(), self.frames,
+                     ", ring field" if rings is not None else "", self._preset_text())
         elif not same_layout(found, self.model):
             self.drifts += 1
+            was, self.model, self.preset = self.model, found, matching_preset(found)
             if worth_logging(self.drifts):
                 log.warning("sensor auto: the beam model drifted at frame %d: was %s, now %s; re-adopted (%d such "
-                            "re-adoptions)", self.frames, self.model.describe(), found.describe(), self.drifts)
-            self.model = found
+                            "re-adoptions); %s", self.frames, was.describe(), found.describe(), self.drifts,
+                            self._preset_text())
+
+    def _preset_text(self) -> str:
+        return f"matches the {self.preset} preset" if self.preset else "matches no preset"
 
 
 def ring_column(points: np.ndarray, fields) -> np.ndarray | None:

@@ -34,7 +34,7 @@ import yaml
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.msg.detections import DetectionLimits
 from pcc_ros.paths import resource_dir
-from pcc_ros.pipeline.filter import FilterConfig, whole_rule
+from pcc_ros.pipeline.filter import FilterConfig, parse_named_values, whole_rule
 from pcc_ros.pipeline.parameters import CHOICES, DESCRIPTIONS, RANGES
 from pcc_ros.types import class_mask
 
@@ -155,23 +155,7 @@ def parse_class_thresholds(text: str) -> dict[str, float]:
 
     Raises :class:`ConfigError` naming the bad entry (no colon, not a number, outside [0, 1]).
     """
-    out: dict[str, float] = {}
-    for entry in str(text).split(","):
-        entry = entry.strip()
-        if not entry:
-            continue
-        name, sep, value = entry.rpartition(":")
-        try:
-            threshold = float(value)
-        except ValueError:
-            threshold = float("nan")
-        if not sep or not name.strip() or not 0.0 <= threshold <= 1.0:
-            raise ConfigError(
-                f"class_thresholds: bad entry {entry!r}; expected 'Class:threshold' with a threshold in [0, 1], "
-                "entries separated by commas (e.g. 'Van:0.6, Truck:0.7')"
-            )
-        out[name.strip()] = threshold
-    return out
+    return parse_named_values(text, "class_thresholds", "Class:threshold", "Van:0.6, Truck:0.7")
 
 
 def integer_id(value) -> str | None:

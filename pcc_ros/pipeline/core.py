@@ -40,6 +40,7 @@ from pcc_ros.pipeline.filter import (
     filter_terms,
     map_scores,
     mismatch_scores,
+    parse_sensor_thresholds,
     reject_mask,
 )
 from pcc_ros.pipeline.track_memory import TrackMemory
@@ -168,10 +169,34 @@ class Pipeline:
         name = config.filter.filter_backend
         if filters and config.filter.uses_mismatch and name and name != config.backend:
             self.filter_completer = load_completer(name, None, device=config.device)
+        #: the (preset, reject threshold) last in force, logged when it changes (reject_threshold)
+        self.threshold_in_force: tuple[str | None, float] | None = None
         #: measure every filter term (the evaluation and calibration tools); False: the weighted ones
         self.all_terms = False
         #: each car's recent crops in its box frame (track_memory; None: every frame alone)
         self.track_memory = TrackMemory(config.track_max_age, config.track_gate) if config.track_memory else None
+
+    def reject_threshold(self) -> float:
+        """The evidence rule's reject threshold for the beam model in force: the ``sensor_thresholds``
+        entry of the preset it matches (or names), else ``reject_threshold`` (an unknown sensor,
+        or before the first estimate). Logged once, and again when it changes."""
+        preset = self.beam_model.preset
+        threshold = self.config.filter.threshold_for(preset)
+        if (preset, threshold) != self.threshold_in_force:
+            self.threshold_in_force = (preset, threshold)
+            table = parse_sensor_thresholds(self.config.filter.sensor_thresholds)
+            if preset in table:
+                source = f"the {preset} entry of sensor_thresholds"
+            elif not table:
+                source = "reject_threshold (no sensor_thresholds given)"
+            elif self.beam_model.model is None:
+                source = "reject_threshold until the first beam estimate"
+            elif preset is None:
+                source = "reject_threshold: the beam model matches no preset"
+            else:
+                source = f"reject_threshold: sensor_thresholds has no entry for {preset}"
+            log.info("filter: reject threshold %.4f, %s", threshold, source)
+        return threshold
 
     @staticmethod
     def _runtime_options(config: PipelineConfig) -> dict[str, Any]:
@@ -279,7 +304,7 @@ class Pipeline:
                     for k, v in part.items():
                         terms[k][judged_idx] = v
                     filter_score[judged_idx] = false_probability(part, cfg.filter)
-                    reject = filter_score[judged_idx] > cfg.filter.reject_threshold
+                    reject = filter_score[judged_idx] > self.reject_threshold()
                     status[judged_idx] = np.where(reject, "rejected", "kept")
             else:
                 judged = np.isfinite(mismatch) & bool(len(points))

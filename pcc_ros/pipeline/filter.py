@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from functools import partial
+from functools import lru_cache, partial
 
 import numpy as np
 
@@ -103,6 +103,10 @@ class FilterConfig:
     # mean over the calibration detections, the first-order marginalisation of the term
     mismatch_mean: float = 0.0
     reject_threshold: float = 0.5066
+    # per-sensor reject thresholds, "hdl64:0.531, vlp16:0.458, ..." (pcc calibrate-filter
+    # --sensor-thresholds): the entry of the preset the beam model matches; reject_threshold when
+    # it matches none (an unknown sensor), before the first estimate, or when "" (none given)
+    sensor_thresholds: str = ""
     sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
@@ -127,6 +131,14 @@ class FilterConfig:
             raise ConfigError(f"mismatch_mean must be in [0, 1], got {self.mismatch_mean}")
         if not 0.0 < self.reject_threshold < 1.0:
             raise ConfigError(f"reject_threshold must be in (0, 1), got {self.reject_threshold}")
+        parse_sensor_thresholds(self.sensor_thresholds)  # refuse a malformed table now, not per frame
+
+    def threshold_for(self, preset: str | None) -> float:
+        """The reject threshold for a beam model matching ``preset`` (None: no preset matched):
+        its ``sensor_thresholds`` entry, else ``reject_threshold``."""
+        if preset is None:
+            return self.reject_threshold
+        return parse_sensor_thresholds(self.sensor_thresholds).get(preset, self.reject_threshold)
 
     @property
     def weights(self) -> np.ndarray:
@@ -243,6 +255,49 @@ def reject_mask(mismatch: np.ndarray, detection_scores: np.ndarray, config: Filt
     return judged & (np.where(judged, mismatch, 0.0) > config.match_threshold) & (
         probability < config.detection_threshold
     )
+
+
+def parse_named_values(text: str, param: str, form: str, example: str, low: float = 0.0, high: float = 1.0,
+                       open_interval: bool = False, names=None) -> dict[str, float]:
+    """``"A:0.6, B:0.3"`` -> ``{"A": 0.6, "B": 0.3}`` (``""`` -> ``{}``): a map in one string, as a
+    ROS 2 parameter can carry it (parameters cannot be maps). ``names``: the allowed names (None: any).
+
+    Raises :class:`ConfigError` naming ``param`` and the bad entry (no colon, not a number, outside
+    [``low``, ``high``] (open with ``open_interval``), a name not among ``names``)."""
+    out: dict[str, float] = {}
+    interval = f"({low:g}, {high:g})" if open_interval else f"[{low:g}, {high:g}]"
+    for entry in str(text).split(","):
+        entry = entry.strip()
+        if not entry:
+            continue
+        name, sep, value = entry.rpartition(":")
+        name = name.strip()
+        try:
+            number = float(value)
+        except ValueError:
+            number = float("nan")
+        inside = low < number < high if open_interval else low <= number <= high
+        if not sep or not name or not inside:
+            raise ConfigError(f"{param}: bad entry {entry!r}; expected {form!r} with a threshold in {interval}, "
+                              f"entries separated by commas (e.g. {example!r})")
+        if names is not None and name not in names:
+            raise ConfigError(f"{param}: bad entry {entry!r}; unknown name {name!r} (have {', '.join(sorted(names))})")
+        out[name] = number
+    return out
+
+
+@lru_cache(maxsize=64)
+def parse_sensor_thresholds(text: str) -> dict[str, float]:
+    """``sensor_thresholds``: ``"hdl64:0.531, vlp16:0.458"`` -> per beam-layout preset, its reject
+    threshold in (0, 1); a name must be one of :data:`SENSOR_PRESETS` (cached: read every frame;
+    do not modify the returned map)."""
+    return parse_named_values(text, "sensor_thresholds", "sensor:threshold", "hdl64:0.53, vlp16:0.46",
+                              open_interval=True, names=SENSOR_PRESETS)
+
+
+def format_sensor_thresholds(table: dict[str, float]) -> str:
+    """The ``sensor_thresholds`` string of a table (4 decimals, the order given)."""
+    return ", ".join(f"{name}:{value:.4f}" for name, value in table.items())
 
 
 # ============================================================================ physics evidence

@@ -64,7 +64,11 @@ DESCRIPTIONS = {
     "mismatch_mean": "evidence rule: the value a missing shape-mismatch term takes (a detection not completed: past "
                      "max_instances, under min_points): its mean over the calibration detections, the term "
                      "marginalised to first order (pcc calibrate-filter)",
-    "reject_threshold": "evidence rule: detections whose probability of being false exceeds this are rejected",
+    "reject_threshold": "evidence rule: detections whose probability of being false exceeds this are rejected "
+                        "(with sensor_thresholds: where the beam model matches none of its presets)",
+    "sensor_thresholds": "evidence rule: per beam-layout reject_threshold, 'preset:threshold' entries separated by "
+                         "commas (e.g. 'hdl64:0.53, vlp16:0.46'; pcc calibrate-filter --sensor-thresholds): the entry "
+                         "of the preset the beam model matches (sensor: auto) or names; '' = reject_threshold always",
     "sensor": "evidence rule: LiDAR beam model for the expected returns: auto (estimated from the scans, from the "
               "ring field when there is one; docs/filter.md) or a preset (hdl64 = KITTI, hdl32 = nuScenes, vlp16, "
               "vlp32c, vlp32c_x2, os1_64, os1_128, pandar64)",

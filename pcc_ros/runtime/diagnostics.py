@@ -135,6 +135,11 @@ def node_values(core: Any) -> dict[str, str]:
         "latency_p95_ms": f"{np.percentile(latency, 95):.1f}",
     }
     if core.mode == "filter":
+        pipeline = getattr(core, "pipeline", None)
+        in_force = getattr(pipeline, "threshold_in_force", None)
+        if in_force is not None:  # the evidence rule's threshold, and the preset the beam model matched
+            values["reject_threshold_in_force"] = f"{in_force[1]:.4f}"
+            values["sensor_preset_matched"] = in_force[0] or "-"
         for k in core.decisions:
             values[f"detections_{k}"] = core.decisions[k]
             values[f"last_frame_{k}"] = core.last_decisions[k]

@@ -347,6 +347,8 @@ def evaluate_detections(
         "max_lost": max_lost,
         "rule": rule,
         "filter_config": {k: getattr(pipeline.config.filter, k) for k in pipeline.config.filter.__dataclass_fields__},
+        "threshold_in_force": None if pipeline.threshold_in_force is None else
+        {"preset": pipeline.threshold_in_force[0], "threshold": pipeline.threshold_in_force[1]},
         "shipped_threshold": shipped,
         "operating_points": table,
         "per_kind": None if per_kind is None else _without_curves(per_kind),
@@ -427,6 +429,10 @@ def print_report(results: dict[str, Any], title: str) -> None:
           f"({s['false_removed_share']:.1%}), loses {s['true_lost']}/{results['true']} true "
           f"({s['true_lost_share']:.1%}); precision {s['precision_before']:.3f} -> {s['precision_after']:.3f}; "
           f"filter {results['filter_ms_mean']:.1f} ms/frame vs completion {results['complete_ms_mean']:.1f} ms/frame")
+    if results.get("threshold_in_force"):
+        force = results["threshold_in_force"]
+        print(f"reject threshold in force {force['threshold']:.4f} (beam model matched preset: "
+              f"{force['preset'] or 'none'})")
 
 
 def plot(results: dict[str, Any], path: Path, title: str) -> None:

@@ -200,9 +200,10 @@ def nuscenes_check(root: str | Path, pipeline, score: float = 0.7, ground_boxes:
     # box as a higher-scored duplicate. The decision without that term, reported beside it:
     cat_terms = {t: np.concatenate(v) for t, v in terms.items()}
     cfg = pipeline.config.filter
+    in_force = pipeline.threshold_in_force or (pipeline.beam_model.preset, cfg.reject_threshold)
     if cfg.w_overlap and "overlap" in cat_terms:
         alone = false_probability({**cat_terms, "overlap": np.zeros(len(cat["is_true"]))},
-                                  replace(cfg, w_overlap=0.0)) > cfg.reject_threshold
+                                  replace(cfg, w_overlap=0.0)) > in_force[1]
         covered = cat_terms["overlap"] > 0
         result["configured"]["non_vehicle_removed_without_overlap"] = (
             float(alone[non_vehicle].mean()) if non_vehicle.any() else 0.0)
@@ -217,6 +218,7 @@ def nuscenes_check(root: str | Path, pipeline, score: float = 0.7, ground_boxes:
                    "seed": seed, "max_lost": max_lost,
                    "filter_config": {k: getattr(pipeline.config.filter, k)
                                      for k in pipeline.config.filter.__dataclass_fields__},
+                   "threshold_in_force": {"preset": in_force[0], "threshold": in_force[1]},
                    "_terms": cat_terms, "_rows": cat, "_frames": frames})
     return result
 
@@ -235,6 +237,10 @@ def print_check(result: dict[str, Any]) -> None:
     print_groups(result, "false group")
     print(f"non-vehicle boxes removed at the configured threshold: {conf['non_vehicle_removed']:.1%}; "
           f"free ground: {conf['free_ground_removed']:.1%}; unjudged: {conf['unjudged']}")
+    force = result.get("threshold_in_force")
+    if force:
+        print(f"reject threshold in force {force['threshold']:.4f} (beam model matched preset: "
+              f"{force['preset'] or 'none'})")
     if "non_vehicle_removed_without_overlap" in conf:
         print(f"non-vehicle boxes partly covered by an earlier box of the check (below the NMS IoU): "
               f"{conf['non_vehicle_overlapping_another']}; removed without the overlap term: "
@@ -271,7 +277,8 @@ def plot_check(result: dict[str, Any], path: Path, title: str) -> None:
     for g in ("car", "non-vehicle", "free ground"):
         sel = (broad == g) & np.isfinite(p)
         ax.hist(p[sel], bins=bins, alpha=0.55, label=f"{g} ({int(sel.sum())})")
-    ax.axvline(result["filter_config"]["reject_threshold"], color="k", ls="--", lw=1, label="reject_threshold")
+    threshold = result.get("threshold_in_force", {}).get("threshold", result["filter_config"]["reject_threshold"])
+    ax.axvline(threshold, color="k", ls="--", lw=1, label="reject threshold in force")
     ax.set_xlabel("p_false")
     ax.set_title("filter probability by group")
     ax.legend(fontsize=8)

@@ -343,6 +343,8 @@ FIGURES: dict[str, Figure] = {
                                 lambda results: render_filter_synth(results, "123")),
     "filter-synth-unseen": Figure(tuple(_synth(s) for s in UNSEEN_SENSORS),
                                   lambda results: render_filter_synth(results, sensors=UNSEEN_SENSORS)),
+    "filter-synth-unseen-s123": Figure(tuple(_synth(s, "123") for s in UNSEEN_SENSORS),
+                                       lambda results: render_filter_synth(results, "123", sensors=UNSEEN_SENSORS)),
     "filter-calibration": Figure(("filter-calibration", "filter-calibration-shape"), render_filter_calibration),
     "filter-calibration-kitti": Figure(("calibrate-kitti", "calibrate-kitti-physics"), render_calibration_kitti),
     "filter-term-auc": Figure(("filter-calibration", "calibrate-s99"), render_term_auc),
