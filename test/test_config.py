@@ -156,6 +156,26 @@ def test_the_shipped_rule_is_whole_and_kept_whole(caplog):
     assert plain.filter.weights.tolist() == FilterConfig().weights.tolist()
 
 
+def test_per_layout_thresholds_belong_to_the_weights_they_were_set_for():
+    """The shipped file's sensor_thresholds stay with its weights (an override of reject_threshold
+    on it changes the fallback only); a file or parameter set with its own rule or threshold and no
+    table judges every sensor by its own reject_threshold (the KITTI preset must not inherit the
+    shipped table)."""
+    from pcc_ros.pipeline.filter import parse_sensor_thresholds
+
+    shipped, _ = load_config(None, with_filter=True)
+    assert parse_sensor_thresholds(shipped.filter.sensor_thresholds)["hdl64"] != shipped.filter.reject_threshold
+    fallback, _ = load_config(None, with_filter=True, reject_threshold=0.6)
+    assert fallback.filter.sensor_thresholds == shipped.filter.sensor_thresholds
+    assert fallback.filter.reject_threshold == 0.6
+    kitti, _ = load_config(CONFIG / "detection_filter_kitti.yaml", with_filter=True)
+    assert kitti.filter.sensor_thresholds == ""
+    own = pipeline_config(node_parameters({"backend": "input", "reject_threshold": 0.6}))
+    assert own.filter.sensor_thresholds == "" and own.filter.reject_threshold == 0.6
+    table = pipeline_config(node_parameters({"reject_threshold": 0.6, "sensor_thresholds": "vlp16:0.4"}))
+    assert table.filter.sensor_thresholds == "vlp16:0.4"
+
+
 def test_calibrate_filter_writes_every_weight(tmp_path):
     """pcc calibrate-filter's YAML names every term weight, those it fitted at 0 too."""
     import numpy as np
@@ -173,3 +193,7 @@ def test_calibrate_filter_writes_every_weight(tmp_path):
     assert all(f"{w}:" in text for w in RULE_WEIGHTS)
     config = PipelineConfig.from_yaml(path).filter
     assert config.weighted_terms == ("density",) and config.w_bias == -2.0
+    # the shipped file as the base: its per-layout table belongs to its weights, not these
+    shipped_base = preset_yaml(CONFIG / CONFIG_FILES["filter"], -2.0, weights, 0.7, {}, "# calibrated: test\n")
+    path.write_text(shipped_base)
+    assert 'sensor_thresholds: ""' in shipped_base and PipelineConfig.from_yaml(path).filter.sensor_thresholds == ""

@@ -86,11 +86,12 @@ def test_zero_weights_skip_their_passes(scan, calls):
 
 def test_shipped_rule_skips_what_it_does_not_weigh(scan):
     config = replace(FilterConfig(), sensor="hdl64")
-    assert set(config.weighted_terms) == {"density", "free_space", "ground_gap", "above", "overlap", "depth", "cover"}
+    assert set(config.weighted_terms) == {"density", "free_space", "ground_gap", "above", "overlap", "depth", "cover",
+                                         "corner"}
     terms = filter_terms(scan, BOXES, config, weighted_only=True)
-    assert not {"fill", "spill", "top", "corner", "score", "through", "n_shell"} & set(terms)
+    assert not {"fill", "spill", "top", "score", "through", "n_shell"} & set(terms)
     assert "cover" in terms and np.all((terms["cover"] >= 0.0) & (terms["cover"] <= 1.0))
-    assert set(PROFILE_TERMS) - {"fill", "spill", "top", "corner"} <= set(terms)
+    assert set(PROFILE_TERMS) - {"fill", "spill", "top"} <= set(terms)
 
 
 def test_pipeline_measures_weighted_terms_evaluation_all(scan):

@@ -197,7 +197,8 @@ CASES: dict[str, Case] = {
     "reject_threshold": Case("filter", 1e-6, base=EVIDENCE, check=_all_rejected),
     "sensor": Case("filter", "hdl32", base={"backend": "input"}),
     # the named preset's entry replaces reject_threshold
-    "sensor_thresholds": Case("filter", "hdl64:0.000001", base={**EVIDENCE, "sensor": "hdl64"}, check=_all_rejected),
+    "sensor_thresholds": Case("filter", "hdl64:0.000001", base={**EVIDENCE, "sensor": "hdl64", "sensor_thresholds": ""},
+                              check=_all_rejected),
     # each profile term decides a box here (besides moving every box's log-odds by weight x term; a
     # negative weight where the other terms alone would still reject the box):
     # the pole's returns over box c; car a's returns over part of its silhouette, car b's none

@@ -83,30 +83,31 @@ class FilterConfig:
     # `pcc calibrate-filter --sim-sensors ...` into config/detection_filter.yaml (a test keeps the
     # two equal; docs/filter.md has the command): scan evidence only, no score term (an unknown
     # detector's score scale is unknown; the score must not reject a real car on its own).
-    w_bias: float = 14.7298
-    w_density: float = -0.4958
-    w_free_space: float = 0.396
-    w_ground_gap: float = 4.7152
+    w_bias: float = 15.0197
+    w_density: float = -0.5067
+    w_free_space: float = 0.3988
+    w_ground_gap: float = 4.7354
     w_score: float = 0.0
     w_mismatch: float = 0.0
     # profile terms (pcc_ros.pipeline.evidence_profile): where the returns lie in and around the box
-    w_above: float = 3.9652
+    w_above: float = 3.9407
     w_fill: float = 0.0
     w_spill: float = 0.0
-    w_overlap: float = 10.0427
-    w_depth: float = 7.8196
+    w_overlap: float = 10.0857
+    w_depth: float = 7.4519
     w_top: float = 0.0
-    w_corner: float = 0.0  # share of the mid-height returns in the box's four corner columns
+    w_corner: float = -1.0125  # share of the mid-height returns in the box's four corner columns
     w_through: float = 0.0  # rays through the core returning from beyond it / a car's returns there
-    w_cover: float = -18.8009  # share of the box's unhidden azimuth columns holding a return
+    w_cover: float = -18.5557  # share of the box's unhidden azimuth columns holding a return
     # the value a missing mismatch term takes (a detection whose shape was not completed): its
     # mean over the calibration detections, the first-order marginalisation of the term
     mismatch_mean: float = 0.0
-    reject_threshold: float = 0.5066
+    reject_threshold: float = 0.7162
     # per-sensor reject thresholds, "hdl64:0.531, vlp16:0.458, ..." (pcc calibrate-filter
     # --sensor-thresholds): the entry of the preset the beam model matches; reject_threshold when
     # it matches none (an unknown sensor), before the first estimate, or when "" (none given)
-    sensor_thresholds: str = ""
+    sensor_thresholds: str = ("hdl64:0.5356, hdl32:0.4555, vlp16:0.4591, vlp32c:0.5293, vlp32c_x2:0.7082, "
+                              "os1_64:0.4357, os1_128:0.4933, pandar64:0.7162")
     sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
@@ -309,24 +310,32 @@ TERMS = ("density", "free_space", "ground_gap", "score", "mismatch", *PROFILE_TE
 RULE_WEIGHTS = tuple(f"w_{t}" for t in TERMS)
 
 
-def whole_rule(given) -> dict[str, float]:
-    """The term weights a parameter set leaves out, at 0, when it names some of them.
+def whole_rule(given) -> dict[str, float | str]:
+    """The parts of the evidence rule a parameter set leaves out, when it names others.
 
     A calibrated rule is a whole: its weights were fitted together, and a term it never saw
     must not join it with the shipped rule's weight (a file written before a term existed
     would otherwise get that term, fitted beside other weights, added on top of its own rule).
     So a parameter set (a file and the overrides on it) that names any ``w_<term>`` gives
     every term it does not name weight 0, said in one INFO line; one that names none keeps the
-    shipped rule whole. ``w_bias``, ``reject_threshold`` and ``mismatch_mean`` keep their
-    defaults when missing (a file of an older rule has them too). A parameter changed on a
-    running node changes that weight only (the rest of its rule stays)."""
+    shipped rule whole. The per-layout thresholds belong to the weights they were set for: a
+    set that names weights or a ``reject_threshold`` but no ``sensor_thresholds`` has none
+    (its own threshold judges every sensor; a KITTI preset must not inherit the shipped rule's
+    table). ``w_bias``, ``reject_threshold`` and ``mismatch_mean`` keep their defaults when
+    missing (a file of an older rule has them too). A parameter changed on a running node
+    changes that parameter only (the rest of its rule stays)."""
     named = [w for w in RULE_WEIGHTS if w in given]
     missing = [w for w in RULE_WEIGHTS if w not in given]
-    if not named or not missing:
-        return {}
-    _log.info("the parameters name the filter weights %s but not %s: those are 0 (a calibrated rule is a "
-              "whole; pcc calibrate-filter writes every weight)", ", ".join(named), ", ".join(missing))
-    return dict.fromkeys(missing, 0.0)
+    left_out: dict[str, float | str] = {}
+    if (named or "reject_threshold" in given) and "sensor_thresholds" not in given:
+        _log.info("the parameters name their own filter rule but no sensor_thresholds: its reject_threshold "
+                  "judges every sensor")
+        left_out["sensor_thresholds"] = ""
+    if named and missing:
+        _log.info("the parameters name the filter weights %s but not %s: those are 0 (a calibrated rule is a "
+                  "whole; pcc calibrate-filter writes every weight)", ", ".join(named), ", ".join(missing))
+        left_out.update(dict.fromkeys(missing, 0.0))
+    return left_out
 
 
 # The measurements themselves (rays, expected returns, local ground) live in

@@ -159,7 +159,8 @@ def render_term_auc(results: dict[str, dict[str, Any]]) -> list[str]:
 
     def row(term: str) -> list[str]:
         label = f"(`{term}`, for scale)" if term == "free_space" else f"`{term}`"
-        cells = [f"{d['term_auc'][term][k]:.3f} / {s99['term_auc'][term][k]:.3f}" for k in KINDS]
+        held = s99["term_auc"].get(term)  # a term newer than the held-out run: "-"
+        cells = [f"{d['term_auc'][term][k]:.3f} / " + (f"{held[k]:.3f}" if held else "-") for k in KINDS]
         return [label, *cells, *([f"{d['term_auc'][term]['real false']:.3f}"] if real else [])]
 
     header = ["term (AUC: 0.5 chance, 1 every false box above every true car)", *KINDS,
@@ -310,8 +311,16 @@ def render_filter_calibration(results: dict[str, dict[str, Any]]) -> list[str]:
                     f"{share(b)}: {_pct(w)}" for b, w in zip(sel["grid"], sel["worst_held_out_lost"]))
                 + f"); each sensor also held out of the choice: {nested}")
 
+    def per_layout(r: dict[str, Any]) -> str:
+        st = r.get("sensor_thresholds")
+        if not st:
+            return "none: `reject_threshold` for every sensor"
+        return ", ".join(f"{name} {v['threshold']:.3f} ({share(v['budget'])})" for name, v in st["layouts"].items()) \
+            + f"; matching no preset: {st['fallback']:.3f}"
+
     m = shape["mismatch"]
     rows = [["weights", weights(d), weights(shape)],
+            ["per-layout thresholds (`sensor_thresholds`; budget)", per_layout(d), per_layout(shape)],
             ["loss budget (`--max-lost`)", budget(d), budget(shape)],
             ["held-out sensor (fold threshold)", folds(d), folds(shape)],
             ["held-out sequences, per kind", kinds(d), kinds(shape)],
