@@ -23,10 +23,17 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from pcc_ros.data.synthetic.writer import read_kinds
 from pcc_ros.geometry.beams import SENSOR_PRESETS
 from pcc_ros.pipeline import evidence as ev
 from pcc_ros.pipeline.beam_model import BeamModel
 from pcc_ros.workflows.detection_eval import build_pipeline, load_kitti
+
+#: The terms the per-object table prints (medians), besides the raw counts.
+DIAG_TERMS = ("density", "free_space", "ground_gap", "depth", "above", "overlap", "cover", "corner", "top", "spill",
+              "fill")
+#: The objects the kept confusions mostly sit on (the rest pooled as "other").
+MAIN_OBJECTS = ("blob", "bush", "low_wall", "bin", "tree")
 
 
 def measure(root: Path, layout: str, config: Path | None = None) -> dict[str, np.ndarray]:
@@ -35,9 +42,10 @@ def measure(root: Path, layout: str, config: Path | None = None) -> dict[str, np
     split = root / "training" / "velodyne"
     cols: dict[str, list] = {}
     preset = SENSOR_PRESETS[layout]
+    det_root = root / "detections" / "synthetic"
     for seq in sorted(p.name for p in split.iterdir() if p.is_dir()):
         pipeline.beam_model = BeamModel("auto")
-        for f in tqdm(load_kitti(root, root / "detections" / "synthetic", seq), desc=f"{layout} {seq}", leave=False):
+        for f in tqdm(load_kitti(root, det_root, seq), desc=f"{layout} {seq}", leave=False):
             boxes = f.dt.boxes
             if not len(boxes):
                 continue
@@ -47,8 +55,11 @@ def measure(root: Path, layout: str, config: Path | None = None) -> dict[str, np
                    "range": np.hypot(boxes.center[:, 0], boxes.center[:, 1]),
                    "core_rings": ev.core_rings(boxes, preset),
                    "body_rings": ev.core_rings(boxes, preset, (ev.CORE_Z[0], 1.0))}
-            for k in ("n_in", "n_pass", "n_stop", "n_rays", "n_occluded", "free_space", "cover", "density"):
-                row[k] = t[k]
+            kinds = read_kinds(det_root / f"{f.name}.kind", len(boxes))
+            row["obj"] = kinds[1] if kinds is not None else np.full(len(boxes), "-", dtype=object)
+            for k in ("n_in", "n_pass", "n_stop", "n_rays", "n_occluded", "expected", *DIAG_TERMS):
+                if k in t:
+                    row[k] = t[k]
             for k, v in row.items():
                 cols.setdefault(k, []).append(np.asarray(v))
     return {k: np.concatenate(v) for k, v in cols.items()}
@@ -81,6 +92,50 @@ def report(layout: str, m: dict[str, np.ndarray]) -> None:
             line(f"{kind}, kept", sel & m["kept"])
 
 
+def by_object(layout: str, m: dict[str, np.ndarray]) -> None:
+    """The confusions the rule keeps, per object they sit on: counts, how many are evidence-poor
+    (fewer than 5 returns, or no ray through the core), and the median terms, range, returns and
+    visibility against the kept true cars'."""
+    true, conf, kept = m["kind"] == "true", m["kind"] == "confusion", m["kept"].astype(bool)
+    terms = [k for k in DIAG_TERMS if k in m]
+    visible = np.where(m["n_rays"] > 0, 1.0 - m["n_occluded"] / np.maximum(m["n_rays"], 1.0), 1.0)
+    print(f"\n## {layout}: confusions {conf.sum()}, kept {(conf & kept).sum()}")
+    print("| boxes | n (kept / all) | evidence-poor | range | returns | visible | " + " | ".join(terms) + " |")
+    print("| --- " * (6 + len(terms)) + "|")
+
+    def line(name: str, sel: np.ndarray, total: int) -> None:
+        if not sel.any():
+            return
+        poor = (m["n_in"][sel] < 5) | ((m["n_pass"][sel] + m["n_stop"][sel]) == 0)
+        med = [np.median(m[k][sel]) for k in terms]
+        print(f"| {name} | {sel.sum()} / {total} | {poor.sum()} | {np.median(m['range'][sel]):.0f} | "
+              f"{np.median(m['n_in'][sel]):.0f} | {np.median(visible[sel]):.2f} | "
+              + " | ".join(f"{v:.2f}" for v in med) + " |")
+
+    line("true, kept", true & kept, int(true.sum()))
+    line("confusion, kept", conf & kept, int(conf.sum()))
+    for obj in sorted(set(m["obj"][conf]), key=lambda o: -(conf & kept & (m["obj"] == o)).sum()):
+        line(f"kept {obj}", conf & kept & (m["obj"] == obj), int((conf & (m["obj"] == obj)).sum()))
+    line("confusion, removed", conf & ~kept, int(conf.sum()))
+
+
+def pooled(measured: dict[str, dict[str, np.ndarray]]) -> None:
+    """Kept / all confusions per layout and object, then the kept ones' medians over every layout."""
+    print("\n| layout | confusions kept / all | " + " | ".join(MAIN_OBJECTS) + " | other | evidence-poor kept |")
+    print("| --- " * (4 + len(MAIN_OBJECTS)) + "|")
+    for layout, m in measured.items():
+        conf, kept = m["kind"] == "confusion", m["kept"].astype(bool)
+        poor = (m["n_in"] < 5) | ((m["n_pass"] + m["n_stop"]) == 0)
+        cells = [conf & (m["obj"] == o) for o in MAIN_OBJECTS] + [conf & ~np.isin(m["obj"], MAIN_OBJECTS)]
+        print(f"| {layout} | {(conf & kept).sum()} / {conf.sum()} | "
+              + " | ".join(f"{(c & kept).sum()} / {c.sum()}" for c in cells) + f" | {(conf & kept & poor).sum()} |")
+    m = {k: np.concatenate([v[k] for v in measured.values()]) for k in next(iter(measured.values()))}
+    conf, kept, true = m["kind"] == "confusion", m["kept"].astype(bool), m["kind"] == "true"
+    other = conf & kept & ~np.isin(m["obj"], MAIN_OBJECTS)
+    by_object("all layouts pooled", m)
+    print(f"(kept confusions on other objects: {other.sum()}; kept true cars: {(true & kept).sum()})")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("root", type=Path)
@@ -89,13 +144,26 @@ def main() -> None:
     parser.add_argument("--core-open", type=float, default=None)
     parser.add_argument("--cabin", type=float, default=None)
     parser.add_argument("--config", type=Path, default=None)
+    parser.add_argument("--objects", action="store_true", help="the kept confusions per object they sit on")
+    parser.add_argument("--save", type=Path, default=None, help="directory: the measured rows as <layout>.npz")
     args = parser.parse_args()
     if args.core_open is not None:
         ev.CORE_Z_OPEN = args.core_open
     if args.cabin is not None:
         ev.CABIN_FRACTION = args.cabin
+    measured: dict[str, dict[str, np.ndarray]] = {}
     for layout in args.sensors.split(","):
-        report(layout, measure(args.root / f"{layout}_s{args.seed}", layout, args.config))
+        m = measure(args.root / f"{layout}_s{args.seed}", layout, args.config)
+        if args.save:
+            args.save.mkdir(parents=True, exist_ok=True)
+            np.savez(args.save / f"{layout}.npz", **{k: v.astype(str) if v.dtype == object else v
+                                                     for k, v in m.items()})
+        report(layout, m)
+        if args.objects:
+            by_object(layout, m)
+        measured[layout] = m
+    if args.objects:
+        pooled(measured)
 
 
 if __name__ == "__main__":
