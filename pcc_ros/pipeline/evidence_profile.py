@@ -191,11 +191,8 @@ def terms_from_counts(out: np.ndarray, boxes: Boxes, sensor: SensorModel, wanted
         "top": np.where(has, (out[:, col.TOP] + boxes.size[:, 2] / 2) / boxes.size[:, 2], 0.0),
     })
     if "corner" in wanted:
-        share = (out[:, col.CORNER] + CORNER_PRIOR * CORNER_PRIOR_RETURNS) / (out[:, col.MID] + CORNER_PRIOR_RETURNS)
-        # one-sided, capped at a car's share: emptier corners than a car's are evidence of an object
-        # smaller than the box, fuller ones are none that the box is a car (a box pushed along its
-        # car holds the car's end in its corner columns)
-        terms["corner"] = np.minimum(share, CORNER_PRIOR)
+        terms["corner"] = (out[:, col.CORNER] + CORNER_PRIOR * CORNER_PRIOR_RETURNS) / (out[:, col.MID]
+                                                                                      + CORNER_PRIOR_RETURNS)
     found = {k: v for k, v in terms.items() if k in wanted}
     found.update({"n_body": n_body, "n_above": n_above})
     if "spill" in wanted:
