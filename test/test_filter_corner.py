@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_filter_evidence import GROUND_Z, SENSOR
+from scan_scenes import GROUND_Z, SENSOR, cast
 
 from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.pipeline.evidence import EVIDENCE_GROUND
@@ -28,30 +28,6 @@ HALF = np.array([2.1, 0.9, 0.75])
 BOX = Boxes([CENTRE], [2 * HALF], [0.0], ["Car"], [0.5])
 
 
-def cast(boxes=(), ellipsoids=()) -> np.ndarray:
-    """Every beam of the HDL-64 model (azimuth within +-60 deg) to the first of the ground, a wall
-    at x = 40 m, axis-aligned boxes ``(lo, hi)`` and axis-aligned ellipsoids ``(centre, radii)``."""
-    el = SENSOR.ring_elevations()
-    az = np.deg2rad(np.arange(-60.0, 60.0, SENSOR.azimuth_resolution_deg))
-    e, a = np.meshgrid(el, az, indexing="ij")
-    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(d[:, 2] < 0, GROUND_Z / d[:, 2], np.inf)
-        t = np.minimum(t, np.where(d[:, 0] > 0, 40.0 / d[:, 0], np.inf))
-        for lo, hi in boxes:
-            t1, t2 = np.asarray(lo, float) / d, np.asarray(hi, float) / d
-            near, far = np.minimum(t1, t2).max(1), np.maximum(t1, t2).min(1)
-            t = np.where((far >= near) & (near > 0), np.minimum(t, near), t)
-        for centre, radii in ellipsoids:
-            # |(t d - c) / r|^2 = 1: a quadratic in t, the nearer root
-            u, c = d / radii, np.asarray(centre, float) / radii
-            qa, qb, qc = (u * u).sum(1), -2 * (u @ c), c @ c - 1.0
-            disc = qb * qb - 4 * qa * qc
-            root = (-qb - np.sqrt(disc)) / (2 * qa)
-            t = np.where((disc >= 0) & (root > 0), np.minimum(t, root), t)
-    return (d * t[:, None])[np.isfinite(t) & (t < 80.0)]
-
-
 def corner_of(scan: np.ndarray, boxes: Boxes = BOX) -> dict[str, np.ndarray]:
     return profile_terms(scan, boxes, SENSOR, measure={"corner"})
 
@@ -60,7 +36,7 @@ def test_a_car_body_fills_its_corners_a_blob_and_a_wall_do_not():
     body = (CENTRE - HALF + [0, 0, 0.3], CENTRE + HALF)  # the body fills the box over its wheels
     blob = (CENTRE + np.array([0, 0, -0.15]), HALF * [1.0, 1.0, 0.8])  # an ellipsoid inscribed in the box
     wall = (CENTRE - np.array([2.1, 0.15, 0.75]), CENTRE + np.array([2.1, 0.15, 0.45]))  # a thin slab along the box
-    car, bush, slab = (corner_of(cast(*s))["corner"][0] for s in (([body],), ((), [blob]), ([wall],)))
+    car, bush, slab = (corner_of(s)["corner"][0] for s in (cast([body]), cast(ellipsoids=[blob]), cast([wall])))
     assert car > 0.5  # the near end and the right side: a large part of each in the corner columns
     assert car > bush + 0.15 and car > slab + 0.2
     # a wall along the box's axis holds none of its returns in the corners: the prior alone

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scan_scenes import BOX, CAR_HI, CAR_LO, GROUND_Z, SENSOR, cast
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.pipeline.filter import (
@@ -17,34 +18,6 @@ from pcc_ros.pipeline.filter import (
     score_logit,
 )
 from pcc_ros.types import Boxes
-
-SENSOR = SENSOR_PRESETS["hdl64"]
-GROUND_Z = -1.73
-
-
-def cast(targets, sensor=SENSOR, max_range: float = 80.0) -> np.ndarray:
-    """A synthetic scan: every beam of ``sensor`` (azimuth within +-60 deg) hits the first of a
-    flat ground, a wall at x = 40 m and the axis-aligned boxes ``targets`` [(lo, hi), ...]."""
-    el = sensor.ring_elevations()
-    az = np.deg2rad(np.arange(-60.0, 60.0, sensor.azimuth_resolution_deg))
-    e, a = np.meshgrid(el, az, indexing="ij")
-    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(d[:, 2] < 0, GROUND_Z / d[:, 2], np.inf)
-        t = np.minimum(t, np.where(d[:, 0] > 0, 40.0 / d[:, 0], np.inf))
-        for lo, hi in targets:
-            lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-            t1, t2 = lo / d, hi / d
-            tn = np.fmax.reduce(np.minimum(t1, t2), axis=1)
-            tf = np.fmin.reduce(np.maximum(t1, t2), axis=1)
-            hit = (tf >= tn) & (tn > 0)
-            t = np.where(hit, np.minimum(t, tn), t)
-    ok = np.isfinite(t) & (t < max_range)
-    return (d[ok] * t[ok, None]).astype(np.float32)
-
-
-CAR_LO, CAR_HI = (14.0, -0.9, GROUND_Z + 0.3), (18.2, 0.9, GROUND_Z + 1.5)  # a car body (no wheels)
-BOX = Boxes([[16.1, 0.0, GROUND_Z + 0.75]], [[4.2, 1.8, 1.5]], [0.0], ["Car"], [0.3])
 
 
 def test_free_space_empty_box_vs_box_with_a_car():

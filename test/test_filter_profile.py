@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_filter_evidence import BOX, CAR_HI, CAR_LO, GROUND_Z, SENSOR, cast
+from scan_scenes import BOX, CAR_HI, CAR_LO, GROUND_Z, SENSOR, cast
 
 from pcc_ros.pipeline.evidence import COVER_PRIOR, cover
 from pcc_ros.pipeline.evidence_profile import (

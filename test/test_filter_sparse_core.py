@@ -4,7 +4,7 @@ the rays through the cabin above it decide (``pcc_ros.pipeline.evidence.core_box
 from __future__ import annotations
 
 import numpy as np
-from test_filter_evidence import GROUND_Z, cast
+from scan_scenes import GROUND_Z, cast
 
 from pcc_ros.pipeline import evidence as ev
 from pcc_ros.pipeline.filter import SENSOR_PRESETS, evidence

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_filter_evidence import CAR_HI, CAR_LO, GROUND_Z, cast
+from scan_scenes import CAR_HI, CAR_LO, GROUND_Z, cast
 
 import pcc_ros.pipeline.evidence as evidence_module
 import pcc_ros.pipeline.profile_kernels as profile_kernels
