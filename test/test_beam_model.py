@@ -107,6 +107,7 @@ def test_real_nuscenes_ring_field_gives_the_hdl32(shared_data):
     # spikes; the returns per firing set the count back: beams x columns between -18 and 0 deg
     alone = estimate_sensor(scan[:, :3])
     assert _density(alone, -18.0) == pytest.approx(_density(hdl32, -18.0), rel=0.2)  # measured: +15 %
+    assert matching_preset(alone) == "hdl32"  # its beams within MATCH_DEG_RINGLESS (up to 0.61 deg off)
 
 
 def _density(model: SensorModel, low: float = -20.0) -> float:

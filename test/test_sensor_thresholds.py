@@ -65,6 +65,26 @@ def test_each_preset_matches_itself_and_no_other():
     assert matching_preset(replace(pair, azimuth_resolution_deg=0.2)) == "vlp32c"
 
 
+def test_random_ringless_views_match_their_own_preset_or_none():
+    """A ring-less estimate: the beams past a random low cut, up to 10 % of them missing, each up to
+    0.45 deg off, the step up to 5 % off. It may match nothing (then the lenient fallback applies);
+    it must never match another preset (whose threshold was set for another sensor's cars)."""
+    rng = np.random.default_rng(0)
+    matched = 0
+    for name, preset in SENSOR_PRESETS.items():
+        el = np.asarray(preset.elevations_deg)
+        for _ in range(60):
+            view = ringless_view(preset, el[rng.integers(0, len(el) // 3)], 90.0)
+            e = np.asarray(view.elevations_deg)
+            e = e[rng.random(len(e)) >= rng.uniform(0, 0.1)]
+            e = np.sort(e + rng.uniform(-0.45, 0.45, len(e)))
+            step = view.azimuth_resolution_deg * rng.uniform(0.95, 1.05)
+            found = matching_preset(SensorModel(tuple(e), step))
+            assert found in (name, None), (name, found)
+            matched += found == name
+    assert matched >= 0.9 * 60 * len(SENSOR_PRESETS)
+
+
 def test_a_made_up_layout_matches_nothing_and_the_fallback_applies(caplog):
     made_up = SensorModel(tuple(np.linspace(-20.0, 12.0, 40)), 0.25, "made-up")
     assert matching_preset(made_up) is None
