@@ -63,3 +63,28 @@ def test_nuscenes_check_writes_curve_and_png(nuscenes_root, tmp_path):
     conf = result["configured"]
     assert conf["non_vehicle_overlapping_another"] > 0
     assert conf["non_vehicle_removed_without_overlap"] <= conf["non_vehicle_removed"]
+
+
+def test_nuscenes_check_without_the_ring_field_finds_the_same_sensor(nuscenes_root, monkeypatch):
+    """A driver or a conversion that drops the ring field: the beam model is estimated from the
+    returns' elevations alone, still matches the HDL-32E preset, and the shipped rule removes the
+    same share of the non-vehicle boxes and keeps the car with 46 returns (docs/filter.md, "Which
+    preset it is": at a 0.5 deg ring-less tolerance it matched nothing and removed 69.8 %)."""
+    from pcc_ros.cli.eval_detections import build_pipeline
+    from pcc_ros.data.nuscenes import NuScenes
+    from pcc_ros.workflows.filter_check import nuscenes_check
+
+    frames = NuScenes.frames
+
+    def without_ring(self, scene=None):
+        for sample in frames(self, scene):
+            column = list(sample.fields).index("ring")
+            sample.fields = tuple(f for f in sample.fields if f != "ring")
+            sample.points = np.delete(np.asarray(sample.points), column, axis=1)
+            yield sample
+
+    monkeypatch.setattr(NuScenes, "frames", without_ring)
+    result = nuscenes_check(nuscenes_root, build_pipeline(None, {"backend": "input"}))
+    assert result["threshold_in_force"]["preset"] == "hdl32"
+    assert result["configured"]["non_vehicle_removed"] >= 0.75
+    assert result["well_seen_cars_kept"] and result["configured"]["true_lost_count"] <= 1
