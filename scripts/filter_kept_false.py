@@ -21,13 +21,12 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from pcc_ros.data.synthetic.writer import read_kinds
 from pcc_ros.geometry.beams import SENSOR_PRESETS
 from pcc_ros.pipeline import evidence as ev
-from pcc_ros.pipeline.beam_model import BeamModel
-from pcc_ros.workflows.detection_eval import build_pipeline, load_kitti
+from pcc_ros.workflows.detection_eval import build_pipeline
+from pcc_ros.workflows.filter_sensors import judged_synth_frames
 
 #: The terms the per-object table prints (medians), besides the raw counts.
 DIAG_TERMS = ("density", "free_space", "ground_gap", "depth", "above", "overlap", "cover", "corner", "top", "spill",
@@ -39,29 +38,22 @@ MAIN_OBJECTS = ("blob", "bush", "low_wall", "bin", "tree")
 def measure(root: Path, layout: str, config: Path | None = None) -> dict[str, np.ndarray]:
     """Per detection of the set: kind, kept, raw counts, terms, range, ring crossings."""
     pipeline = build_pipeline(config, {"backend": "input", "sensor": "auto"})
-    split = root / "training" / "velodyne"
     cols: dict[str, list] = {}
     preset = SENSOR_PRESETS[layout]
     det_root = root / "detections" / "synthetic"
-    for seq in sorted(p.name for p in split.iterdir() if p.is_dir()):
-        pipeline.beam_model = BeamModel("auto")
-        for f in tqdm(load_kitti(root, det_root, seq), desc=f"{layout} {seq}", leave=False):
-            boxes = f.dt.boxes
-            if not len(boxes):
-                continue
-            r = pipeline.process(f.points, boxes)
-            t = r.filter_terms
-            row = {"kind": f.kinds, "kept": r.status != "rejected", "p": r.filter_score,
-                   "range": np.hypot(boxes.center[:, 0], boxes.center[:, 1]),
-                   "core_rings": ev.core_rings(boxes, preset),
-                   "body_rings": ev.core_rings(boxes, preset, (ev.CORE_Z[0], 1.0))}
-            kinds = read_kinds(det_root / f"{f.name}.kind", len(boxes))
-            row["obj"] = kinds[1] if kinds is not None else np.full(len(boxes), "-", dtype=object)
-            for k in ("n_in", "n_pass", "n_stop", "n_rays", "n_occluded", "expected", *DIAG_TERMS):
-                if k in t:
-                    row[k] = t[k]
-            for k, v in row.items():
-                cols.setdefault(k, []).append(np.asarray(v))
+    for f, boxes, r in judged_synth_frames(pipeline, root, layout):
+        t = r.filter_terms
+        row = {"kind": f.kinds, "kept": r.status != "rejected", "p": r.filter_score,
+               "range": np.hypot(boxes.center[:, 0], boxes.center[:, 1]),
+               "core_rings": ev.core_rings(boxes, preset),
+               "body_rings": ev.core_rings(boxes, preset, (ev.CORE_Z[0], 1.0))}
+        kinds = read_kinds(det_root / f"{f.name}.kind", len(boxes))
+        row["obj"] = kinds[1] if kinds is not None else np.full(len(boxes), "-", dtype=object)
+        for k in ("n_in", "n_pass", "n_stop", "n_rays", "n_occluded", "expected", *DIAG_TERMS):
+            if k in t:
+                row[k] = t[k]
+        for k, v in row.items():
+            cols.setdefault(k, []).append(np.asarray(v))
     return {k: np.concatenate(v) for k, v in cols.items()}
 
 

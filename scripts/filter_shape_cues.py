@@ -29,13 +29,12 @@ import json
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from pcc_ros.data.synthetic.writer import read_kinds
 from pcc_ros.geometry.canonical import to_box_local
-from pcc_ros.pipeline.beam_model import BeamModel
 from pcc_ros.pipeline.evidence import angular_window
-from pcc_ros.workflows.detection_eval import auc, build_pipeline, load_kitti
+from pcc_ros.workflows.detection_eval import auc, build_pipeline
+from pcc_ros.workflows.filter_sensors import judged_synth_frames
 
 A_LEN, A_WID, CORNER_Z = 0.2, 0.3, (0.25, 0.65)
 PRIOR = 2.0
@@ -113,33 +112,26 @@ VARIANTS = {"corner_pass": (A_LEN, A_WID, CORNER_Z), "corner_pass_s": (0.15, 0.2
 
 def measure(root: Path, layout: str, rays: bool = True) -> dict[str, np.ndarray]:
     pipeline = build_pipeline(None, {"backend": "input", "sensor": "auto"})
-    split = root / "training" / "velodyne"
     det_root = root / "detections" / "synthetic"
     cols: dict[str, list] = {}
-    for seq in sorted(p.name for p in split.iterdir() if p.is_dir()):
-        pipeline.beam_model = BeamModel("auto")
-        for f in tqdm(load_kitti(root, det_root, seq), desc=f"{layout} {seq}", leave=False):
-            boxes = f.dt.boxes
-            if not len(boxes):
-                continue
-            r = pipeline.process(f.points, boxes)
-            _, objects = read_kinds(det_root / f"{f.name}.kind", len(boxes))
-            pts = np.asarray(f.points[:, :3], dtype=np.float64)
-            az = np.arctan2(pts[:, 1], pts[:, 0])
-            az_lo, az_hi, *_ = angular_window(boxes)
-            cos, sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
-            for b in range(len(boxes)):
-                c = boxes.center[b]
-                rel = (az - (az_lo[b] + az_hi[b]) / 2 + np.pi) % (2 * np.pi) - np.pi
-                sel = np.abs(rel) <= (az_hi[b] - az_lo[b]) / 2 + 0.002
-                q = pts[sel]
-                x, y, z = to_box_local(q[:, 0], q[:, 1], q[:, 2], c[0], c[1], c[2], cos[b], sin[b])
-                o = np.array(to_box_local(0.0, 0.0, 0.0, c[0], c[1], c[2], cos[b], sin[b]))
-                row = cues_of_box(np.stack([x, y, z], 1), o, boxes.size[b] / 2, VARIANTS if rays else {})
-                row.update(kind=f.kinds[b], obj=objects[b], kept=r.status[b] != "rejected", p=r.filter_score[b],
-                           range=float(np.hypot(c[0], c[1])), n_in=r.filter_terms["n_in"][b])
-                for k, val in row.items():
-                    cols.setdefault(k, []).append(val)
+    for f, boxes, r in judged_synth_frames(pipeline, root, layout):
+        _, objects = read_kinds(det_root / f"{f.name}.kind", len(boxes))
+        pts = np.asarray(f.points[:, :3], dtype=np.float64)
+        az = np.arctan2(pts[:, 1], pts[:, 0])
+        az_lo, az_hi, *_ = angular_window(boxes)
+        cos, sin = np.cos(boxes.yaw), np.sin(boxes.yaw)
+        for b in range(len(boxes)):
+            c = boxes.center[b]
+            rel = (az - (az_lo[b] + az_hi[b]) / 2 + np.pi) % (2 * np.pi) - np.pi
+            sel = np.abs(rel) <= (az_hi[b] - az_lo[b]) / 2 + 0.002
+            q = pts[sel]
+            x, y, z = to_box_local(q[:, 0], q[:, 1], q[:, 2], c[0], c[1], c[2], cos[b], sin[b])
+            o = np.array(to_box_local(0.0, 0.0, 0.0, c[0], c[1], c[2], cos[b], sin[b]))
+            row = cues_of_box(np.stack([x, y, z], 1), o, boxes.size[b] / 2, VARIANTS if rays else {})
+            row.update(kind=f.kinds[b], obj=objects[b], kept=r.status[b] != "rejected", p=r.filter_score[b],
+                       range=float(np.hypot(c[0], c[1])), n_in=r.filter_terms["n_in"][b])
+            for k, val in row.items():
+                cols.setdefault(k, []).append(val)
     return {k: np.array(v) for k, v in cols.items()}
 
 

@@ -127,6 +127,20 @@ def _measure(pipeline, sensor: str, frames, truth_of, kind_of, group_of, label: 
     return Rows.concatenate(parts)
 
 
+def judged_synth_frames(pipeline, root: Path, label: str = ""):
+    """Every frame of a SynthCars root that holds detections, with the pipeline's result on them:
+    ``(frame, boxes, result)``, the beam model estimated afresh for every sequence (as a node
+    started on it would). For the diagnosis scripts, which read more of a result than a row."""
+    from pcc_ros.pipeline.beam_model import BeamModel
+
+    det_root = root / "detections" / "synthetic"
+    for seq in sorted(p.name for p in (root / "training" / "velodyne").iterdir() if p.is_dir()):
+        pipeline.beam_model = BeamModel(pipeline.config.filter.sensor)
+        for f in tqdm(load_kitti(root, det_root, seq), desc=f"{label or root.name} {seq}", leave=False):
+            if len(f.dt.boxes):
+                yield f, f.dt.boxes, pipeline.process(f.points, f.dt.boxes)
+
+
 def synth_rows(pipeline, root: Path, layout: str, sensor: str = "auto") -> Rows:
     """Rows of every frame of a SynthCars root simulated with ``layout`` (truth and kind from its
     ``.kind`` files), measured with the beam model ``sensor``."""
