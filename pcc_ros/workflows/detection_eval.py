@@ -347,8 +347,7 @@ def evaluate_detections(
         "max_lost": max_lost,
         "rule": rule,
         "filter_config": {k: getattr(pipeline.config.filter, k) for k in pipeline.config.filter.__dataclass_fields__},
-        "threshold_in_force": None if pipeline.threshold_in_force is None else
-        {"preset": pipeline.threshold_in_force[0], "threshold": pipeline.threshold_in_force[1]},
+        "threshold_in_force": threshold_in_force_json(pipeline.threshold_in_force),
         "shipped_threshold": shipped,
         "operating_points": table,
         "per_kind": None if per_kind is None else _without_curves(per_kind),
@@ -429,8 +428,18 @@ def print_report(results: dict[str, Any], title: str) -> None:
           f"({s['false_removed_share']:.1%}), loses {s['true_lost']}/{results['true']} true "
           f"({s['true_lost_share']:.1%}); precision {s['precision_before']:.3f} -> {s['precision_after']:.3f}; "
           f"filter {results['filter_ms_mean']:.1f} ms/frame vs completion {results['complete_ms_mean']:.1f} ms/frame")
-    if results.get("threshold_in_force"):
-        force = results["threshold_in_force"]
+    print_threshold_in_force(results.get("threshold_in_force"))
+
+
+def threshold_in_force_json(in_force: tuple[str | None, float] | None) -> dict[str, Any] | None:
+    """The evidence rule's ``(preset, threshold)`` in force (:attr:`Pipeline.threshold_in_force`) as
+    the result JSONs of ``pcc eval detections`` carry it (None: no box was judged by that rule)."""
+    return None if in_force is None else {"preset": in_force[0], "threshold": in_force[1]}
+
+
+def print_threshold_in_force(force: dict[str, Any] | None) -> None:
+    """One line: the reject threshold the evidence rule used, and the preset the beam model matched."""
+    if force:
         print(f"reject threshold in force {force['threshold']:.4f} (beam model matched preset: "
               f"{force['preset'] or 'none'})")
 

@@ -46,7 +46,12 @@ from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.pipeline.filter import false_probability, local_ground
 from pcc_ros.plotting import operating_curves
 from pcc_ros.types import Boxes
-from pcc_ros.workflows.detection_eval import compare, print_groups
+from pcc_ros.workflows.detection_eval import (
+    compare,
+    print_groups,
+    print_threshold_in_force,
+    threshold_in_force_json,
+)
 
 log = logging.getLogger(__name__)
 
@@ -218,7 +223,7 @@ def nuscenes_check(root: str | Path, pipeline, score: float = 0.7, ground_boxes:
                    "seed": seed, "max_lost": max_lost,
                    "filter_config": {k: getattr(pipeline.config.filter, k)
                                      for k in pipeline.config.filter.__dataclass_fields__},
-                   "threshold_in_force": {"preset": in_force[0], "threshold": in_force[1]},
+                   "threshold_in_force": threshold_in_force_json(in_force),
                    "_terms": cat_terms, "_rows": cat, "_frames": frames})
     return result
 
@@ -237,10 +242,7 @@ def print_check(result: dict[str, Any]) -> None:
     print_groups(result, "false group")
     print(f"non-vehicle boxes removed at the configured threshold: {conf['non_vehicle_removed']:.1%}; "
           f"free ground: {conf['free_ground_removed']:.1%}; unjudged: {conf['unjudged']}")
-    force = result.get("threshold_in_force")
-    if force:
-        print(f"reject threshold in force {force['threshold']:.4f} (beam model matched preset: "
-              f"{force['preset'] or 'none'})")
+    print_threshold_in_force(result.get("threshold_in_force"))
     if "non_vehicle_removed_without_overlap" in conf:
         print(f"non-vehicle boxes partly covered by an earlier box of the check (below the NMS IoU): "
               f"{conf['non_vehicle_overlapping_another']}; removed without the overlap term: "
@@ -277,8 +279,7 @@ def plot_check(result: dict[str, Any], path: Path, title: str) -> None:
     for g in ("car", "non-vehicle", "free ground"):
         sel = (broad == g) & np.isfinite(p)
         ax.hist(p[sel], bins=bins, alpha=0.55, label=f"{g} ({int(sel.sum())})")
-    threshold = result.get("threshold_in_force", {}).get("threshold", result["filter_config"]["reject_threshold"])
-    ax.axvline(threshold, color="k", ls="--", lw=1, label="reject threshold in force")
+    ax.axvline(result["threshold_in_force"]["threshold"], color="k", ls="--", lw=1, label="reject threshold in force")
     ax.set_xlabel("p_false")
     ax.set_title("filter probability by group")
     ax.legend(fontsize=8)
