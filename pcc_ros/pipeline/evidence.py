@@ -26,6 +26,7 @@ from pcc_ros.geometry.beams import SENSOR_PRESETS, SensorModel
 from pcc_ros.geometry.boxes import box_corners, round_down_to, round_up_to
 from pcc_ros.geometry.canonical import to_box_local
 from pcc_ros.geometry.segments import positions_in_runs
+from pcc_ros.pipeline.evidence_index import BevIndex, Footprints, bev_index
 from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
 
@@ -61,11 +62,6 @@ GROUND_REACH = 3.0
 #: ... widened where the beam model's rings fall farther apart on the ground (far boxes, sparse
 #: sensors): half the ring spacing at the box's range, at most this many metres.
 GROUND_REACH_MAX = 10.0
-#: BEV cell (metres) of the ground query's index (coarsened when the boxes spread so far that
-#: the grid would exceed :data:`_MAX_CELLS`).
-_GROUND_CELL = 1.0
-#: Cells of the ground query's grid at most (the counting sort's table of cell starts).
-_MAX_CELLS = 32_000
 #: ``cover`` of a car: the median share of a true car box's unhidden azimuth columns holding
 #: a return (seed-11 SynthCars, every simulated sensor), and the number of such prior columns
 #: the term starts from (chosen by leave-one-sensor-out cross-validation, docs/filter.md).
@@ -82,9 +78,6 @@ _EL_BANDS = 16
 #: precision): it must stay a superset of the rays that reach a box (the exact float64 box
 #: test comes after); orders of magnitude above float32 rounding of a slope.
 _SLOPE_SLACK = 1e-4
-#: Slack (metres) of the ground query's cell test: a point the exact test (in the scan's
-#: precision) accepts lies in a cell listed for the box even after float32 rounding.
-_GROUND_SLACK = 0.01
 
 
 @dataclass
@@ -291,11 +284,10 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     return out
 
 
-def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | None = None) -> np.ndarray:
-    """:func:`local_ground` on the scan's coordinate columns (contiguous, one dtype)."""
-    ws = ws or _SCRATCH
-    n = len(boxes)
-    out = np.full(n, np.nan)
+def ground_query(boxes: Boxes, reach, dt: type) -> tuple[Footprints, tuple[np.ndarray, ...]]:
+    """The local ground's boxes (each box widened by ``reach`` around its footprint, from 3 m
+    below to 1 m above its bottom) as the scan index sees them, and their exact test's values in
+    the scan's precision ``dt``: ``(zlo, zhi, cx, cy, cos, sin, half length, half width)``."""
     bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
     centre, size = boxes.center.copy(), boxes.size.copy()
     centre[:, 2] = bottom - 1.0
@@ -304,65 +296,41 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     wide = Boxes(centre, size, boxes.yaw)
     if not wide.valid_mask().all():
         wide.validate()
-    if not len(x):
-        return out
-    dt = x.dtype.type
     half = wide.size / 2.0
     # The test of a point against a box runs in the scan's precision, on box-relative x / y,
     # the z bounds rounded outward (as geometry.boxes.points_in_boxes, which this reproduces).
     zlo = round_up_to(wide.center[:, 2] - half[:, 2], dt)
     zhi = round_down_to(wide.center[:, 2] + half[:, 2], dt)
-    cx, cy = wide.center[:, 0].astype(dt), wide.center[:, 1].astype(dt)
     cos64, sin64 = np.cos(wide.yaw), np.sin(wide.yaw)
-    c, s = cos64.astype(dt), sin64.astype(dt)
-    hl, hw = half[:, 0].astype(dt), half[:, 1].astype(dt)
-    # BEV index: a grid over the boxes; each box lists the cells that can hold a point it
-    # contains (cell centre within the box grown by half a cell diagonal and a slack).
-    corners = box_corners(wide)[:, :4, :2]
-    lo, hi = corners.min(axis=1), corners.max(axis=1)
-    cell = _GROUND_CELL
-    span = hi.max(axis=0) - lo.min(axis=0)
-    while np.prod(np.floor(span / cell) + 5) > _MAX_CELLS:  # boxes spread far apart: coarser cells
-        cell *= 1.5
-    # two cells of margin on every side: a point off the grid is off every box
-    origin = lo.min(axis=0) - 2 * cell
-    nx, ny = (int(v) for v in np.floor(span / cell) + 5)
-    c0 = np.floor((lo - origin) / cell).astype(np.int64) - 1
-    c1 = np.floor((hi - origin) / cell).astype(np.int64) + 1
-    c0, c1 = np.maximum(c0, 0), np.minimum(c1, [nx - 1, ny - 1])
-    extent = c1 - c0 + 1
-    per_box = extent[:, 0] * extent[:, 1]
-    box_of = np.repeat(np.arange(n), per_box)
-    local = positions_in_runs(per_box)
-    gx = c0[box_of, 0] + local // extent[box_of, 1]
-    gy = c0[box_of, 1] + local % extent[box_of, 1]
-    ccx, ccy, _ = to_box_local(origin[0] + (gx + 0.5) * cell, origin[1] + (gy + 0.5) * cell, 0.0,
-                               wide.center[box_of, 0], wide.center[box_of, 1], 0.0, cos64[box_of], sin64[box_of])
-    grow = cell * np.sqrt(0.5) + _GROUND_SLACK
-    touch = (np.abs(ccx) <= half[box_of, 0] + grow) & (np.abs(ccy) <= half[box_of, 1] + grow)
-    box_of, key = box_of[touch], gx[touch] * ny + gy[touch]  # box-major, cells ascending
-    # The points in a cell some box lists and within the boxes' union z range, grouped by cell
-    # (a counting sort); a box's consecutive cells are one run of them. Off-grid points (and
-    # NaN) clamp into the grid's two-cell border, which no box lists.
+    test = (zlo, zhi, wide.center[:, 0].astype(dt), wide.center[:, 1].astype(dt), cos64.astype(dt),
+            sin64.astype(dt), half[:, 0].astype(dt), half[:, 1].astype(dt))
+    footprints = Footprints(wide.center[:, 0], wide.center[:, 1], cos64, sin64, half[:, 0], half[:, 1],
+                            float(zlo.min()), float(zhi.max()))
+    return footprints, test
+
+
+def ground_heights(x, y, z, index: BevIndex, runs, test: tuple[np.ndarray, ...], quantile: float,
+                   ws: Scratch) -> np.ndarray:
+    """Each box's ``quantile`` of the heights of the points its exact ``test`` (:func:`ground_query`)
+    accepts among the candidates of its cell ``runs`` in ``index`` (NaN: none)."""
     from pcc_ros.pipeline import evidence_kernels as kernels  # numba: heavy, only when measuring
 
-    listed = np.zeros(nx * ny, dtype=bool)
-    listed[key] = True
-    cell_key = ws("g_cell", len(x), np.int32)
-    kernels.ground_cells(x, y, z, dt(origin[0]), dt(origin[1]), dt(1.0 / cell), nx, ny, zlo.min(), zhi.max(),
-                         cell_key)
-    start, order = ws("g_start", nx * ny + 1, np.int64), ws("g_order", len(x), np.int64)
-    kernels.counting_sort(cell_key, listed, start, order)
-    if not len(key):
-        return out
-    new = np.ones(len(key), dtype=bool)
-    new[1:] = (np.diff(key) != 1) | (np.diff(box_of) != 0)
-    first = np.flatnonzero(new)
-    last = np.r_[first[1:] - 1, len(key) - 1]
-    run_ends = np.cumsum(np.bincount(box_of[first], minlength=n))
-    kernels.ground_quantiles(x, y, z, order, start, key[first], key[last], run_ends, zlo, zhi, cx, cy, c, s, hl, hw,
-                             float(quantile), ws("g_values", len(x), dt), ws("g_spare", len(x), dt), out)
+    out = np.full(len(test[0]), np.nan)
+    dt = x.dtype.type
+    kernels.ground_quantiles(x, y, z, index.order, index.start, *runs, *test, float(quantile),
+                             ws("g_values", len(x), dt), ws("g_spare", len(x), dt), out)
     return out
+
+
+def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | None = None) -> np.ndarray:
+    """:func:`local_ground` on the scan's coordinate columns (contiguous, one dtype): its own
+    index of the scan (:mod:`pcc_ros.pipeline.evidence_index`)."""
+    ws = ws or _SCRATCH
+    footprints, test = ground_query(boxes, reach, x.dtype.type)
+    if not len(x):
+        return np.full(len(boxes), np.nan)
+    index = bev_index(x, y, z, [footprints], ws)
+    return ground_heights(x, y, z, index, index.runs[0], test, quantile, ws)
 
 
 def ground_reach(boxes: Boxes, sensor: SensorModel) -> np.ndarray:

@@ -272,6 +272,47 @@ def ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, bo
 
 
 @compiled()
+def cell_runs(cx, cy, cos, sin, hl, hw, ox, oy, cell, nx, ny, grow, listed, run_first, run_last, run_ends):
+    """Each box's cells of the index grid (``nx`` x ``ny`` cells of ``cell`` metres from ``(ox,
+    oy)``; key ``gx * ny + gy``): those whose centre lies within the box grown by ``grow``
+    (box frame: ``|cos dx + sin dy| <= hl + grow``, ``|cos dy - sin dx| <= hw + grow``), searched
+    over its bounding rectangle widened by a cell, kept off the grid's last row and column.
+    Marks them in ``listed``; writes their runs of consecutive keys (one per grid column: the
+    centres of a column inside a rectangle are consecutive) to ``run_first`` / ``run_last``
+    (room for ``nx`` per box) and the running run count after each box to ``run_ends``. Returns
+    the number of runs."""
+    count = 0
+    for b in range(len(cx)):
+        c, s = cos[b], sin[b]
+        ex = abs(c) * hl[b] + abs(s) * hw[b]
+        ey = abs(s) * hl[b] + abs(c) * hw[b]
+        x0 = max(int(np.floor((cx[b] - ex - ox) / cell)) - 1, 0)
+        x1 = min(int(np.floor((cx[b] + ex - ox) / cell)) + 1, nx - 1)
+        y0 = max(int(np.floor((cy[b] - ey - oy) / cell)) - 1, 0)
+        y1 = min(int(np.floor((cy[b] + ey - oy) / cell)) + 1, ny - 1)
+        reach_l, reach_w = hl[b] + grow, hw[b] + grow
+        for gx in range(x0, x1 + 1):
+            dx = ox + (gx + 0.5) * cell - cx[b]
+            open_run = False
+            for gy in range(y0, y1 + 1):
+                dy = oy + (gy + 0.5) * cell - cy[b]
+                if abs(c * dx + s * dy) <= reach_l and abs(c * dy - s * dx) <= reach_w:
+                    k = gx * ny + gy
+                    listed[k] = True
+                    if open_run:
+                        run_last[count - 1] = k
+                    else:
+                        run_first[count] = k
+                        run_last[count] = k
+                        count += 1
+                        open_run = True
+                elif open_run:
+                    break  # the column's cells inside the rectangle are behind
+        run_ends[b] = count
+    return count
+
+
+@compiled()
 def ground_cells(x, y, z, offset_x, offset_y, scale, nx, ny, zmin, zmax, key):
     """Each point's cell of the ground query's BEV grid (in the scan's precision: ``(x - offset)
     * scale`` clipped into the grid, truncated), or ``-1`` for a point outside ``[zmin, zmax]``
