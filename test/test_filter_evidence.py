@@ -564,7 +564,7 @@ def test_second_thread_works_in_the_callers_context(monkeypatch):
 
         return spy
 
-    for name in ("_ground", "_expected_beams"):
+    for name in ("_footprint_measures", "_expected_beams"):
         monkeypatch.setattr(ev, name, spied(getattr(ev, name)))
     scan, boxes = _scattered_scene(3)
     node = object()

@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import contextvars
 import threading
+from collections.abc import Collection
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache, partial
 
 import numpy as np
@@ -92,6 +93,7 @@ class Evidence:
     expected: np.ndarray  # beams of the sensor model that hit the box
     ground_z: np.ndarray  # local ground height under the box (NaN: none seen)
     terms: dict[str, np.ndarray]
+    profile: dict[str, np.ndarray] = field(default_factory=dict)  # the profile terms asked for
 
     def as_dict(self) -> dict[str, np.ndarray]:
         names = ("n_in", "n_stop", "n_pass", "n_occluded", "n_rays", "expected", "ground_z")
@@ -402,14 +404,15 @@ def beside(fn, *args) -> Future:
 
 def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1,
              reach: float | np.ndarray | None = None, rays: bool = True, expected: bool = True,
-             ground: bool = True, columns: bool = False) -> Evidence:
+             ground: bool = True, columns: bool = False, profile: Collection[str] = ()) -> Evidence:
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
     Numpy passes index the scan; compiled kernels visit each box's candidate rays, points and
-    beams. ``workers`` >= 2: the local ground (a query of its own over the scan) and the
-    sensor model's expected returns are measured on a second thread while this one follows the
-    rays (numpy and the kernels release the GIL); the values are the same either way.
+    beams. ``workers`` >= 2: the footprint queries (the local ground and the profile pass, over
+    one BEV index of the scan) and, without a profile pass, the sensor model's expected returns
+    are measured on a second thread while this one follows the rays (and then, with a profile
+    pass, the expected returns); the kernels release the GIL; the values are the same either way.
     ``reach``: metres around each footprint the local ground looks (default
     :func:`ground_reach` of the sensor model; ``GROUND_REACH`` is the fixed reach of 93cd59e).
     ``rays`` / ``expected`` / ``ground`` False: that measurement is skipped (its raw values and
@@ -417,28 +420,34 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     leave a term out does not pay for it (``rays``: n_in, n_stop, n_pass, n_occluded, n_rays;
     ``density`` and ``through`` need rays and expected, ``free_space`` rays, ``ground_gap`` ground).
     ``columns`` (with ``rays``): also the azimuth columns behind ``cover`` (``n_filled``, ``n_seen``
-    and ``cover`` in the terms; :func:`cover`).
+    and ``cover`` in the terms; :func:`cover`). ``profile``: the profile terms to measure too
+    (:func:`pcc_ros.pipeline.evidence_profile.profile_terms`' values, in :attr:`Evidence.profile`).
     """
     sensor = sensor or SENSOR_PRESETS["hdl64"]
     n = len(boxes)
     zero = np.zeros(n)
+    profile = set(profile)
     if n == 0:
-        return Evidence(*([zero] * 7), _derive(*([zero] * 7), boxes))
+        return Evidence(*([zero] * 7), _derive(*([zero] * 7), boxes), _footprint_measures(
+            zero, zero, zero, boxes, sensor, None, profile, _SCRATCH)[1])
     if not boxes.valid_mask().all():
         boxes.validate()  # DataError naming the box
     x, y, z = _columns(points)
     nan = np.full(n, np.nan)
     reach = ground_reach(boxes, sensor) if reach is None and ground else reach
+    footprints = ground or bool(profile)
     # A second thread only when the work splits: the rays here, the rest there.
-    pool = workers > 1 and rays and (ground or expected)
-    # The side thread's jobs, in order: the ground (it needs only the scan and the boxes, so it
-    # starts before the box-level setup below), then the expected returns; the two take about
-    # as long as the rays do here.
-    ground_job = beside(_ground, x, y, z, boxes, reach, 0.05, _SCRATCH) if pool and ground else None
+    pool = workers > 1 and rays and (footprints or expected)
+    # The side thread's jobs, in order: the footprint queries (they need only the scan and the
+    # boxes, so they start before the box-level setup below), then, without a profile pass, the
+    # expected returns (with one, the footprints take about as long as the rays: the expected
+    # returns follow the rays here).
+    footprint_job = beside(_footprint_measures, x, y, z, boxes, sensor, reach if ground else None, profile,
+                           _SCRATCH) if pool and footprints else None
     window = angular_window(boxes) if rays or expected else None
     table = _BoxTable(boxes, sensor) if rays or expected else None
     expected_job = beside(partial(_expected_beams, table=table), boxes, sensor, *window) \
-        if pool and expected else None
+        if pool and expected and not profile else None
     cover_terms = {}
     if rays:
         step = np.deg2rad(sensor.azimuth_resolution_deg) if columns else None
@@ -447,14 +456,41 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
             cover_terms = {"n_filled": col[0], "n_seen": col[1], "cover": cover(*col)}
     else:
         n_in, n_occ, n_stop, n_pass, n_rays = nan, nan, nan, nan, nan
-    ground = (ground_job.result() if ground_job else _ground(x, y, z, boxes, reach, 0.05, _SCRATCH)) \
-        if ground else nan
     expected = (expected_job.result() if expected_job else _expected_beams(boxes, sensor, *window, table=table)) \
         if expected else nan
+    ground, profile_out = footprint_job.result() if footprint_job else \
+        _footprint_measures(x, y, z, boxes, sensor, reach if ground else None, profile, _SCRATCH) if footprints \
+        else (nan, {})
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
-        {**_derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes), **cover_terms},
+        {**_derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes), **cover_terms}, profile_out,
     )
+
+
+def _footprint_measures(x, y, z, boxes: Boxes, sensor: SensorModel, reach, profile: set[str], ws: Scratch
+                        ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The queries over the boxes' footprints, sharing one BEV index of the scan
+    (:mod:`pcc_ros.pipeline.evidence_index`): the local ground (``reach`` not ``None``; else NaN)
+    and the ``profile`` terms (:func:`pcc_ros.pipeline.evidence_profile.profile_terms`' values)."""
+    from pcc_ros.pipeline.evidence_profile import ProfileQuery, terms_before_pass  # it imports this module
+
+    dt = x.dtype.type
+    queries, profile_out, profile_query = [], {}, None
+    if reach is not None:
+        ground_footprints, ground_test = ground_query(boxes, reach, dt)
+        queries.append(ground_footprints)
+    if profile:
+        profile_out, needs_pass = terms_before_pass(boxes, profile)
+        if needs_pass:
+            profile_query = ProfileQuery(boxes, profile, dt)
+            queries.append(profile_query.footprints)
+    index = bev_index(x, y, z, queries, ws) if queries and len(x) else None
+    ground = np.full(len(boxes), np.nan)
+    if reach is not None and index is not None:
+        ground = ground_heights(x, y, z, index, index.runs[0], ground_test, 0.05, ws)
+    if profile_query is not None:
+        profile_out.update(profile_query.measure(x, y, z, index, index.runs[-1] if index else None, sensor))
+    return ground, profile_out
 
 
 def cover(n_filled: np.ndarray, n_seen: np.ndarray) -> np.ndarray:
