@@ -26,7 +26,6 @@ from pcc_ros.errors import DataError
 from pcc_ros.geometry.beams import SENSOR_PRESETS, SensorModel
 from pcc_ros.geometry.boxes import box_corners, round_down_to, round_up_to
 from pcc_ros.geometry.canonical import to_box_local
-from pcc_ros.geometry.segments import positions_in_runs
 from pcc_ros.pipeline.evidence_index import BevIndex, Footprints, bev_index
 from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
@@ -213,30 +212,25 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch,
     b0 = np.floor((az_lo[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) - 1
     b1 = np.floor((az_hi[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) + 1
     nbins = np.minimum(b1 - b0 + 1, _AZ_BINS)
-    box_of_bin = np.repeat(np.arange(m), nbins)
-    az_bin = (np.repeat(b0, nbins) + positions_in_runs(nbins)) % _AZ_BINS
-    p = len(x)
+    band_lo = np.clip(np.floor((s_lo - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
+    band_hi = np.clip(np.floor((s_hi - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
     from pcc_ros.pipeline import evidence_kernels as kernels  # numba: heavy, only when measuring
 
-    key, slope = ws("key", p, np.int16), ws("slope", p, dt)
+    cells, n_bins = _AZ_BINS * (_EL_BANDS + 2), int(nbins.sum())
+    first_cell, last_cell = ws("first_cell", n_bins, np.int64), ws("last_cell", n_bins, np.int64)
+    bin_ends, wanted = np.empty(m, np.int64), np.zeros(cells, dtype=bool)
+    kernels.ray_cells(b0, nbins, band_lo, band_hi, _AZ_BINS, _EL_BANDS + 2, first_cell, last_cell, bin_ends, wanted)
+    p = len(x)
     with np.errstate(invalid="ignore"):
         azimuth = np.arctan2(y, x, out=ws("az", p, dt))  # numpy's SIMD pass
     # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e index
     # paired it with the boxes at azimuth and elevation 0); straight up / down is beyond every
     # box's window (a slope of +-inf, or huge: its band clamps); NaN points get cell 0 (no box).
+    key, slope = ws("key", p, np.int16), ws("slope", p, dt)
     kernels.ray_keys(azimuth, x, y, z, _AZ_BINS, _EL_BANDS, e0, 1.0 / width, key, slope)
-    band_lo = np.clip(np.floor((s_lo - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
-    band_hi = np.clip(np.floor((s_hi - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
-    bins = az_bin * (_EL_BANDS + 2)
-    first_cell = bins + np.take(band_lo, box_of_bin)
-    last_cell = bins + np.take(band_hi, box_of_bin)
-    n_cells = last_cell - first_cell + 1
-    cells = _AZ_BINS * (_EL_BANDS + 2)
-    wanted = np.zeros(cells, dtype=bool)
-    wanted[np.repeat(first_cell, n_cells) + positions_in_runs(n_cells)] = True
     start, order = ws("start", cells + 1, np.int64), ws("order", p, np.int64)
     kernels.counting_sort(key, wanted, start, order)
-    kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, np.cumsum(nbins), boxes_idx,
+    kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, boxes_idx,
                        s_lo.astype(dt), s_hi.astype(dt), table.center, table.cos, table.sin,
                        table.origin, *table.body, *table.core, out, azimuth,
                        *_column_grid(window, boxes_idx, column_step), cols)

@@ -174,11 +174,10 @@ def ray_keys(az, x, y, z, bins, bands, e0, inv_width, key, slope):
         key[i] = np.int16(np.int16(a) * np.int16(bands + 2) + np.int16(band))
 
 
-@compiled()
-def counting_sort(key, wanted, start, order):
-    """The positions of the points whose cell ``key`` (``-1``: none) is ``wanted``, grouped by cell in ``order``
-    (ascending positions within a cell); ``start`` (cells + 1) gets each cell's first slot.
-    Returns how many points were placed."""
+@njit(inline="always")
+def _cell_starts(key, wanted, start):
+    """``start`` (cells + 1): each cell's first slot of a counting sort of the points whose cell
+    ``key`` (``-1``: none) is ``wanted``; returns a copy of the starts to fill from."""
     start[:] = 0
     for i in range(len(key)):
         k = key[i]
@@ -186,14 +185,39 @@ def counting_sort(key, wanted, start, order):
             start[k + 1] += 1
     for c in range(1, len(start)):
         start[c] += start[c - 1]
-    placed = start[len(start) - 1]
-    fill = start[:-1].copy()
+    return start[:-1].copy()
+
+
+@compiled()
+def ray_cells(b0, nbins, band_lo, band_hi, bins, stride, first_cell, last_cell, bin_ends, wanted):
+    """The cells each judged box ``j`` searches: its ``nbins[j]`` azimuth bins from ``b0[j]``
+    (wrapped around ``bins``), each the bands ``band_lo[j] .. band_hi[j]`` of the bin (cell ``bin *
+    stride + band``): ``first_cell`` / ``last_cell`` per bin, the running bin count after each box in
+    ``bin_ends``; the cells marked in ``wanted`` (all false on entry)."""
+    i = 0
+    for j in range(len(b0)):
+        for k in range(nbins[j]):
+            cell = ((b0[j] + k) % bins) * stride
+            first_cell[i] = cell + band_lo[j]
+            last_cell[i] = cell + band_hi[j]
+            for c in range(first_cell[i], last_cell[i] + 1):
+                wanted[c] = True
+            i += 1
+        bin_ends[j] = i
+
+
+@compiled()
+def counting_sort(key, wanted, start, order):
+    """The positions of the points whose cell ``key`` (``-1``: none) is ``wanted``, grouped by cell in ``order``
+    (ascending positions within a cell); ``start`` (cells + 1) gets each cell's first slot.
+    Returns how many points were placed."""
+    fill = _cell_starts(key, wanted, start)
     for i in range(len(key)):
         k = key[i]
         if k >= 0 and wanted[k]:
             order[fill[k]] = i
             fill[k] += 1
-    return placed
+    return start[len(start) - 1]
 
 
 @compiled()
