@@ -483,7 +483,7 @@ def _footprint_measures(x, y, z, boxes: Boxes, sensor: SensorModel, reach, profi
     if reach is not None and index is not None:
         ground = ground_heights(x, y, z, index, index.runs[0], ground_test, 0.05, ws)
     if profile_query is not None:
-        profile_out.update(profile_query.measure(x, y, z, index, index.runs[-1] if index else None, sensor))
+        profile_out.update(profile_query.measure(x, y, z, index, index.runs[-1] if index else None, sensor, ws))
     return ground, profile_out
 
 

@@ -23,10 +23,10 @@ around each box (definitions in ``docs/filter.md``, "Profile terms"):
   blob or a bush (an ellipsoid) leaves them air, a bin or a low wall inside the box keeps off them.
 
 All are dimensionless and read the scan geometry only through the sensor's azimuth step
-(the beam model's), so one weight set serves every sensor. One pass of
-:class:`pcc_ros.geometry.boxes.BoxCandidates` over the scan against the boxes grown by the
-shell and the reach above, then one compiled loop that tests each candidate pair and uses it
-in the same visit (:mod:`pcc_ros.pipeline.profile_kernels`).
+(the beam model's), so one weight set serves every sensor. The boxes grown by the shell and
+the reach above are a query of the scan's BEV index (:mod:`pcc_ros.pipeline.evidence_index`; in
+the pipeline the local ground's, sorted once for both), then one compiled loop tests each
+candidate pair and uses it in the same visit (:mod:`pcc_ros.pipeline.profile_kernels`).
 """
 
 from __future__ import annotations
@@ -38,8 +38,9 @@ import numpy as np
 from pcc_ros.geometry.beams import SensorModel
 from pcc_ros.geometry.boxes import circles_meet, iou_bev_pairs, round_down_to, round_up_to
 from pcc_ros.geometry.canonical import to_box_local
-from pcc_ros.pipeline.evidence import _SCRATCH, EVIDENCE_GROUND, _columns, _footprint_measures, angular_window
+from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, angular_window, evidence
 from pcc_ros.pipeline.evidence_index import BevIndex, Footprints
+from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
 
 #: The profile terms, in the order :func:`profile_terms` returns them.
@@ -126,7 +127,7 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
     wanted = set(PROFILE_TERMS if measure is None else measure) & set(PROFILE_TERMS)
     if not wanted - {"overlap"} or not len(boxes):  # no pass over the scan
         return terms_before_pass(boxes, wanted)[0]
-    return _footprint_measures(*_columns(points), boxes, sensor, None, wanted, _SCRATCH)[1]
+    return evidence(points, boxes, sensor, rays=False, expected=False, ground=False, profile=wanted).profile
 
 
 class ProfileQuery:
@@ -150,23 +151,24 @@ class ProfileQuery:
         self.footprints = Footprints(grown.center[:, 0], grown.center[:, 1], cos, sin, half[:, 0], half[:, 1],
                                      float(zlo.min()), float(zhi.max()))
 
-    def measure(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, index: BevIndex | None, runs, sensor: SensorModel
-                ) -> dict[str, np.ndarray]:
+    def measure(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, index: BevIndex | None, runs, sensor: SensorModel,
+                ws: Scratch) -> dict[str, np.ndarray]:
         """The pass-measured terms (and raw counts) from the candidates of the boxes' cell
-        ``runs`` in ``index`` (``None``: an empty scan, no candidate)."""
+        ``runs`` in ``index`` (``None``: an empty scan, no candidate); ``ws``: the calling
+        thread's work arrays."""
         from pcc_ros.pipeline import profile_kernels as kernels  # numba: heavy, only when measuring
 
         boxes, wanted = self.boxes, self.wanted
         origin, centre_az = box_frames(boxes)
         out = np.zeros((len(boxes), 9))
         if index is not None:
-            marks = _SCRATCH("profile_marks", (len(x) >> 6) + 1, np.uint64)
+            marks = ws("profile_marks", (len(x) >> 6) + 1, np.uint64)
             marks[:] = 0  # a bit per point (15 kB for 120k points)
             kernels.profile_cells(x, y, z, index.order, index.start, *runs, self.test, self.cz,
                                   np.ascontiguousarray(boxes.size / 2), origin, centre_az, ABOVE_REACH / 2,
                                   FACE_MARGIN, EVIDENCE_GROUND, "fill" in wanted,
                                   np.array(CORNER_COLUMNS if "corner" in wanted else (), dtype=np.float64), out,
-                                  _SCRATCH("profile_share", len(x), np.float64), marks)
+                                  ws("profile_share", len(x), np.float64), marks)
         return terms_from_counts(out, boxes, sensor, wanted)
 
 
