@@ -404,9 +404,9 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
     Numpy passes index the scan; compiled kernels visit each box's candidate rays, points and
     beams. ``workers`` >= 2: the footprint queries (the local ground and the profile pass, over
-    one BEV index of the scan) and, without a profile pass, the sensor model's expected returns
-    are measured on a second thread while this one follows the rays (and then, with a profile
-    pass, the expected returns); the kernels release the GIL; the values are the same either way.
+    one BEV index of the scan) and the sensor model's expected returns are measured on a second
+    thread while this one follows the rays (the kernels release the GIL); the values are the same
+    either way.
     ``reach``: metres around each footprint the local ground looks (default
     :func:`ground_reach` of the sensor model; ``GROUND_REACH`` is the fixed reach of 93cd59e).
     ``rays`` / ``expected`` / ``ground`` False: that measurement is skipped (its raw values and
@@ -423,25 +423,23 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     profile = set(profile)
     if n == 0:
         return Evidence(*([zero] * 7), _derive(*([zero] * 7), boxes), _footprint_measures(
-            zero, zero, zero, boxes, sensor, None, profile, _SCRATCH)[1])
+            zero, zero, zero, boxes, sensor, False, None, profile, _SCRATCH)[1])
     if not boxes.valid_mask().all():
         boxes.validate()  # DataError naming the box
     x, y, z = _columns(points)
     nan = np.full(n, np.nan)
-    reach = ground_reach(boxes, sensor) if reach is None and ground else reach
     footprints = ground or bool(profile)
     # A second thread only when the work splits: the rays here, the rest there.
     pool = workers > 1 and rays and (footprints or expected)
     # The side thread's jobs, in order: the footprint queries (they need only the scan and the
-    # boxes, so they start before the box-level setup below), then, without a profile pass, the
-    # expected returns (with one, the footprints take about as long as the rays: the expected
-    # returns follow the rays here).
-    footprint_job = beside(_footprint_measures, x, y, z, boxes, sensor, reach if ground else None, profile,
+    # boxes, so they start before the box-level setup below), then the expected returns; the
+    # rays here take about as long (20 cars, the shipped rule's profile pass among the queries).
+    footprint_job = beside(_footprint_measures, x, y, z, boxes, sensor, ground, reach, profile,
                            _SCRATCH) if pool and footprints else None
     window = angular_window(boxes) if rays or expected else None
     table = _BoxTable(boxes, sensor) if rays or expected else None
     expected_job = beside(partial(_expected_beams, table=table), boxes, sensor, *window) \
-        if pool and expected and not profile else None
+        if pool and expected else None
     cover_terms = {}
     if rays:
         step = np.deg2rad(sensor.azimuth_resolution_deg) if columns else None
@@ -453,7 +451,7 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     expected = (expected_job.result() if expected_job else _expected_beams(boxes, sensor, *window, table=table)) \
         if expected else nan
     ground, profile_out = footprint_job.result() if footprint_job else \
-        _footprint_measures(x, y, z, boxes, sensor, reach if ground else None, profile, _SCRATCH) if footprints \
+        _footprint_measures(x, y, z, boxes, sensor, ground, reach, profile, _SCRATCH) if footprints \
         else (nan, {})
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
@@ -461,16 +459,18 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     )
 
 
-def _footprint_measures(x, y, z, boxes: Boxes, sensor: SensorModel, reach, profile: set[str], ws: Scratch
-                        ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def _footprint_measures(x, y, z, boxes: Boxes, sensor: SensorModel, ground: bool, reach, profile: set[str],
+                        ws: Scratch) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The queries over the boxes' footprints, sharing one BEV index of the scan
-    (:mod:`pcc_ros.pipeline.evidence_index`): the local ground (``reach`` not ``None``; else NaN)
+    (:mod:`pcc_ros.pipeline.evidence_index`): with ``ground``, the local ground (within ``reach``;
+    ``None``: :func:`ground_reach` of the sensor model; without, NaN)
     and the ``profile`` terms (:func:`pcc_ros.pipeline.evidence_profile.profile_terms`' values)."""
     from pcc_ros.pipeline.evidence_profile import ProfileQuery, terms_before_pass  # it imports this module
 
     dt = x.dtype.type
     queries, profile_out, profile_query = [], {}, None
-    if reach is not None:
+    if ground:
+        reach = ground_reach(boxes, sensor) if reach is None else reach
         ground_footprints, ground_test = ground_query(boxes, reach, dt)
         queries.append(ground_footprints)
     if profile:
@@ -479,12 +479,12 @@ def _footprint_measures(x, y, z, boxes: Boxes, sensor: SensorModel, reach, profi
             profile_query = ProfileQuery(boxes, profile, dt)
             queries.append(profile_query.footprints)
     index = bev_index(x, y, z, queries, ws) if queries and len(x) else None
-    ground = np.full(len(boxes), np.nan)
-    if reach is not None and index is not None:
-        ground = ground_heights(x, y, z, index, index.runs[0], ground_test, 0.05, ws)
+    heights = np.full(len(boxes), np.nan)
+    if ground and index is not None:
+        heights = ground_heights(x, y, z, index, index.runs[0], ground_test, 0.05, ws)
     if profile_query is not None:
         profile_out.update(profile_query.measure(x, y, z, index, index.runs[-1] if index else None, sensor, ws))
-    return ground, profile_out
+    return heights, profile_out
 
 
 def cover(n_filled: np.ndarray, n_seen: np.ndarray) -> np.ndarray:
