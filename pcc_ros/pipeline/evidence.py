@@ -356,12 +356,9 @@ def _columns(points: np.ndarray, ws: Scratch | None = None) -> tuple[np.ndarray,
     if points.ndim != 2 or points.shape[1] < 3:
         raise DataError(f"points must be (N, >=3), got shape {points.shape}")
     dt = np.float32 if points.dtype == np.float32 else np.float64
-    out = []
-    for k, name in enumerate(("x", "y", "z")):
-        column = ws(name, len(points), dt)
-        np.copyto(column, points[:, k], casting="unsafe")
-        out.append(column)
-    return tuple(out)
+    columns = ws("xyz", 3 * len(points), dt).reshape(3, len(points))
+    np.copyto(columns, points[:, :3].T, casting="unsafe")  # one pass over the scan's rows
+    return columns[0], columns[1], columns[2]
 
 
 def local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH, quantile: float = 0.05) -> np.ndarray:
