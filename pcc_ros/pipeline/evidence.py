@@ -465,23 +465,23 @@ def _footprint_measures(x, y, z, boxes: Boxes, sensor: SensorModel, ground: bool
     from pcc_ros.pipeline.evidence_profile import ProfileQuery, terms_before_pass  # it imports this module
 
     dt = x.dtype.type
-    queries, profile_out, profile_query = [], {}, None
+    queries, measured, profile_query = [], {}, None
     if ground:
         reach = ground_reach(boxes, sensor) if reach is None else reach
         ground_footprints, ground_test = ground_query(boxes, reach, dt)
         queries.append(ground_footprints)
-    if profile:
-        profile_out, needs_pass = terms_before_pass(boxes, profile)
-        if needs_pass:
-            profile_query = ProfileQuery(boxes, profile, dt)
-            queries.append(profile_query.footprints)
+    if profile - {"overlap"} and len(boxes):  # a pass over the scan (terms_before_pass)
+        profile_query = ProfileQuery(boxes, profile, dt)
+        queries.append(profile_query.footprints)
     index = bev_index(x, y, z, queries, ws) if queries and len(x) else None
     heights = np.full(len(boxes), np.nan)
     if ground and index is not None:
         heights = ground_heights(x, y, z, index, index.runs[0], ground_test, 0.05, ws)
     if profile_query is not None:
-        profile_out.update(profile_query.measure(x, y, z, index, index.runs[-1] if index else None, sensor, ws))
-    return heights, profile_out
+        measured = profile_query.measure(x, y, z, index, index.runs[-1] if index else None, sensor, ws)
+    # the overlap last: numpy on the boxes alone, holding the GIL while the other thread is
+    # likelier to be in a kernel than at its own setup
+    return heights, {**terms_before_pass(boxes, profile)[0], **measured} if profile else {}
 
 
 def cover(n_filled: np.ndarray, n_seen: np.ndarray) -> np.ndarray:
