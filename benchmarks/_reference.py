@@ -61,13 +61,25 @@ def original_geometry() -> Iterator[None]:
     saved = (pipeline_module._bounded_crop, filter_module.evidence)
     pipeline_module._bounded_crop = bounded_crop
     # one thread; 93cd59e measured everything (the filter keeps what its rule weights); the
-    # azimuth columns of ``cover`` (a term after 93cd59e) from the same pass's pairs
-    filter_module.evidence = lambda points, boxes, sensor=None, workers=1, columns=False, **_measured: \
-        evidence(points, boxes, sensor, columns=columns)
+    # azimuth columns of ``cover`` (a term after 93cd59e) from the same pass's pairs; the profile
+    # terms (after 93cd59e too, measured in the evidence's call today) by today's profile pass
+    filter_module.evidence = original_evidence
     try:
         yield
     finally:
         pipeline_module._bounded_crop, filter_module.evidence = saved
+
+
+def original_evidence(points: np.ndarray, boxes: Boxes, sensor=None, workers: int = 1, columns: bool = False,
+                      profile=(), **_measured) -> Evidence:
+    """:func:`pcc_ros.pipeline.evidence.evidence`'s signature over 93cd59e's measurements (one
+    thread, every measurement), the ``profile`` terms by today's profile pass on its own."""
+    from pcc_ros.pipeline.evidence_profile import profile_terms
+
+    ev = evidence(points, boxes, sensor, columns=columns)
+    if profile:
+        ev.profile = profile_terms(points, boxes, sensor, measure=profile)
+    return ev
 
 
 def bounded_crop(points: np.ndarray, boxes: Boxes, cfg):

@@ -17,7 +17,8 @@ them (``profile_ms``), and the rays with the azimuth columns of ``cover`` (``cov
 other outputs checked unchanged by them). Last of the interleaved calls, the whole measurement of the filter
 (:func:`pcc_ros.pipeline.filter.filter_terms`, one thread) of every term (``all_terms_ms``:
 calibration's) and of only those the shipped rule weighs (``rule_terms_ms``: ``weighted_only``,
-the pipeline's; a term of weight 0 and a pass only it needs are skipped). The machine's load
+the pipeline's; a term of weight 0 and a pass only it needs are skipped; the profile pass then
+shares the local ground's index of the scan). The machine's load
 average is recorded before and after. Last, the thread grain: the same numpy work on one thread
 and split over two (a pool thread beside the calling one), interleaved, in calls of the filter's
 grain (250 ``np.multiply`` of 50k doubles per half, about 15 us each) and in large calls (3
@@ -183,7 +184,8 @@ def run(args: argparse.Namespace) -> dict:
                 "at 93cd59e; all_terms = every term of the rule "
                 "(filter_terms, one thread: calibration's measurement), rule_terms = only those the shipped rule "
                 "weighs (weighted_only: what the pipeline measures), rule_terms_2 = the same on two threads (the "
-                "profile pass on the second, as the pipeline's workers >= 2; outputs checked identical), "
+                "ground and the profile pass, over one index of the scan, on the second beside the rays, as the "
+                "pipeline's workers >= 2; outputs checked identical), "
                 "rule_terms_24858c5_2 = the same work as 24858c5 did it (the evidence on two threads, then its "
                 "profile pass)", rows)
     grain = thread_grain(args.grain_repeat) if args.grain_repeat > 0 else []

@@ -478,7 +478,8 @@ def test_side_pool_is_made_once_when_first_frames_race(monkeypatch):
 def _kernels():
     from pcc_ros.pipeline import evidence_kernels as k
 
-    return (k.counting_sort, k.ray_keys, k.ray_counts, k.ground_cells, k.ground_quantiles, k.expected_counts)
+    return (k.counting_sort, k.ray_keys, k.ray_cells, k.ray_counts, k.cell_runs, k.ground_cells, k.ground_quantiles,
+            k.expected_counts)
 
 
 def test_frames_after_warm_up_compile_nothing_new():
@@ -564,7 +565,7 @@ def test_second_thread_works_in_the_callers_context(monkeypatch):
 
         return spy
 
-    for name in ("_ground", "_expected_beams"):
+    for name in ("_footprint_measures", "_expected_beams"):
         monkeypatch.setattr(ev, name, spied(getattr(ev, name)))
     scan, boxes = _scattered_scene(3)
     node = object()

@@ -45,8 +45,8 @@ def calls(monkeypatch) -> dict[str, int]:
 
     counted(evidence_module, "_ray_counts", "rays")
     counted(evidence_module, "_expected_beams", "expected")
-    counted(evidence_module, "_ground", "ground")
-    counted(profile_kernels, "profile_pairs", "profile")
+    counted(evidence_module, "ground_heights", "ground")
+    counted(profile_kernels, "profile_cells", "profile")
     return counts
 
 

@@ -264,27 +264,6 @@ def test_box_corners_are_inside_and_ordered():
     assert (corners[:4, 2] < corners[4:, 2]).all()
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_candidate_test_inputs_reproduce_the_pairs(dtype):
-    """The exact test on candidate_test's inputs, as a compiled loop runs it, accepts exactly
-    the pairs pairs() returns, and gives the same box-frame coordinates."""
-    points, boxes = random_scene(np.random.default_rng(5), n_points=3000, dtype=dtype)
-    candidates = BoxCandidates(points, boxes, margin=0.1, ground_margin=0.05)
-    pp, pb, pts, test = candidates.candidate_test()
-    assert pts.dtype == test.dtype == dtype and (np.diff(pp) >= 0).all()  # in point order
-    x, y, z = pts[pp, 0], pts[pp, 1], pts[pp, 2]
-    zlo, zhi, cx, cy, c, s, hl, hw = test[pb].T
-    dx, dy = x - cx, y - cy
-    lx, ly = c * dx + s * dy, c * dy - s * dx
-    inside = (z >= zlo) & (z <= zhi) & (np.abs(lx) <= hl) & (np.abs(ly) <= hw)
-    order = np.argsort(pb[inside], kind="stable")
-    point, starts, (ex, ey, _) = candidates.pairs(local=True)
-    np.testing.assert_array_equal(pp[inside][order], point)
-    np.testing.assert_array_equal(lx[inside][order], ex)
-    np.testing.assert_array_equal(ly[inside][order], ey)
-    np.testing.assert_array_equal(np.bincount(pb[inside], minlength=len(boxes)), np.diff(starts))
-
-
 def test_iou_bev_pairs_are_the_matrix_entries():
     _, boxes = random_scene(np.random.default_rng(6), n_points=10, n_boxes=30)
     i, j = np.nonzero(circles_meet(boxes, boxes))

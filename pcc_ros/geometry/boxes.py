@@ -313,22 +313,6 @@ class BoxCandidates:
             half[:, 0] + margin, half[:, 1] + margin,
         ], axis=1).astype(self._dt)
 
-    def candidate_test(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The candidates and the exact test's inputs, for a compiled loop that tests and uses
-        each pair in one visit instead of :meth:`pairs` gathering them into arrays first:
-        ``(pair_point, pair_box, points, values)``. The pairs in point order (a box's points
-        ascending); the scan's x, y, z in the test's precision (no copy when already in it);
-        per box the row of :meth:`_box_values`. A pair is inside when ``zlo <= z <= zhi``,
-        ``|cos dx + sin dy| <= hl`` and ``|cos dy - sin dx| <= hw`` (``dx, dy``: the point minus
-        the centre), every operation rounded in that precision, as :meth:`pairs` tests it."""
-        pp, pb = self._candidates(None)
-        pts = self.points[:, :3]
-        if pts.dtype != self._dt:
-            pts = pts.astype(self._dt)
-        if not len(pp):
-            return np.zeros(0, np.int64), np.zeros(0, np.uint8), pts, np.zeros((len(self.boxes), 8), self._dt)
-        return pp, pb, pts, self._box_values()
-
     def _candidates(self, keep: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """(point, box) candidate pairs in point order: each point meets the boxes of its cell."""
         entry_row, entry_box, hit, hit_row = self._entry_row, self._entry_box, self._hit, self._hit_row

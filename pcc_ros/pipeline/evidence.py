@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import contextvars
 import threading
+from collections.abc import Collection
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache, partial
 
 import numpy as np
@@ -25,7 +26,7 @@ from pcc_ros.errors import DataError
 from pcc_ros.geometry.beams import SENSOR_PRESETS, SensorModel
 from pcc_ros.geometry.boxes import box_corners, round_down_to, round_up_to
 from pcc_ros.geometry.canonical import to_box_local
-from pcc_ros.geometry.segments import positions_in_runs
+from pcc_ros.pipeline.evidence_index import BevIndex, Footprints, bev_index
 from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
 
@@ -61,11 +62,6 @@ GROUND_REACH = 3.0
 #: ... widened where the beam model's rings fall farther apart on the ground (far boxes, sparse
 #: sensors): half the ring spacing at the box's range, at most this many metres.
 GROUND_REACH_MAX = 10.0
-#: BEV cell (metres) of the ground query's index (coarsened when the boxes spread so far that
-#: the grid would exceed :data:`_MAX_CELLS`).
-_GROUND_CELL = 1.0
-#: Cells of the ground query's grid at most (the counting sort's table of cell starts).
-_MAX_CELLS = 32_000
 #: ``cover`` of a car: the median share of a true car box's unhidden azimuth columns holding
 #: a return (seed-11 SynthCars, every simulated sensor), and the number of such prior columns
 #: the term starts from (chosen by leave-one-sensor-out cross-validation, docs/filter.md).
@@ -82,9 +78,6 @@ _EL_BANDS = 16
 #: precision): it must stay a superset of the rays that reach a box (the exact float64 box
 #: test comes after); orders of magnitude above float32 rounding of a slope.
 _SLOPE_SLACK = 1e-4
-#: Slack (metres) of the ground query's cell test: a point the exact test (in the scan's
-#: precision) accepts lies in a cell listed for the box even after float32 rounding.
-_GROUND_SLACK = 0.01
 
 
 @dataclass
@@ -99,6 +92,7 @@ class Evidence:
     expected: np.ndarray  # beams of the sensor model that hit the box
     ground_z: np.ndarray  # local ground height under the box (NaN: none seen)
     terms: dict[str, np.ndarray]
+    profile: dict[str, np.ndarray] = field(default_factory=dict)  # the profile terms asked for
 
     def as_dict(self) -> dict[str, np.ndarray]:
         names = ("n_in", "n_stop", "n_pass", "n_occluded", "n_rays", "expected", "ground_z")
@@ -218,30 +212,25 @@ def _ray_counts(x, y, z, boxes: Boxes, table: _BoxTable, window, ws: Scratch,
     b0 = np.floor((az_lo[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) - 1
     b1 = np.floor((az_hi[boxes_idx] + np.pi) * (_AZ_BINS / (2 * np.pi))).astype(np.int64) + 1
     nbins = np.minimum(b1 - b0 + 1, _AZ_BINS)
-    box_of_bin = np.repeat(np.arange(m), nbins)
-    az_bin = (np.repeat(b0, nbins) + positions_in_runs(nbins)) % _AZ_BINS
-    p = len(x)
+    band_lo = np.clip(np.floor((s_lo - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
+    band_hi = np.clip(np.floor((s_hi - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
     from pcc_ros.pipeline import evidence_kernels as kernels  # numba: heavy, only when measuring
 
-    key, slope = ws("key", p, np.int16), ws("slope", p, dt)
+    cells, n_bins = _AZ_BINS * (_EL_BANDS + 2), int(nbins.sum())
+    first_cell, last_cell = ws("first_cell", n_bins, np.int64), ws("last_cell", n_bins, np.int64)
+    bin_ends, wanted = np.empty(m, np.int64), np.zeros(cells, dtype=bool)
+    kernels.ray_cells(b0, nbins, band_lo, band_hi, _AZ_BINS, _EL_BANDS + 2, first_cell, last_cell, bin_ends, wanted)
+    p = len(x)
     with np.errstate(invalid="ignore"):
         azimuth = np.arctan2(y, x, out=ws("az", p, dt))  # numpy's SIMD pass
     # A return at the sensor (0, 0, 0) has slope 0, as arctan2(0, 0) = 0 (the 93cd59e index
     # paired it with the boxes at azimuth and elevation 0); straight up / down is beyond every
     # box's window (a slope of +-inf, or huge: its band clamps); NaN points get cell 0 (no box).
+    key, slope = ws("key", p, np.int16), ws("slope", p, dt)
     kernels.ray_keys(azimuth, x, y, z, _AZ_BINS, _EL_BANDS, e0, 1.0 / width, key, slope)
-    band_lo = np.clip(np.floor((s_lo - e0) / width).astype(np.int64), 1, _EL_BANDS)  # one band wider below
-    band_hi = np.clip(np.floor((s_hi - e0) / width).astype(np.int64) + 2, 1, _EL_BANDS)  # and above
-    bins = az_bin * (_EL_BANDS + 2)
-    first_cell = bins + np.take(band_lo, box_of_bin)
-    last_cell = bins + np.take(band_hi, box_of_bin)
-    n_cells = last_cell - first_cell + 1
-    cells = _AZ_BINS * (_EL_BANDS + 2)
-    wanted = np.zeros(cells, dtype=bool)
-    wanted[np.repeat(first_cell, n_cells) + positions_in_runs(n_cells)] = True
     start, order = ws("start", cells + 1, np.int64), ws("order", p, np.int64)
     kernels.counting_sort(key, wanted, start, order)
-    kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, np.cumsum(nbins), boxes_idx,
+    kernels.ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, boxes_idx,
                        s_lo.astype(dt), s_hi.astype(dt), table.center, table.cos, table.sin,
                        table.origin, *table.body, *table.core, out, azimuth,
                        *_column_grid(window, boxes_idx, column_step), cols)
@@ -291,11 +280,10 @@ def _expected_beams(boxes: Boxes, sensor: SensorModel, az_lo, az_hi, el_lo, el_h
     return out
 
 
-def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | None = None) -> np.ndarray:
-    """:func:`local_ground` on the scan's coordinate columns (contiguous, one dtype)."""
-    ws = ws or _SCRATCH
-    n = len(boxes)
-    out = np.full(n, np.nan)
+def ground_query(boxes: Boxes, reach, dt: type) -> tuple[Footprints, tuple[np.ndarray, ...]]:
+    """The local ground's boxes (each box widened by ``reach`` around its footprint, from 3 m
+    below to 1 m above its bottom) as the scan index sees them, and their exact test's values in
+    the scan's precision ``dt``: ``(zlo, zhi, cx, cy, cos, sin, half length, half width)``."""
     bottom = boxes.center[:, 2] - boxes.size[:, 2] / 2
     centre, size = boxes.center.copy(), boxes.size.copy()
     centre[:, 2] = bottom - 1.0
@@ -304,65 +292,41 @@ def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | 
     wide = Boxes(centre, size, boxes.yaw)
     if not wide.valid_mask().all():
         wide.validate()
-    if not len(x):
-        return out
-    dt = x.dtype.type
     half = wide.size / 2.0
     # The test of a point against a box runs in the scan's precision, on box-relative x / y,
     # the z bounds rounded outward (as geometry.boxes.points_in_boxes, which this reproduces).
     zlo = round_up_to(wide.center[:, 2] - half[:, 2], dt)
     zhi = round_down_to(wide.center[:, 2] + half[:, 2], dt)
-    cx, cy = wide.center[:, 0].astype(dt), wide.center[:, 1].astype(dt)
     cos64, sin64 = np.cos(wide.yaw), np.sin(wide.yaw)
-    c, s = cos64.astype(dt), sin64.astype(dt)
-    hl, hw = half[:, 0].astype(dt), half[:, 1].astype(dt)
-    # BEV index: a grid over the boxes; each box lists the cells that can hold a point it
-    # contains (cell centre within the box grown by half a cell diagonal and a slack).
-    corners = box_corners(wide)[:, :4, :2]
-    lo, hi = corners.min(axis=1), corners.max(axis=1)
-    cell = _GROUND_CELL
-    span = hi.max(axis=0) - lo.min(axis=0)
-    while np.prod(np.floor(span / cell) + 5) > _MAX_CELLS:  # boxes spread far apart: coarser cells
-        cell *= 1.5
-    # two cells of margin on every side: a point off the grid is off every box
-    origin = lo.min(axis=0) - 2 * cell
-    nx, ny = (int(v) for v in np.floor(span / cell) + 5)
-    c0 = np.floor((lo - origin) / cell).astype(np.int64) - 1
-    c1 = np.floor((hi - origin) / cell).astype(np.int64) + 1
-    c0, c1 = np.maximum(c0, 0), np.minimum(c1, [nx - 1, ny - 1])
-    extent = c1 - c0 + 1
-    per_box = extent[:, 0] * extent[:, 1]
-    box_of = np.repeat(np.arange(n), per_box)
-    local = positions_in_runs(per_box)
-    gx = c0[box_of, 0] + local // extent[box_of, 1]
-    gy = c0[box_of, 1] + local % extent[box_of, 1]
-    ccx, ccy, _ = to_box_local(origin[0] + (gx + 0.5) * cell, origin[1] + (gy + 0.5) * cell, 0.0,
-                               wide.center[box_of, 0], wide.center[box_of, 1], 0.0, cos64[box_of], sin64[box_of])
-    grow = cell * np.sqrt(0.5) + _GROUND_SLACK
-    touch = (np.abs(ccx) <= half[box_of, 0] + grow) & (np.abs(ccy) <= half[box_of, 1] + grow)
-    box_of, key = box_of[touch], gx[touch] * ny + gy[touch]  # box-major, cells ascending
-    # The points in a cell some box lists and within the boxes' union z range, grouped by cell
-    # (a counting sort); a box's consecutive cells are one run of them. Off-grid points (and
-    # NaN) clamp into the grid's two-cell border, which no box lists.
+    test = (zlo, zhi, wide.center[:, 0].astype(dt), wide.center[:, 1].astype(dt), cos64.astype(dt),
+            sin64.astype(dt), half[:, 0].astype(dt), half[:, 1].astype(dt))
+    footprints = Footprints(wide.center[:, 0], wide.center[:, 1], cos64, sin64, half[:, 0], half[:, 1],
+                            float(zlo.min()), float(zhi.max()))
+    return footprints, test
+
+
+def ground_heights(x, y, z, index: BevIndex, runs, test: tuple[np.ndarray, ...], quantile: float,
+                   ws: Scratch) -> np.ndarray:
+    """Each box's ``quantile`` of the heights of the points its exact ``test`` (:func:`ground_query`)
+    accepts among the candidates of its cell ``runs`` in ``index`` (NaN: none)."""
     from pcc_ros.pipeline import evidence_kernels as kernels  # numba: heavy, only when measuring
 
-    listed = np.zeros(nx * ny, dtype=bool)
-    listed[key] = True
-    cell_key = ws("g_cell", len(x), np.int32)
-    kernels.ground_cells(x, y, z, dt(origin[0]), dt(origin[1]), dt(1.0 / cell), nx, ny, zlo.min(), zhi.max(),
-                         cell_key)
-    start, order = ws("g_start", nx * ny + 1, np.int64), ws("g_order", len(x), np.int64)
-    kernels.counting_sort(cell_key, listed, start, order)
-    if not len(key):
-        return out
-    new = np.ones(len(key), dtype=bool)
-    new[1:] = (np.diff(key) != 1) | (np.diff(box_of) != 0)
-    first = np.flatnonzero(new)
-    last = np.r_[first[1:] - 1, len(key) - 1]
-    run_ends = np.cumsum(np.bincount(box_of[first], minlength=n))
-    kernels.ground_quantiles(x, y, z, order, start, key[first], key[last], run_ends, zlo, zhi, cx, cy, c, s, hl, hw,
-                             float(quantile), ws("g_values", len(x), dt), ws("g_spare", len(x), dt), out)
+    out = np.full(len(test[0]), np.nan)
+    dt = x.dtype.type
+    kernels.ground_quantiles(x, y, z, index.order, index.start, *runs, *test, float(quantile),
+                             ws("g_values", len(x), dt), ws("g_spare", len(x), dt), out)
     return out
+
+
+def _ground(x, y, z, boxes: Boxes, reach: float, quantile: float, ws: Scratch | None = None) -> np.ndarray:
+    """:func:`local_ground` on the scan's coordinate columns (contiguous, one dtype): its own
+    index of the scan (:mod:`pcc_ros.pipeline.evidence_index`)."""
+    ws = ws or _SCRATCH
+    footprints, test = ground_query(boxes, reach, x.dtype.type)
+    if not len(x):
+        return np.full(len(boxes), np.nan)
+    index = bev_index(x, y, z, [footprints], ws)
+    return ground_heights(x, y, z, index, index.runs[0], test, quantile, ws)
 
 
 def ground_reach(boxes: Boxes, sensor: SensorModel) -> np.ndarray:
@@ -392,12 +356,9 @@ def _columns(points: np.ndarray, ws: Scratch | None = None) -> tuple[np.ndarray,
     if points.ndim != 2 or points.shape[1] < 3:
         raise DataError(f"points must be (N, >=3), got shape {points.shape}")
     dt = np.float32 if points.dtype == np.float32 else np.float64
-    out = []
-    for k, name in enumerate(("x", "y", "z")):
-        column = ws(name, len(points), dt)
-        np.copyto(column, points[:, k], casting="unsafe")
-        out.append(column)
-    return tuple(out)
+    columns = ws("xyz", 3 * len(points), dt).reshape(3, len(points))
+    np.copyto(columns, points[:, :3].T, casting="unsafe")  # one pass over the scan's rows
+    return columns[0], columns[1], columns[2]
 
 
 def local_ground(points: np.ndarray, boxes: Boxes, reach: float = GROUND_REACH, quantile: float = 0.05) -> np.ndarray:
@@ -434,14 +395,15 @@ def beside(fn, *args) -> Future:
 
 def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None, workers: int = 1,
              reach: float | np.ndarray | None = None, rays: bool = True, expected: bool = True,
-             ground: bool = True, columns: bool = False) -> Evidence:
+             ground: bool = True, columns: bool = False, profile: Collection[str] = ()) -> Evidence:
     """Free-space, return-count and ground-contact measurements of every box, from the scan.
 
     The sensor sits at the scan frame's origin (true for a scan in its own sensor frame).
     Numpy passes index the scan; compiled kernels visit each box's candidate rays, points and
-    beams. ``workers`` >= 2: the local ground (a query of its own over the scan) and the
-    sensor model's expected returns are measured on a second thread while this one follows the
-    rays (numpy and the kernels release the GIL); the values are the same either way.
+    beams. ``workers`` >= 2: the footprint queries (the local ground and the profile pass, over
+    one BEV index of the scan) and the sensor model's expected returns are measured on a second
+    thread while this one follows the rays (the kernels release the GIL); the values are the same
+    either way.
     ``reach``: metres around each footprint the local ground looks (default
     :func:`ground_reach` of the sensor model; ``GROUND_REACH`` is the fixed reach of 93cd59e).
     ``rays`` / ``expected`` / ``ground`` False: that measurement is skipped (its raw values and
@@ -449,24 +411,28 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
     leave a term out does not pay for it (``rays``: n_in, n_stop, n_pass, n_occluded, n_rays;
     ``density`` and ``through`` need rays and expected, ``free_space`` rays, ``ground_gap`` ground).
     ``columns`` (with ``rays``): also the azimuth columns behind ``cover`` (``n_filled``, ``n_seen``
-    and ``cover`` in the terms; :func:`cover`).
+    and ``cover`` in the terms; :func:`cover`). ``profile``: the profile terms to measure too
+    (:func:`pcc_ros.pipeline.evidence_profile.profile_terms`' values, in :attr:`Evidence.profile`).
     """
     sensor = sensor or SENSOR_PRESETS["hdl64"]
     n = len(boxes)
     zero = np.zeros(n)
+    profile = set(profile)
     if n == 0:
-        return Evidence(*([zero] * 7), _derive(*([zero] * 7), boxes))
+        return Evidence(*([zero] * 7), _derive(*([zero] * 7), boxes), _footprint_measures(
+            zero, zero, zero, boxes, sensor, False, None, profile, _SCRATCH)[1])
     if not boxes.valid_mask().all():
         boxes.validate()  # DataError naming the box
     x, y, z = _columns(points)
     nan = np.full(n, np.nan)
-    reach = ground_reach(boxes, sensor) if reach is None and ground else reach
+    footprints = ground or bool(profile)
     # A second thread only when the work splits: the rays here, the rest there.
-    pool = workers > 1 and rays and (ground or expected)
-    # The side thread's jobs, in order: the ground (it needs only the scan and the boxes, so it
-    # starts before the box-level setup below), then the expected returns; the two take about
-    # as long as the rays do here.
-    ground_job = beside(_ground, x, y, z, boxes, reach, 0.05, _SCRATCH) if pool and ground else None
+    pool = workers > 1 and rays and (footprints or expected)
+    # The side thread's jobs, in order: the footprint queries (they need only the scan and the
+    # boxes, so they start before the box-level setup below), then the expected returns; the
+    # rays here take about as long (20 cars, the shipped rule's profile pass among the queries).
+    footprint_job = beside(_footprint_measures, x, y, z, boxes, sensor, ground, reach, profile,
+                           _SCRATCH) if pool and footprints else None
     window = angular_window(boxes) if rays or expected else None
     table = _BoxTable(boxes, sensor) if rays or expected else None
     expected_job = beside(partial(_expected_beams, table=table), boxes, sensor, *window) \
@@ -479,14 +445,43 @@ def evidence(points: np.ndarray, boxes: Boxes, sensor: SensorModel | None = None
             cover_terms = {"n_filled": col[0], "n_seen": col[1], "cover": cover(*col)}
     else:
         n_in, n_occ, n_stop, n_pass, n_rays = nan, nan, nan, nan, nan
-    ground = (ground_job.result() if ground_job else _ground(x, y, z, boxes, reach, 0.05, _SCRATCH)) \
-        if ground else nan
     expected = (expected_job.result() if expected_job else _expected_beams(boxes, sensor, *window, table=table)) \
         if expected else nan
+    ground, profile_out = footprint_job.result() if footprint_job else \
+        _footprint_measures(x, y, z, boxes, sensor, ground, reach, profile, _SCRATCH) if footprints \
+        else (nan, {})
     return Evidence(
         n_in, n_stop, n_pass, n_occ, n_rays, expected, ground,
-        {**_derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes), **cover_terms},
+        {**_derive(n_in, n_stop, n_pass, n_occ, n_rays, expected, ground, boxes), **cover_terms}, profile_out,
     )
+
+
+def _footprint_measures(x, y, z, boxes: Boxes, sensor: SensorModel, ground: bool, reach, profile: set[str],
+                        ws: Scratch) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The queries over the boxes' footprints, sharing one BEV index of the scan
+    (:mod:`pcc_ros.pipeline.evidence_index`): with ``ground``, the local ground (within ``reach``;
+    ``None``: :func:`ground_reach` of the sensor model; without, NaN)
+    and the ``profile`` terms (:func:`pcc_ros.pipeline.evidence_profile.profile_terms`' values)."""
+    from pcc_ros.pipeline.evidence_profile import ProfileQuery, terms_before_pass  # it imports this module
+
+    dt = x.dtype.type
+    queries, measured, profile_query = [], {}, None
+    if ground:
+        reach = ground_reach(boxes, sensor) if reach is None else reach
+        ground_footprints, ground_test = ground_query(boxes, reach, dt)
+        queries.append(ground_footprints)
+    if profile - {"overlap"} and len(boxes):  # a pass over the scan (terms_before_pass)
+        profile_query = ProfileQuery(boxes, profile, dt)
+        queries.append(profile_query.footprints)
+    index = bev_index(x, y, z, queries, ws) if queries and len(x) else None
+    heights = np.full(len(boxes), np.nan)
+    if ground and index is not None:
+        heights = ground_heights(x, y, z, index, index.runs[0], ground_test, 0.05, ws)
+    if profile_query is not None:
+        measured = profile_query.measure(x, y, z, index, index.runs[-1] if index else None, sensor, ws)
+    # the overlap last: numpy on the boxes alone, holding the GIL while the other thread is
+    # likelier to be in a kernel than at its own setup
+    return heights, {**terms_before_pass(boxes, profile)[0], **measured} if profile else {}
 
 
 def cover(n_filled: np.ndarray, n_seen: np.ndarray) -> np.ndarray:

@@ -174,11 +174,10 @@ def ray_keys(az, x, y, z, bins, bands, e0, inv_width, key, slope):
         key[i] = np.int16(np.int16(a) * np.int16(bands + 2) + np.int16(band))
 
 
-@compiled()
-def counting_sort(key, wanted, start, order):
-    """The positions of the points whose cell ``key`` (``-1``: none) is ``wanted``, grouped by cell in ``order``
-    (ascending positions within a cell); ``start`` (cells + 1) gets each cell's first slot.
-    Returns how many points were placed."""
+@njit(inline="always")
+def _cell_starts(key, wanted, start):
+    """``start`` (cells + 1): each cell's first slot of a counting sort of the points whose cell
+    ``key`` (``-1``: none) is ``wanted``; returns a copy of the starts to fill from."""
     start[:] = 0
     for i in range(len(key)):
         k = key[i]
@@ -186,14 +185,39 @@ def counting_sort(key, wanted, start, order):
             start[k + 1] += 1
     for c in range(1, len(start)):
         start[c] += start[c - 1]
-    placed = start[len(start) - 1]
-    fill = start[:-1].copy()
+    return start[:-1].copy()
+
+
+@compiled()
+def ray_cells(b0, nbins, band_lo, band_hi, bins, stride, first_cell, last_cell, bin_ends, wanted):
+    """The cells each judged box ``j`` searches: its ``nbins[j]`` azimuth bins from ``b0[j]``
+    (wrapped around ``bins``), each the bands ``band_lo[j] .. band_hi[j]`` of the bin (cell ``bin *
+    stride + band``): ``first_cell`` / ``last_cell`` per bin, the running bin count after each box in
+    ``bin_ends``; the cells marked in ``wanted`` (all false on entry)."""
+    i = 0
+    for j in range(len(b0)):
+        for k in range(nbins[j]):
+            cell = ((b0[j] + k) % bins) * stride
+            first_cell[i] = cell + band_lo[j]
+            last_cell[i] = cell + band_hi[j]
+            for c in range(first_cell[i], last_cell[i] + 1):
+                wanted[c] = True
+            i += 1
+        bin_ends[j] = i
+
+
+@compiled()
+def counting_sort(key, wanted, start, order):
+    """The positions of the points whose cell ``key`` (``-1``: none) is ``wanted``, grouped by cell in ``order``
+    (ascending positions within a cell); ``start`` (cells + 1) gets each cell's first slot.
+    Returns how many points were placed."""
+    fill = _cell_starts(key, wanted, start)
     for i in range(len(key)):
         k = key[i]
         if k >= 0 and wanted[k]:
             order[fill[k]] = i
             fill[k] += 1
-    return placed
+    return start[len(start) - 1]
 
 
 @compiled()
@@ -269,6 +293,47 @@ def ray_counts(x, y, z, slope, order, start, first_cell, last_cell, bin_ends, bo
         out[b, STOP] = n_stop
         out[b, PASS] = n_pass
         out[b, RAYS] = n_rays
+
+
+@compiled()
+def cell_runs(cx, cy, cos, sin, hl, hw, ox, oy, cell, nx, ny, grow, listed, run_first, run_last, run_ends):
+    """Each box's cells of the index grid (``nx`` x ``ny`` cells of ``cell`` metres from ``(ox,
+    oy)``; key ``gx * ny + gy``): those whose centre lies within the box grown by ``grow``
+    (box frame: ``|cos dx + sin dy| <= hl + grow``, ``|cos dy - sin dx| <= hw + grow``), searched
+    over its bounding rectangle widened by a cell, kept off the grid's last row and column.
+    Marks them in ``listed``; writes their runs of consecutive keys (one per grid column: the
+    centres of a column inside a rectangle are consecutive) to ``run_first`` / ``run_last``
+    (room for ``nx`` per box) and the running run count after each box to ``run_ends``. Returns
+    the number of runs."""
+    count = 0
+    for b in range(len(cx)):
+        c, s = cos[b], sin[b]
+        ex = abs(c) * hl[b] + abs(s) * hw[b]
+        ey = abs(s) * hl[b] + abs(c) * hw[b]
+        x0 = max(int(np.floor((cx[b] - ex - ox) / cell)) - 1, 0)
+        x1 = min(int(np.floor((cx[b] + ex - ox) / cell)) + 1, nx - 1)
+        y0 = max(int(np.floor((cy[b] - ey - oy) / cell)) - 1, 0)
+        y1 = min(int(np.floor((cy[b] + ey - oy) / cell)) + 1, ny - 1)
+        reach_l, reach_w = hl[b] + grow, hw[b] + grow
+        for gx in range(x0, x1 + 1):
+            dx = ox + (gx + 0.5) * cell - cx[b]
+            open_run = False
+            for gy in range(y0, y1 + 1):
+                dy = oy + (gy + 0.5) * cell - cy[b]
+                if abs(c * dx + s * dy) <= reach_l and abs(c * dy - s * dx) <= reach_w:
+                    k = gx * ny + gy
+                    listed[k] = True
+                    if open_run:
+                        run_last[count - 1] = k
+                    else:
+                        run_first[count] = k
+                        run_last[count] = k
+                        count += 1
+                        open_run = True
+                elif open_run:
+                    break  # the column's cells inside the rectangle are behind
+        run_ends[b] = count
+    return count
 
 
 @compiled()

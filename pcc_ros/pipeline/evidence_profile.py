@@ -23,10 +23,10 @@ around each box (definitions in ``docs/filter.md``, "Profile terms"):
   blob or a bush (an ellipsoid) leaves them air, a bin or a low wall inside the box keeps off them.
 
 All are dimensionless and read the scan geometry only through the sensor's azimuth step
-(the beam model's), so one weight set serves every sensor. One pass of
-:class:`pcc_ros.geometry.boxes.BoxCandidates` over the scan against the boxes grown by the
-shell and the reach above, then one compiled loop that tests each candidate pair and uses it
-in the same visit (:mod:`pcc_ros.pipeline.profile_kernels`).
+(the beam model's), so one weight set serves every sensor. The boxes grown by the shell and
+the reach above are a query of the scan's BEV index (:mod:`pcc_ros.pipeline.evidence_index`; in
+the pipeline the local ground's, sorted once for both), then one compiled loop tests each
+candidate pair and uses it in the same visit (:mod:`pcc_ros.pipeline.profile_kernels`).
 """
 
 from __future__ import annotations
@@ -36,9 +36,11 @@ from collections.abc import Collection
 import numpy as np
 
 from pcc_ros.geometry.beams import SensorModel
-from pcc_ros.geometry.boxes import BoxCandidates, circles_meet, iou_bev_pairs
+from pcc_ros.geometry.boxes import circles_meet, iou_bev_pairs, round_down_to, round_up_to
 from pcc_ros.geometry.canonical import to_box_local
-from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, angular_window
+from pcc_ros.pipeline.evidence import EVIDENCE_GROUND, angular_window, evidence
+from pcc_ros.pipeline.evidence_index import BevIndex, Footprints
+from pcc_ros.scratch import Scratch
 from pcc_ros.types import Boxes
 
 #: The profile terms, in the order :func:`profile_terms` returns them.
@@ -123,20 +125,51 @@ def profile_terms(points: np.ndarray, boxes: Boxes, sensor: SensorModel,
     ``overlap`` alone needs no pass over the scan; without ``spill`` the boxes grow sideways by
     the face margin only, not by the shell (about half the candidate pairs of a car box)."""
     wanted = set(PROFILE_TERMS if measure is None else measure) & set(PROFILE_TERMS)
-    out_terms, needs_pass = terms_before_pass(boxes, wanted)
-    if not needs_pass:
-        return out_terms
-    grown = grown_boxes(boxes, "spill" in wanted)
-    pair_point, pair_box, pts, test = BoxCandidates(points, grown).candidate_test()
-    origin, centre_az = box_frames(boxes)
-    out = np.zeros((len(boxes), 9))
-    from pcc_ros.pipeline import profile_kernels as kernels  # numba: heavy, only when measuring
+    if not wanted - {"overlap"} or not len(boxes):  # no pass over the scan
+        return terms_before_pass(boxes, wanted)[0]
+    return evidence(points, boxes, sensor, rays=False, expected=False, ground=False, profile=wanted).profile
 
-    kernels.profile_pairs(pair_point, pair_box, pts, test, grown.center[:, 2].astype(test.dtype),
-                          np.ascontiguousarray(boxes.size / 2), origin, centre_az, ABOVE_REACH / 2, FACE_MARGIN,
-                          EVIDENCE_GROUND, "fill" in wanted,
-                          np.array(CORNER_COLUMNS if "corner" in wanted else (), dtype=np.float64), out)
-    return {**out_terms, **terms_from_counts(out, boxes, sensor, wanted)}
+
+class ProfileQuery:
+    """A profile pass's boxes (:func:`grown_boxes`) as the scan's index sees them
+    (:attr:`footprints`), their exact test's values in the scan's precision, and the
+    measurement over the index (:meth:`measure`)."""
+
+    def __init__(self, boxes: Boxes, wanted: set[str], dt: type) -> None:
+        grown = grown_boxes(boxes, "spill" in wanted)
+        if not grown.valid_mask().all():
+            grown.validate()  # DataError naming the box
+        self.boxes, self.wanted, self.dt = boxes, wanted, dt
+        half = grown.size / 2.0
+        # the test of BoxCandidates (margin 0): z bounds rounded outward to the scan's precision
+        zlo = round_up_to(grown.center[:, 2] - half[:, 2], dt)
+        zhi = round_down_to(grown.center[:, 2] + half[:, 2], dt)
+        cos, sin = np.cos(grown.yaw), np.sin(grown.yaw)
+        self.test = np.stack([zlo, zhi, grown.center[:, 0], grown.center[:, 1], cos, sin, half[:, 0], half[:, 1]],
+                             axis=1).astype(dt)
+        self.cz = grown.center[:, 2].astype(dt)
+        self.footprints = Footprints(grown.center[:, 0], grown.center[:, 1], cos, sin, half[:, 0], half[:, 1],
+                                     float(zlo.min()), float(zhi.max()))
+
+    def measure(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, index: BevIndex | None, runs, sensor: SensorModel,
+                ws: Scratch) -> dict[str, np.ndarray]:
+        """The pass-measured terms (and raw counts) from the candidates of the boxes' cell
+        ``runs`` in ``index`` (``None``: an empty scan, no candidate); ``ws``: the calling
+        thread's work arrays."""
+        from pcc_ros.pipeline import profile_kernels as kernels  # numba: heavy, only when measuring
+
+        boxes, wanted = self.boxes, self.wanted
+        origin, centre_az = box_frames(boxes)
+        out = np.zeros((len(boxes), 9))
+        if index is not None:
+            marks = ws("profile_marks", (len(x) >> 6) + 1, np.uint64)
+            marks[:] = 0  # a bit per point (15 kB for 120k points)
+            kernels.profile_cells(x, y, z, index.order, index.start, *runs, self.test, self.cz,
+                                  np.ascontiguousarray(boxes.size / 2), origin, centre_az, ABOVE_REACH / 2,
+                                  FACE_MARGIN, EVIDENCE_GROUND, "fill" in wanted,
+                                  np.array(CORNER_COLUMNS if "corner" in wanted else (), dtype=np.float64), out,
+                                  ws("profile_share", len(x), np.float64), marks)
+        return terms_from_counts(out, boxes, sensor, wanted)
 
 
 def terms_before_pass(boxes: Boxes, wanted: set[str]) -> tuple[dict[str, np.ndarray], bool]:
@@ -172,7 +205,7 @@ def box_frames(boxes: Boxes) -> tuple[np.ndarray, np.ndarray]:
 
 def terms_from_counts(out: np.ndarray, boxes: Boxes, sensor: SensorModel, wanted: set[str]) -> dict[str, np.ndarray]:
     """The pass-measured terms of ``wanted`` from a pass's per-box counts (the columns of
-    :func:`pcc_ros.pipeline.profile_kernels.profile_pairs`), with the raw counts behind them
+    :func:`pcc_ros.pipeline.profile_kernels.profile_cells`), with the raw counts behind them
     (``n_shell`` only when ``spill`` is wanted)."""
     from pcc_ros.pipeline import profile_kernels as col  # the pass's column layout
 

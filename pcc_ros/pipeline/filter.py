@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from functools import lru_cache, partial
+from functools import lru_cache
 
 import numpy as np
 
@@ -381,8 +381,8 @@ def filter_terms(
     sensor: SensorModel | None = None, rings: np.ndarray | None = None, weighted_only: bool = False,
 ) -> dict[str, np.ndarray]:
     """Every term of the evidence rule for ``boxes`` in ``points`` (plus the raw counts);
-    ``workers``: CPU threads measuring them (two or more: the profile pass on a second thread
-    beside the evidence, or where no profile term is measured, :func:`evidence`'s split). ``sensor``: the beam model (a
+    ``workers``: CPU threads measuring them (two or more: :func:`evidence`'s split, the footprint
+    queries, the local ground and the profile pass, on a second thread beside the rays). ``sensor``: the beam model (a
     pipeline passes its :class:`~pcc_ros.pipeline.beam_model.BeamModel`'s); without one, the
     configured preset, or for ``sensor: auto`` this scan's own estimate (``rings``: its ring
     field, when it has one).
@@ -398,21 +398,16 @@ def filter_terms(
     out: dict[str, np.ndarray] = {}
     measured = {"rays": rays, "expected": bool(wanted & {"density", "through"}), "ground": "ground_gap" in wanted}
     profile = wanted & set(PROFILE_TERMS)
-    # With two threads and both passes to make, the profile pass goes to the second thread and
-    # the evidence (rays, ground, expected returns) runs on this one. At 20 cars the evidence
-    # takes about twice the profile pass on one thread, and the other splits of the four (the
-    # rays and the ground on different threads) leave the longer thread no shorter by more
-    # than the expected returns' share; the values are the same either way.
-    profile_job = None
-    if workers > 1 and profile and any(measured.values()):
-        profile_job, workers = beside(partial(profile_terms, measure=profile), points, boxes, sensor), 1
     if any(measured.values()):
-        ev = evidence(points, boxes, sensor, workers=workers, columns="cover" in wanted, **measured)
+        # one call: the profile pass shares the local ground's index of the scan, and with two
+        # threads both run on the second beside the rays (evidence's split)
+        ev = evidence(points, boxes, sensor, workers=workers, columns="cover" in wanted, profile=profile, **measured)
         keep = {k for k, needs in _EVIDENCE_KEYS.items() if measured[needs]} | (wanted & set(ev.terms)) \
             | ({"n_filled", "n_seen"} & set(ev.terms))
         out = {k: v for k, v in ev.as_dict().items() if k in keep}
-    if profile:
-        out.update(profile_job.result() if profile_job else profile_terms(points, boxes, sensor, measure=profile))
+        out.update(ev.profile)
+    elif profile:
+        out.update(profile_terms(points, boxes, sensor, measure=profile))
     if "score" in wanted:
         out["score"] = score_logit(boxes.score, config.score_mapping)
     if "mismatch" in wanted or mismatch is not None:
