@@ -48,8 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sim-root", type=Path, default=Path("data/synthcars_sensors"),
                         help="where the simulated sets are generated once and reused (data/synthcars_sensors)")
     parser.add_argument("--sim-seed", type=int, default=11, help="seed of the simulated sets (11)")
-    parser.add_argument("--sim-sequences", type=int, default=2, help="SynthCars sequences per sensor (2)")
-    parser.add_argument("--sim-frames", type=int, default=6, help="frames per simulated sequence (6)")
+    parser.add_argument("--sim-sequences", type=int, help="SynthCars sequences per sensor (2; 8 with --sensor-from)")
+    parser.add_argument("--sim-frames", type=int, help="frames per simulated sequence (6; 20 with --sensor-from)")
     parser.add_argument("--filter-backend", default="trapcc",
                         help="car-constrained completion of the shape mismatch term (trapcc)")
     parser.add_argument("--real-sequence", help="tracking sequence(s) of --real, comma-separated")
@@ -96,6 +96,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threshold-folds", type=int, default=2,
                         help="with --sensor-thresholds: SynthCars sequences per cross-validation fold (2: a 40-frame "
                         "street of 20-frame sequences)")
+    parser.add_argument(
+        "--sensor-from", type=Path, metavar="SCANS",
+        help="calibrate the threshold for YOUR LiDAR, read from a few of its scans (a bag / MCAP, KITTI, nuScenes or "
+        "Argoverse 2 path): its beam model and height estimated as the node does, SynthCars simulated with it, the "
+        "threshold for the weights of --weights-from (default: the shipped ones) set by cross-validation over its "
+        "streets; no labelled frame needed. --out gets that threshold for every sensor")
+    parser.add_argument("--sensor-scans", type=int, default=5, help="with --sensor-from: scans read (5)")
     parser.add_argument("--rows-cache", type=Path,
                         help="keep each simulated set's measured rows here (keyed by the set and the measuring code): "
                         "rerunning on other weights then takes seconds")
@@ -123,6 +130,14 @@ def _synth_frames(root: Path, per_sequence: int):
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.sim_sequences is None:
+        args.sim_sequences = 8 if args.sensor_from else 2
+    if args.sim_frames is None:
+        args.sim_frames = 20 if args.sensor_from else 6
+    if args.sensor_from:
+        from pcc_ros.cli.calibrate_sensors import run_sensor_from_scans
+
+        return run_sensor_from_scans(args)
     if args.sensor_thresholds and not args.sim_sensors:
         from pcc_ros.cli.calibrate_sensors import run_sensor_thresholds
 

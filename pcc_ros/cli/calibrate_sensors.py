@@ -192,6 +192,16 @@ def per_sensor_header(args: argparse.Namespace, per_sensor: dict[str, Any]) -> s
             f"preset: the largest, {per_sensor['fallback']:.4f}\n")
 
 
+def _weights_provenance(source) -> str:
+    """The ``# calibrated:`` lines of ``source`` that say where its weights came from (not its
+    thresholds): a file that keeps the weights and sets new thresholds keeps them."""
+    try:
+        return "".join(line + "\n" for line in source.read_text().splitlines()
+                       if line.startswith("# calibrated:") and not line.startswith("# calibrated: sensor_thresholds"))
+    except OSError as exc:
+        raise ConfigError(f"{source}: cannot read ({exc.strerror})") from exc
+
+
 def run_sensor_thresholds(args: argparse.Namespace) -> int:
     """``--sensor-thresholds`` without ``--sim-sensors``: the weights of ``--weights-from`` (or the
     base / shipped YAML) kept as they are, each layout's threshold added to ``--out``."""
@@ -203,14 +213,9 @@ def run_sensor_thresholds(args: argparse.Namespace) -> int:
     per_sensor = per_sensor_step(args, pipeline, config.w_bias, config.weights, config.mismatch_mean,
                                  config.reject_threshold)
     if args.out:
-        try:
-            kept = [line + "\n" for line in source.read_text().splitlines()
-                    if line.startswith("# calibrated:") and not line.startswith("# calibrated: sensor_thresholds")]
-        except OSError as exc:
-            raise ConfigError(f"{source}: cannot read ({exc.strerror})") from exc
         values: dict[str, Any] = {"sensor_thresholds": per_sensor["value"], "mismatch_mean": config.mismatch_mean}
         text = preset_yaml(source, config.w_bias, config.weights, per_sensor["fallback"], values,
-                           "".join(kept) + per_sensor_header(args, per_sensor))
+                           _weights_provenance(source) + per_sensor_header(args, per_sensor))
         args.out.parent.mkdir(parents=True, exist_ok=True)
         write_text(args.out, text)
         log.info("wrote %s", args.out)
@@ -218,4 +223,61 @@ def run_sensor_thresholds(args: argparse.Namespace) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.json, {"weights_from": str(source), "sim_seed": args.sim_seed, "sim_root": str(args.sim_root),
                                "sensor_thresholds": per_sensor}, indent=1, nonfinite_null=True)
+    return 0
+
+
+# ----------------------------------------------------------------------------- the user's own sensor
+
+
+def run_sensor_from_scans(args: argparse.Namespace) -> int:
+    """``--sensor-from SCANS``: the user's sensor read from its scans, simulated, and its threshold
+    for the weights of ``--weights-from`` (else the base / shipped YAML) set by cross-validation over
+    its simulated streets; ``--out`` holds that threshold for every sensor (no per-preset table)."""
+    import hashlib
+
+    from pcc_ros.workflows.sensor_from_scans import scanned_sensor
+
+    scanned = scanned_sensor(args.sensor_from, args.sensor_scans)
+    m = scanned.model
+    print(f"sensor read from {scanned.agreeing} of {scanned.scans} scan(s) of {args.sensor_from}"
+          f" ({'ring field' if scanned.ring_field else 'no ring field: beams estimated from the elevations'}): "
+          f"{m.rings} beams, {m.elevations_deg[0]:+.2f} to {m.elevations_deg[-1]:+.2f} deg, azimuth step "
+          f"{m.azimuth_resolution_deg:.4f} deg, {scanned.mount_height:.2f} m above the ground")
+    if scanned.preset:
+        print(f"  it matches the preset {scanned.preset}: the shipped sensor_thresholds already hold a threshold for "
+              "it; this run sets one from your sensor's own simulation")
+    source = args.weights_from or args.base_config or default_config()
+    config = PipelineConfig.from_yaml(source).filter
+    if config.rule != "evidence":
+        raise ConfigError(f"{source}: rule {config.rule!r}; a sensor's threshold is the evidence rule's")
+    sensor = scanned.sensor()
+    key = hashlib.sha256(json.dumps(sensor.to_dict(), sort_keys=True).encode()).hexdigest()[:10]
+    name = f"scanned_{key}"
+    root = synth_dataset(args.sim_root, name, args.sim_seed, args.sim_sequences, args.sim_frames, sensor)
+    pipeline = measuring_pipeline(args.filter_backend, shape=config.w_mismatch != 0)
+    rows = cached_rows(pipeline, root, name, args.rows_cache, config.w_mismatch != 0)
+    fit = sensor_thresholds({name: rows}, config.w_bias, config.weights, config.mismatch_mean, args.target_lost,
+                            per_fold=args.threshold_folds)[name]
+    print(f"threshold {fit['threshold']:.4f}: budget {fit['budget']:.2%} by CV over {fit['folds']} folds of "
+          f"{args.threshold_folds} simulated sequence(s), worst held-out fold {fit['cv_worst_fold']:.2%} of its true "
+          f"cars lost (<= {args.target_lost:.1%}); in sample {fit['in_sample_removed']:.1%} of "
+          f"{fit['rows']['false']} false boxes removed ({root})")
+    if args.out:
+        header = (f"# calibrated: pcc calibrate-filter --sensor-from {args.sensor_from}"
+                  f" --sensor-scans {args.sensor_scans} --sim-root {args.sim_root} --sim-seed {args.sim_seed}"
+                  f" --sim-sequences {args.sim_sequences}"
+                  f" --sim-frames {args.sim_frames} --threshold-folds {args.threshold_folds}"
+                  f" --target-lost {args.target_lost:g} (weights of {source})\n"
+                  f"# calibrated: the sensor: {m.rings} beams {m.elevations_deg[0]:+.2f}..{m.elevations_deg[-1]:+.2f}"
+                  f" deg, step {m.azimuth_resolution_deg:.4f} deg, {scanned.mount_height:.2f} m high; threshold "
+                  f"{fit['threshold']:.4f} (budget {fit['budget']:.2%}, worst held-out fold {fit['cv_worst_fold']:.2%})"
+                  " for every sensor\n")
+        values: dict[str, Any] = {"sensor_thresholds": "", "mismatch_mean": config.mismatch_mean}
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        write_text(args.out, preset_yaml(source, config.w_bias, config.weights, fit["threshold"], values,
+                                         _weights_provenance(source) + header))
+        log.info("wrote %s", args.out)
+    if args.json:
+        write_json(args.json, {"sensor": scanned.to_dict(), "weights_from": str(source), "sim_root": str(root),
+                               "threshold": fit}, indent=1, nonfinite_null=True)
     return 0

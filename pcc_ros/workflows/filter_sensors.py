@@ -82,13 +82,15 @@ class Rows(FeatureRows):
     group: np.ndarray
 
 
-def synth_dataset(root: Path, layout: str, seed: int, sequences: int, frames: int) -> Path:
-    """SynthCars of one beam layout under ``root/<layout>_s<seed>`` (generated once, then reused)."""
+def synth_dataset(root: Path, layout: str, seed: int, sequences: int, frames: int, sensor=None) -> Path:
+    """SynthCars of one beam layout under ``root/<layout>_s<seed>`` (generated once, then reused);
+    ``sensor``: a :class:`~pcc_ros.data.synthetic.lidar.Sensor` of its own (a sensor read from a
+    user's scans) instead of the preset ``layout``."""
     from pcc_ros.data.synthetic import generate
     from pcc_ros.data.synthetic.lidar import Sensor
 
     out = Path(root) / f"{layout}_s{seed}"
-    generate(out, sequences, frames, seed, sensor=Sensor(layout=layout), test_fraction=0.0)
+    generate(out, sequences, frames, seed, sensor=sensor or Sensor(layout=layout), test_fraction=0.0)
     return out
 
 

@@ -231,6 +231,32 @@ def render_eval_synthcars(results: dict[str, dict[str, Any]]) -> list[str]:
     return table(header, rows)
 
 
+def render_sensor_from_scans(d: dict[str, Any]) -> list[str]:
+    """A sensor no preset describes: the shipped file (its fallback threshold) against the file
+    ``pcc calibrate-filter --sensor-from`` writes from the sensor's scans, on held-out streets."""
+    sensor, est = d["sensor"], d["calibration"]["sensor"]
+    fit = d["calibration"]["threshold"]
+    rows = []
+    for seed, files in d["streets"].items():
+        for name, r in files.items():
+            count, removed = r["per_kind_count"], r["per_kind_removed"]
+            kinds = ", ".join(f"{k} {pct(removed[k])} ({count[k]})" for k in KINDS if k in count)
+            total = sum(count.values())
+            rows.append([f"seed {seed}", name, f"{r['threshold']['threshold']:.3f}",
+                         _share(r["true_lost_count"], r["true"]),
+                         _share(round(sum(count[k] * removed[k] for k in count)), total), kinds])
+    header = ["street (1 x 40 frames)", "file", "threshold in force", "true cars lost", "false boxes removed",
+              "per kind"]
+    return [f"Sensor: {sensor['beams']} beams {min(sensor['elevations_deg']):+g} to {max(sensor['elevations_deg']):+g}"
+            f" deg, {sensor['azimuth_step_deg']:g} deg step, {sensor['mount_height_m']:g} m high; read from "
+            f"{est['agreeing']} of {est['scans']} scans as {est['beams']} beams, "
+            f"{min(est['elevations_deg']):+.2f} to {max(est['elevations_deg']):+.2f} deg, "
+            f"{est['azimuth_step_deg']:.3f} deg step, {est['mount_height_m']:.2f} m high (matching preset: "
+            f"{est['matching_preset'] or 'none'}); calibrated threshold {fit['threshold']:.3f} (budget "
+            f"{pct(fit['budget'], 2)}, worst held-out simulated fold {pct(fit['cv_worst_fold'])}).", "",
+            *table(header, rows)]
+
+
 # ---------------------------------------------------- the shipped rule's checks (per kind, nuScenes, calibration)
 
 
@@ -346,6 +372,7 @@ FIGURES: dict[str, Figure] = {
     "filter-checked-on": Figure(("filter-nuscenes", *(_synth(s) for s in SENSORS), "filter-calibration",
                                  "calibrate-kitti"), render_checked_on),
     "filter-nuscenes": one("filter-nuscenes", render_filter_nuscenes),
+    "filter-sensor-from-scans": one("sensor-from-scans", render_sensor_from_scans),
     "filter-nuscenes-kitti-preset": one("filter-nuscenes-kitti-preset", render_nuscenes_kitti_preset),
     "filter-synth": Figure(tuple(_synth(s) for s in SENSORS), render_filter_synth),
     "filter-synth-s123": Figure(tuple(_synth(s, "123") for s in SENSORS),

@@ -35,7 +35,8 @@ REALISTIC_ARTEFACTS = {"beam_range_bias": 0.015, "beam_elevation_error": 0.04, "
 class Sensor:
     """Sensor model parameters (angles in degrees, distances in metres)."""
 
-    #: the beam layout: a name of pcc_ros.geometry.beams.SENSOR_PRESETS
+    #: the beam layout: a name of pcc_ros.geometry.beams.SENSOR_PRESETS, or any name when both
+    #: ``elevation_table`` and ``azimuth_step`` are given (a sensor read from a user's scans)
     layout: str = "hdl64"
     #: an explicit elevation table (degrees, any order) instead of the layout's (``low_res``)
     elevation_table: tuple[float, ...] = ()
@@ -74,6 +75,8 @@ class Sensor:
     @cached_property
     def model(self) -> SensorModel:
         """The nominal beam layout (the filter's :class:`~pcc_ros.geometry.beams.SensorModel`)."""
+        if self.elevation_table and self.azimuth_step:
+            return SensorModel(self.elevation_table, self.azimuth_step, self.layout)
         preset = sensor_preset(self.layout)
         if not self.elevation_table and not self.azimuth_step:
             return preset
