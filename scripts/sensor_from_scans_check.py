@@ -9,7 +9,8 @@ the first street (no label used); both files are then judged on every street by 
     python scripts/sensor_from_scans_check.py --root data/sensor_from_scans --json out/sensor_from_scans.json
 
 Writes one JSON (the sensor, the estimate, the calibrated threshold, per street and file: cars
-lost, false boxes removed per kind) for ``scripts/render_figures.py``.
+lost, false boxes removed per kind) for ``scripts/render_figures.py``, and each judgement's
+operating curve beside its JSON under ``--root`` (``eval_<file>_s<seed>.png``).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ SENSOR = Sensor(layout="pandar40p", elevation_table=TABLE, azimuth_step=0.2, mou
 
 def _judge(street: Path, config: Path, out: Path) -> dict:
     code = pcc(["eval", "detections", "--kitti", str(street), "--gt-classes", "Car,Van", "--backend", "input",
-                "--config", str(config), "--json", str(out)])
+                "--config", str(config), "--json", str(out), "--plot", str(out.with_suffix(".png"))])
     if code:
         raise SystemExit(f"pcc eval detections failed on {street} with {config}")
     d = json.loads(out.read_text())
