@@ -95,6 +95,13 @@ def test_a_made_up_layout_matches_nothing_and_the_fallback_applies(caplog):
     model.model, model.preset = made_up, matching_preset(made_up)
     assert model.preset is None
     assert BeamModel("vlp16").preset == "vlp16" and BeamModel("auto").preset is None
+    # the node then says which threshold judges it and how to set one for this sensor
+    base = PipelineConfig(backend="input")
+    pipeline = Pipeline(replace(base, filter=replace(base.filter, sensor_thresholds="hdl64:0.5", reject_threshold=0.7)))
+    pipeline.beam_model = model
+    with caplog.at_level(logging.INFO, logger="pcc_ros.pipeline.core"):
+        assert pipeline.reject_threshold() == 0.7
+    assert "matches no preset" in caplog.text and "pcc calibrate-filter --sensor-from" in caplog.text
 
 
 def _street():

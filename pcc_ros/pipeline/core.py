@@ -192,7 +192,8 @@ class Pipeline:
             elif self.beam_model.model is None:
                 source = "reject_threshold until the first beam estimate"
             elif preset is None:
-                source = "reject_threshold: the beam model matches no preset"
+                source = ("reject_threshold: the beam model matches no preset (a threshold set for this sensor: "
+                          "pcc calibrate-filter --sensor-from <a bag of its scans>)")
             else:
                 source = f"reject_threshold: sensor_thresholds has no entry for {preset}"
             log.info("filter: reject threshold %.4f, %s", threshold, source)
