@@ -100,3 +100,16 @@ def test_cli_names_what_it_cannot_read(tmp_path, caplog):
         scanned_sensor(empty)
     with pytest.raises(ConfigError, match="sensor-scans"):
         scanned_sensor(empty, scans=0)
+
+
+def test_synth_simulates_the_scanned_sensor(odd_scans, tmp_path):
+    """``pcc synth --sensor-from``: SynthCars with the sensor read from the scans (meta.json
+    records its table and height), and a preview re-simulated from meta.json."""
+    out = tmp_path / "mine"
+    assert main(["synth", "--out", str(out), "--sequences", "1", "--frames", "2", "--seed", "3", "--sensor-from",
+                 str(odd_scans), "--sensor-scans", "2", "--preview"]) == 0
+    sensor = json.loads((out / "meta.json").read_text())["parameters"]["sensor"]
+    assert sensor["layout"] == "scanned" and sensor["mount_height"] == pytest.approx(1.3, abs=0.08)
+    assert len(sensor["elevation_table"]) >= 18 and (out / "preview.png").is_file()
+    assert scanned_sensor(out, scans=2).preset is None
+    assert main(["synth", "--out", str(tmp_path / "x"), "--sensor-from", str(odd_scans), "--sensor", "vlp16"]) != 0

@@ -24,6 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shape-points", type=int, default=16384, help="points per ground-truth shape (>= 16384)")
     parser.add_argument("--sensor", default="hdl64", choices=tuple(SENSOR_PRESETS),
                         help="beam layout of the simulated LiDAR (default hdl64, KITTI's; stored in meta.json)")
+    parser.add_argument("--sensor-from", type=Path, metavar="SCANS",
+                        help="simulate YOUR LiDAR: its beam model and height read from a few of its scans (a bag / "
+                        "MCAP, KITTI, nuScenes or Argoverse 2 path), as pcc calibrate-filter --sensor-from does")
+    parser.add_argument("--sensor-scans", type=int, default=5, help="with --sensor-from: scans read (5)")
     parser.add_argument("--low-res", action="store_true", help="16-beam, 0.8 deg HDL-64E variant (quick looks, tests)")
     parser.add_argument(
         "--realistic-sensor", action="store_true",
@@ -61,7 +65,20 @@ def run(args: argparse.Namespace) -> int:
     extra = REALISTIC_ARTEFACTS if args.realistic_sensor else {}
     if args.low_res and args.sensor != "hdl64":
         raise ConfigError("--low-res is a variant of the hdl64 layout; drop it or --sensor")
-    sensor = Sensor.low_res(**extra) if args.low_res else Sensor(layout=args.sensor, **extra)
+    if args.sensor_from:
+        if args.low_res or args.sensor != "hdl64":
+            raise ConfigError("--sensor-from reads the sensor from the scans; drop --sensor / --low-res")
+        from dataclasses import replace
+
+        from pcc_ros.workflows.sensor_from_scans import scanned_sensor
+
+        scanned = scanned_sensor(args.sensor_from, args.sensor_scans)
+        sensor = replace(scanned.sensor(), **extra)
+        log.info("sensor read from %s: %d beams, %.4f deg step, %.2f m high (matching preset: %s)", args.sensor_from,
+                 scanned.model.rings, scanned.model.azimuth_resolution_deg, scanned.mount_height,
+                 scanned.preset or "none")
+    else:
+        sensor = Sensor.low_res(**extra) if args.low_res else Sensor(layout=args.sensor, **extra)
     scene = SceneParams(vehicle_mix=parse_vehicle_mix(args.vehicle_mix)) if args.vehicle_mix else None
     meta = generate(args.out, args.sequences, args.frames, args.seed, sensor=sensor, scene=scene,
                     shape_points=args.shape_points, test_fraction=args.test_fraction, overwrite=args.overwrite)
