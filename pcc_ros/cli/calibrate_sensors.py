@@ -9,6 +9,7 @@ report (``--json``) written.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 from typing import Any
@@ -233,16 +234,11 @@ def run_sensor_from_scans(args: argparse.Namespace) -> int:
     """``--sensor-from SCANS``: the user's sensor read from its scans, simulated, and its threshold
     for the weights of ``--weights-from`` (else the base / shipped YAML) set by cross-validation over
     its simulated streets; ``--out`` holds that threshold for every sensor (no per-preset table)."""
-    import hashlib
-
     from pcc_ros.workflows.sensor_from_scans import scanned_sensor
 
     scanned = scanned_sensor(args.sensor_from, args.sensor_scans)
     m = scanned.model
-    print(f"sensor read from {scanned.agreeing} of {scanned.scans} scan(s) of {args.sensor_from}"
-          f" ({'ring field' if scanned.ring_field else 'no ring field: beams estimated from the elevations'}): "
-          f"{m.rings} beams, {m.elevations_deg[0]:+.2f} to {m.elevations_deg[-1]:+.2f} deg, azimuth step "
-          f"{m.azimuth_resolution_deg:.4f} deg, {scanned.mount_height:.2f} m above the ground")
+    print(scanned.describe())
     if scanned.preset:
         print(f"  it matches the preset {scanned.preset}: the shipped sensor_thresholds already hold a threshold for "
               "it; this run sets one from your sensor's own simulation")

@@ -74,9 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
         scanned = scanned_sensor(args.sensor_from, args.sensor_scans)
         sensor = replace(scanned.sensor(), **extra)
-        log.info("sensor read from %s: %d beams, %.4f deg step, %.2f m high (matching preset: %s)", args.sensor_from,
-                 scanned.model.rings, scanned.model.azimuth_resolution_deg, scanned.mount_height,
-                 scanned.preset or "none")
+        log.info("%s", scanned.describe())
     else:
         sensor = Sensor.low_res(**extra) if args.low_res else Sensor(layout=args.sensor, **extra)
     scene = SceneParams(vehicle_mix=parse_vehicle_mix(args.vehicle_mix)) if args.vehicle_mix else None

@@ -70,6 +70,15 @@ class ScannedSensor:
         return Sensor(layout=name, elevation_table=self.model.elevations_deg,
                       azimuth_step=self.model.azimuth_resolution_deg, mount_height=round(self.mount_height, 3))
 
+    def describe(self) -> str:
+        """One line: what was read, from how many scans, and the preset it matches."""
+        m = self.model
+        return (f"sensor read from {self.agreeing} of {self.scans} scan(s) of {self.source} "
+                f"({'ring field' if self.ring_field else 'no ring field: beams estimated from the elevations'}): "
+                f"{m.rings} beams, {m.elevations_deg[0]:+.2f} to {m.elevations_deg[-1]:+.2f} deg, azimuth step "
+                f"{m.azimuth_resolution_deg:.4f} deg, {self.mount_height:.2f} m above the ground; matching preset: "
+                f"{self.preset or 'none'}")
+
     def to_dict(self) -> dict:
         return {"source": self.source, "beams": self.model.rings, "elevations_deg": list(self.model.elevations_deg),
                 "azimuth_step_deg": self.model.azimuth_resolution_deg, "mount_height_m": self.mount_height,
