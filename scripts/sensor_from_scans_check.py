@@ -25,13 +25,20 @@ from pcc_ros.cli.main import main as pcc
 from pcc_ros.data.synthetic import generate
 from pcc_ros.data.synthetic.lidar import Sensor
 from pcc_ros.files import write_json
+from pcc_ros.geometry.beams import SENSOR_PRESETS
 from pcc_ros.workflows.detection_eval import default_config
 
 UPPER = (15.0, 11.0, 8.0, 5.0, 3.0, 2.0)
 LOWER = (-7.0, -8.0, -9.0, -10.0, -11.0, -12.0, -13.0, -14.0, -19.0, -25.0)
 #: 40 beams: 6 above +2 deg, 24 at 1/3 deg from +1.67 to -6 deg, 10 below.
 TABLE = UPPER + tuple(float(v) for v in np.round(np.arange(1.67, -6.0, -1 / 3), 2)) + LOWER
-SENSOR = Sensor(layout="pandar40p", elevation_table=TABLE, azimuth_step=0.2, mount_height=1.9)
+#: The sensors of the check: one no preset describes, and a preset's beams on a small robot
+#: (it matches the vlp16 preset, whose threshold was set 1.73 m high).
+SENSORS = {
+    "pandar40p": Sensor(layout="pandar40p", elevation_table=TABLE, azimuth_step=0.2, mount_height=1.9),
+    "vlp16_low": Sensor(layout="vlp16_low", elevation_table=SENSOR_PRESETS["vlp16"].elevations_deg,
+                        azimuth_step=SENSOR_PRESETS["vlp16"].azimuth_resolution_deg, mount_height=0.8),
+}
 
 
 def _judge(street: Path, config: Path, out: Path) -> dict:
@@ -49,24 +56,27 @@ def _judge(street: Path, config: Path, out: Path) -> dict:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", type=Path, default=Path("data/sensor_from_scans"))
+    parser.add_argument("--sensor", choices=tuple(SENSORS), default="pandar40p", help="the sensor (pandar40p)")
     parser.add_argument("--seeds", default="8101,8102", help="the held-out streets (the first one's scans are read)")
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--json", type=Path, required=True)
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
-    streets = {s: args.root / f"pandar40p_s{s}" for s in seeds}
+    sensor = SENSORS[args.sensor]
+    streets = {s: args.root / f"{args.sensor}_s{s}" for s in seeds}
     for seed, street in streets.items():
-        generate(street, 1, args.frames, seed, sensor=SENSOR, test_fraction=0.0)
-    calibrated, report = args.root / "calibrated.yaml", args.root / "calibrated.json"
+        generate(street, 1, args.frames, seed, sensor=sensor, test_fraction=0.0)
+    calibrated, report = args.root / f"calibrated_{args.sensor}.yaml", args.root / f"calibrated_{args.sensor}.json"
     if pcc(["calibrate-filter", "--sensor-from", str(streets[seeds[0]]), "--sim-root", str(args.root / "sim"),
             "--rows-cache", str(args.root / "rows"), "--out", str(calibrated), "--json", str(report)]):
         raise SystemExit("pcc calibrate-filter --sensor-from failed")
     files = {"shipped": default_config(), "calibrated": calibrated}
     result = {
-        "sensor": {"beams": len(TABLE), "elevations_deg": list(TABLE), "azimuth_step_deg": SENSOR.azimuth_step,
-                   "mount_height_m": SENSOR.mount_height},
+        "sensor": {"name": args.sensor, "beams": len(sensor.elevation_table),
+                   "elevations_deg": list(sensor.elevation_table), "azimuth_step_deg": sensor.azimuth_step,
+                   "mount_height_m": sensor.mount_height},
         "calibration": json.loads(report.read_text()),
-        "streets": {str(seed): {name: _judge(street, path, args.root / f"eval_{name}_s{seed}.json")
+        "streets": {str(seed): {name: _judge(street, path, args.root / f"eval_{args.sensor}_{name}_s{seed}.json")
                                 for name, path in files.items()} for seed, street in streets.items()},
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
