@@ -40,7 +40,7 @@ def test_real_scans_read_as_their_sensors(shared_data):
     assert kitti.mount_height == pytest.approx(1.73, abs=0.1)
     nus = scanned_sensor(shared_data / "nuscenes_mini", scans=3)
     assert nus.preset == "hdl32" and nus.ring_field and nus.model.rings == 32
-    assert nus.mount_height == pytest.approx(1.84, abs=0.1)
+    assert nus.mount_height == pytest.approx(1.84, abs=0.15)  # its road rises 0.35 m over 4-20 m
 
 
 def test_a_sensor_no_preset_describes_is_read_from_its_scans(odd_scans):

@@ -80,6 +80,24 @@ DRIFT_STEP = 0.1
 #: The model used until a first estimate succeeds.
 FALLBACK = "hdl64"
 
+#: The ground under the sensor is read from the lowest return of each BEV cell (GROUND_CELL
+#: metres; objects standing on the ground leave it visible around them) beyond GROUND_FROM metres
+#: (past the ego vehicle's body), the GROUND_CELLS cells nearest the vehicle: the road near it,
+#: before a slope or the sensor's pitch moves it (the real nuScenes frame's ground rises 0.35 m
+#: from 4 to 20 m), and beyond the few cells a near car's body fills.
+GROUND_FROM, GROUND_CELL, GROUND_CELLS = 3.0, 1.0, 100
+#: Height bins of the ground histogram (metres).
+GROUND_BIN = 0.05
+#: Plausible mounting heights (metres above the ground): a small robot to a truck's roof.
+MOUNT_RANGE = (0.2, 4.5)
+#: The sensor's height above the ground the presets' ``sensor_thresholds`` were set at (SynthCars
+#: simulates every preset this high, as KITTI's car carries its HDL-64E), and how far a sensor's
+#: own height may lie from it before the filter warns that a preset's threshold does not hold
+#: for it (a VLP-16 0.8 or 2.4 m high lost 2.5-4.1 % of a street's cars at the vlp16 entry;
+#: docs/filter.md): such a mount needs its own threshold (``pcc calibrate-filter --sensor-from``).
+CALIBRATION_HEIGHT = 1.73
+HEIGHT_TOLERANCE = 0.4
+
 
 def _angles(points: np.ndarray, min_range: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Elevation and azimuth (degrees) of the finite returns beyond ``min_range``, which they
@@ -389,6 +407,9 @@ class BeamModel:
         self._next = 0  # frame index of the next estimate
         self.estimates = 0  # estimates made (successful or not)
         self.drifts = 0  # re-adoptions after a drift
+        #: the sensor's height above the ground (auto: read at each estimate, the last one seen;
+        #: None: a named preset, or no ground seen yet)
+        self.mount_height: float | None = None
         self._warned_fallback = False
 
     @property
@@ -413,8 +434,17 @@ class BeamModel:
             return SENSOR_PRESETS[FALLBACK]
         return self.model
 
+    def off_height(self) -> bool:
+        """Whether the sensor sits farther than :data:`HEIGHT_TOLERANCE` from the
+        :data:`CALIBRATION_HEIGHT` the presets' thresholds were set at (unknown height: no)."""
+        return self.mount_height is not None and abs(self.mount_height - CALIBRATION_HEIGHT) > HEIGHT_TOLERANCE
+
     def _estimate(self, points: np.ndarray, rings: np.ndarray | None) -> None:
         self.estimates += 1
+        if len(points):
+            height = ground_height(points)
+            if height is not None:
+                self.mount_height = height
         found = estimate_sensor(points, rings) if len(points) else None
         if found is None:
             self._next = self.frames + (self.retry_every if self.model is None else self.recheck_every)
@@ -422,8 +452,9 @@ class BeamModel:
         self._next = self.frames + self.recheck_every
         if self.model is None:
             self.model, self.preset = found, matching_preset(found)
-            log.info("sensor auto: %s (from frame %d%s); %s", found.describe(), self.frames,
-                     ", ring field" if rings is not None else "", self._preset_text())
+            log.info("sensor auto: %s (from frame %d%s); %s; %s", found.describe(), self.frames,
+                     ", ring field" if rings is not None else "", self._preset_text(),
+                     "ground not seen" if self.mount_height is None else f"{self.mount_height:.2f} m above the ground")
         elif not same_layout(found, self.model):
             self.drifts += 1
             was, self.model, self.preset = self.model, found, matching_preset(found)
@@ -434,6 +465,36 @@ class BeamModel:
 
     def _preset_text(self) -> str:
         return f"matches the {self.preset} preset" if self.preset else "matches no preset"
+
+
+def ground_height(points: np.ndarray) -> float | None:
+    """The ground's height below the sensor (metres, positive) in one scan (sensor frame, z up):
+    the most common height among the lowest returns of the :data:`GROUND_CELLS` BEV cells nearest
+    the vehicle (beyond :data:`GROUND_FROM`, below the sensor); None when too few cells or no
+    height stands out (a scan in another frame, no ground in view)."""
+    xyz = np.asarray(points)[:, :3].astype(np.float64)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    r = np.hypot(xyz[:, 0], xyz[:, 1])
+    keep = (r >= GROUND_FROM) & (xyz[:, 2] <= -MOUNT_RANGE[0]) & (xyz[:, 2] >= -MOUNT_RANGE[1])
+    xyz, r = xyz[keep], r[keep]
+    if len(xyz) < 100:
+        return None
+    cell = np.floor(xyz[:, :2] / GROUND_CELL).astype(np.int64)
+    key = (cell[:, 0] + 2**20) * 2**21 + (cell[:, 1] + 2**20)
+    order = np.lexsort((xyz[:, 2], key))  # by cell, lowest return first
+    first = order[np.r_[True, key[order][1:] != key[order][:-1]]]
+    lowest, reach = xyz[first, 2], r[first]
+    if len(lowest) < 20:
+        return None
+    if len(lowest) > GROUND_CELLS:
+        lowest = lowest[np.argpartition(reach, GROUND_CELLS)[:GROUND_CELLS]]
+    edges = np.arange(-MOUNT_RANGE[1], -MOUNT_RANGE[0] + GROUND_BIN, GROUND_BIN)
+    counts, _ = np.histogram(lowest, edges)
+    peak = int(np.argmax(counts))
+    if counts[peak] < max(5, len(lowest) // 10):
+        return None
+    in_peak = lowest[(lowest >= edges[max(peak - 1, 0)]) & (lowest < edges[min(peak + 2, len(edges) - 1)])]
+    return float(-np.median(in_peak))
 
 
 def ring_column(points: np.ndarray, fields) -> np.ndarray | None:

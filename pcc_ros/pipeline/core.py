@@ -32,7 +32,7 @@ from pcc_ros.msg.detections import (
 from pcc_ros.msg.pointcloud2 import RING_FIELD, point_field_names, read_xyz
 from pcc_ros.msg.stamps import stamp_to_ns
 from pcc_ros.msg.tf_buffer import same_frame
-from pcc_ros.pipeline.beam_model import BeamModel
+from pcc_ros.pipeline.beam_model import CALIBRATION_HEIGHT, BeamModel
 from pcc_ros.pipeline.config import PipelineConfig
 from pcc_ros.pipeline.evidence import warm_up
 from pcc_ros.pipeline.filter import (
@@ -185,6 +185,11 @@ class Pipeline:
         if (preset, threshold) != self.threshold_in_force:
             self.threshold_in_force = (preset, threshold)
             table = parse_sensor_thresholds(self.config.filter.sensor_thresholds)
+            if preset in table and self.beam_model.off_height():
+                log.warning("filter: the sensor sits %.2f m above the ground; the %s entry of sensor_thresholds was "
+                            "set for one %.2f m high and loses more cars on such a mount: set a threshold for it with "
+                            "pcc calibrate-filter --sensor-from <a bag of its scans> (docs/filter.md)",
+                            self.beam_model.mount_height, preset, CALIBRATION_HEIGHT)
             if preset in table:
                 source = f"the {preset} entry of sensor_thresholds"
             elif not table:

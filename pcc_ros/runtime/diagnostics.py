@@ -140,6 +140,8 @@ def node_values(core: Any) -> dict[str, str]:
         if in_force is not None:  # the evidence rule's threshold, and the preset the beam model matched
             values["reject_threshold_in_force"] = f"{in_force[1]:.4f}"
             values["sensor_preset_matched"] = in_force[0] or "-"
+            height = getattr(getattr(pipeline, "beam_model", None), "mount_height", None)
+            values["sensor_height_m"] = "-" if height is None else f"{height:.2f}"
         for k in core.decisions:
             values[f"detections_{k}"] = core.decisions[k]
             values[f"last_frame_{k}"] = core.last_decisions[k]

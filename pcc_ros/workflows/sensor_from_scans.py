@@ -32,19 +32,12 @@ from pcc_ros.pipeline.beam_model import (
     MATCH_DEG_RINGLESS,
     MATCH_MISSING,
     estimate_sensor,
+    ground_height,
     matching_preset,
     ring_column,
     same_layout,
 )
 
-#: The ground under the sensor is read from its nearest returns beyond this horizontal range
-#: (metres; past the ego vehicle's body), this many of them: the road near the vehicle, before a
-#: slope or the sensor's pitch moves it (the real nuScenes frame's ground rises 0.35 m from 4 to 20 m).
-GROUND_FROM, GROUND_NEAREST = 3.0, 2000
-#: Height bins of the ground histogram (metres).
-GROUND_BIN = 0.05
-#: Plausible mounting heights (metres above the ground): a small robot to a truck's roof.
-MOUNT_RANGE = (0.2, 4.5)
 #: Two scans' estimates agree when their beams lie within this many degrees and their azimuth
 #: steps within this share (with a ring field: beam for beam); without one, a scan may show up
 #: to this share of beams fewer or more (a beam with too few returns beyond 5 m in that scan, two
@@ -86,28 +79,6 @@ class ScannedSensor:
                 "ring_field": self.ring_field}
 
 
-def ground_height(points: np.ndarray) -> float | None:
-    """The ground's height below the sensor (metres, positive) in one scan (sensor frame, z up):
-    the most common height of the :data:`GROUND_NEAREST` returns nearest the vehicle (beyond
-    :data:`GROUND_FROM`) that lie below the sensor; None when too few returns or no bin stands out."""
-    xyz = np.asarray(points)[:, :3].astype(np.float64)
-    xyz = xyz[np.isfinite(xyz).all(axis=1)]
-    r = np.hypot(xyz[:, 0], xyz[:, 1])
-    below = (r >= GROUND_FROM) & (xyz[:, 2] <= -MOUNT_RANGE[0]) & (xyz[:, 2] >= -MOUNT_RANGE[1])
-    z, r = xyz[below, 2], r[below]
-    if len(z) < GROUND_NEAREST // 4:
-        return None
-    if len(z) > GROUND_NEAREST:
-        z = z[np.argpartition(r, GROUND_NEAREST)[:GROUND_NEAREST]]
-    edges = np.arange(-MOUNT_RANGE[1], -MOUNT_RANGE[0] + GROUND_BIN, GROUND_BIN)
-    counts, _ = np.histogram(z, edges)
-    peak = int(np.argmax(counts))
-    if counts[peak] < len(z) // 10:
-        return None
-    in_peak = z[(z >= edges[max(peak - 1, 0)]) & (z < edges[min(peak + 2, len(edges) - 1)])]
-    return float(-np.median(in_peak))
-
-
 def scanned_sensor(path: str | Path, scans: int = 5, sequence: str | None = None) -> ScannedSensor:
     """The sensor of the first ``scans`` scans of ``path``: each scan's beam model estimated alone,
     the most common one kept when at least half of the scans agree with it, its height the median
@@ -142,7 +113,8 @@ def scanned_sensor(path: str | Path, scans: int = 5, sequence: str | None = None
         raise ConfigError(f"{path}: the beam models of {read} scans disagree (at most {agree[best]} agree): "
                           "several sensors in one cloud, or scans from different sensors")
     if not heights:
-        raise ConfigError(f"{path}: no ground seen 4-20 m around the sensor in {read} scan(s)")
+        raise ConfigError(f"{path}: no ground seen around the sensor in {read} scan(s) (scans in the sensor's own "
+                          "frame?)")
     model = SensorModel(models[best].elevations_deg, models[best].azimuth_resolution_deg, "scanned")
     return ScannedSensor(model, float(np.median(heights)), read, agree[best], matching_preset(model), str(path),
                          rings_seen)
