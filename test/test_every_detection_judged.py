@@ -86,6 +86,8 @@ def test_three_hundred_boxes_every_car_scored_or_marked_and_counted():
     # the threshold the decisions used (no sensor_thresholds: reject_threshold) and the preset matched
     assert values["reject_threshold_in_force"] == f"{core.pipeline.config.filter.reject_threshold:.4f}"
     assert values["sensor_preset_matched"] == (core.pipeline.beam_model.preset or "-")
+    height = core.pipeline.beam_model.mount_height
+    assert values["sensor_height_m"] == ("-" if height is None else f"{height:.2f}")
     # judged on the evidence: the boxes holding a car-sized cluster read less false than the empty ones
     p_false = {d.id: h.hypothesis.score for d in out for h in d.results if h.hypothesis.class_id == SCORE_CLASS_ID}
     full = [p_false[str(i)] for i in range(0, 300, 2)]
