@@ -43,6 +43,15 @@ def test_real_scans_read_as_their_sensors(shared_data):
     assert nus.mount_height == pytest.approx(1.84, abs=0.15)  # its road rises 0.35 m over 4-20 m
 
 
+def test_a_bag_of_scans_reads_as_its_sensor(shared_data, tmp_path):
+    """The user's path of the docs: scans in an MCAP bag (the nuScenes frame converted, its ring
+    field carried in the PointCloud2) read as the HDL-32E they are."""
+    bag = tmp_path / "drive"
+    assert main(["convert", "nuscenes", str(shared_data / "nuscenes_mini"), "--out", str(bag)]) == 0
+    scanned = scanned_sensor(bag)
+    assert scanned.preset == "hdl32" and scanned.ring_field and scanned.mount_height == pytest.approx(1.84, abs=0.15)
+
+
 def test_a_sensor_no_preset_describes_is_read_from_its_scans(odd_scans):
     scanned = scanned_sensor(odd_scans, scans=2)
     assert scanned.preset is None and scanned.agreeing == 2
