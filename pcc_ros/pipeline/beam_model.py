@@ -479,10 +479,13 @@ def ground_height(points: np.ndarray) -> float | None:
     xyz, r = xyz[keep], r[keep]
     if len(xyz) < 100:
         return None
-    cell = np.floor(xyz[:, :2] / GROUND_CELL).astype(np.int64)
-    key = (cell[:, 0] + 2**20) * 2**21 + (cell[:, 1] + 2**20)
-    order = np.lexsort((xyz[:, 2], key))  # by cell, lowest return first
-    first = order[np.r_[True, key[order][1:] != key[order][:-1]]]
+    cell = np.floor(xyz[:, :2] / GROUND_CELL).astype(np.int64) + 2**15
+    key = cell[:, 0] * 2**16 + cell[:, 1]
+    # one sort by cell, then by height (millimetres below MOUNT_RANGE's top): each cell's lowest first
+    depth = np.round((xyz[:, 2] + MOUNT_RANGE[1]) * 1000.0).astype(np.int64)
+    order = np.argsort(key * 2**13 + depth)
+    sorted_key = key[order]
+    first = order[np.r_[True, sorted_key[1:] != sorted_key[:-1]]]
     lowest, reach = xyz[first, 2], r[first]
     if len(lowest) < 20:
         return None
