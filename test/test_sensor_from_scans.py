@@ -109,16 +109,22 @@ def test_cli_names_what_it_cannot_read(tmp_path, caplog):
         scanned_sensor(empty)
     with pytest.raises(ConfigError, match="sensor-scans"):
         scanned_sensor(empty, scans=0)
+    with pytest.raises(ConfigError, match="sensor-height"):
+        scanned_sensor(empty, height=12.0)
+
+
+def test_a_known_height_replaces_the_estimate(odd_scans):
+    assert scanned_sensor(odd_scans, scans=2, height=0.9).mount_height == 0.9
 
 
 def test_synth_simulates_the_scanned_sensor(odd_scans, tmp_path):
     """``pcc synth --sensor-from``: SynthCars with the sensor read from the scans (meta.json
-    records its table and height), and a preview re-simulated from meta.json."""
+    records its table and the height given), and a preview re-simulated from meta.json."""
     out = tmp_path / "mine"
     assert main(["synth", "--out", str(out), "--sequences", "1", "--frames", "2", "--seed", "3", "--sensor-from",
-                 str(odd_scans), "--sensor-scans", "2", "--preview"]) == 0
+                 str(odd_scans), "--sensor-scans", "2", "--sensor-height", "1.25", "--preview"]) == 0
     sensor = json.loads((out / "meta.json").read_text())["parameters"]["sensor"]
-    assert sensor["layout"] == "scanned" and sensor["mount_height"] == pytest.approx(1.3, abs=0.08)
+    assert sensor["layout"] == "scanned" and sensor["mount_height"] == 1.25  # as given
     assert len(sensor["elevation_table"]) >= 18 and (out / "preview.png").is_file()
     assert scanned_sensor(out, scans=2).preset is None
     assert main(["synth", "--out", str(tmp_path / "x"), "--sensor-from", str(odd_scans), "--sensor", "vlp16"]) != 0

@@ -103,6 +103,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "threshold for the weights of --weights-from (default: the shipped ones) set by cross-validation over its "
         "streets; no labelled frame needed. --out gets that threshold for every sensor")
     parser.add_argument("--sensor-scans", type=int, default=5, help="with --sensor-from: scans read (5)")
+    parser.add_argument("--sensor-height", type=float,
+                        help="with --sensor-from: the sensor's height above the ground in metres (default: read from "
+                        "the scans)")
     parser.add_argument("--rows-cache", type=Path,
                         help="keep each simulated set's measured rows here (keyed by the set and the measuring code): "
                         "rerunning on other weights then takes seconds")

@@ -236,7 +236,7 @@ def run_sensor_from_scans(args: argparse.Namespace) -> int:
     its simulated streets; ``--out`` holds that threshold for every sensor (no per-preset table)."""
     from pcc_ros.workflows.sensor_from_scans import scanned_sensor
 
-    scanned = scanned_sensor(args.sensor_from, args.sensor_scans)
+    scanned = scanned_sensor(args.sensor_from, args.sensor_scans, height=args.sensor_height)
     m = scanned.model
     print(scanned.describe())
     if scanned.preset:
@@ -260,7 +260,9 @@ def run_sensor_from_scans(args: argparse.Namespace) -> int:
           f"{fit['rows']['false']} false boxes removed ({root})")
     if args.out:
         header = (f"# calibrated: pcc calibrate-filter --sensor-from {args.sensor_from}"
-                  f" --sensor-scans {args.sensor_scans} --sim-root {args.sim_root} --sim-seed {args.sim_seed}"
+                  f" --sensor-scans {args.sensor_scans}"
+                  f"{'' if args.sensor_height is None else f' --sensor-height {args.sensor_height:g}'}"
+                  f" --sim-root {args.sim_root} --sim-seed {args.sim_seed}"
                   f" --sim-sequences {args.sim_sequences}"
                   f" --sim-frames {args.sim_frames} --threshold-folds {args.threshold_folds}"
                   f" --target-lost {args.target_lost:g} (weights of {source})\n"

@@ -28,6 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulate YOUR LiDAR: its beam model and height read from a few of its scans (a bag / "
                         "MCAP, KITTI, nuScenes or Argoverse 2 path), as pcc calibrate-filter --sensor-from does")
     parser.add_argument("--sensor-scans", type=int, default=5, help="with --sensor-from: scans read (5)")
+    parser.add_argument("--sensor-height", type=float,
+                        help="with --sensor-from: the sensor's height above the ground in metres (default: read from "
+                        "the scans)")
     parser.add_argument("--low-res", action="store_true", help="16-beam, 0.8 deg HDL-64E variant (quick looks, tests)")
     parser.add_argument(
         "--realistic-sensor", action="store_true",
@@ -72,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
         from pcc_ros.workflows.sensor_from_scans import scanned_sensor
 
-        scanned = scanned_sensor(args.sensor_from, args.sensor_scans)
+        scanned = scanned_sensor(args.sensor_from, args.sensor_scans, height=args.sensor_height)
         sensor = replace(scanned.sensor(), **extra)
         log.info("%s", scanned.describe())
     else:

@@ -31,6 +31,7 @@ from pcc_ros.geometry.beams import SensorModel
 from pcc_ros.pipeline.beam_model import (
     MATCH_DEG_RINGLESS,
     MATCH_MISSING,
+    MOUNT_RANGE,
     estimate_sensor,
     ground_height,
     matching_preset,
@@ -79,16 +80,20 @@ class ScannedSensor:
                 "ring_field": self.ring_field}
 
 
-def scanned_sensor(path: str | Path, scans: int = 5, sequence: str | None = None) -> ScannedSensor:
+def scanned_sensor(path: str | Path, scans: int = 5, sequence: str | None = None,
+                   height: float | None = None) -> ScannedSensor:
     """The sensor of the first ``scans`` scans of ``path``: each scan's beam model estimated alone,
     the most common one kept when at least half of the scans agree with it, its height the median
-    of the scans' ground heights.
+    of the scans' ground heights, or ``height`` (metres above the ground) where the user knows it
+    (scans that show little ground: a garage, a yard walled in).
 
     Raises :class:`ConfigError` when no scan shows a beam structure, the scans disagree (several
     sensors, or a merged cloud), or no ground is seen; :class:`DataError` when ``path`` holds no scan.
     """
     if scans < 1:
         raise ConfigError(f"--sensor-scans must be >= 1, got {scans}")
+    if height is not None and not MOUNT_RANGE[0] <= height <= MOUNT_RANGE[1]:
+        raise ConfigError(f"--sensor-height must be within {MOUNT_RANGE[0]}-{MOUNT_RANGE[1]} m, got {height}")
     models, heights, read, rings_seen = [], [], 0, False
     for sample in islice(open_frames(path, sequence), scans):
         read += 1
@@ -98,9 +103,9 @@ def scanned_sensor(path: str | Path, scans: int = 5, sequence: str | None = None
         model = estimate_sensor(points, rings)
         if model is not None:
             models.append(model)
-        height = ground_height(points)
-        if height is not None:
-            heights.append(height)
+        ground = ground_height(points) if height is None else height
+        if ground is not None:
+            heights.append(ground)
     if read == 0:
         raise DataError(f"{path}: no scans to read the sensor from")
     if not models:
@@ -114,7 +119,7 @@ def scanned_sensor(path: str | Path, scans: int = 5, sequence: str | None = None
                           "several sensors in one cloud, or scans from different sensors")
     if not heights:
         raise ConfigError(f"{path}: no ground seen around the sensor in {read} scan(s) (scans in the sensor's own "
-                          "frame?)")
+                          "frame? give its height with --sensor-height)")
     model = SensorModel(models[best].elevations_deg, models[best].azimuth_resolution_deg, "scanned")
     return ScannedSensor(model, float(np.median(heights)), read, agree[best], matching_preset(model), str(path),
                          rings_seen)
