@@ -137,9 +137,7 @@ def run_sensors(args: argparse.Namespace) -> int:
         write_text(args.out, text)
         log.info("wrote %s", args.out)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        write_json(args.json, {"sensors": list(sensors), "sim_seed": args.sim_seed, **result}, indent=1,
-                   nonfinite_null=True)
+        _write_report(args.json, {"sensors": list(sensors), "sim_seed": args.sim_seed, **result})
     return 0
 
 
@@ -203,27 +201,44 @@ def _weights_provenance(source) -> str:
         raise ConfigError(f"{source}: cannot read ({exc.strerror})") from exc
 
 
-def run_sensor_thresholds(args: argparse.Namespace) -> int:
-    """``--sensor-thresholds`` without ``--sim-sensors``: the weights of ``--weights-from`` (or the
-    base / shipped YAML) kept as they are, each layout's threshold added to ``--out``."""
+def _kept_weights(args: argparse.Namespace):
+    """The node YAML whose weights a threshold step keeps (``--weights-from``, else ``--base-config``,
+    else the shipped one) and its filter parameters; refused unless it holds the evidence rule."""
     source = args.weights_from or args.base_config or default_config()
     config = PipelineConfig.from_yaml(source).filter
     if config.rule != "evidence":
         raise ConfigError(f"{source}: rule {config.rule!r}; per-sensor thresholds are the evidence rule's")
+    return source, config
+
+
+def _write_kept_weights(args: argparse.Namespace, source, config, threshold: float, table: str, header: str) -> None:
+    """``--out``: ``source`` with its weights and their provenance kept, ``threshold`` as
+    ``reject_threshold`` and ``table`` as ``sensor_thresholds``, under ``header``."""
+    values: dict[str, Any] = {"sensor_thresholds": table, "mismatch_mean": config.mismatch_mean}
+    text = preset_yaml(source, config.w_bias, config.weights, threshold, values, _weights_provenance(source) + header)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_text(args.out, text)
+    log.info("wrote %s", args.out)
+
+
+def _write_report(path, payload: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, payload, indent=1, nonfinite_null=True)
+
+
+def run_sensor_thresholds(args: argparse.Namespace) -> int:
+    """``--sensor-thresholds`` without ``--sim-sensors``: the weights of ``--weights-from`` (or the
+    base / shipped YAML) kept as they are, each layout's threshold added to ``--out``."""
+    source, config = _kept_weights(args)
     pipeline = measuring_pipeline(args.filter_backend, shape=config.w_mismatch != 0)
     per_sensor = per_sensor_step(args, pipeline, config.w_bias, config.weights, config.mismatch_mean,
                                  config.reject_threshold)
     if args.out:
-        values: dict[str, Any] = {"sensor_thresholds": per_sensor["value"], "mismatch_mean": config.mismatch_mean}
-        text = preset_yaml(source, config.w_bias, config.weights, per_sensor["fallback"], values,
-                           _weights_provenance(source) + per_sensor_header(args, per_sensor))
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        write_text(args.out, text)
-        log.info("wrote %s", args.out)
+        _write_kept_weights(args, source, config, per_sensor["fallback"], per_sensor["value"],
+                            per_sensor_header(args, per_sensor))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        write_json(args.json, {"weights_from": str(source), "sim_seed": args.sim_seed, "sim_root": str(args.sim_root),
-                               "sensor_thresholds": per_sensor}, indent=1, nonfinite_null=True)
+        _write_report(args.json, {"weights_from": str(source), "sim_seed": args.sim_seed,
+                                  "sim_root": str(args.sim_root), "sensor_thresholds": per_sensor})
     return 0
 
 
@@ -242,10 +257,7 @@ def run_sensor_from_scans(args: argparse.Namespace) -> int:
     if scanned.preset:
         print(f"  it matches the preset {scanned.preset}: the shipped sensor_thresholds already hold a threshold for "
               "it; this run sets one from your sensor's own simulation")
-    source = args.weights_from or args.base_config or default_config()
-    config = PipelineConfig.from_yaml(source).filter
-    if config.rule != "evidence":
-        raise ConfigError(f"{source}: rule {config.rule!r}; a sensor's threshold is the evidence rule's")
+    source, config = _kept_weights(args)
     sensor = scanned.sensor()
     key = hashlib.sha256(json.dumps(sensor.to_dict(), sort_keys=True).encode()).hexdigest()[:10]
     name = f"scanned_{key}"
@@ -270,12 +282,8 @@ def run_sensor_from_scans(args: argparse.Namespace) -> int:
                   f" deg, step {m.azimuth_resolution_deg:.4f} deg, {scanned.mount_height:.2f} m high; threshold "
                   f"{fit['threshold']:.4f} (budget {fit['budget']:.2%}, worst held-out fold {fit['cv_worst_fold']:.2%})"
                   " for every sensor\n")
-        values: dict[str, Any] = {"sensor_thresholds": "", "mismatch_mean": config.mismatch_mean}
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        write_text(args.out, preset_yaml(source, config.w_bias, config.weights, fit["threshold"], values,
-                                         _weights_provenance(source) + header))
-        log.info("wrote %s", args.out)
+        _write_kept_weights(args, source, config, fit["threshold"], "", header)
     if args.json:
-        write_json(args.json, {"sensor": scanned.to_dict(), "weights_from": str(source), "sim_root": str(root),
-                               "threshold": fit}, indent=1, nonfinite_null=True)
+        _write_report(args.json, {"sensor": scanned.to_dict(), "weights_from": str(source), "sim_root": str(root),
+                                  "threshold": fit})
     return 0
