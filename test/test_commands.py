@@ -76,13 +76,20 @@ def test_convert_and_info_on_the_generated_bag(synth_bag, tmp_path, capsys):
     assert topics["/detections"]["boxes_per_message"]["min"] > 0 and info["storage"] == "mcap"
 
 
-def test_extract_writes_an_instance_cache(synthcars, tmp_path):
+def test_extract_writes_an_instance_cache(synthcars, tmp_path, monkeypatch):
     from pcc_ros.data.instances import InstanceCache
+    from pcc_ros.workflows.evaluate import attach_families, instances_from_cache
 
     out = tmp_path / "cache"
-    assert main(["extract", str(synthcars), "--synthcars", str(synthcars), "--out", str(out), "--no-progress"]) == 0
+    monkeypatch.chdir(synthcars.parent)  # relative paths, as in the docs' commands
+    assert main(["extract", synthcars.name, "--synthcars", synthcars.name, "--out", str(out), "--no-progress"]) == 0
     cache = InstanceCache.load(out)
     assert len(cache.indices("test")) > 0 and len(cache.indices("train")) > 0
+    # Evaluated from another directory, the cache still finds its SynthCars root's vehicle families.
+    monkeypatch.chdir(tmp_path)
+    instances, _ = instances_from_cache(cache, "test", None, 0)
+    attach_families(cache, instances)
+    assert instances and all(inst.meta.get("family") for inst in instances)
 
 
 def test_eval_detections_under_its_hyphenated_name(synthcars, tmp_path, capsys):

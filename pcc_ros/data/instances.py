@@ -350,7 +350,7 @@ def extract_instances(
     if index is None:
         index = {"format": FORMAT, "version": VERSION, "fingerprint": fp, "config": asdict(config),
                  "source": None if source is None else str(source),
-                 "synthcars": None if synth is None else str(synth.root),
+                 "synthcars": None if synth is None else str(synth.root.resolve()),  # read back from any directory
                  "shards": [], "frames_done": 0, "complete": False, "skipped": {}}
         files.write_json(index_path, index, indent=1, sort_keys=True)  # from now on the directory is recognisably ours
     # Shards written after the last recorded progress are orphans of an interrupted run.

@@ -180,6 +180,8 @@ def attach_families(cache: Any, instances: Sequence[EvalInstance]) -> None:
         return
     from pcc_ros.data.synthetic import load_families
 
+    if not Path(root).is_dir() and (Path(cache.root).parent / Path(root).name).is_dir():
+        root = Path(cache.root).parent / Path(root).name  # the cache and its SynthCars root moved together
     families = load_families(root)
     if not families:
         log.warning("%s: the SynthCars root this cache was extracted from has no meta.json (moved, or a relative "
