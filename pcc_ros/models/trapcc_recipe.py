@@ -10,7 +10,8 @@ the one-sided input -> detailed mean Euclidean distance. The paper writes square
 distances (Eq. 1, 2); with canonical units (~0.01-0.1) squares make the gradients of the
 fine-detail errors vanish, so the training uses the L1 forms (documented in
 ``docs/trapcc.md``); the evaluation reports the paper's squared L-G / L-I / L-S.
-Optional terms (off by default): the left / right symmetry of the detailed output and, with
+Optional terms (off by default): the left / right symmetry of the detailed output (its shape and,
+``balance_weight``, how its points are spread over the two flanks) and, with
 ``consistency``, the Chamfer between one car's detailed outputs in two neighbouring frames.
 """
 
@@ -30,7 +31,7 @@ from torch import nn
 from pcc_ros.errors import ConfigError, DataError
 from pcc_ros.metrics.balance import track_partners
 from pcc_ros.models.base import aspect_scales
-from pcc_ros.models.losses import masked_mean, nearest, reflect, symmetry_chamfer, weighted_chamfer
+from pcc_ros.models.losses import masked_mean, nearest, reflect, symmetry_chamfer, symmetry_density, weighted_chamfer
 from pcc_ros.models.recipe import CacheRecipe, CacheTrainOptions, TrainingKit, cache_origin, reflect_points
 from pcc_ros.models.trapcc import (
     GEOMETRY_FEATURES,
@@ -93,6 +94,10 @@ class TrainOptions(CacheTrainOptions):
     mirror_targets: bool = False
     symmetry_weight: float = 0.0
     mirror_halves: bool = False
+    #: weight of the lateral density symmetry of the detailed output (0: off;
+    #: :func:`~pcc_ros.models.losses.symmetry_density`, across ``mirror_plane``'s plane): the Chamfer
+    #: terms let the output draw both flanks with most of its points on one
+    balance_weight: float = 0.0
     #: weight of the temporal-consistency term (0: off): half of each batch is drawn as usual, the
     #: other half is the same cars in a neighbouring frame (:func:`~pcc_ros.metrics.balance.track_partners`;
     #: a detection without a track id pairs by its matched labelled track, the association a tracker
@@ -449,6 +454,10 @@ def trapcc_loss(net: nn.Module, batch: TrainBatch, options: TrainOptions) -> tup
         symmetry = symmetry_chamfer(sub, batch.reflection)
         loss = loss + options.symmetry_weight * symmetry
         stats["symmetry"] = float(symmetry.detach())
+    if options.balance_weight > 0:
+        balance = symmetry_density(detailed, batch.reflection)
+        loss = loss + options.balance_weight * balance
+        stats["balance"] = float(balance.detach())
     if options.consistency > 0 and batch.paired is not None:
         gap = track_pair_chamfer(sub, batch.paired, batch.to_car)
         loss = loss + options.consistency * gap
