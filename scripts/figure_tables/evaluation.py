@@ -103,6 +103,9 @@ def render_families(d: dict[str, Any]) -> list[str]:
     by_family = {backend: d["backends"][backend]["by_family"] for backend in names}
     first = next(iter(by_family.values()))
     families = sorted(first)
+    if not families:  # the run could not read the SynthCars root's families: every table would be empty
+        raise ValueError(f"{d['data']}: the stored run holds no per-family rows (pcc eval found no SynthCars "
+                         "meta.json for the cache); rerun it from the repository root")
     out = [f"{d['instances']} test instances of `{d['data']}`, reference `{d['reference']}`"
            + (", the generated points alone" if not d.get("keep_input") else "") + ".", ""]
     for key, title in FAMILY_TABLES:
