@@ -180,15 +180,13 @@ def attach_families(cache: Any, instances: Sequence[EvalInstance]) -> None:
         return
     from pcc_ros.data.synthetic import load_families
 
-    if not Path(root).is_dir() and (Path(cache.root).parent / Path(root).name).is_dir():
-        root = Path(cache.root).parent / Path(root).name  # the cache and its SynthCars root moved together
-    families = load_families(root)
+    beside = Path(cache.root).parent / Path(root).name  # where it is when the two moved together
+    families = load_families(root if Path(root).is_dir() or not beside.is_dir() else beside)
     if not families:
-        log.warning("%s: the SynthCars root this cache was extracted from has no meta.json (moved, or a relative "
-                    "path read from another directory?): no per-family tables", root)
+        log.warning("%s: the SynthCars root this cache was extracted from has no meta.json (moved?): no "
+                    "per-family tables", root)
     for inst in instances:
-        name = families.get((inst.meta["sequence"], str(cache.meta["track"][inst.meta["index"]])))
-        if name:
+        if name := families.get((inst.meta["sequence"], str(cache.meta["track"][inst.meta["index"]]))):
             inst.meta["family"] = name
 
 
