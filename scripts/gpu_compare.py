@@ -73,6 +73,9 @@ def compare(outdir: Path, backend: str) -> tuple[list[str], list[str]]:
             failed.append(f"{label}: consistency worse ({_change(old['consistency'], new['consistency'])})")
     for kind, label in (("gen", "SynthCars families, generated points"), ("pub", "SynthCars families, published")):
         old, new = (_load(outdir / f"fam_{kind}_{w}.json")["backends"][backend] for w in ("shipped", "new"))
+        if not old["by_family"] or old["by_family"].keys() != new["by_family"].keys():
+            raise SystemExit(f"{outdir}/fam_{kind}_*.json: the runs do not hold the same vehicle families "
+                             "(pcc eval found no SynthCars meta.json?): the per-family clauses cannot be judged")
         parts = {"all": (old["overall"]["cd_l1"], new["overall"]["cd_l1"])}
         parts.update({f: (old["by_family"][f]["cd_l1"], new["by_family"][f]["cd_l1"]) for f in old["by_family"]})
         lines.append(f"{label}, CD-L1: " + "; ".join(f"{f} {_change(*v)}" for f, v in parts.items()))
