@@ -14,7 +14,7 @@ vectorised over all boxes of a frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -109,6 +109,11 @@ class Boxes:
             self.track_id[index],
         )
 
+    def mirrored(self) -> Boxes:
+        """The boxes reflected across the sensor frame's x-z plane (``y -> -y``, ``yaw -> -yaw``)."""
+        return Boxes(self.center * [1.0, -1.0, 1.0], self.size.copy(), -self.yaw, self.label, self.score,
+                     self.track_id)
+
     def valid_mask(self) -> np.ndarray:
         """Boxes with finite pose and strictly positive, finite size."""
         finite = (
@@ -180,3 +185,16 @@ class Sample:
     def xyz(self) -> np.ndarray:
         """``(N, 3)`` view of the coordinates."""
         return self.points[:, :3]
+
+    def mirrored(self) -> Sample:
+        """The scan of the mirror world: points, boxes and pose reflected across the sensor frame's x-z
+        plane. A car seen from its left is then seen from its right, with the same returns; what
+        ``pcc eval --real-mirror`` scores, so a backend that favours one flank of the box frame is
+        not rewarded for the side the few real tracks happen to be seen from."""
+        flip = np.diag([1.0, -1.0, 1.0, 1.0])
+        points = self.points.copy()
+        points[:, 1] *= -1
+        return replace(self, points=points,
+                       detections=None if self.detections is None else self.detections.mirrored(),
+                       ground_truth=None if self.ground_truth is None else self.ground_truth.mirrored(),
+                       pose=None if self.pose is None else flip @ self.pose @ flip)

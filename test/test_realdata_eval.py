@@ -185,6 +185,32 @@ def test_matched_labels_are_the_detector_rows_observations_with_label_boxes(shar
         real_instances([src], matched_labels=True)
 
 
+def test_mirrored_frames_show_each_car_from_its_other_flank(shared_data):
+    """--real-mirror: the same observations, each crop and reference reflected in its box frame
+    (y -> -y), the sensor on the other side; with detections too (their matching is unchanged)."""
+    from scipy.spatial import cKDTree
+
+    from pcc_ros.data.sources import open_frames
+    from pcc_ros.workflows.evaluate_real import real_instances
+
+    src, det_dir = shared_data / "kitti_tracking", shared_data / "kitti_tracking/detections/pointrcnn"
+    for kwargs in ({}, {"boxes": "detections", "detections_dir": det_dir}):
+        plain, _ = real_instances([src], **kwargs)
+        mirrored, _ = real_instances([src], mirror=True, **kwargs)
+        assert [i["key"] for i in mirrored] == [i["key"] for i in plain] and len(plain) > 10
+        for a, b in zip(plain, mirrored):  # the same points (in another order)
+            for cloud in ("partial", "reference"):
+                assert len(b[cloud]) == len(a[cloud])
+                assert cKDTree(a[cloud] * [1, -1, 1]).query(b[cloud])[0].max() < 1e-5
+            np.testing.assert_allclose(b["origin"], np.asarray(a["origin"]) * [1, -1, 1], atol=1e-5)
+    # both real tracks are seen from their left (+y); mirrored, from their right
+    assert all(i["origin"][1] > 0 for i in plain) and all(i["origin"][1] < 0 for i in mirrored)
+    frame = next(iter(open_frames(src)))
+    twice = frame.mirrored().mirrored()
+    np.testing.assert_array_equal(twice.points, frame.points)
+    assert twice.ground_truth.equals(frame.ground_truth)
+
+
 def test_a_named_backend_that_does_not_load_is_an_error_not_a_skip(tmp_path, monkeypatch):
     """`--backends pointpncnet --checkpoint pointpncnet=PATH` with a missing or damaged PATH fails
     naming it (it used to print empty tables and exit 0); only the default 'every available

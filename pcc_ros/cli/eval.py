@@ -45,6 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "which cars it finds)",
     )
     parser.add_argument(
+        "--real-mirror", action="store_true",
+        help="--real: reflect every frame across the sensor's x-z plane first (points, labels, detections), so "
+        "each car is seen from its other flank: a backend that favours one side of the box frame is not rewarded "
+        "for the side the tracks happen to be seen from",
+    )
+    parser.add_argument(
         "--real-generated-only", action="store_true",
         help="--real: score learned backends' generated points only (default: the published, partial-preserving "
         "output, plus a NAME/generated row)",
@@ -135,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
             decode_density=args.decode_density, device=args.device,
             batch_size=args.batch_size, json=args.json, plot=args.plot, plot_backends=args.plot_backends,
             examples=args.examples, table=args.real_table, track_memory=args.real_track_memory,
+            mirror=args.real_mirror,
         ))
     if args.data is None:
         raise ConfigError("--data is required (an instance cache), unless --real")

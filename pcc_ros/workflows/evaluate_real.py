@@ -73,7 +73,7 @@ def node_decode_density() -> int:
 def real_instances(
     sources: list[Path], min_track_frames: int = 2, min_points: int | None = None, voxel_m: float = 0.03,
     classes: tuple[str, ...] = ("Car", "Van"), boxes: str = "ground_truth", detections_dir: Path | None = None,
-    match_iou: float = 0.5, matched_labels: bool = False,
+    match_iou: float = 0.5, matched_labels: bool = False, mirror: bool = False,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Evaluation instances of the labelled real ``sources`` and a report of what was skipped.
 
@@ -91,6 +91,9 @@ def real_instances(
       ``matched_labels``: crop each matched detection's *labelled* box instead (the same
       observations as the detector rows, with the labels' boxes; the frame's scene context is then
       the matched labels): what the detector's box errors cost, apart from which cars it finds.
+
+    ``mirror``: every frame reflected across the sensor's x-z plane first (:meth:`Sample.mirrored`):
+    the same cars seen from their other flank.
 
     Each instance: ``key``, ``partial`` (canonical), ``reference`` (canonical, same frame),
     ``size`` (box l, w, h), ``distance``, ``track_frames``, ``label``, ``frame_key``, ``center``, ``yaw``,
@@ -111,6 +114,7 @@ def real_instances(
                             "nuScenes or Argoverse 2 roots)", hint=download_hint())
         skipped: Counter = Counter()
         frames = list(open_frames(source, detections_dir=detections_dir) if detections_dir else open_frames(source))
+        frames = [frame.mirrored() for frame in frames] if mirror else frames
         tracks = collect_tracks(frames, classes=classes, skipped=skipped)
         references = {}
         for key, track in tracks.items():  # loop over tracks; points are vectorised inside
@@ -487,6 +491,7 @@ class RealEvalConfig:
     plot_backends: str | None = None  # comma-separated completion columns of the PNG (None: every backend)
     examples: int = 4
     track_memory: str | None = None  # ids | nearest: complete each car from its accumulated crops (causal)
+    mirror: bool = False  # every frame reflected across the sensor's x-z plane: the cars seen from their other flank
 
 
 def run_real(opts: RealEvalConfig) -> int:
@@ -510,7 +515,8 @@ def run_real(opts: RealEvalConfig) -> int:
     detections = Path(opts.detections) if opts.detections else None
     boxes = "detections" if detections is not None else "ground_truth"
     instances, report = real_instances(sources, max(opts.min_track_frames, 2), opts.min_points, opts.voxel,
-                                       boxes=boxes, detections_dir=detections, matched_labels=opts.matched_labels)
+                                       boxes=boxes, detections_dir=detections, matched_labels=opts.matched_labels,
+                                       mirror=opts.mirror)
     if not instances:
         raise DataError(f"no real instance with a multi-view reference in {', '.join(map(str, sources))}")
     log.info("evaluating %d real instance(s) of %d track(s)", len(instances),
@@ -541,7 +547,7 @@ def run_real(opts: RealEvalConfig) -> int:
               f"the input spacing (bar 2x: {met[v['fidelity_ok']]})")
     margin, ground_margin, _ = node_crop()
     out = {"mode": "real", "sources": report, "voxel_m": opts.voxel, "instances": len(instances),
-           "boxes": "labels of matched detections" if opts.matched_labels else boxes,
+           "boxes": "labels of matched detections" if opts.matched_labels else boxes, "mirror": opts.mirror,
            "input_crop": {"box_margin": margin, "ground_margin": ground_margin},
            "backends": results, "criteria": verdict, "summary": summary}
     if accumulated is not None:
