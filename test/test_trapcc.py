@@ -304,6 +304,38 @@ def test_balance_term_sees_where_the_points_are(train_cache, tmp_path):
     assert stats["balance"] > 0
 
 
+def test_flipped_batches_are_the_mirror_world(train_cache, tmp_path):
+    """flip_prob: a flipped batch is the same draw with every input, target and neighbour reflected
+    across the box's x-z plane, the neighbours' geometry as neighbour_geometry gives it in the
+    mirror world."""
+    from pcc_ros.errors import ConfigError
+    from pcc_ros.models.trapcc_recipe import GEOMETRY_MIRROR
+
+    plain, flipped = _recipe(tmp_path), _recipe(tmp_path, flip_prob=1.0)
+    data = plain.training_data(train_cache, "train")
+    cfg = plain.build_completer("cpu").config
+    chosen = np.arange(min(6, len(data)))
+    skip = np.random.default_rng(3)
+    skip.random()  # the flipped batch draws its coin first; the plain one starts after it
+    a, b = plain.make_batch(data, chosen, cfg, skip), flipped.make_batch(data, chosen, cfg, np.random.default_rng(3))
+    mirror = torch.tensor([1.0, -1.0, 1.0])
+    for name in ("points", "inputs", "whole", "half"):
+        torch.testing.assert_close(getattr(b, name), getattr(a, name) * mirror)
+    torch.testing.assert_close(b.neighbours.points, a.neighbours.points * mirror)
+    assert b.neighbours.mask.any()
+    torch.testing.assert_close(b.neighbours.geometry, a.neighbours.geometry * torch.from_numpy(GEOMETRY_MIRROR))
+    # the constant is the mirror world's geometry
+    rng = np.random.default_rng(0)
+    center, nb, nb_yaw, origin = rng.normal(size=3), rng.normal(size=(3, 3)) * 5, rng.normal(size=3), rng.normal(size=3)
+    yaw = 0.3
+    m = np.array([1.0, -1.0, 1.0])
+    np.testing.assert_allclose(neighbour_geometry(center * m, -yaw, 4.2, nb * m, -nb_yaw, 20.0, origin * m),
+                               neighbour_geometry(center, yaw, 4.2, nb, nb_yaw, 20.0, origin) * GEOMETRY_MIRROR,
+                               atol=1e-6)
+    with pytest.raises(ConfigError, match="flip_prob"):
+        _recipe(tmp_path, flip_prob=1.0, mirror_plane="label").make_batch(data, chosen, cfg, np.random.default_rng(0))
+
+
 def test_real_share_oversamples_the_real_cache(train_cache, tmp_path):
     recipe = _recipe(tmp_path, real_data=[str(train_cache.root)], real_share=0.9)
     data = recipe.training_data(train_cache, "train")

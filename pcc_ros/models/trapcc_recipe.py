@@ -46,6 +46,11 @@ from pcc_ros.models.trapcc import (
 
 log = logging.getLogger(__name__)
 
+#: ``y -> -y`` for points, and for the neighbour geometry of :func:`neighbour_geometry` (its
+#: lateral offset and the sine of the relative yaw change sign; distance and the cosines do not).
+MIRROR_Y = np.array([1.0, -1.0, 1.0], dtype=np.float32)
+GEOMETRY_MIRROR = np.array([1.0, -1.0, 1.0, -1.0, 1.0, 1.0, 1.0], dtype=np.float32)
+
 
 @dataclass
 class TrainOptions(CacheTrainOptions):
@@ -98,6 +103,10 @@ class TrainOptions(CacheTrainOptions):
     #: :func:`~pcc_ros.models.losses.symmetry_density`, across ``mirror_plane``'s plane): the Chamfer
     #: terms let the output draw both flanks with most of its points on one
     balance_weight: float = 0.0
+    #: probability that a batch is trained in the mirror world (every input, target and neighbour
+    #: reflected across the box's x-z plane; ``mirror_plane="box"`` only): the network then has no
+    #: reason to prefer one side of the box frame (the shipped weights put their points on +y)
+    flip_prob: float = 0.0
     #: weight of the temporal-consistency term (0: off): half of each batch is drawn as usual, the
     #: other half is the same cars in a neighbouring frame (:func:`~pcc_ros.metrics.balance.track_partners`;
     #: a detection without a track id pairs by its matched labelled track, the association a tracker
@@ -301,6 +310,9 @@ class TraPCCRecipe(CacheRecipe):
     def make_batch(self, data: TrainData, chosen: np.ndarray, cfg: dict[str, Any],
                    rng: np.random.Generator) -> TrainBatch:
         o = self.options
+        flip = o.flip_prob > 0 and rng.random() < o.flip_prob  # drawn first: the rest of the batch is the same
+        if flip and o.mirror_plane != "box":
+            raise ConfigError("trapcc: flip_prob reflects across the box's plane; use it with mirror_plane='box'")
         cap = min(int(cfg["max_input_points"]), int(o.input_points or cfg["max_input_points"]))
         inputs = []
         for i in chosen:  # instances of a batch (tens); per-point work vectorised
@@ -311,6 +323,8 @@ class TraPCCRecipe(CacheRecipe):
                 keep = max(4, int(len(c) * rng.uniform(0.2, 1.0)))
                 c = c[rng.choice(len(c), keep, replace=False)]
             inputs.append(np.asarray(c, dtype=np.float32))
+        if flip:
+            inputs = [c * MIRROR_Y for c in inputs]
         b = len(chosen)
         targets = [c if len(c) <= o.input_loss_points else c[rng.choice(len(c), o.input_loss_points, replace=False)]
                    for c in inputs]
@@ -331,6 +345,8 @@ class TraPCCRecipe(CacheRecipe):
             hf_mask[turned], hb_mask[turned] = hb_mask[turned], hf_mask[turned]
         else:
             place = None
+        if flip:
+            whole, hf, hb = whole * MIRROR_Y, hf * MIRROR_Y, hb * MIRROR_Y
         neighbours = None
         if cfg["scene_graph"] != "none":
             k = int(cfg["k_neighbours"])
@@ -342,8 +358,11 @@ class TraPCCRecipe(CacheRecipe):
                 for j in ids[ids >= 0]:
                     c = data.nb_clouds[int(j)]
                     cl.append(c if len(c) <= nb_cap else c[rng.choice(len(c), nb_cap, replace=False)])
+                geometry = data.geometry[int(i)][: len(cl)]
+                if flip:  # each neighbour in its own mirrored frame; its place and heading mirrored too
+                    cl, geometry = [c * MIRROR_Y for c in cl], geometry * GEOMETRY_MIRROR
                 nb_clouds.append(cl)
-                nb_geo.append(data.geometry[int(i)][: len(cl)])
+                nb_geo.append(geometry)
             neighbours = pack_neighbours(nb_clouds, nb_geo, k)
         points, segment = pack_inputs(inputs)
         return TrainBatch(points, segment, b, neighbours, torch.from_numpy(inp), torch.from_numpy(inp_mask),
