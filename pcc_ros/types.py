@@ -193,7 +193,7 @@ class Sample:
         not rewarded for the side the few real tracks happen to be seen from."""
         flip = np.diag([1.0, -1.0, 1.0, 1.0])
         points = self.points.copy()
-        points[:, 1] *= -1
+        points[:, 1] *= -1  # what geometry.canonical.mirror_y does; types sits below geometry
         return replace(self, points=points,
                        detections=None if self.detections is None else self.detections.mirrored(),
                        ground_truth=None if self.ground_truth is None else self.ground_truth.mirrored(),

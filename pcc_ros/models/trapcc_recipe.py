@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from pcc_ros.errors import ConfigError, DataError
+from pcc_ros.geometry.canonical import mirror_y
 from pcc_ros.metrics.balance import track_partners
 from pcc_ros.models.base import aspect_scales
 from pcc_ros.models.losses import masked_mean, nearest, reflect, symmetry_chamfer, symmetry_density, weighted_chamfer
@@ -46,9 +47,8 @@ from pcc_ros.models.trapcc import (
 
 log = logging.getLogger(__name__)
 
-#: ``y -> -y`` for points, and for the neighbour geometry of :func:`neighbour_geometry` (its
-#: lateral offset and the sine of the relative yaw change sign; distance and the cosines do not).
-MIRROR_Y = np.array([1.0, -1.0, 1.0], dtype=np.float32)
+#: ``y -> -y`` for the neighbour geometry of :func:`neighbour_geometry`: its lateral offset and the
+#: sine of the relative yaw change sign; distance and the cosines do not.
 GEOMETRY_MIRROR = np.array([1.0, -1.0, 1.0, -1.0, 1.0, 1.0, 1.0], dtype=np.float32)
 
 
@@ -324,7 +324,7 @@ class TraPCCRecipe(CacheRecipe):
                 c = c[rng.choice(len(c), keep, replace=False)]
             inputs.append(np.asarray(c, dtype=np.float32))
         if flip:
-            inputs = [c * MIRROR_Y for c in inputs]
+            inputs = [mirror_y(c) for c in inputs]
         b = len(chosen)
         targets = [c if len(c) <= o.input_loss_points else c[rng.choice(len(c), o.input_loss_points, replace=False)]
                    for c in inputs]
@@ -346,7 +346,7 @@ class TraPCCRecipe(CacheRecipe):
         else:
             place = None
         if flip:
-            whole, hf, hb = whole * MIRROR_Y, hf * MIRROR_Y, hb * MIRROR_Y
+            whole, hf, hb = mirror_y(whole), mirror_y(hf), mirror_y(hb)
         neighbours = None
         if cfg["scene_graph"] != "none":
             k = int(cfg["k_neighbours"])
@@ -360,7 +360,7 @@ class TraPCCRecipe(CacheRecipe):
                     cl.append(c if len(c) <= nb_cap else c[rng.choice(len(c), nb_cap, replace=False)])
                 geometry = data.geometry[int(i)][: len(cl)]
                 if flip:  # each neighbour in its own mirrored frame; its place and heading mirrored too
-                    cl, geometry = [c * MIRROR_Y for c in cl], geometry * GEOMETRY_MIRROR
+                    cl, geometry = [mirror_y(c) for c in cl], geometry * GEOMETRY_MIRROR
                 nb_clouds.append(cl)
                 nb_geo.append(geometry)
             neighbours = pack_neighbours(nb_clouds, nb_geo, k)
