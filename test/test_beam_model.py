@@ -206,3 +206,30 @@ def test_pcc_synth_sensor_is_stored_and_read_back(tmp_path, caplog):
     assert found.azimuth_resolution_deg == pytest.approx(0.2, rel=0.01)
     rc, text = run_cli(["synth", "--out", tmp_path / "x", "--frames", "1", "--sensor", "vlp16", "--low-res"], caplog)
     assert_named_failure(rc, text, "--low-res is a variant of the hdl64 layout", "drop it", output=tmp_path / "x")
+
+
+def test_an_off_height_mount_is_warned_about_whenever_it_is_read(caplog):
+    """The warning that the preset's threshold was set for a car-roof mount comes when the height is
+    first read off, also at a later estimate that does not change the threshold, once per time."""
+    from pcc_ros.pipeline.config import PipelineConfig
+    from pcc_ros.pipeline.core import Pipeline
+
+    pipeline = Pipeline(PipelineConfig(backend="input"))  # the shipped filter file's sensor_thresholds
+    model = pipeline.beam_model
+    model.model, model.preset, model.mount_height = sensor_preset("vlp16"), "vlp16", 1.75
+
+    def warnings() -> int:
+        return sum("above the ground" in r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+
+    with caplog.at_level(logging.WARNING, logger="pcc_ros"):
+        pipeline.reject_threshold()
+        assert warnings() == 0
+        model.mount_height = 0.8  # a later estimate: the threshold in force stays the vlp16 entry
+        pipeline.reject_threshold()
+        pipeline.reject_threshold()
+        assert warnings() == 1
+        model.mount_height = 1.7
+        pipeline.reject_threshold()
+        model.mount_height = 2.5
+        pipeline.reject_threshold()
+        assert warnings() == 2

@@ -171,6 +171,9 @@ class Pipeline:
             self.filter_completer = load_completer(name, None, device=config.device)
         #: the (preset, reject threshold) last in force, logged when it changes (reject_threshold)
         self.threshold_in_force: tuple[str | None, float] | None = None
+        #: whether the sensor's height was last read off the presets' (warned once per time it goes off,
+        #: so a height read off only at a later estimate is warned about too)
+        self._off_height = False
         #: measure every filter term (the evaluation and calibration tools); False: the weighted ones
         self.all_terms = False
         #: each car's recent crops in its box frame (track_memory; None: every frame alone)
@@ -182,14 +185,16 @@ class Pipeline:
         or before the first estimate). Logged once, and again when it changes."""
         preset = self.beam_model.preset
         threshold = self.config.filter.threshold_for(preset)
+        table = parse_sensor_thresholds(self.config.filter.sensor_thresholds)
+        off = preset in table and self.beam_model.off_height()
+        if off and not self._off_height:
+            log.warning("filter: the sensor sits %.2f m above the ground; the %s entry of sensor_thresholds was "
+                        "set for one %.2f m high and loses more cars on such a mount: set a threshold for it with "
+                        "pcc calibrate-filter --sensor-from <a bag of its scans> (docs/filter.md)",
+                        self.beam_model.mount_height, preset, CALIBRATION_HEIGHT)
+        self._off_height = off
         if (preset, threshold) != self.threshold_in_force:
             self.threshold_in_force = (preset, threshold)
-            table = parse_sensor_thresholds(self.config.filter.sensor_thresholds)
-            if preset in table and self.beam_model.off_height():
-                log.warning("filter: the sensor sits %.2f m above the ground; the %s entry of sensor_thresholds was "
-                            "set for one %.2f m high and loses more cars on such a mount: set a threshold for it with "
-                            "pcc calibrate-filter --sensor-from <a bag of its scans> (docs/filter.md)",
-                            self.beam_model.mount_height, preset, CALIBRATION_HEIGHT)
             if preset in table:
                 source = f"the {preset} entry of sensor_thresholds"
             elif not table:
