@@ -208,6 +208,19 @@ def test_pcc_synth_sensor_is_stored_and_read_back(tmp_path, caplog):
     assert_named_failure(rc, text, "--low-res is a variant of the hdl64 layout", "drop it", output=tmp_path / "x")
 
 
+def test_retries_back_off_on_a_scanner_without_beams():
+    """A scan that never shows beam structure (a non-repetitive scanner) is retried after retry_every
+    frames, then twice as long each time, up to recheck_every: not an estimate's cost every few frames."""
+    noise = np.random.default_rng(1).uniform(-30, 30, (5000, 3))
+    model = BeamModel("auto", recheck_every=16, retry_every=2)
+    tried = []
+    for frame in range(60):
+        if model.due():
+            tried.append(frame)
+        model.for_frame(noise)
+    assert tried == [0, 2, 6, 14, 30, 46] and model.estimates == 6 and model.model is None
+
+
 def test_an_off_height_mount_is_warned_about_whenever_it_is_read(caplog):
     """The warning that the preset's threshold was set for a car-roof mount comes when the height is
     first read off, also at a later estimate that does not change the threshold, once per time."""

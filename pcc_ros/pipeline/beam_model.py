@@ -411,6 +411,7 @@ class BeamModel:
         #: None: a named preset, or no ground seen yet)
         self.mount_height: float | None = None
         self._warned_fallback = False
+        self._failures = 0  # estimates in a row that found no beam structure before the first success
 
     @property
     def auto(self) -> bool:
@@ -429,8 +430,10 @@ class BeamModel:
             if not self._warned_fallback:
                 self._warned_fallback = True
                 log.warning("sensor auto: no beam structure in the first frame (%d points); the filter assumes the "
-                            "%s beam model until an estimate succeeds (retried every %d frames)", len(points),
-                            FALLBACK, self.retry_every)
+                            "%s beam model until an estimate succeeds (retried after %d frames, then less often). A "
+                            "scanner without beam rings (solid-state, non-repetitive) never shows one: set sensor to "
+                            "the preset nearest its returns per degree (docs/filter.md)", len(points), FALLBACK,
+                            self.retry_every)
             return SENSOR_PRESETS[FALLBACK]
         return self.model
 
@@ -447,7 +450,12 @@ class BeamModel:
                 self.mount_height = height
         found = estimate_sensor(points, rings) if len(points) else None
         if found is None:
-            self._next = self.frames + (self.retry_every if self.model is None else self.recheck_every)
+            # Before a first success, retries back off (retry_every, twice that, ... up to recheck_every):
+            # a scanner without rings (solid-state, non-repetitive) never shows beams, and each try costs
+            # an estimate's tens of milliseconds.
+            self._failures += 1
+            wait = min(self.retry_every * 2 ** (self._failures - 1), self.recheck_every)
+            self._next = self.frames + (wait if self.model is None else self.recheck_every)
             return
         self._next = self.frames + self.recheck_every
         if self.model is None:
