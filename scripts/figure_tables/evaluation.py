@@ -168,6 +168,7 @@ FIGURES: dict[str, Figure] = {
     "eval-real-bands": one("eval-real", render_bands),
     "eval-real-summary": one("eval-real-summary", render_summary),
     "eval-real-track-memory": one("eval-real-track-memory", render_summary),
+    "eval-real-mirror": one("eval-real-mirror", render_summary),
     "eval-real-detections": one("eval-real-detections", render_bands_with_bars),
     "eval-real-matched-labels": one("eval-real-matched-labels", render_bands),
     "eval-families": one("eval-families", render_families),
