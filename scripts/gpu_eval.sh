@@ -8,14 +8,17 @@
 #   3. SynthCars families, held-out seed 21 (true shapes): generated points and the published
 #      output (crop + generated, decode_density 2), per family;
 #   4. `pcc demo` on SynthCars seeds (the node on the simulated detector's boxes vs true shapes);
-#   5. scripts/gpu_compare.py: old vs new per backend, and whether the ship gate holds.
+#   5. scripts/gpu_compare.py: old vs new per backend, and whether the ship gate holds;
+#   6. steps 1-2 on the mirrored frames (`--real-mirror`: both real tracks are seen from their left;
+#      mirrored, from their right), reported by gpu_compare.py beside the gate, not part of it
+#      (run before step 5 to see them: STEPS="1 2 3 4 6 5").
 #
 #     bash scripts/gpu_eval.sh RETURNED OUTDIR [FAMILY_CACHE]
 #
 # RETURNED: the folder holding {pointpncnet,trapcc,aml}.{safetensors,json}; a missing one is
 # skipped. FAMILY_CACHE (default OUTDIR/fam_cache) is built once if absent. The shipped weights'
 # runs are reused when OUTDIR already holds them (their .json / demo log). Environment: PY,
-# SEEDS (demo seeds, default "2026 2027 2028"; empty: no demo), STEPS (default "1 2 3 4 5"), WHICH,
+# SEEDS (demo seeds, default "2026 2027 2028"; empty: no demo), STEPS (default "1 2 3 4 6 5"), WHICH,
 # BACKENDS (default input,mirror,pointpncnet,trapcc,aml; e.g. input,mirror,pointpncnet scores one
 # learned backend, its shipped runs reused from OUTDIR).
 set -u
@@ -24,7 +27,7 @@ OUTD=${2:?usage: gpu_eval.sh RETURNED OUTDIR [FAMILY_CACHE]}
 FAM=${3:-$OUTD/fam_cache}
 PY=${PY:-python3}
 SEEDS=${SEEDS-2026 2027 2028}
-STEPS=${STEPS:-1 2 3 4 5}
+STEPS=${STEPS:-1 2 3 4 6 5}
 WHICH=${WHICH:-shipped new}  # "shipped": precompute the reference runs alone
 P="$PY -m pcc_ros.cli"
 mkdir -p "$OUTD"
@@ -100,6 +103,19 @@ if step 4; then
         echo "== demo seed $s $b $w (exit $?): $(grep -E "^$b " "$OUTD/demo_${s}_${b}_$w.log" | head -1)"
       done
     done
+  done
+fi
+if step 6; then
+  for w in $WHICH; do
+    extra=(); [ $w = new ] && extra=("${CK[@]}")
+    done_before $w "$OUTD/real_mirror_$w.json" || $P eval "${REAL[@]}" "${extra[@]}" --real-mirror \
+      --real-table "$OUTD/real_mirror_$w.md" --json "$OUTD/real_mirror_$w.json" > "$OUTD/real_mirror_$w.log" 2>&1
+    echo "== real, labelled boxes, mirrored frames, $w (exit $?)"; cat "$OUTD/real_mirror_$w.md"
+    done_before $w "$OUTD/real_det_mirror_$w.json" || $P eval --real --real-sources ../shared/data/kitti_tracking \
+      --backends "$BACKENDS" "${extra[@]}" --real-detections ../shared/data/kitti_tracking/detections/pointrcnn \
+      --real-mirror --real-table "$OUTD/real_det_mirror_$w.md" --json "$OUTD/real_det_mirror_$w.json" \
+      > "$OUTD/real_det_mirror_$w.log" 2>&1
+    echo "== real, PointRCNN boxes, mirrored frames, $w (exit $?)"; cat "$OUTD/real_det_mirror_$w.md"
   done
 fi
 if step 5 && [[ " $WHICH " == *" new "* ]]; then
