@@ -44,6 +44,8 @@ BACKENDS=${BACKENDS:-input,mirror,pointpncnet,trapcc,aml}
 LEARNED=()
 for b in pointpncnet trapcc aml; do [[ ",$BACKENDS," == *",$b,"* ]] && LEARNED+=("$b"); done
 REAL=(--real --real-sources ../shared/data/kitti_tracking,../shared/data/nuscenes_mini --backends "$BACKENDS")
+DET=(--real --real-sources ../shared/data/kitti_tracking --backends "$BACKENDS"
+     --real-detections ../shared/data/kitti_tracking/detections/pointrcnn)
 PLOT=$(for b in "${LEARNED[@]}"; do printf '%s,%s/generated,' "$b" "$b"; done)
 PLOT=${PLOT%,}
 step() { [[ " $STEPS " == *" $1 "* ]]; }
@@ -60,13 +62,11 @@ fi
 if step 2; then
   for w in $WHICH; do
     extra=(); [ $w = new ] && extra=("${CK[@]}")
-    done_before $w "$OUTD/real_det_$w.json" || $P eval --real --real-sources ../shared/data/kitti_tracking --backends "$BACKENDS" "${extra[@]}" \
-      --real-detections ../shared/data/kitti_tracking/detections/pointrcnn --real-table "$OUTD/real_det_$w.md" \
+    done_before $w "$OUTD/real_det_$w.json" || $P eval "${DET[@]}" "${extra[@]}" --real-table "$OUTD/real_det_$w.md" \
       --json "$OUTD/real_det_$w.json" > "$OUTD/real_det_$w.log" 2>&1
     echo "== real, PointRCNN boxes, $w (exit $?)"; cat "$OUTD/real_det_$w.md"
     [ $w = shipped ] && continue  # shipped: docs/results/eval-real-matched-labels.json
-    $P eval --real --real-sources ../shared/data/kitti_tracking --backends "$BACKENDS" "${extra[@]}" \
-      --real-detections ../shared/data/kitti_tracking/detections/pointrcnn --real-matched-labels \
+    $P eval "${DET[@]}" "${extra[@]}" --real-matched-labels \
       --real-table "$OUTD/real_pair_$w.md" --json "$OUTD/real_pair_$w.json" > "$OUTD/real_pair_$w.log" 2>&1
     echo "== real, PointRCNN's matches with the labels' boxes, $w (exit $?)"; cat "$OUTD/real_pair_$w.md"
   done
@@ -111,10 +111,8 @@ if step 6; then
     done_before $w "$OUTD/real_mirror_$w.json" || $P eval "${REAL[@]}" "${extra[@]}" --real-mirror \
       --real-table "$OUTD/real_mirror_$w.md" --json "$OUTD/real_mirror_$w.json" > "$OUTD/real_mirror_$w.log" 2>&1
     echo "== real, labelled boxes, mirrored frames, $w (exit $?)"; cat "$OUTD/real_mirror_$w.md"
-    done_before $w "$OUTD/real_det_mirror_$w.json" || $P eval --real --real-sources ../shared/data/kitti_tracking \
-      --backends "$BACKENDS" "${extra[@]}" --real-detections ../shared/data/kitti_tracking/detections/pointrcnn \
-      --real-mirror --real-table "$OUTD/real_det_mirror_$w.md" --json "$OUTD/real_det_mirror_$w.json" \
-      > "$OUTD/real_det_mirror_$w.log" 2>&1
+    done_before $w "$OUTD/real_det_mirror_$w.json" || $P eval "${DET[@]}" "${extra[@]}" --real-mirror \
+      --real-table "$OUTD/real_det_mirror_$w.md" --json "$OUTD/real_det_mirror_$w.json" > "$OUTD/real_det_mirror_$w.log" 2>&1
     echo "== real, PointRCNN boxes, mirrored frames, $w (exit $?)"; cat "$OUTD/real_det_mirror_$w.md"
   done
 fi
