@@ -115,6 +115,11 @@ class TrainOptions(CacheTrainOptions):
     #: targets fill the far flank from each frame's own retrieval, which alone makes it flicker.
     consistency: float = 0.0
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.flip_prob > 0 and self.mirror_plane != "box":  # at set-up, not at the first flipped batch
+            raise ConfigError("trapcc: flip_prob reflects across the box's plane; use it with mirror_plane='box'")
+
 
 @dataclass
 class TrainData:
@@ -311,8 +316,6 @@ class TraPCCRecipe(CacheRecipe):
                    rng: np.random.Generator) -> TrainBatch:
         o = self.options
         flip = o.flip_prob > 0 and rng.random() < o.flip_prob  # drawn first: the rest of the batch is the same
-        if flip and o.mirror_plane != "box":
-            raise ConfigError("trapcc: flip_prob reflects across the box's plane; use it with mirror_plane='box'")
         cap = min(int(cfg["max_input_points"]), int(o.input_points or cfg["max_input_points"]))
         inputs = []
         for i in chosen:  # instances of a batch (tens); per-point work vectorised
