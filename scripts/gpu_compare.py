@@ -45,6 +45,12 @@ def _summary(outdir: Path, run: str, which: str) -> dict[str, dict[str, float]]:
     return {r["backend"]: r for r in _load(outdir / f"{run}_{which}.json")["summary"]}
 
 
+def _orientation_mean(outdir: Path, run: str, which: str, backend: str) -> dict[str, float]:
+    """:data:`MIRROR_KEYS` of ``backend`` averaged over a real run and its mirrored run."""
+    frames, mirrored = (_summary(outdir, name, which)[backend] for name in (run, f"{run}_mirror"))
+    return {k: (frames[k] + mirrored[k]) / 2 for k in MIRROR_KEYS}
+
+
 def _demo_cd(outdir: Path, backend: str, which: str) -> dict[int, float]:
     out = {}
     for path in sorted(outdir.glob(f"demo_*_{backend}_{which}/demo.json")):
@@ -88,8 +94,7 @@ def compare(outdir: Path, backend: str) -> tuple[list[str], list[str]]:
         failed += [f"{label}: CD-L1 {f} {_change(*v)}" for f, v in parts.items() if v[1] > v[0] * (1 + SYNTH_SLACK)]
     for run, label in (("real", "labelled boxes"), ("real_det", "PointRCNN boxes")):  # beside the gate
         if all((outdir / f"{run}_mirror_{w}.json").is_file() for w in ("shipped", "new")):
-            old, new = ({k: (_summary(outdir, run, w)[backend][k] + _summary(outdir, f"{run}_mirror", w)[backend][k])
-                         / 2 for k in MIRROR_KEYS} for w in ("shipped", "new"))
+            old, new = (_orientation_mean(outdir, run, w, backend) for w in ("shipped", "new"))
             lines.append(f"real, {label}, mean of the frames and their mirror images (not in the gate): "
                          + "; ".join(f"{k} {_change(old[k], new[k])}" for k in MIRROR_KEYS))
     old, new = _demo_cd(outdir, backend, "shipped"), _demo_cd(outdir, backend, "new")
