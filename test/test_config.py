@@ -140,20 +140,25 @@ def test_a_partial_rule_gives_the_weights_it_does_not_name_weight_0(tmp_path, ca
 
 def test_the_shipped_rule_is_whole_and_kept_whole(caplog):
     """The shipped file names every weight: nothing is zeroed, nothing logged; a parameter set
-    that names no weight keeps the shipped rule; an override of one weight on the shipped file
-    changes that weight only."""
+    that names no weight keeps the shipped rule; an override of one weight on the shipped file is
+    refused while the file's trees (boosted from its weights) stay, and with ``trees: ""`` changes
+    that weight only."""
+    from pcc_ros.errors import ConfigError
     from pcc_ros.pipeline.filter import RULE_WEIGHTS, FilterConfig
 
     shipped = (CONFIG / CONFIG_FILES["filter"]).read_text()
     assert all(f"    {w}:" in shipped for w in RULE_WEIGHTS)  # calibrate-filter wrote every one
     with caplog.at_level("INFO", logger="pcc_ros.pipeline.filter"):
         config, _ = load_config(None, with_filter=True)
-        tweaked, _ = load_config(None, with_filter=True, w_score=0.5)
+        tweaked, _ = load_config(None, with_filter=True, w_score=0.5, trees="")
         plain = pipeline_config(node_parameters({"backend": "input"}))
     assert not [r for r in caplog.records if "calibrated rule is a whole" in r.getMessage()]
     assert config.filter.weighted_terms == FilterConfig().weighted_terms and config.filter.w_overlap != 0.0
     assert tweaked.filter.w_score == 0.5 and tweaked.filter.w_overlap == config.filter.w_overlap
     assert plain.filter.weights.tolist() == FilterConfig().weights.tolist()
+    assert config.filter.trees == "shipped" == plain.filter.trees and tweaked.filter.trees == ""
+    with pytest.raises(ConfigError, match="boosted from other filter weights"):
+        load_config(None, with_filter=True, w_score=0.5)
 
 
 def test_per_layout_thresholds_belong_to_the_weights_they_were_set_for():

@@ -99,6 +99,6 @@ def test_a_missing_shape_term_is_marginalised_to_its_calibration_mean():
     terms = {"density": np.zeros(2), "free_space": np.zeros(2), "ground_gap": np.zeros(2), "score": np.zeros(2),
              "mismatch": np.array([0.8, np.nan])}
     np.testing.assert_array_equal(term_matrix(terms, 0.4)[:, TERMS.index("mismatch")], [0.8, 0.4])
-    config = FilterConfig(w_mismatch=2.0, mismatch_mean=0.4, w_bias=0.0)
+    config = FilterConfig(w_mismatch=2.0, mismatch_mean=0.4, w_bias=0.0, trees="")
     missing = false_probability({**terms, "mismatch": np.array([np.nan, 0.4])}, config)
     assert missing[0] == missing[1] == 1.0 / (1.0 + np.exp(-0.8))

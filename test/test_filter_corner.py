@@ -87,7 +87,8 @@ def test_the_compiled_pass_counts_as_numpy_does():
 
 def test_corner_is_measured_only_where_weighted():
     scan = cast(((CENTRE - HALF + [0, 0, 0.3], CENTRE + HALF),))
-    assert "corner" not in filter_terms(scan, BOX, FilterConfig(w_corner=0.0), sensor=SENSOR, weighted_only=True)
-    weighted = filter_terms(scan, BOX, FilterConfig(w_corner=-5.0), sensor=SENSOR, weighted_only=True)
-    every = filter_terms(scan, BOX, FilterConfig(w_corner=0.0), sensor=SENSOR)
+    unweighted = FilterConfig(w_corner=0.0, trees="")
+    assert "corner" not in filter_terms(scan, BOX, unweighted, sensor=SENSOR, weighted_only=True)
+    weighted = filter_terms(scan, BOX, FilterConfig(w_corner=-5.0, trees=""), sensor=SENSOR, weighted_only=True)
+    every = filter_terms(scan, BOX, FilterConfig(w_corner=0.0, trees=""), sensor=SENSOR)
     assert weighted["corner"][0] == every["corner"][0] > 0.5

@@ -81,7 +81,7 @@ def test_a_second_thread_measures_the_same_evidence():
 
 
 def test_probability_combines_terms_with_the_configured_weights():
-    config = FilterConfig(w_bias=-1.0, w_density=-1.0, w_free_space=0.5, w_ground_gap=2.0, w_score=-0.5)
+    config = FilterConfig(w_bias=-1.0, w_density=-1.0, w_free_space=0.5, w_ground_gap=2.0, w_score=-0.5, trees="")
     terms = {"density": np.array([0.0, -3.0]), "free_space": np.array([-5.0, 4.0]),
              "ground_gap": np.array([0.0, 0.0]), "score": np.array([2.0, 0.0]), "mismatch": np.array([np.nan, 0.2])}
     z = np.array([-1.0 + 0.0 - 2.5 + 0 - 1.0, -1.0 + 3.0 + 2.0])
@@ -354,7 +354,7 @@ def test_mismatch_work_runs_only_when_its_weight_is_non_zero():
 
     def pipeline(weight: float, filter_backend: str) -> Pipeline:
         return Pipeline(PipelineConfig(backend="input", min_points=5,
-                                       filter=FilterConfig(w_mismatch=weight, filter_backend=filter_backend)))
+                                       filter=FilterConfig(w_mismatch=weight, filter_backend=filter_backend, trees="")))
 
     off = pipeline(0.0, "mirror")
     assert off.filter_completer is None  # nothing loaded for a term that does not count

@@ -195,7 +195,8 @@ def test_cover_is_measured_only_where_weighted():
     """Weight 0: the node does not measure it; a weight (the shipped rule's): it does, the same values."""
     scan = cast([CAR])
     assert FilterConfig().w_cover != 0.0  # the shipped rule weighs it
-    assert "cover" not in filter_terms(scan, BOX, FilterConfig(w_cover=0.0), sensor=SENSOR, weighted_only=True)
-    weighted = filter_terms(scan, BOX, FilterConfig(), sensor=SENSOR, weighted_only=True)
-    every = filter_terms(scan, BOX, FilterConfig(w_cover=0.0), sensor=SENSOR)
+    unweighted = FilterConfig(w_cover=0.0, trees="")
+    assert "cover" not in filter_terms(scan, BOX, unweighted, sensor=SENSOR, weighted_only=True)
+    weighted = filter_terms(scan, BOX, FilterConfig(trees=""), sensor=SENSOR, weighted_only=True)
+    every = filter_terms(scan, BOX, FilterConfig(w_cover=0.0, trees=""), sensor=SENSOR)
     assert weighted["cover"][0] == every["cover"][0] > 0.9

@@ -54,8 +54,8 @@ def calls(monkeypatch) -> dict[str, int]:
 @pytest.mark.parametrize("workers", [1, 2])
 def test_weighted_terms_and_probability_unchanged(scan, seed, workers):
     rng = np.random.default_rng(seed)
-    config = FilterConfig(sensor="hdl64", **{w: float(rng.normal()) if rng.random() < 0.5 else 0.0
-                                             for w in WEIGHTS})
+    config = FilterConfig(sensor="hdl64", trees="", **{w: float(rng.normal()) if rng.random() < 0.5 else 0.0
+                                                       for w in WEIGHTS})
     full = filter_terms(scan, BOXES, config)
     part = filter_terms(scan, BOXES, config, workers=workers, weighted_only=True)
     assert set(config.weighted_terms) <= set(part)
@@ -68,36 +68,41 @@ def test_weighted_terms_and_probability_unchanged(scan, seed, workers):
 def test_zero_weights_skip_their_passes(scan, calls):
     zero = dict.fromkeys(WEIGHTS, 0.0)
     # the profile terms alone: no ray, expected-returns or ground pass
-    filter_terms(scan, BOXES, FilterConfig(sensor="hdl64", **{**zero, "w_depth": 1.0}), weighted_only=True)
+    filter_terms(scan, BOXES, FilterConfig(sensor="hdl64", trees="", **{**zero, "w_depth": 1.0}), weighted_only=True)
     assert calls == {"rays": 0, "expected": 0, "ground": 0, "profile": 1}
     # free space alone: the rays; overlap needs no pass over the scan
-    filter_terms(scan, BOXES, FilterConfig(sensor="hdl64", **{**zero, "w_free_space": 1.0, "w_overlap": 1.0}),
+    filter_terms(scan, BOXES, FilterConfig(sensor="hdl64", trees="", **{**zero, "w_free_space": 1.0, "w_overlap": 1.0}),
                  weighted_only=True)
     assert calls == {"rays": 1, "expected": 0, "ground": 0, "profile": 1}
-    terms = filter_terms(scan, BOXES, FilterConfig(sensor="hdl64", **{**zero, "w_ground_gap": 1.0}),
+    terms = filter_terms(scan, BOXES, FilterConfig(sensor="hdl64", trees="", **{**zero, "w_ground_gap": 1.0}),
                          weighted_only=True)
     assert calls == {"rays": 1, "expected": 0, "ground": 1, "profile": 1}
     assert set(terms) == {"ground_gap", "ground_z"}
     # the calibration's default: every pass, every term
-    terms = filter_terms(scan, BOXES, FilterConfig(sensor="hdl64", **zero))
+    terms = filter_terms(scan, BOXES, FilterConfig(sensor="hdl64", trees="", **zero))
     assert calls == {"rays": 2, "expected": 1, "ground": 2, "profile": 2}
     assert set(TERMS) <= set(terms)
 
 
 def test_shipped_rule_skips_what_it_does_not_weigh(scan):
+    """The shipped weighted sum reads 8 terms; its trees split on every measured term but the detector
+    score and the shape, so the node measures those and skips the score and the completion."""
     config = replace(FilterConfig(), sensor="hdl64")
-    assert set(config.weighted_terms) == {"density", "free_space", "ground_gap", "above", "overlap", "depth", "cover",
-                                         "corner"}
+    assert {t for t, w in zip(TERMS, config.weights) if w} == {"density", "free_space", "ground_gap", "above",
+                                                                "overlap", "depth", "cover", "corner"}
+    assert set(config.weighted_terms) == set(TERMS) - {"score", "mismatch"} == set(config.term_trees.terms)
     terms = filter_terms(scan, BOXES, config, weighted_only=True)
-    assert not {"fill", "spill", "top", "score", "through", "n_shell"} & set(terms)
+    assert not {"score", "mismatch"} & set(terms)
     assert "cover" in terms and np.all((terms["cover"] >= 0.0) & (terms["cover"] <= 1.0))
-    assert set(PROFILE_TERMS) - {"fill", "spill", "top"} <= set(terms)
+    assert set(PROFILE_TERMS) <= set(terms)
+    plain = filter_terms(scan, BOXES, replace(config, trees=""), weighted_only=True)
+    assert not {"fill", "spill", "top", "score", "through", "n_shell"} & set(plain)
 
 
 def test_pipeline_measures_weighted_terms_evaluation_all(scan):
     from pcc_ros.pipeline.core import Pipeline, PipelineConfig
 
-    config = PipelineConfig(backend="input", device="cpu", filter=FilterConfig(sensor="hdl64"))
+    config = PipelineConfig(backend="input", device="cpu", filter=FilterConfig(sensor="hdl64", trees=""))
     pipeline = Pipeline(config)
     node = pipeline.process(scan, BOXES)
     pipeline.all_terms = True

@@ -708,7 +708,7 @@ def test_each_node_runs_only_the_stages_its_outputs_and_rule_need(graph):
     assert len(made.completions) == 2 and np.isnan(made.filter_score).all()
 
     # the same filter node asked to weigh the shape: the backend loads (mirror: cheap) and runs
-    assert filter_core.set_parameters({"w_mismatch": 0.5, "backend": "mirror"}).successful
+    assert filter_core.set_parameters({"w_mismatch": 0.5, "trees": "", "backend": "mirror"}).successful
     assert filter_core.pipeline.completer is not None
     results.clear()
     _send(LocalRuntime(graph, "driver"), *_messages(2_000_000_000))

@@ -165,7 +165,11 @@ CONTOUR = {"rule": "trapcc", "mcd_scale": 10.0}
 #: reads car a, seen on half its width with rays through the other half's core on this hand-made
 #: scan (`cover` 0.90), at p_false 0.56, just over its threshold (0.512), so a case that shows a
 #: change by car a kept or the kept detections' wire starts from a threshold of 0.6.
-EVIDENCE = {"backend": "input", "reject_threshold": 0.6}
+#: The shipped trees reject both cars of this hand-made scene (car b's returns fill its box, deep
+#: inside, as no car's do; car a is seen on half its width with rays through the rest): they were
+#: boosted on simulated and real cars, not on it. The evidence cases judge it by the weighted sum
+#: (``trees: ""``); the trees case adds trees to that.
+EVIDENCE = {"backend": "input", "reject_threshold": 0.6, "trees": ""}
 CASES: dict[str, Case] = {
     "backend": Case("completion", "input", check=_fewer_points),  # the mirror adds each car's reflection
     "checkpoint": Case("completion", "SECOND", learned=True),  # other weights, other completions
@@ -196,6 +200,7 @@ CASES: dict[str, Case] = {
     "w_mismatch": Case("filter", 3.0, base={"backend": "input"}),
     "reject_threshold": Case("filter", 1e-6, base=EVIDENCE, check=_all_rejected),
     "sensor": Case("filter", "hdl32", base={"backend": "input"}),
+    "trees": Case("filter", "REJECTING_TREES", base=EVIDENCE, check=_all_rejected),
     # the named preset's entry replaces reject_threshold
     "sensor_thresholds": Case("filter", "hdl64:0.000001", base={**EVIDENCE, "sensor": "hdl64", "sensor_thresholds": ""},
                               check=_all_rejected),
@@ -345,19 +350,50 @@ def _baseline(case: Case, base: dict[str, Any]) -> Observed:
     return _BASELINES[key]
 
 
-def _base(case: Case, checkpoints) -> dict[str, Any]:
-    base = {"backend": "mirror", **case.base}
+def _base(name: str, case: Case, checkpoints) -> dict[str, Any]:
+    """The case's starting parameters. A weight of the weighted sum is changed on a node without the
+    shipped trees: trees belong to the weights they were boosted from, so a weight changed beside
+    them is refused (:func:`test_a_weight_changed_beside_the_trees_is_refused`)."""
+    base = {"backend": "mirror", **({"trees": ""} if name.startswith("w_") else {}), **case.base}
     if case.learned:
         base.update(backend="trapcc", checkpoint=checkpoints[0], device="cpu")
     return base
+
+
+def _rejecting_trees() -> str:
+    """A trees file boosted (by hand) from the shipped weights: one tree whose every leaf adds +40
+    to the log-odds of being false, so that every judged box is rejected."""
+    import tempfile
+    from pathlib import Path
+
+    from pcc_ros.pipeline.filter import FilterConfig
+    from pcc_ros.pipeline.trees import TermTrees
+
+    shipped = FilterConfig()
+    path = Path(tempfile.mkdtemp(prefix="pcc_trees_")) / "reject_all.json"
+    TermTrees(("density",), np.zeros((1, 1), dtype=np.int64), np.array([[-1e9]]), np.array([[40.0, 40.0]]),
+              linear={"w_bias": shipped.w_bias, **{f"w_{t}": float(w) for t, w in zip(TERMS, shipped.weights)}}
+              ).save(path)
+    return str(path)
+
+
+def test_a_weight_changed_beside_the_trees_is_refused():
+    """The shipped trees were boosted from the shipped weights: changing one weight on a running node
+    that adds them is refused, saying how to change it (with trees ""), and the node keeps its rule."""
+    node = Harness("filter", {"backend": "input"}, Case("filter", None))
+    result = node.core.set_parameters({"w_density": 3.0})
+    assert not result.successful and "boosted from other filter weights" in result.reason, result.reason
+    assert node.core.pipeline.config.filter.w_density != 3.0 and node.frame(STAMP).frames == 1
+    assert node.core.set_parameters({"w_density": 3.0, "trees": ""}).successful
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_each_parameter_changes_the_node(name, tiny_checkpoints, caplog):
     case = CASES[name]
     spec = {s.name: s for s in parameter_table()}[name]
-    value = tiny_checkpoints[1] if case.value == "SECOND" else case.value
-    base = _base(case, tiny_checkpoints)
+    value = {"SECOND": tiny_checkpoints[1], "REJECTING_TREES": _rejecting_trees()}.get(case.value, case.value) \
+        if isinstance(case.value, str) else case.value
+    base = _base(name, case, tiny_checkpoints)
 
     if name == "device":
         node = Harness(case.mode, base, case)

@@ -106,6 +106,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sensor-height", type=float,
                         help="with --sensor-from: the sensor's height above the ground in metres (default: read from "
                         "the scans)")
+    parser.add_argument("--trees-out", type=Path, metavar="FILE",
+                        help="boost trees from the weights of --weights-from (default: the shipped ones) on the "
+                        "--sensor-thresholds layouts' simulated rows (and --real's frames), write them to FILE and "
+                        "set each layout's threshold for weights plus trees; --out names FILE as trees")
+    parser.add_argument("--tree-depth", type=int, default=3, help="with --trees-out: depth of each tree (3)")
+    parser.add_argument("--tree-rounds", type=int, default=300, help="with --trees-out: boosting rounds (300)")
+    parser.add_argument("--tree-rate", type=float, default=0.05, help="with --trees-out: shrinkage per tree (0.05)")
+    parser.add_argument("--real-layout", default="hdl64", choices=SENSOR_CHOICES[1:],
+                        help="with --trees-out and --real: the layout whose threshold judges the held-out real "
+                        "frames (hdl64: KITTI)")
     parser.add_argument("--rows-cache", type=Path,
                         help="keep each simulated set's measured rows here (keyed by the set and the measuring code): "
                         "rerunning on other weights then takes seconds")
@@ -141,6 +151,10 @@ def run(args: argparse.Namespace) -> int:
         from pcc_ros.cli.calibrate_sensors import run_sensor_from_scans
 
         return run_sensor_from_scans(args)
+    if args.trees_out:
+        from pcc_ros.cli.calibrate_trees import run_trees
+
+        return run_trees(args)
     if args.sensor_thresholds and not args.sim_sensors:
         from pcc_ros.cli.calibrate_sensors import run_sensor_thresholds
 

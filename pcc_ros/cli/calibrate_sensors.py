@@ -12,6 +12,7 @@ import argparse
 import hashlib
 import json
 import logging
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -20,7 +21,7 @@ from pcc_ros.errors import ConfigError
 from pcc_ros.files import write_json, write_text
 from pcc_ros.geometry.beams import SENSOR_PRESETS
 from pcc_ros.pipeline.config import PipelineConfig
-from pcc_ros.pipeline.filter import TERMS, format_sensor_thresholds
+from pcc_ros.pipeline.filter import TERMS, FilterConfig, format_sensor_thresholds
 from pcc_ros.workflows.detection_eval import default_config, load_kitti, parse_frames
 from pcc_ros.workflows.filter_calibration import preset_yaml
 from pcc_ros.workflows.filter_sensors import (
@@ -30,6 +31,7 @@ from pcc_ros.workflows.filter_sensors import (
     measuring_pipeline,
     parse_terms,
     real_rows,
+    rows_probability,
     synth_dataset,
     synth_rows,
 )
@@ -43,6 +45,17 @@ def _line(name: str, fig: dict[str, Any]) -> str:
     return (f"{name}: {fig['false_removed']:.1%} false removed, {fig['true_lost']:.1%} true lost at the fold "
             f"thresholds; best at <= 2 % lost {fig['false_removed_at_0.02_lost_best']:.1%}; AUC "
             f"{fig['auc_false_above_true']:.3f}; per kind: {kinds}")
+
+
+def labelled_real_rows(args: argparse.Namespace, pipeline) -> Rows:
+    """The rows of ``--real``'s labelled frames with ``--real-detections``' boxes (their scores read
+    with ``--score-mapping``)."""
+    if args.real_detections is None:
+        raise ConfigError("--real needs --real-detections (the real detector's results)")
+    pipeline.config = replace(pipeline.config, filter=replace(pipeline.config.filter, score_mapping=args.score_mapping))
+    classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
+    frames = load_kitti(args.real, args.real_detections, args.real_sequence, parse_frames(args.real_frames))
+    return real_rows(pipeline, frames, args.sensor, classes)
 
 
 def run_sensors(args: argparse.Namespace) -> int:
@@ -61,15 +74,7 @@ def run_sensors(args: argparse.Namespace) -> int:
         parts.append(synth_rows(pipeline, root, layout, layout) if single
                      else cached_rows(pipeline, root, layout, args.rows_cache, "mismatch" in terms))
     if args.real is not None:
-        if args.real_detections is None:
-            raise ConfigError("--real needs --real-detections (the real detector's results)")
-        from dataclasses import replace
-
-        pipeline.config = replace(pipeline.config, filter=replace(pipeline.config.filter,
-                                                                   score_mapping=args.score_mapping))
-        classes = tuple(c.strip() for c in args.gt_classes.split(",") if c.strip())
-        frames = load_kitti(args.real, args.real_detections, args.real_sequence, parse_frames(args.real_frames))
-        parts.append(real_rows(pipeline, frames, args.sensor, classes))
+        parts.append(labelled_real_rows(args, pipeline))
     rows = Rows.concatenate(parts)
     result = calibrate_sensors(rows, terms, args.max_lost, args.l2, args.target_lost)
     print("rows:", json.dumps(result["rows"]))
@@ -108,7 +113,10 @@ def run_sensors(args: argparse.Namespace) -> int:
     weights = np.array([result["weights"][t] for t in TERMS])
     per_sensor = None
     if args.sensor_thresholds:
-        per_sensor = per_sensor_step(args, pipeline, result["bias"], weights, result["mismatch_mean"],
+        fitted = FilterConfig(w_bias=result["bias"], **{f"w_{t}": float(w) for t, w in zip(TERMS, weights)},
+                              mismatch_mean=result["mismatch_mean"], sensor_thresholds="")
+        rows_of = layout_rows(args, pipeline, "mismatch" in terms)
+        per_sensor = per_sensor_step(args, rows_of, {k: rows_probability(r, fitted, None) for k, r in rows_of.items()},
                                      result["threshold"])
         result["sensor_thresholds"] = per_sensor
     if args.out:
@@ -137,14 +145,14 @@ def run_sensors(args: argparse.Namespace) -> int:
         write_text(args.out, text)
         log.info("wrote %s", args.out)
     if args.json:
-        _write_report(args.json, {"sensors": list(sensors), "sim_seed": args.sim_seed, **result})
+        write_report(args.json, {"sensors": list(sensors), "sim_seed": args.sim_seed, **result})
     return 0
 
 
 # ----------------------------------------------------------------------------- per-sensor thresholds
 
 
-def _layouts(text: str) -> tuple[str, ...]:
+def threshold_layouts(text: str) -> tuple[str, ...]:
     """``--sensor-thresholds``: preset names, comma-separated, or ``all``."""
     if text.strip().lower() == "all":
         return tuple(SENSOR_PRESETS)
@@ -155,53 +163,62 @@ def _layouts(text: str) -> tuple[str, ...]:
     return layouts
 
 
-def per_sensor_step(args: argparse.Namespace, pipeline, bias: float, weights: np.ndarray, mismatch_mean: float,
-                    reject_threshold: float) -> dict[str, Any]:
-    """Each ``--sensor-thresholds`` layout's threshold for one weight set (its simulated set measured
-    or read from ``--rows-cache``), printed; the table, its parameter string and the fallback."""
-    layouts = _layouts(args.sensor_thresholds)
+def layout_rows(args: argparse.Namespace, pipeline, shape: bool) -> dict[str, Rows]:
+    """Each ``--sensor-thresholds`` layout's rows: its simulated set measured or read from ``--rows-cache``."""
     rows = {}
-    for layout in layouts:
+    for layout in threshold_layouts(args.sensor_thresholds):
         root = synth_dataset(args.sim_root, layout, args.sim_seed, args.sim_sequences, args.sim_frames)
-        rows[layout] = cached_rows(pipeline, root, layout, args.rows_cache, weights[TERMS.index("mismatch")] != 0)
-    table = sensor_thresholds(rows, bias, weights, mismatch_mean, args.target_lost, per_fold=args.threshold_folds)
-    fallback = fallback_threshold(table, reject_threshold)
+        rows[layout] = cached_rows(pipeline, root, layout, args.rows_cache, shape)
+    return rows
+
+
+def per_sensor_step(args: argparse.Namespace, rows: dict[str, Rows], p: dict[str, np.ndarray],
+                    reject_threshold: float | None) -> dict[str, Any]:
+    """Each layout's threshold for one rule (``p``: each layout's p_false under it), printed; the
+    table, its parameter string and the fallback (the largest of the table and ``reject_threshold``,
+    the rule's own where it has one)."""
+    table = sensor_thresholds(rows, p, args.target_lost, per_fold=args.threshold_folds)
+    fallback = fallback_threshold(table, 0.0 if reject_threshold is None else reject_threshold)
     print(f"per-sensor thresholds (budget by CV over folds of {args.threshold_folds} sequence(s), each held-out fold "
           f"<= {args.target_lost:.1%} of its true cars lost):")
     for layout, t in table.items():
         print(f"  {layout}: threshold {t['threshold']:.4f}, budget {t['budget']:.2%}, worst held-out fold "
-              f"{t['cv_worst_fold']:.2%} (pooled {t['cv_pooled']:.2%}) of {t['rows']['true']} true; in sample "
+              f"{t['cv_worst_fold']:.2%} (pooled {t['cv_pooled']:.2%}) of {t['rows']['true']} true; on its rows "
               f"{t['in_sample_removed']:.1%} of {t['rows']['false']} false removed")
-    print(f"  no preset matched: reject_threshold {fallback:.4f} (the largest of these and {reject_threshold:.4f})")
+    print(f"  no preset matched: reject_threshold {fallback:.4f} (the largest of these"
+          f"{'' if reject_threshold is None else f' and {reject_threshold:.4f}'})")
     return {"layouts": table, "value": format_sensor_thresholds({k: v["threshold"] for k, v in table.items()}),
             "fallback": fallback, "sequences_per_fold": args.threshold_folds, "target_lost": args.target_lost}
 
 
-def per_sensor_header(args: argparse.Namespace, per_sensor: dict[str, Any]) -> str:
-    """The YAML header lines that say where ``sensor_thresholds`` came from."""
+def per_sensor_header(args: argparse.Namespace, per_sensor: dict[str, Any], source: str | None = None) -> str:
+    """The YAML header lines that say where ``sensor_thresholds`` came from (``source``: the command
+    that set them, when it is not the ``--sensor-thresholds`` step's own)."""
     table = ", ".join(f"{k} {v['threshold']:.4f} / {v['budget']:.2%} / {v['cv_worst_fold']:.2%}"
                       for k, v in per_sensor["layouts"].items())
-    return (f"# calibrated: sensor_thresholds: pcc calibrate-filter --sensor-thresholds {args.sensor_thresholds}"
-            f"{' --weights-from ' + str(args.weights_from) if args.weights_from and not args.sim_sensors else ''}"
-            f" --sim-root {args.sim_root} --sim-seed {args.sim_seed} --sim-sequences {args.sim_sequences}"
-            f" --sim-frames {args.sim_frames} --threshold-folds {args.threshold_folds}"
-            f" --target-lost {args.target_lost:g}\n"
+    command = source or (
+        f"pcc calibrate-filter --sensor-thresholds {args.sensor_thresholds}"
+        f"{' --weights-from ' + str(args.weights_from) if args.weights_from and not args.sim_sensors else ''}"
+        f" --sim-root {args.sim_root} --sim-seed {args.sim_seed} --sim-sequences {args.sim_sequences}"
+        f" --sim-frames {args.sim_frames} --threshold-folds {args.threshold_folds} --target-lost {args.target_lost:g}")
+    return (f"# calibrated: sensor_thresholds: {command}\n"
             f"# calibrated: sensor_thresholds per layout (threshold / budget / worst held-out fold of "
             f"{per_sensor['sequences_per_fold']} sequences): {table}; reject_threshold, for a sensor matching no "
             f"preset: the largest, {per_sensor['fallback']:.4f}\n")
 
 
-def _weights_provenance(source) -> str:
-    """The ``# calibrated:`` lines of ``source`` that say where its weights came from (not its
-    thresholds): a file that keeps the weights and sets new thresholds keeps them."""
+def _weights_provenance(source, keep_trees: bool = True) -> str:
+    """The ``# calibrated:`` lines of ``source`` that say where its weights (``keep_trees``: and its
+    trees) came from, not its thresholds: a file that keeps them and sets new thresholds keeps these."""
+    dropped = ("# calibrated: sensor_thresholds", *(() if keep_trees else ("# calibrated: trees",)))
     try:
         return "".join(line + "\n" for line in source.read_text().splitlines()
-                       if line.startswith("# calibrated:") and not line.startswith("# calibrated: sensor_thresholds"))
+                       if line.startswith("# calibrated:") and not line.startswith(dropped))
     except OSError as exc:
         raise ConfigError(f"{source}: cannot read ({exc.strerror})") from exc
 
 
-def _kept_weights(args: argparse.Namespace):
+def kept_weights(args: argparse.Namespace):
     """The node YAML whose weights a threshold step keeps (``--weights-from``, else ``--base-config``,
     else the shipped one) and its filter parameters; refused unless it holds the evidence rule."""
     source = args.weights_from or args.base_config or default_config()
@@ -211,17 +228,20 @@ def _kept_weights(args: argparse.Namespace):
     return source, config
 
 
-def _write_kept_weights(args: argparse.Namespace, source, config, threshold: float, table: str, header: str) -> None:
-    """``--out``: ``source`` with its weights and their provenance kept, ``threshold`` as
-    ``reject_threshold`` and ``table`` as ``sensor_thresholds``, under ``header``."""
-    values: dict[str, Any] = {"sensor_thresholds": table, "mismatch_mean": config.mismatch_mean}
-    text = preset_yaml(source, config.w_bias, config.weights, threshold, values, _weights_provenance(source) + header)
+def write_kept_weights(args: argparse.Namespace, source, config, threshold: float, table: str, header: str,
+                        keep_trees: bool = True) -> None:
+    """``--out``: ``source`` with its weights (and the trees boosted from them, ``config.trees``) and
+    their provenance kept, ``threshold`` as ``reject_threshold`` and ``table`` as
+    ``sensor_thresholds``, under ``header``."""
+    values: dict[str, Any] = {"sensor_thresholds": table, "mismatch_mean": config.mismatch_mean, "trees": config.trees}
+    text = preset_yaml(source, config.w_bias, config.weights, threshold, values,
+                       _weights_provenance(source, keep_trees) + header)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_text(args.out, text)
     log.info("wrote %s", args.out)
 
 
-def _write_report(path, payload: dict[str, Any]) -> None:
+def write_report(path, payload: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, payload, indent=1, nonfinite_null=True)
 
@@ -229,15 +249,16 @@ def _write_report(path, payload: dict[str, Any]) -> None:
 def run_sensor_thresholds(args: argparse.Namespace) -> int:
     """``--sensor-thresholds`` without ``--sim-sensors``: the weights of ``--weights-from`` (or the
     base / shipped YAML) kept as they are, each layout's threshold added to ``--out``."""
-    source, config = _kept_weights(args)
+    source, config = kept_weights(args)
     pipeline = measuring_pipeline(args.filter_backend, shape=config.w_mismatch != 0)
-    per_sensor = per_sensor_step(args, pipeline, config.w_bias, config.weights, config.mismatch_mean,
-                                 config.reject_threshold)
+    rows = layout_rows(args, pipeline, config.w_mismatch != 0)
+    p = {k: rows_probability(r, config, config.term_trees) for k, r in rows.items()}
+    per_sensor = per_sensor_step(args, rows, p, config.reject_threshold)
     if args.out:
-        _write_kept_weights(args, source, config, per_sensor["fallback"], per_sensor["value"],
+        write_kept_weights(args, source, config, per_sensor["fallback"], per_sensor["value"],
                             per_sensor_header(args, per_sensor))
     if args.json:
-        _write_report(args.json, {"weights_from": str(source), "sim_seed": args.sim_seed,
+        write_report(args.json, {"weights_from": str(source), "sim_seed": args.sim_seed,
                                   "sim_root": str(args.sim_root), "sensor_thresholds": per_sensor})
     return 0
 
@@ -257,14 +278,14 @@ def run_sensor_from_scans(args: argparse.Namespace) -> int:
     if scanned.preset:
         print(f"  it matches the preset {scanned.preset}: the shipped sensor_thresholds already hold a threshold for "
               "it; this run sets one from your sensor's own simulation")
-    source, config = _kept_weights(args)
+    source, config = kept_weights(args)
     sensor = scanned.sensor()
     key = hashlib.sha256(json.dumps(sensor.to_dict(), sort_keys=True).encode()).hexdigest()[:10]
     name = f"scanned_{key}"
     root = synth_dataset(args.sim_root, name, args.sim_seed, args.sim_sequences, args.sim_frames, sensor)
     pipeline = measuring_pipeline(args.filter_backend, shape=config.w_mismatch != 0)
     rows = cached_rows(pipeline, root, name, args.rows_cache, config.w_mismatch != 0)
-    fit = sensor_thresholds({name: rows}, config.w_bias, config.weights, config.mismatch_mean, args.target_lost,
+    fit = sensor_thresholds({name: rows}, {name: rows_probability(rows, config, config.term_trees)}, args.target_lost,
                             per_fold=args.threshold_folds)[name]
     print(f"threshold {fit['threshold']:.4f}: budget {fit['budget']:.2%} by CV over {fit['folds']} folds of "
           f"{args.threshold_folds} simulated sequence(s), worst held-out fold {fit['cv_worst_fold']:.2%} of its true "
@@ -282,8 +303,8 @@ def run_sensor_from_scans(args: argparse.Namespace) -> int:
                   f" deg, step {m.azimuth_resolution_deg:.4f} deg, {scanned.mount_height:.2f} m high; threshold "
                   f"{fit['threshold']:.4f} (budget {fit['budget']:.2%}, worst held-out fold {fit['cv_worst_fold']:.2%})"
                   " for every sensor\n")
-        _write_kept_weights(args, source, config, fit["threshold"], "", header)
+        write_kept_weights(args, source, config, fit["threshold"], "", header)
     if args.json:
-        _write_report(args.json, {"sensor": scanned.to_dict(), "weights_from": str(source), "sim_root": str(root),
+        write_report(args.json, {"sensor": scanned.to_dict(), "weights_from": str(source), "sim_root": str(root),
                                   "threshold": fit})
     return 0

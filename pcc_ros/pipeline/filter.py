@@ -21,9 +21,10 @@ measured in the scan itself (documented with their derivation in ``docs/filter.m
   (returns over its top, the share of its silhouette they cover, returns spilling out of its
   sides, its footprint covered by a higher-scored box): :mod:`pcc_ros.pipeline.evidence_profile`.
 
-``p_false = sigmoid(w_bias + sum_k w_k * term_k)``; a detection is rejected when
-``p_false > reject_threshold``. Weights and threshold come from ``pcc calibrate-filter``
-(logistic regression; presets in ``config/``), never set by hand. Every box is judged —
+``p_false = sigmoid(w_bias + sum_k w_k * term_k [+ trees(terms)])``; a detection is rejected
+when ``p_false > reject_threshold``. Weights, trees (``trees``: boosted from the weighted sum,
+:mod:`pcc_ros.pipeline.trees`) and threshold come from ``pcc calibrate-filter`` (logistic
+regression, then boosting; presets in ``config/``), never set by hand. Every box is judged —
 a sparse box is exactly where false detections hide.
 
 ``trapcc`` — TraPCC (paper §4.5, §5.2): each detection is completed; the mismatch between
@@ -68,6 +69,7 @@ from pcc_ros.pipeline.evidence import (  # noqa: F401  (re-exported: the filter'
     local_ground,
 )
 from pcc_ros.pipeline.evidence_profile import PROFILE_TERMS, profile_terms
+from pcc_ros.pipeline.trees import TermTrees, load_trees, trees_path
 from pcc_ros.types import Boxes
 
 SCORE_MAPPINGS = ("identity", "sigmoid")
@@ -102,12 +104,15 @@ class FilterConfig:
     # the value a missing mismatch term takes (a detection whose shape was not completed): its
     # mean over the calibration detections, the first-order marginalisation of the term
     mismatch_mean: float = 0.0
-    reject_threshold: float = 0.7162
+    reject_threshold: float = 0.7357
     # per-sensor reject thresholds, "hdl64:0.531, vlp16:0.458, ..." (pcc calibrate-filter
     # --sensor-thresholds): the entry of the preset the beam model matches; reject_threshold when
     # it matches none (an unknown sensor), before the first estimate, or when "" (none given)
-    sensor_thresholds: str = ("hdl64:0.5356, hdl32:0.4555, vlp16:0.4591, vlp32c:0.5293, vlp32c_x2:0.7082, "
-                              "os1_64:0.4357, os1_128:0.4933, pandar64:0.7162")
+    sensor_thresholds: str = ("hdl64:0.4863, hdl32:0.4373, vlp16:0.5158, vlp32c:0.4333, vlp32c_x2:0.7357, "
+                              "os1_64:0.4346, os1_128:0.4947, pandar64:0.6418")
+    # boosted trees added to the weighted sum's logit (pcc_ros.pipeline.trees): "shipped" (the file
+    # in pcc_ros/weights, boosted from the default weights), a path, or "" (the weighted sum alone)
+    trees: str = "shipped"
     sensor: str = AUTO  # the beam model: "auto" (estimated from the scans) or a name of SENSOR_PRESETS
     filter_backend: str = ""  # completion backend of the mismatch term; "" = the pipeline's own
     # trapcc rule
@@ -133,6 +138,7 @@ class FilterConfig:
         if not 0.0 < self.reject_threshold < 1.0:
             raise ConfigError(f"reject_threshold must be in (0, 1), got {self.reject_threshold}")
         parse_sensor_thresholds(self.sensor_thresholds)  # refuse a malformed table now, not per frame
+        self.term_trees  # noqa: B018  (refuse a missing / corrupt trees file, or other weights', now)
 
     def threshold_for(self, preset: str | None) -> float:
         """The reject threshold for a beam model matching ``preset`` (None: no preset matched):
@@ -147,13 +153,39 @@ class FilterConfig:
         return np.array([getattr(self, f"w_{t}") for t in TERMS], dtype=np.float64)
 
     @property
+    def term_trees(self) -> TermTrees | None:
+        """The boosted trees of ``trees`` (read once per file version), checked against these weights."""
+        path = trees_path(self.trees)
+        if path is None:
+            return None
+        trees = _read_trees(str(path), *_file_version(path))
+        trees.check_linear({"w_bias": self.w_bias, **{f"w_{t}": w for t, w in zip(TERMS, self.weights)}},
+                           f"trees {path}")
+        return trees
+
+    @property
     def weighted_terms(self) -> tuple[str, ...]:
-        """The terms of :data:`TERMS` with a non-zero weight: those the evidence rule reads."""
-        return tuple(t for t, w in zip(TERMS, self.weights) if w != 0.0)
+        """The terms of :data:`TERMS` the evidence rule reads: a non-zero weight, or a tree's."""
+        in_trees = set(self.term_trees.terms) if self.term_trees is not None else set()
+        return tuple(t for t, w in zip(TERMS, self.weights) if w != 0.0 or t in in_trees)
 
     @property
     def uses_mismatch(self) -> bool:
         return self.rule == "trapcc" or self.w_mismatch != 0.0
+
+
+def _file_version(path) -> tuple[int, int]:
+    """(mtime in ns, size) of ``path``: a rewritten file is read again."""
+    try:
+        st = path.stat()
+    except OSError as exc:
+        raise ConfigError(f"trees {path}: cannot read ({exc.strerror})") from None
+    return st.st_mtime_ns, st.st_size
+
+
+@lru_cache(maxsize=8)
+def _read_trees(path: str, mtime_ns: int, size: int) -> TermTrees:
+    return load_trees(path, TERMS)
 
 
 def map_scores(scores: np.ndarray, mapping: str) -> np.ndarray:
@@ -331,6 +363,8 @@ def whole_rule(given) -> dict[str, float | str]:
         _log.info("the parameters name their own filter rule but no sensor_thresholds: its reject_threshold "
                   "judges every sensor")
         left_out["sensor_thresholds"] = ""
+    if named and "trees" not in given:
+        left_out["trees"] = ""  # trees were boosted from the weights they came with, not these
     if named and missing:
         _log.info("the parameters name the filter weights %s but not %s: those are 0 (a calibrated rule is a "
                   "whole; pcc calibrate-filter writes every weight)", ", ".join(named), ", ".join(missing))
@@ -363,12 +397,24 @@ def term_matrix(terms: dict[str, np.ndarray], mismatch_fill: float = 0.0) -> np.
     return np.stack(cols, axis=1)
 
 
+def rule_logit(x: np.ndarray, bias: float, weights: np.ndarray, trees: TermTrees | None) -> np.ndarray:
+    """``w_bias + x @ w + trees(x)`` of a term matrix ``x (N, len(TERMS))`` (:func:`term_matrix`)."""
+    z = bias + x @ weights
+    if trees is not None:
+        z = z + trees.margin(x[:, [TERMS.index(t) for t in trees.terms]])
+    return z
+
+
+def rule_probability(x: np.ndarray, config: FilterConfig) -> np.ndarray:
+    """``sigmoid(`` :func:`rule_logit` ``)`` under ``config``'s weights and trees: the calibrated
+    probability that each detection is false."""
+    return 1.0 / (1.0 + np.exp(-rule_logit(x, config.w_bias, config.weights, config.term_trees)))
+
+
 def false_probability(terms: dict[str, np.ndarray], config: FilterConfig) -> np.ndarray:
-    """``sigmoid(w_bias + X @ w)``: the calibrated probability that each detection is false
-    (a missing mismatch term marginalised: :func:`term_matrix`)."""
-    x = term_matrix(terms, config.mismatch_mean)
-    z = config.w_bias + x @ config.weights
-    return 1.0 / (1.0 + np.exp(-z))
+    """:func:`rule_probability` of measured terms (a missing mismatch term marginalised:
+    :func:`term_matrix`)."""
+    return rule_probability(term_matrix(terms, config.mismatch_mean), config)
 
 
 #: The raw measurements of :func:`evidence`, each with the pass that makes them (its flag).

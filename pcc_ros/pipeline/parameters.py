@@ -69,6 +69,9 @@ DESCRIPTIONS = {
     "sensor_thresholds": "evidence rule: per beam-layout reject_threshold, 'preset:threshold' entries separated by "
                          "commas (e.g. 'hdl64:0.53, vlp16:0.46'; pcc calibrate-filter --sensor-thresholds): the entry "
                          "of the preset the beam model matches (sensor: auto) or names; '' = reject_threshold always",
+    "trees": "evidence rule: boosted trees added to the weighted sum's logit: 'shipped' (pcc_ros/weights/"
+             "filter_trees.json, boosted from the default weights), a trees file of pcc calibrate-filter --trees-out, "
+             "or '' (the weighted sum alone); a file belongs to the weights it was boosted from",
     "sensor": "evidence rule: LiDAR beam model for the expected returns: auto (estimated from the scans, from the "
               "ring field when there is one; docs/filter.md) or a preset (hdl64 = KITTI, hdl32 = nuScenes, vlp16, "
               "vlp32c, vlp32c_x2, os1_64, os1_128, pandar64)",

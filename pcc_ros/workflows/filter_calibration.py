@@ -422,13 +422,14 @@ def preset_yaml(base: Path, bias: float, weights: np.ndarray, threshold: float, 
     """The node YAML ``base`` with the calibrated filter parameters put in: each key's line is
     rewritten in place (indentation and trailing comment kept), missing keys are appended to
     the ``ros__parameters`` block; everything else of the file stays as it was. A base's
-    ``sensor_thresholds`` were set for the base's weights, so the file gets ``""`` (its own
-    threshold for every sensor) unless ``values`` brings a table for the new ones."""
+    ``sensor_thresholds`` and ``trees`` belong to the base's weights, so the file gets ``""`` for
+    both (its own threshold for every sensor, the weighted sum alone) unless ``values`` brings them
+    for the new ones."""
     try:
         lines = base.read_text().splitlines()
     except OSError as exc:
         raise DataError(f"{base}: cannot read the base node YAML ({exc.strerror})") from exc
-    params = {"sensor_thresholds": "", **values, "rule": "evidence", "w_bias": round(float(bias), 4)}
+    params = {"sensor_thresholds": "", "trees": "", **values, "rule": "evidence", "w_bias": round(float(bias), 4)}
     params.update({f"w_{t}": round(float(w), 4) for t, w in zip(TERMS, weights)})
     params["reject_threshold"] = round(float(threshold), 4)
     block = next((i for i, line in enumerate(lines) if line.strip() == "ros__parameters:"), None)

@@ -35,7 +35,6 @@ files) get the same per-group table by false-positive kind (:func:`pcc_ros.workf
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -202,13 +201,13 @@ def nuscenes_check(root: str | Path, pipeline, score: float = 0.7, ground_boxes:
         float(rejected[cat["group"] == "free ground"].mean()) if (cat["group"] == "free ground").any() else 0.0)
     # The check's boxes carry one score; below the NMS IoU, car-sized boxes on neighbouring
     # non-vehicles still overlap (as a detector's may), and the overlap term reads an earlier
-    # box as a higher-scored duplicate. The decision without that term, reported beside it:
+    # box as a higher-scored duplicate. The decision as if no box covered another (the term read
+    # as 0 by the weighted sum and the trees alike), reported beside it:
     cat_terms = {t: np.concatenate(v) for t, v in terms.items()}
     cfg = pipeline.config.filter
     in_force = pipeline.threshold_in_force or (pipeline.beam_model.preset, cfg.reject_threshold)
-    if cfg.w_overlap and "overlap" in cat_terms:
-        alone = false_probability({**cat_terms, "overlap": np.zeros(len(cat["is_true"]))},
-                                  replace(cfg, w_overlap=0.0)) > in_force[1]
+    if "overlap" in cfg.weighted_terms and "overlap" in cat_terms:
+        alone = false_probability({**cat_terms, "overlap": np.zeros(len(cat["is_true"]))}, cfg) > in_force[1]
         covered = cat_terms["overlap"] > 0
         result["configured"]["non_vehicle_removed_without_overlap"] = (
             float(alone[non_vehicle].mean()) if non_vehicle.any() else 0.0)

@@ -42,7 +42,8 @@ import numpy as np
 from tqdm import tqdm
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.pipeline.filter import TERMS, term_matrix
+from pcc_ros.pipeline.filter import TERMS, rule_logit, term_matrix
+from pcc_ros.pipeline.trees import TermTrees
 from pcc_ros.workflows.detection_eval import auc, detection_truth, load_kitti, operating_curve, removed_at
 from pcc_ros.workflows.filter_calibration import FeatureRows, fit_logistic, predict, threshold_each
 
@@ -181,6 +182,24 @@ def filled(x: np.ndarray, mismatch_mean: float) -> np.ndarray:
     return out
 
 
+def rows_probability(rows: Rows, config, trees: TermTrees | None) -> np.ndarray:
+    """p_false of every row under the weighted sum of ``config`` (a :class:`FilterConfig`) plus
+    ``trees`` (a missing mismatch read as its mean); the trees are given, not read from ``config``'s
+    file, so fold fits need none."""
+    z = rule_logit(filled(rows.x, config.mismatch_mean), config.w_bias, config.weights, trees)
+    return 1.0 / (1.0 + np.exp(-z))
+
+
+def sensor_balance(rows: Rows) -> np.ndarray:
+    """Row weights under which every sensor's rows (and the real frames') weigh the same in total."""
+    weight = np.ones(len(rows.false))
+    sensors = np.unique(rows.sensor)
+    for s in sensors:
+        sel = rows.sensor == s
+        weight[sel] = len(rows.false) / (sel.sum() * len(sensors))
+    return weight
+
+
 def fit_weights(rows: Rows, terms: tuple[str, ...], l2: float) -> tuple[float, np.ndarray, float, np.ndarray]:
     """(bias, weights over TERMS, mismatch_mean, p_false of every row); every sensor's rows (and
     the real ones) weigh the same; ``mismatch_mean``: the mean measured mismatch of these rows.
@@ -189,11 +208,7 @@ def fit_weights(rows: Rows, terms: tuple[str, ...], l2: float) -> tuple[float, n
     mean = float(measured.mean()) if len(measured) and "mismatch" in terms else 0.0
     x = filled(rows.x, mean)
     cols = [TERMS.index(t) for t in terms]
-    weight = np.ones(len(rows.false))
-    for s in np.unique(rows.sensor):
-        sel = rows.sensor == s
-        weight[sel] = len(rows.false) / (sel.sum() * len(np.unique(rows.sensor)))
-    bias, w = fit_logistic(x[:, cols], rows.false, weight, l2)
+    bias, w = fit_logistic(x[:, cols], rows.false, sensor_balance(rows), l2)
     weights = np.zeros(len(TERMS))
     weights[cols] = w
     return bias, weights, mean, predict(bias, weights, x)

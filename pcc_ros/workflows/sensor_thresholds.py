@@ -34,9 +34,8 @@ from typing import Any
 import numpy as np
 
 from pcc_ros.errors import ConfigError, DataError
-from pcc_ros.pipeline.filter import TERMS
-from pcc_ros.workflows.filter_calibration import predict, threshold_for
-from pcc_ros.workflows.filter_sensors import BUDGET_GRID, Rows, filled, synth_rows
+from pcc_ros.workflows.filter_calibration import threshold_for
+from pcc_ros.workflows.filter_sensors import BUDGET_GRID, Rows, synth_rows
 
 log = logging.getLogger(__name__)
 
@@ -130,18 +129,15 @@ def sensor_threshold(p: np.ndarray, false: np.ndarray, group: np.ndarray, target
             "in_sample_removed": float((p[false] > threshold).mean()) if false.any() else float("nan")}
 
 
-def sensor_thresholds(rows_by_layout: dict[str, Rows], bias: float, weights: np.ndarray, mismatch_mean: float,
-                      target_lost: float = 0.02, grid: tuple[float, ...] = BUDGET_GRID,
-                      per_fold: int = 2) -> dict[str, dict[str, Any]]:
-    """:func:`sensor_threshold` of each layout's rows scored with one weight set (over :data:`TERMS`)."""
-    weights = np.asarray(weights, dtype=np.float64)
-    if weights.shape != (len(TERMS),):
-        raise ValueError(f"weights must be ({len(TERMS)},), got {weights.shape}")
+def sensor_thresholds(rows_by_layout: dict[str, Rows], p_by_layout: dict[str, np.ndarray], target_lost: float = 0.02,
+                      grid: tuple[float, ...] = BUDGET_GRID, per_fold: int = 2) -> dict[str, dict[str, Any]]:
+    """:func:`sensor_threshold` of each layout's rows with their p_false under one rule
+    (``p_by_layout``: e.g. :func:`~pcc_ros.workflows.filter_sensors.rows_probability` of a weight
+    set, or the out-of-fold p_false of trees boosted on these rows)."""
     out = {}
     for layout, rows in rows_by_layout.items():
-        p = predict(bias, weights, filled(rows.x, mismatch_mean))
         try:
-            out[layout] = sensor_threshold(p, rows.false, rows.group, target_lost, grid, per_fold)
+            out[layout] = sensor_threshold(p_by_layout[layout], rows.false, rows.group, target_lost, grid, per_fold)
         except ConfigError as exc:
             raise ConfigError(f"{layout}: {exc}") from None
         out[layout]["rows"] = {"true": int((~rows.false).sum()), "false": int(rows.false.sum())}

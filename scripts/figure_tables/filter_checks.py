@@ -78,7 +78,7 @@ def _held_out(d: dict[str, Any]) -> str:
 
 def render_checked_on(results: dict[str, dict[str, Any]]) -> list[str]:
     """The shipped rule on every set it was checked on: one row per data set."""
-    nus, default, kitti = results["filter-nuscenes"], results["filter-calibration"], results["calibrate-kitti"]
+    nus, trees, kitti = results["filter-nuscenes"], results["filter-trees"], results["calibrate-kitti"]
 
     def synth(field: str) -> str:
         return _by_sensor(results, lambda d: pct(d["per_kind"]["configured"][field]))
@@ -97,7 +97,8 @@ def render_checked_on(results: dict[str, dict[str, Any]]) -> list[str]:
          f"confusions {kind('confusion')}; misplaced {kind('misplaced')}"],
         [f"KITTI tracking 0000, {sum(len(f['frames']) for f in kitti['cross_validation']['folds'])} frames (real)",
          "HDL-64E",
-         "PointRCNN", f"held out by blocks of 4 frames: {_held_out(default['cv_real_frames'])}"],
+         "PointRCNN", f"held out by blocks of 4 frames (trees boosted without the block): "
+                      f"{_held_out(trees['real_frames'])}"],
         ["the same, with the KITTI preset's rule (`config/detection_filter_kitti.yaml`'s command, score term "
          "included)", "HDL-64E", "PointRCNN", f"held out ({len(kitti['cross_validation']['folds'])} folds): "
          f"{_held_out(kitti['cross_validation']['held_out'])}"],
@@ -365,11 +366,42 @@ def render_filter_calibration(results: dict[str, dict[str, Any]]) -> list[str]:
                   f"offered the shape (`--terms {','.join(shape['terms'])}`; {fitted_on(shape)})"], rows)
 
 
+# --------------------------------------------------------------------------- the boosted trees
+
+
+def render_filter_trees(d: dict[str, Any]) -> list[str]:
+    """``pcc calibrate-filter --trees-out``: what the trees add held out (by sequence, per kind; the
+    real frames by blocks), and each layout's threshold set on the out-of-fold p_false."""
+    s = d["settings"]
+    seq, alone = d["by_sequence"]["with_trees"], d["by_sequence"]["sum_alone"]
+    kinds = [k for k in seq["per_kind"]]
+
+    def auc_row(f: dict[str, Any]) -> list[str]:
+        return [f"{f['auc_false_above_true']:.3f}", pct(f[BUDGET + "_best"]),
+                *(f"{f['per_kind'][k]['auc_vs_true']:.3f}" for k in kinds)]
+
+    rows = [[f"the weighted sum alone (held out by sequence, {d['by_sequence']['folds']} folds)", *auc_row(alone)],
+            [f"the sum + {s['rounds']} trees of depth {s['depth']} (rate {s['rate']:g}), boosted without the "
+             "held-out sequence", *auc_row(seq)]]
+    out = table(["held out", "AUC", "removed at <= 2 % lost (best threshold)", *(f"AUC {k}" for k in kinds)], rows)
+    real = d.get("real_frames")
+    if real is not None:
+        out += ["", f"Real frames held out by blocks (trees boosted without the block) at the `{real['layout']}` "
+                f"threshold {real['threshold']:.4f}: {pct(real['false_removed'])} of {real['false']} false "
+                f"detections removed, {round(real['true_lost'] * real['true'])} / {real['true']} true lost "
+                f"(AUC {real['auc_false_above_true']:.3f})."]
+    layouts = d["sensor_thresholds"]["layouts"]
+    rows = [[k, f"{v['threshold']:.4f}", pct(v['budget'], 2), pct(v['cv_worst_fold'], 2),
+             f"{v['rows']['true']:,} / {v['rows']['false']:,}"] for k, v in layouts.items()]
+    out += ["", *table(["layout", "threshold", "budget (CV)", "worst held-out fold lost", "true / false rows"], rows)]
+    return out
+
+
 # --------------------------------------------------------------------------- the blocks
 
 
 FIGURES: dict[str, Figure] = {
-    "filter-checked-on": Figure(("filter-nuscenes", *(_synth(s) for s in SENSORS), "filter-calibration",
+    "filter-checked-on": Figure(("filter-nuscenes", *(_synth(s) for s in SENSORS), "filter-trees",
                                  "calibrate-kitti"), render_checked_on),
     "filter-nuscenes": one("filter-nuscenes", render_filter_nuscenes),
     "filter-sensor-from-scans": one("sensor-from-scans", render_sensor_from_scans),
@@ -382,6 +414,7 @@ FIGURES: dict[str, Figure] = {
     "filter-synth-unseen-s123": Figure(tuple(_synth(s, "123") for s in UNSEEN_SENSORS),
                                        lambda results: render_filter_synth(results, "123", sensors=UNSEEN_SENSORS)),
     "filter-calibration": Figure(("filter-calibration", "filter-calibration-shape"), render_filter_calibration),
+    "filter-trees": one("filter-trees", render_filter_trees),
     "filter-calibration-kitti": Figure(("calibrate-kitti", "calibrate-kitti-physics"), render_calibration_kitti),
     "filter-term-auc": Figure(("filter-calibration", "calibrate-s99"), render_term_auc),
     "filter-eval-kitti": Figure(("filter-kitti", *(f"filter-kitti-trapcc-{b}" for b in TRAPCC_BACKENDS)),

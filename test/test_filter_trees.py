@@ -1,0 +1,154 @@
+"""Boosted trees over the evidence terms: the vectorised traversal, the file, the fit, the rule."""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pcc_ros.errors import ConfigError
+from pcc_ros.pipeline.filter import TERMS, FilterConfig, rule_probability, whole_rule
+from pcc_ros.pipeline.trees import TermTrees, load_trees
+from pcc_ros.workflows.boosting import boost
+from pcc_ros.workflows.detection_eval import auc
+
+
+def _random_trees(rng, t=7, depth=3, terms=("density", "depth", "cover")) -> TermTrees:
+    inner = 2 ** depth - 1
+    threshold = rng.normal(size=(t, inner))
+    threshold[rng.random((t, inner)) < 0.2] = np.inf  # unsplit nodes send every row left
+    return TermTrees(terms, rng.integers(0, len(terms), (t, inner)), threshold, rng.normal(size=(t, inner + 1)))
+
+
+def _walk(trees: TermTrees, row: np.ndarray) -> float:
+    """One row, one tree at a time: the definition the vectorised margin must equal."""
+    total = 0.0
+    inner = trees.feature.shape[1]
+    for t in range(len(trees.leaf)):
+        node = 0
+        while node < inner:
+            node = 2 * node + (2 if row[trees.feature[t, node]] > trees.threshold[t, node] else 1)
+        total += trees.leaf[t, node - inner]
+    return total
+
+
+def test_margin_equals_walking_each_tree():
+    rng = np.random.default_rng(0)
+    trees = _random_trees(rng)
+    x = rng.normal(size=(50, 3))
+    x[3, 1] = np.nan  # a missing term reads 0, as in the weighted sum
+    want = [_walk(trees, np.nan_to_num(r)) for r in x]
+    np.testing.assert_allclose(trees.margin(x), want, rtol=0, atol=1e-12)
+    assert trees.margin(np.zeros((0, 3))).shape == (0,)
+
+
+def test_file_round_trip_and_bad_files(tmp_path):
+    trees = replace(_random_trees(np.random.default_rng(1)), linear={"w_bias": 1.5}, provenance={"seed": 3})
+    path = tmp_path / "t.json"
+    trees.save(path)
+    back = load_trees(path, TERMS)
+    np.testing.assert_array_equal(back.threshold, trees.threshold)
+    np.testing.assert_array_equal(back.leaf, trees.leaf)
+    assert back.linear == {"w_bias": 1.5} and back.provenance == {"seed": 3}
+    text = path.read_text()
+    bad = {"truncated.json": text[: len(text) // 2], "other.json": json.dumps({"format": "x"}),
+           "unknown.json": text.replace('"density"', '"colour"'),
+           "shape.json": json.dumps({**json.loads(text), "leaf": [[0.0]]})}
+    for name, body in bad.items():
+        (tmp_path / name).write_text(body)
+        with pytest.raises(ConfigError, match=re.escape(name)):
+            load_trees(tmp_path / name, TERMS)
+    with pytest.raises(ConfigError, match=r"missing\.json"):
+        load_trees(tmp_path / "missing.json", TERMS)
+
+
+def test_boost_learns_an_interaction_the_sum_cannot():
+    """False iff exactly one of two terms is high: no weighted sum ranks that; depth-2 trees do."""
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(4000, 2))
+    false = (x[:, 0] > 0) ^ (x[:, 1] > 0)
+    fit = boost(x, false, np.ones(len(x)), np.zeros(len(x)), ("density", "depth"), depth=2, rounds=60, rate=0.2)
+    p = fit.margin(x)
+    assert auc(p, ~false) > 0.97
+    assert auc(x @ np.array([1.0, 1.0]), ~false) < 0.6
+    again = boost(x, false, np.ones(len(x)), np.zeros(len(x)), ("density", "depth"), depth=2, rounds=60, rate=0.2)
+    np.testing.assert_array_equal(again.leaf, fit.leaf)  # no sampling: the same rows, the same trees
+
+
+def test_boost_keeps_min_leaf_rows_and_starts_from_the_base():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(600, 3))
+    false = x[:, 0] + 0.3 * rng.normal(size=600) > 0.5
+    fit = boost(x, false, np.ones(600), np.zeros(600), ("density", "depth", "cover"), depth=3, rounds=20,
+                min_leaf=50)
+    inner = fit.feature.shape[1]
+    for t in range(len(fit.leaf)):
+        node = np.zeros(600, dtype=int)
+        for _ in range(fit.depth):
+            node = 2 * node + 1 + (x[np.arange(600), fit.feature[t, node]] > fit.threshold[t, node])
+        sizes = np.bincount(node - inner, minlength=inner + 1)
+        assert ((sizes == 0) | (sizes >= 50)).all(), sizes
+    # a base that already says everything leaves the trees (almost) nothing to add
+    sure = np.where(false, 30.0, -30.0)
+    assert np.abs(boost(x, false, np.ones(600), sure, ("density", "depth", "cover"), rounds=5).leaf).max() < 1e-6
+
+
+def _trees_file(tmp_path, config: FilterConfig, leaf: float = 5.0):
+    trees = TermTrees(("density",), np.zeros((1, 1), dtype=np.int64), np.array([[-1.0]]), np.array([[0.0, leaf]]),
+                      linear={"w_bias": config.w_bias, **{f"w_{t}": float(w) for t, w in zip(TERMS, config.weights)}})
+    path = tmp_path / "trees.json"
+    trees.save(path)
+    return path
+
+
+def test_the_rule_adds_the_trees_to_its_own_weights_only(tmp_path):
+    base = FilterConfig(trees="")
+    path = _trees_file(tmp_path, base)
+    with_trees = replace(base, trees=str(path))
+    x = np.zeros((2, len(TERMS)))
+    x[:, TERMS.index("density")] = [-2.0, 0.0]  # left of the split (+0), right of it (+5)
+    z_plain = np.log(rule_probability(x, base) / (1 - rule_probability(x, base)))
+    z_trees = np.log(rule_probability(x, with_trees) / (1 - rule_probability(x, with_trees)))
+    np.testing.assert_allclose(z_trees - z_plain, [0.0, 5.0], atol=1e-9)
+    assert "density" in with_trees.weighted_terms
+    with pytest.raises(ConfigError, match="boosted from other filter weights"):
+        replace(with_trees, w_density=1.0)
+    with pytest.raises(ConfigError, match=r"nowhere\.json"):
+        FilterConfig(trees=str(tmp_path / "nowhere.json"))
+    assert FilterConfig().term_trees is not None  # the shipped rule adds the shipped trees
+    # a parameter set naming its own weights but no trees gets none (the trees were not boosted from them)
+    assert whole_rule({"w_density": 1.0})["trees"] == ""
+    assert "trees" not in whole_rule({"reject_threshold": 0.4})
+
+
+def test_cli_trees_out_boosts_from_the_kept_weights(tmp_path):
+    """``--trees-out``: the trees file (boosted from the shipped weights, with its provenance), the
+    YAML naming it with each layout's threshold; the same command writes the same files again."""
+    from pcc_ros.cli.main import main
+    from pcc_ros.pipeline.config import PipelineConfig
+    from pcc_ros.pipeline.filter import parse_sensor_thresholds
+    from pcc_ros.workflows.detection_eval import default_config
+
+    args = ["calibrate-filter", "--sensor-thresholds", "vlp16,hdl32", "--sim-root", str(tmp_path / "sim"),
+            "--sim-sequences", "2", "--sim-frames", "3", "--threshold-folds", "1", "--target-lost", "0.5",
+            "--rows-cache", str(tmp_path / "rows"), "--weights-from", str(default_config()), "--tree-rounds", "4"]
+    for name in ("a", "b"):
+        assert main([*args, "--trees-out", str(tmp_path / f"{name}.json"), "--out", str(tmp_path / f"{name}.yaml"),
+                     "--json", str(tmp_path / f"{name}_report.json")]) == 0
+    config = PipelineConfig.from_yaml(tmp_path / "a.yaml").filter
+    shipped = PipelineConfig.from_yaml(default_config()).filter
+    assert config.trees == str(tmp_path / "a.json")
+    trees = config.term_trees
+    assert trees is not None and len(trees.leaf) == 4 and trees.provenance["rows"].keys() == {"vlp16", "hdl32"}
+    assert np.allclose(config.weights, shipped.weights) and config.w_bias == shipped.w_bias
+    assert set(parse_sensor_thresholds(config.sensor_thresholds)) == {"vlp16", "hdl32"}
+    again = load_trees(tmp_path / "b.json", TERMS)
+    np.testing.assert_array_equal(again.leaf, trees.leaf)
+    report = json.loads((tmp_path / "a_report.json").read_text())
+    assert report["by_sequence"]["folds"] == 2 and "with_trees" in report["by_sequence"]
+    header = [line for line in (tmp_path / "a.yaml").read_text().splitlines() if line.startswith("# calibrated:")]
+    assert any(line.startswith("# calibrated: trees: pcc calibrate-filter --trees-out") for line in header)
+    assert main(["calibrate-filter", "--trees-out", str(tmp_path / "c.json"), "--sim-root", str(tmp_path / "sim")]) != 0
