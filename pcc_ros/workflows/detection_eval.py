@@ -36,7 +36,7 @@ from pcc_ros.geometry.boxes import iou_bev, points_in_boxes
 from pcc_ros.metrics.detection import DIFFICULTIES, NEIGHBOURS, FrameBoxes, ap_table
 from pcc_ros.pipeline.config import CONFIG_FILES, shipped_config_dir
 from pcc_ros.pipeline.core import Pipeline, PipelineConfig
-from pcc_ros.pipeline.filter import TERMS
+from pcc_ros.pipeline.filter import TERMS, FilterConfig
 from pcc_ros.plotting import operating_curves
 from pcc_ros.types import Boxes, class_mask
 
@@ -451,10 +451,9 @@ def plot(results: dict[str, Any], path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     scores = results["_scores"]
-    # the terms the configured rule weighs (the score too: a baseline), the ray terms first
+    # the terms the configured rule reads (weights and trees; the score too: a baseline), the ray terms first
     config = results["filter_config"]
-    weighted = {k[2:] for k, v in config.items() if k.startswith("w_") and v} | {"density", "free_space", "ground_gap",
-                                                                                 "score"}
+    weighted = set(FilterConfig(**config).weighted_terms) | {"density", "free_space", "ground_gap", "score"}
     terms = [t for t in TERMS if t in scores["terms"] and t in weighted]
     cols = 3
     rows = int(np.ceil((2 + len(terms)) / cols))
