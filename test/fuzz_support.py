@@ -9,14 +9,24 @@ command must leave no output behind. The checks themselves are conftest's
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
 import numpy as np
+from hypothesis import strategies as st
 
 from pcc_ros.types import Boxes, Sample
 
 CAR = dict(center=(10.0, 2.0, 0.8), size=(4.2, 1.8, 1.5), yaw=0.3)
+
+#: Bytes a JSON reader must refuse by name or read whole: random bytes, or random JSON documents.
+RANDOM_JSON_BYTES = st.one_of(
+    st.binary(max_size=300),
+    st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
+                 lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=8), c, max_size=4),
+                 max_leaves=30).map(lambda v: json.dumps(v).encode()),
+)
 
 
 def car_points(rng: np.random.Generator, n: int = 400) -> np.ndarray:

@@ -161,6 +161,17 @@ def test_the_shipped_rule_is_whole_and_kept_whole(caplog):
         load_config(None, with_filter=True, w_score=0.5)
 
 
+def test_the_nuscenes_preset_keeps_the_shipped_rule():
+    """config/detection_filter_nuscenes.yaml is the shipped rule with nuScenes' options: the same
+    weights, trees and per-layout thresholds (a recalibration of the shipped file must reach it)."""
+    shipped, _ = load_config(None, with_filter=True)
+    nuscenes, _ = load_config(CONFIG / "detection_filter_nuscenes.yaml", with_filter=True)
+    a, b = shipped.filter, nuscenes.filter
+    assert a.weights.tolist() == b.weights.tolist() and a.w_bias == b.w_bias and a.trees == b.trees == "shipped"
+    assert (a.sensor_thresholds, a.reject_threshold) == (b.sensor_thresholds, b.reject_threshold)
+    assert b.score_mapping == "identity" and b.sensor == "auto"
+
+
 def test_per_layout_thresholds_belong_to_the_weights_they_were_set_for():
     """The shipped file's sensor_thresholds stay with its weights (an override of reject_threshold
     on it changes the fallback only); a file or parameter set with its own rule or threshold and no

@@ -8,10 +8,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from fuzz_support import RANDOM_JSON_BYTES
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from pcc_ros.errors import ConfigError
 from pcc_ros.pipeline.filter import TERMS, FilterConfig, rule_probability, whole_rule
-from pcc_ros.pipeline.trees import TermTrees, load_trees
+from pcc_ros.pipeline.trees import SHIPPED_PATH, TermTrees, load_trees
 from pcc_ros.workflows.boosting import boost
 from pcc_ros.workflows.detection_eval import auc
 
@@ -152,3 +155,56 @@ def test_cli_trees_out_boosts_from_the_kept_weights(tmp_path):
     header = [line for line in (tmp_path / "a.yaml").read_text().splitlines() if line.startswith("# calibrated:")]
     assert any(line.startswith("# calibrated: trees: pcc calibrate-filter --trees-out") for line in header)
     assert main(["calibrate-filter", "--trees-out", str(tmp_path / "c.json"), "--sim-root", str(tmp_path / "sim")]) != 0
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=RANDOM_JSON_BYTES)
+def test_random_bytes_are_a_config_error_naming_the_file(tmp_path, data):
+    path = tmp_path / "random_trees.json"
+    path.write_bytes(data)
+    with pytest.raises(ConfigError, match=r"random_trees\.json"):
+        load_trees(path, TERMS)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(position=st.floats(0, 1, exclude_max=True), byte=st.integers(0, 255), cut=st.booleans())
+def test_damaged_shipped_trees_are_refused_or_read_whole(tmp_path, position, byte, cut):
+    """A cut or one changed byte of the shipped file: a ConfigError naming it, or (a digit changed
+    into another) trees of the same shape; never another exception."""
+    data = bytearray(SHIPPED_PATH.read_bytes())
+    at = int(position * len(data))
+    data = data[:at] if cut else data[:at] + bytes([byte]) + data[at + 1:]
+    path = tmp_path / "damaged.json"
+    path.write_bytes(bytes(data))
+    try:
+        trees = load_trees(path, TERMS)
+    except ConfigError as exc:
+        assert "damaged.json" in str(exc)
+    else:
+        assert trees.leaf.shape == load_trees(SHIPPED_PATH, TERMS).leaf.shape
+
+
+def test_a_corrupt_trees_file_is_a_named_failure_of_the_command(tmp_path, caplog):
+    from conftest import assert_named_failure, run_cli
+
+    (tmp_path / "trees.json").write_text('{"format": "pcc_ros.filter_trees/1", "terms": ["density"], "feature": [[0')
+    config = tmp_path / "filter.yaml"
+    config.write_text("/**:\n  ros__parameters:\n    trees: " + str(tmp_path / "trees.json") + "\n")
+    rc, text = run_cli(["eval", "detections", "--nuscenes", "nowhere", "--config", config,
+                        "--json", tmp_path / "out.json"], caplog)
+    assert_named_failure(rc, text, str(tmp_path / "trees.json"), output=tmp_path / "out.json")
+
+
+def test_a_fresh_fit_with_thresholds_writes_no_trees(tmp_path):
+    """``--sim-sensors ... --sensor-thresholds``: new weights, their own thresholds, and ``trees: ""``
+    (the shipped trees were boosted from the shipped weights, not these)."""
+    from pcc_ros.cli.main import main
+    from pcc_ros.pipeline.config import PipelineConfig
+
+    out = tmp_path / "fit.yaml"
+    assert main(["calibrate-filter", "--sim-sensors", "vlp16,hdl32", "--sensor-thresholds", "vlp16,hdl32",
+                 "--sim-root", str(tmp_path / "sim"), "--sim-sequences", "2", "--sim-frames", "3",
+                 "--threshold-folds", "1", "--target-lost", "0.5", "--max-lost", "0.05", "--folds", "0",
+                 "--out", str(out)]) == 0
+    config = PipelineConfig.from_yaml(out).filter
+    assert config.trees == "" and config.term_trees is None and config.sensor_thresholds

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import assert_named_failure, run_cli
-from fuzz_support import small_frames
+from fuzz_support import RANDOM_JSON_BYTES, small_frames
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from safetensors.torch import load_file, save_file
@@ -83,12 +83,7 @@ def test_tampered_checkpoint_through_the_cli(tmp_path, caplog):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(data=st.one_of(
-    st.binary(max_size=300),
-    st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
-                 lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=8), c, max_size=4),
-                 max_leaves=30).map(lambda v: json.dumps(v).encode()),
-))
+@given(data=RANDOM_JSON_BYTES)
 def test_random_config_bytes_are_a_checkpoint_error(tmp_path, data):
     shutil.copy(f"{SHIPPED}.safetensors", tmp_path / "m.safetensors")
     (tmp_path / "m.json").write_bytes(data)

@@ -384,6 +384,8 @@ def test_a_weight_changed_beside_the_trees_is_refused():
     result = node.core.set_parameters({"w_density": 3.0})
     assert not result.successful and "boosted from other filter weights" in result.reason, result.reason
     assert node.core.pipeline.config.filter.w_density != 3.0 and node.frame(STAMP).frames == 1
+    missing = node.core.set_parameters({"trees": "/nowhere/trees.json"})
+    assert not missing.successful and "/nowhere/trees.json" in missing.reason, missing.reason
     assert node.core.set_parameters({"w_density": 3.0, "trees": ""}).successful
 
 

@@ -114,7 +114,7 @@ def run_sensors(args: argparse.Namespace) -> int:
     per_sensor = None
     if args.sensor_thresholds:
         fitted = FilterConfig(w_bias=result["bias"], **{f"w_{t}": float(w) for t, w in zip(TERMS, weights)},
-                              mismatch_mean=result["mismatch_mean"], sensor_thresholds="")
+                              mismatch_mean=result["mismatch_mean"], sensor_thresholds="", trees="")
         rows_of = layout_rows(args, pipeline, "mismatch" in terms)
         per_sensor = per_sensor_step(args, rows_of, {k: rows_probability(r, fitted, None) for k, r in rows_of.items()},
                                      result["threshold"])

@@ -166,7 +166,8 @@ class FilterConfig:
     @property
     def weighted_terms(self) -> tuple[str, ...]:
         """The terms of :data:`TERMS` the evidence rule reads: a non-zero weight, or a tree's."""
-        in_trees = set(self.term_trees.terms) if self.term_trees is not None else set()
+        trees = self.term_trees
+        in_trees = set(trees.terms) if trees is not None else set()
         return tuple(t for t, w in zip(TERMS, self.weights) if w != 0.0 or t in in_trees)
 
     @property

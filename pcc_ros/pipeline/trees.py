@@ -127,7 +127,7 @@ def load_trees(path: str | Path, known_terms: tuple[str, ...]) -> TermTrees:
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, RecursionError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{path}: not a readable filter trees file ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ConfigError(f"{path}: not a filter trees file (format {FORMAT!r} expected)")
@@ -141,7 +141,7 @@ def load_trees(path: str | Path, known_terms: tuple[str, ...]) -> TermTrees:
                           threshold.reshape(len(threshold), -1),
                           np.asarray(doc["leaf"], dtype=np.float64).reshape(len(threshold), -1),
                           {str(k): float(v) for k, v in doc.get("linear", {}).items()}, dict(doc.get("provenance", {})))
-    except (KeyError, TypeError, ValueError) as exc:
+    except (AttributeError, KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: malformed filter trees ({exc})") from None
     if trees.depth != doc.get("depth"):
         raise ConfigError(f"{path}: malformed filter trees (depth {doc.get('depth')} recorded, {trees.depth} stored)")

@@ -42,7 +42,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pcc_ros.errors import ConfigError
-from pcc_ros.pipeline.filter import TERMS, rule_logit, term_matrix
+from pcc_ros.pipeline.filter import TERMS, FilterConfig, rule_logit, term_matrix
 from pcc_ros.pipeline.trees import TermTrees
 from pcc_ros.workflows.detection_eval import auc, detection_truth, load_kitti, operating_curve, removed_at
 from pcc_ros.workflows.filter_calibration import FeatureRows, fit_logistic, predict, threshold_each
@@ -182,8 +182,8 @@ def filled(x: np.ndarray, mismatch_mean: float) -> np.ndarray:
     return out
 
 
-def rows_probability(rows: Rows, config, trees: TermTrees | None) -> np.ndarray:
-    """p_false of every row under the weighted sum of ``config`` (a :class:`FilterConfig`) plus
+def rows_probability(rows: Rows, config: FilterConfig, trees: TermTrees | None) -> np.ndarray:
+    """p_false of every row under the weighted sum of ``config`` plus
     ``trees`` (a missing mismatch read as its mean); the trees are given, not read from ``config``'s
     file, so fold fits need none."""
     z = rule_logit(filled(rows.x, config.mismatch_mean), config.w_bias, config.weights, trees)
