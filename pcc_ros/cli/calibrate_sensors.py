@@ -279,6 +279,11 @@ def run_sensor_from_scans(args: argparse.Namespace) -> int:
         print(f"  it matches the preset {scanned.preset}: the shipped sensor_thresholds already hold a threshold for "
               "it; this run sets one from your sensor's own simulation")
     source, config = kept_weights(args)
+    trees = config.term_trees
+    if trees is not None and trees.provenance.get("sim_seed") == args.sim_seed:
+        log.warning("--sim-seed %d: the trees of %s were boosted on that seed's streets; a threshold set on scenes "
+                    "they saw is optimistic (it loses more than --target-lost on streets they did not): give another "
+                    "seed", args.sim_seed, source)
     sensor = scanned.sensor()
     key = hashlib.sha256(json.dumps(sensor.to_dict(), sort_keys=True).encode()).hexdigest()[:10]
     name = f"scanned_{key}"

@@ -92,6 +92,7 @@ def run_trees(args: argparse.Namespace) -> int:
                        "false": int(every.false[every.sensor == s].sum())} for s in sorted(set(every.sensor))}
     trees = replace(trees, provenance={
         "command": command_line(args), "commit": _commit(), "weights_from": str(source), "terms": list(TREE_TERMS),
+        "sim_seed": args.sim_seed,
         **settings, "rows": counts,
         "held_out": {"by_sequence_auc": by_seq["with_trees"]["auc_false_above_true"],
                      "by_sequence_auc_sum_alone": by_seq["sum_alone"]["auc_false_above_true"],
