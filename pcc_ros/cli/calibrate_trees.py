@@ -60,6 +60,7 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run_trees(args: argparse.Namespace) -> int:
+    """Boost, report held out, set the thresholds on out-of-fold scores, write the trees and ``--out``."""
     if not args.sensor_thresholds:
         raise ConfigError("--trees-out boosts on the simulated layouts of --sensor-thresholds (e.g. all) and sets "
                           "their thresholds for the weights plus the trees: give it")
@@ -102,7 +103,8 @@ def run_trees(args: argparse.Namespace) -> int:
     trees.save(args.trees_out)
     print(f"wrote {args.trees_out}: {len(trees.leaf)} trees of depth {trees.depth} over {', '.join(trees.terms)}")
     if args.out:
-        value = SHIPPED if args.trees_out.resolve() == SHIPPED_PATH else str(args.trees_out)
+        # the packaged file by name, any other by its absolute path (a node's working directory is not ours)
+        value = SHIPPED if args.trees_out.resolve() == SHIPPED_PATH else str(args.trees_out.resolve())
         header = f"# calibrated: trees: {command_line(args)}\n" + per_sensor_header(
             args, per_sensor, "the trees command above, on the out-of-fold p_false")
         write_kept_weights(args, source, replace(config, trees=value), per_sensor["fallback"], per_sensor["value"],
