@@ -208,3 +208,25 @@ def test_a_fresh_fit_with_thresholds_writes_no_trees(tmp_path):
                  "--out", str(out)]) == 0
     config = PipelineConfig.from_yaml(out).filter
     assert config.trees == "" and config.term_trees is None and config.sensor_thresholds
+
+
+def test_monotone_trees_never_bend_against_a_held_direction():
+    """A false label that rises with term 0 except in a band where the data say the opposite: free
+    trees follow the band, trees held to +1 on term 0 never lower the logit as term 0 grows."""
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-1, 1, size=(3000, 2))
+    p = 1 / (1 + np.exp(-4 * x[:, 0]))
+    p[(x[:, 0] > 0.2) & (x[:, 0] < 0.5)] = 0.05  # the band that bends against the direction
+    false = rng.random(3000) < p
+    args = (x, false, np.ones(3000), np.zeros(3000), ("density", "depth"))
+    free = boost(*args, depth=3, rounds=40, rate=0.3)
+    held = boost(*args, depth=3, rounds=40, rate=0.3, monotone=(1, 0))
+    grid = np.linspace(-1, 1, 201)
+    for other in np.linspace(-1, 1, 9):
+        probe = np.stack([grid, np.full_like(grid, other)], axis=1)
+        assert (np.diff(held.margin(probe)) >= -1e-12).all()
+    assert (np.diff(free.margin(np.stack([grid, np.zeros_like(grid)], axis=1))) < -1e-6).any()
+    unconstrained = boost(*args, depth=3, rounds=40, rate=0.3, monotone=(0, 0))
+    np.testing.assert_array_equal(unconstrained.leaf, free.leaf)  # all-zero constraints: the free fit
+    with pytest.raises(ValueError, match="monotone"):
+        boost(*args, monotone=(2, 0))

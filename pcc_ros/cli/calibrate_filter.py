@@ -118,6 +118,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tree-depth", type=int, default=3, help="with --trees-out: depth of each tree (3)")
     parser.add_argument("--tree-rounds", type=int, default=300, help="with --trees-out: boosting rounds (300)")
     parser.add_argument("--tree-rate", type=float, default=0.05, help="with --trees-out: shrinkage per tree (0.05)")
+    parser.add_argument("--tree-monotone", action="store_true",
+                        help="with --trees-out: hold each term whose physics gives a direction (density, free_space, "
+                        "ground_gap, above, overlap, depth, corner, cover, through) to it in the trees")
     parser.add_argument("--real-layout", default="hdl64", choices=SENSOR_CHOICES[1:],
                         help="with --trees-out and --real: the layout whose threshold judges the held-out real "
                         "frames (hdl64: KITTI)")

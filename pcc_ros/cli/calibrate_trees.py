@@ -55,7 +55,8 @@ def command_line(args: argparse.Namespace) -> str:
             f"{' --weights-from ' + str(args.weights_from) if args.weights_from else ''}"
             f" --sim-root {args.sim_root} --sim-seed {args.sim_seed} --sim-sequences {args.sim_sequences}"
             f" --sim-frames {args.sim_frames}{real} --tree-depth {args.tree_depth} --tree-rounds {args.tree_rounds}"
-            f" --tree-rate {args.tree_rate:g} --threshold-folds {args.threshold_folds}"
+            f" --tree-rate {args.tree_rate:g}{' --tree-monotone' if args.tree_monotone else ''}"
+            f" --threshold-folds {args.threshold_folds}"
             f" --target-lost {args.target_lost:g}")
 
 
@@ -72,7 +73,8 @@ def run_trees(args: argparse.Namespace) -> int:
     pipeline = measuring_pipeline(args.filter_backend, shape=shape)
     rows = layout_rows(args, pipeline, shape)
     every = Rows.concatenate([*rows.values(), *([labelled_real_rows(args, pipeline)] if args.real else [])])
-    settings = {"depth": args.tree_depth, "rounds": args.tree_rounds, "rate": args.tree_rate}
+    settings = {"depth": args.tree_depth, "rounds": args.tree_rounds, "rate": args.tree_rate,
+                **({"monotone": True} if args.tree_monotone else {})}
     by_seq, p_out = held_out_by_sequence(every, config, **settings)
     report: dict[str, Any] = {"by_sequence": by_seq}
     print(f"held out by sequence ({by_seq['folds']} folds), the weighted sum alone: AUC "

@@ -34,16 +34,22 @@ from pcc_ros.workflows.filter_sensors import Rows, figures, filled, rows_probabi
 #: Terms the trees may split on by default: every measured term but the detector score (an unknown
 #: detector's scale is unknown) and the shape mismatch (a completion of every box).
 TREE_TERMS = tuple(t for t in TERMS if t not in ("score", "mismatch"))
+#: The direction of the terms whose physics gives one (+1: a larger value says "false"), as the
+#: shipped weights' signs do; ``--tree-monotone`` keeps the trees from bending against them.
+PHYSICAL_DIRECTION = {"density": -1, "free_space": 1, "ground_gap": 1, "above": 1, "overlap": 1, "depth": 1,
+                      "corner": -1, "cover": -1, "through": 1}
 
 
 def boost_rows(rows: Rows, config: FilterConfig, terms: tuple[str, ...] = TREE_TERMS, depth: int = 3,
-               rounds: int = 300, rate: float = 0.05) -> TermTrees:
+               rounds: int = 300, rate: float = 0.05, monotone: bool = False) -> TermTrees:
     """Trees over ``terms`` boosted from the logit of ``config``'s weighted sum (its own trees left
-    out), on ``rows``, every sensor (and the real frames) weighing the same."""
+    out), on ``rows``, every sensor (and the real frames) weighing the same; ``monotone``: each term of
+    :data:`PHYSICAL_DIRECTION` held to its direction."""
     p = np.clip(rows_probability(rows, config, None), 1e-12, 1 - 1e-12)
     cols = [TERMS.index(t) for t in terms]
+    signs = tuple(PHYSICAL_DIRECTION.get(t, 0) for t in terms) if monotone else None
     trees = boost(filled(rows.x, config.mismatch_mean)[:, cols], rows.false, sensor_balance(rows), np.log(p / (1 - p)),
-                  terms, depth=depth, rounds=rounds, rate=rate)
+                  terms, depth=depth, rounds=rounds, rate=rate, monotone=signs)
     linear = {"w_bias": float(config.w_bias), **{f"w_{t}": float(w) for t, w in zip(TERMS, config.weights)}}
     return replace(trees, linear=linear)
 

@@ -381,8 +381,9 @@ def render_filter_trees(d: dict[str, Any]) -> list[str]:
                 *(f"{f['per_kind'][k]['auc_vs_true']:.3f}" for k in kinds)]
 
     rows = [[f"the weighted sum alone (held out by sequence, {d['by_sequence']['folds']} folds)", *auc_row(alone)],
-            [f"the sum + {s['rounds']} trees of depth {s['depth']} (rate {s['rate']:g}), boosted without the "
-             "held-out sequence", *auc_row(seq)]]
+            [f"the sum + {s['rounds']} trees of depth {s['depth']} (rate {s['rate']:g}"
+             f"{', monotone in the physical terms' if s.get('monotone') else ''}), boosted without the held-out "
+             "sequence", *auc_row(seq)]]
     out = table(["held out", "AUC", "removed at <= 2 % lost (best threshold)", *(f"AUC {k}" for k in kinds)], rows)
     real = d.get("real_frames")
     if real is not None:
