@@ -138,7 +138,10 @@ class FilterConfig:
         if not 0.0 < self.reject_threshold < 1.0:
             raise ConfigError(f"reject_threshold must be in (0, 1), got {self.reject_threshold}")
         parse_sensor_thresholds(self.sensor_thresholds)  # refuse a malformed table now, not per frame
-        self.term_trees  # noqa: B018  (refuse a missing / corrupt trees file, or other weights', now)
+        # the trees read and checked once, here (a missing / corrupt file, or other weights', refused now),
+        # and kept with this config: the frames judged under it read no file (not a dataclass field:
+        # not a parameter, not compared; replace() makes a new config that reads them again)
+        object.__setattr__(self, "_term_trees", self._load_trees())
 
     def threshold_for(self, preset: str | None) -> float:
         """The reject threshold for a beam model matching ``preset`` (None: no preset matched):
@@ -154,7 +157,11 @@ class FilterConfig:
 
     @property
     def term_trees(self) -> TermTrees | None:
-        """The boosted trees of ``trees`` (read once per file version), checked against these weights."""
+        """The boosted trees of ``trees``, as read when this config was made (None: the sum alone)."""
+        return self.__dict__["_term_trees"]
+
+    def _load_trees(self) -> TermTrees | None:
+        """The trees of ``trees`` (a file read once per version), checked against these weights."""
         path = trees_path(self.trees)
         if path is None:
             return None
