@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-import subprocess
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 from pcc_ros.cli.calibrate_sensors import (
@@ -27,21 +25,12 @@ from pcc_ros.cli.calibrate_sensors import (
     write_report,
 )
 from pcc_ros.errors import ConfigError
+from pcc_ros.models.checkpoint import git_revision
 from pcc_ros.pipeline.trees import SHIPPED, SHIPPED_PATH
 from pcc_ros.workflows.filter_sensors import Rows, measuring_pipeline
 from pcc_ros.workflows.filter_trees import TREE_TERMS, boost_rows, held_out_by_sequence, held_out_real
 
 log = logging.getLogger(__name__)
-
-
-def _commit() -> str:
-    """The source's git commit, when it is a checkout (provenance only)."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10,
-                             cwd=Path(__file__).resolve().parent)
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return out.stdout.strip() or "unknown"
 
 
 def _kinds(fig: dict[str, Any]) -> str:
@@ -94,7 +83,7 @@ def run_trees(args: argparse.Namespace) -> int:
     counts = {str(s): {"true": int((~every.false[every.sensor == s]).sum()),
                        "false": int(every.false[every.sensor == s].sum())} for s in sorted(set(every.sensor))}
     trees = replace(trees, provenance={
-        "command": command_line(args), "commit": _commit(), "weights_from": str(source), "terms": list(TREE_TERMS),
+        "command": command_line(args), "commit": git_revision(), "weights_from": str(source), "terms": list(TREE_TERMS),
         "sim_seed": args.sim_seed,
         **settings, "rows": counts,
         "held_out": {"by_sequence_auc": by_seq["with_trees"]["auc_false_above_true"],
